@@ -1,0 +1,1 @@
+"""Synthetic point clouds with exact truth, for tests and benchmarks."""

@@ -1,0 +1,97 @@
+"""The stage registry: a stage is an id, a validated parameter model and a function.
+
+Ids read like a pipeline (``ground.ptd``, ``ground.nist``, ``mixed.ebw``). The
+registry refuses duplicates, so two modules cannot silently claim one id.
+Parameter models forbid unknown keys and carry named presets, so a job can say
+``ground.preset=conservative`` and override single values on top.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar, Self
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from terrasift.errors import ParameterError
+
+
+class StageParams(BaseModel):
+    """Base of every stage's parameter model: frozen, unknown keys rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    #: named parameter sets; ``default`` is implied by the field defaults
+    presets: ClassVar[dict[str, dict[str, Any]]] = {}
+
+    @classmethod
+    def preset(cls, name: str = "default", **overrides: Any) -> Self:
+        """Build the named preset with ``overrides`` on top; unknown names raise."""
+        if name == "default":
+            values: dict[str, Any] = {}
+        elif name in cls.presets:
+            values = dict(cls.presets[name])
+        else:
+            known = ", ".join(["default", *cls.presets])
+            raise ParameterError(f"unknown preset {name!r} (known: {known})")
+        values.update(overrides)
+        try:
+            return cls(**values)
+        except ValidationError as exc:
+            raise ParameterError(_describe(exc)) from None
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A registered processing stage."""
+
+    id: str
+    params: type[StageParams]
+    run: Callable[..., Any]
+    description: str
+
+
+_STAGES: dict[str, Stage] = {}
+
+
+def register(stage_id: str, params: type[StageParams], description: str) -> Callable:
+    """Decorator registering ``fn`` under ``stage_id``; a duplicate id raises."""
+
+    def decorate(fn: Callable[..., Any]) -> Callable[..., Any]:
+        if stage_id in _STAGES:
+            raise ValueError(f"stage {stage_id!r} is already registered")
+        _STAGES[stage_id] = Stage(stage_id, params, fn, description)
+        return fn
+
+    return decorate
+
+
+def get_stage(stage_id: str) -> Stage:
+    """The stage registered as ``stage_id``; unknown ids raise ParameterError."""
+    _load_all()
+    try:
+        return _STAGES[stage_id]
+    except KeyError:
+        known = ", ".join(sorted(_STAGES))
+        raise ParameterError(f"unknown stage {stage_id!r} (known: {known})") from None
+
+
+def stages(prefix: str = "") -> list[Stage]:
+    """All registered stages whose id starts with ``prefix``, sorted by id."""
+    _load_all()
+    return [s for k, s in sorted(_STAGES.items()) if k.startswith(prefix)]
+
+
+def _load_all() -> None:
+    # Importing the stage modules registers them; kept here so callers never
+    # depend on import order.
+    import terrasift.workers.stages  # noqa: F401
+
+
+def _describe(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "value"
+        parts.append(f"{loc}: {err['msg']}")
+    return "; ".join(parts)

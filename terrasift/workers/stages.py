@@ -1,0 +1,3 @@
+"""Imports every stage module so each registers itself with the registry."""
+
+# Stage modules are imported for their registration side effect.
