@@ -141,8 +141,13 @@ def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) ->
 # ------------------------------------------------------------------ running
 
 
-def run_job(job_dir: Path, executor: Executor, progress: Progress | None = None) -> list[str]:
-    """Run (or resume) the job in ``job_dir`` on ``executor``; return output names."""
+def run_job(
+    job_dir: Path, executor: Executor, progress: Progress | None = None, *, products: str = "all"
+) -> list[str]:
+    """Run (or resume) the job in ``job_dir`` on ``executor``; return output names.
+
+    ``products="classified"`` writes only the classified point clouds (and the report).
+    """
     job_dir = Path(job_dir)
     progress = progress or (lambda done, total: None)
     started = time.perf_counter()
@@ -153,47 +158,42 @@ def run_job(job_dir: Path, executor: Executor, progress: Progress | None = None)
     grid = BlockGrid(**plan["grid"])
     n_tiles = len(plan["tiles"])
 
-    # Shard: one streaming pass per tile.
+    from terrasift.tiling import outputs
+
+    # Finishing tasks: rasters, then one classified point cloud per tile.
+    finish: list[tuple[Callable[..., Any], tuple]] = [(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    if products == "all":
+        finish.insert(0, (outputs.write_rasters, (str(job_dir),)))
+
+    # Progress counts tasks: shards, blocks, finishing tasks, the report.
     shard_root = job_dir / "shards"
     todo = [i for i in range(n_tiles) if not (shard_root / str(i)).is_dir()]
-    estimate = n_tiles + grid.nx * grid.ny + 2
-    done_count = n_tiles - len(todo)
-    progress(done_count, estimate)
+    counter = {"done": n_tiles - len(todo), "total": n_tiles + grid.nx * grid.ny + len(finish) + 1}
+    progress(counter["done"], counter["total"])
 
-    def tick(total: int) -> Callable[[Any], None]:
-        def on_done(_: Any) -> None:
-            nonlocal done_count
-            done_count += 1
-            progress(done_count, total)
+    def tick(_: Any) -> None:
+        counter["done"] += 1
+        progress(counter["done"], counter["total"])
 
-        return on_done
-
+    # Shard: one streaming pass per tile.
     t = time.perf_counter()
-    _run_tasks(
-        executor,
-        job_dir,
-        shard_tile,
-        [(plan["tiles"][i]["path"], i, grid, str(shard_root / str(i)), 1_000_000, params.get("scan_dimension")) for i in todo],
-        tick(estimate),
-    )
+    shard_args = [
+        (plan["tiles"][i]["path"], i, grid, str(shard_root / str(i)), 1_000_000, params.get("scan_dimension"))
+        for i in todo
+    ]
+    _run_tasks(executor, job_dir, shard_tile, shard_args, tick)
     shard_seconds = time.perf_counter() - t
 
     # Blocks: every block that received a point from any tile.
     names = sorted({p.stem for d in shard_root.iterdir() if d.is_dir() for p in d.glob("*.bin")})
-    total = n_tiles + len(names) + 2
+    counter["total"] = n_tiles + len(names) + len(finish) + 1
     t = time.perf_counter()
-    block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick(total))
+    block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
     block_seconds = time.perf_counter() - t
 
-    # Finish: rasters and classified point clouds, then the report and STAC item.
-    from terrasift.tiling import outputs
-
     t = time.perf_counter()
-    out_dir = job_dir / "outputs"
-    out_dir.mkdir(exist_ok=True)
-    finish_args = [(str(job_dir),)] + [(str(job_dir), i) for i in range(n_tiles)]
-    finish_fns = [outputs.write_rasters] + [outputs.write_classified] * n_tiles
-    _run_mixed_tasks(executor, job_dir, list(zip(finish_fns, finish_args)), tick(total + n_tiles - 1))
+    (job_dir / "outputs").mkdir(exist_ok=True)
+    _run_mixed_tasks(executor, job_dir, finish, tick)
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     timings = {
@@ -203,7 +203,7 @@ def run_job(job_dir: Path, executor: Executor, progress: Progress | None = None)
         "total": time.perf_counter() - started,
     }
     names_out = outputs.write_report_and_item(job_dir, plan, params, block_stats, timings)
-    progress(total + n_tiles - 1, total + n_tiles - 1)
+    tick(None)
     return names_out
 
 

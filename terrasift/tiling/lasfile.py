@@ -169,7 +169,9 @@ def iter_chunks(path: str | Path, chunk_size: int = 1_000_000, scan_dim: str | N
     dimension holding a scan-position id (default: point_source_id, 0 if absent).
     """
     try:
-        reader = laspy.open(str(path), decompression_selection=laspy.DecompressionSelection.base())
+        sel = laspy.DecompressionSelection
+        wanted = sel.XY_RETURNS_CHANNEL | sel.Z | sel.POINT_SOURCE_ID | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+        reader = laspy.open(str(path), decompression_selection=wanted)
     except Exception as exc:
         raise InputError(f"{Path(path).name}: cannot open for reading: {exc}") from None
     with reader:
