@@ -26,6 +26,7 @@ class FakePipeline:
         self.tasks = tasks
         self.free_tasks = tasks if free_tasks is None else free_tasks
         self.gate = threading.Event()
+        self.abort: Callable[[], bool] = lambda: False
         self.fail = fail
         self.ran: list[tuple[str, int]] = []
         self._lock = threading.Lock()
@@ -74,6 +75,8 @@ class FakePipeline:
             while not self.gate.wait(0.02):
                 if (job_dir / MARKER).exists():
                     raise JobCancelled("dismissed")
+                if self.abort():
+                    raise RuntimeError("worker went away")
         if (job_dir / MARKER).exists():
             raise JobCancelled("dismissed")
         time.sleep(0.01)

@@ -90,12 +90,12 @@ def parse_range(header: str | None, size: int) -> ByteRange | None:
             raise RangeNotSatisfiable(header)
         return ByteRange(max(0, size - suffix), size - 1, size)
     first = int(first_s)
-    last = int(last_s) if last_s else size - 1
-    if last < first:
+    if last_s and int(last_s) < first:
         return None  # syntactically invalid per RFC 9110: ignore the header
     if first >= size:
         raise RangeNotSatisfiable(header)
-    return ByteRange(first, min(last, size - 1), size)
+    last = min(int(last_s), size - 1) if last_s else size - 1
+    return ByteRange(first, last, size)
 
 
 def _etag_matches(header: str, etag: str) -> bool:

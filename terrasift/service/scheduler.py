@@ -133,6 +133,10 @@ class Scheduler:
                     log.exception("executor shutdown failed")
                 self._executor = None
 
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
     def wake(self) -> None:
         """Look for accepted jobs now rather than at the next poll."""
         self._wake.set()
