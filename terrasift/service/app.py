@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
 
 from terrasift import __version__
 from terrasift.service import problems
@@ -21,6 +22,7 @@ from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.context import Service
 from terrasift.service.routes import jobs, processes, surveys
 from terrasift.service.scheduler import Scheduler
+from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
 from terrasift.service.store import JobStore
 
@@ -75,6 +77,15 @@ def create_app(
     app.include_router(processes.router)
     app.include_router(jobs.router)
     app.include_router(surveys.router)
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = add_problem_schema(
+                get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            )
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app
 
 

@@ -28,31 +28,6 @@ CONFORMANCE = [
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
 ]
 
-# The §8 parameter contract; stages may add more, which the description lists from the registry.
-PARAMETERS: dict[str, dict[str, Any]] = {
-    "ground": {"description": "ground method", "schema": {"type": "string", "enum": ["nist", "ptd"]}},
-    "ground.preset": {
-        "description": "named parameter set of the ground method",
-        "schema": {"type": "string", "enum": ["default", "conservative", "aggressive"]},
-    },
-    "rotation": {
-        "description": "rotated classification: steep blocks only, never, or every block",
-        "schema": {"type": "string", "enum": ["auto", "off", "always"], "default": "auto"},
-    },
-    "sensor_origin": {
-        "description": "`X,Y,Z` of the scanner in the tile CRS: a ground-based scan (mixed-measurement filter, concentric grid)",
-        "schema": {"type": "string", "pattern": r"^\s*-?[0-9.eE+-]+\s*,\s*-?[0-9.eE+-]+\s*,\s*-?[0-9.eE+-]+\s*$"},
-    },
-    "features": {
-        "description": "comma list of feature filter names, `all` or `none`",
-        "schema": {"type": "string", "default": "all"},
-    },
-    "block_size": {"description": "block edge in metres", "schema": {"type": "number", "exclusiveMinimum": 0}},
-    "buffer": {"description": "block buffer (halo) in metres", "schema": {"type": "number", "minimum": 0}},
-    "resolution": {"description": "DTM/DSM cell size in metres", "schema": {"type": "number", "exclusiveMinimum": 0}},
-    "crs": {"description": "CRS of the tiles when they have none or a wrong one, e.g. `EPSG:32632`", "schema": {"type": "string"}},
-}
-
 OUTPUTS: dict[str, str] = {
     "classified.laz": "every input point, original order and dimensions, classes 1/2/3/4/5/7",
     "dtm.tif": "bare-earth elevation, float32 COG",
@@ -67,6 +42,31 @@ OUTPUTS: dict[str, str] = {
     "report.json": "counts per class, coverage, roughness, parameters, stage timings, warnings",
     "item.json": "STAC Item whose assets are the outputs",
 }
+
+
+def parameter_inputs() -> dict[str, dict[str, Any]]:
+    """Every job parameter as a process input: the §8 keys, then ``<stage>.<field>`` per registered stage."""
+    from terrasift.params import JobParams
+    from terrasift.workers.registry import stages
+
+    out: dict[str, dict[str, Any]] = {}
+
+    def add(key: str, prop: dict[str, Any], defs: dict[str, Any], prefix: str = "") -> None:
+        prop = dict(prop)
+        prop.pop("title", None)
+        description = prefix + prop.pop("description", "")
+        if defs:
+            prop["$defs"] = defs
+        out[key] = {"description": description.strip(), "schema": prop}
+
+    schema = JobParams.model_json_schema(by_alias=True)
+    for key, prop in schema["properties"].items():
+        add(key, prop, schema.get("$defs", {}))
+    for stage in stages():
+        schema = stage.params.model_json_schema(by_alias=True)
+        for field, prop in schema.get("properties", {}).items():
+            add(f"{stage.id}.{field}", prop, schema.get("$defs", {}), f"{stage.id} ({stage.description}): ")
+    return out
 
 
 def link(href: str, rel: str, type_: str = "application/json", title: str | None = None) -> dict[str, str]:

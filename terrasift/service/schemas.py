@@ -94,12 +94,30 @@ class SurveyInfo(BaseModel):
     links: list[Link]
 
 
-PROBLEM_RESPONSE = {"model": ProblemDetails, "content": {"application/problem+json": {}}}
+PROBLEM_REF = "#/components/schemas/ProblemDetails"
 
 
 def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for problem+json answers."""
-    return {code: {"description": "problem", **PROBLEM_RESPONSE} for code in codes}
+    """OpenAPI `responses` entries for problem+json answers (the schema is added by ``add_problem_schema``)."""
+    content = {"application/problem+json": {"schema": {"$ref": PROBLEM_REF}}}
+    return {code: {"description": "problem (RFC 9457)", "content": content} for code in codes}
+
+
+def add_problem_schema(spec: dict[str, Any]) -> dict[str, Any]:
+    """Put ProblemDetails into the spec's components, where `problem_responses` points."""
+    schemas = spec.setdefault("components", {}).setdefault("schemas", {})
+    schemas["ProblemDetails"] = ProblemDetails.model_json_schema(ref_template="#/components/schemas/{model}")
+    # FastAPI documents request validation as 422 HTTPValidationError; this API answers 400 problem+json
+    for operations in spec.get("paths", {}).values():
+        for op in operations.values():
+            responses = op.get("responses", {})
+            auto = responses.get("422", {}).get("content", {}).get("application/json", {}).get("schema", {})
+            if auto.get("$ref", "").endswith("/HTTPValidationError"):
+                del responses["422"]
+                responses.setdefault("400", problem_responses(400)[400])
+    schemas.pop("HTTPValidationError", None)
+    schemas.pop("ValidationError", None)
+    return spec
 
 
 def multipart_body(description: str) -> dict[str, Any]:

@@ -49,7 +49,13 @@ async def submit_upload(request: Request, who: Annotated[str, Depends(tenant)]) 
     return created(request, job)
 
 
-@router.get("/jobs", summary="Jobs of this tenant", response_model=JobList, response_model_exclude_none=True)
+@router.get(
+    "/jobs",
+    summary="Jobs of this tenant",
+    response_model=JobList,
+    response_model_exclude_none=True,
+    responses=problem_responses(400, 401),
+)
 def list_jobs(
     request: Request,
     who: Annotated[str, Depends(tenant)],
@@ -79,7 +85,7 @@ def list_jobs(
     summary="Job status",
     response_model=StatusInfo,
     response_model_exclude_none=True,
-    responses=problem_responses(404),
+    responses=problem_responses(401, 404),
 )
 def job_status(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
     """statusInfo with integer progress from tasks done."""
@@ -91,7 +97,7 @@ def job_status(job_id: str, request: Request, who: Annotated[str, Depends(tenant
     summary="Dismiss a job",
     response_model=StatusInfo,
     response_model_exclude_none=True,
-    responses=problem_responses(404),
+    responses=problem_responses(401, 404),
 )
 def dismiss(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
     """Cancel queued and running tasks, mark the job dismissed and delete its outputs."""
@@ -106,7 +112,7 @@ def dismiss(job_id: str, request: Request, who: Annotated[str, Depends(tenant)])
     "/jobs/{job_id}/results",
     summary="Job results",
     response_model=dict[str, OutputReference],
-    responses=problem_responses(404, 410, 422),
+    responses=problem_responses(401, 404, 410, 422),
 )
 def job_results(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> dict[str, Any]:
     """Each output by reference (href and media type) once the job is successful."""
@@ -120,7 +126,7 @@ _OUTPUT_DOC = dict(
         200: {"description": "the file", "content": {"application/octet-stream": {}}},
         206: {"description": "one byte range of the file"},
         304: {"description": "not modified (If-None-Match)"},
-        **problem_responses(404, 410, 416, 422),
+        **problem_responses(401, 404, 410, 416, 422),
     },
 )
 

@@ -41,7 +41,7 @@ def processes(request: Request) -> dict[str, Any]:
 def process_description(process_id: str, request: Request) -> dict[str, Any]:
     """Inputs (files and every parameter, with its schema) and outputs of the process."""
     _check_process(process_id)
-    return ogc.process_description(base_url(request), parameter_inputs(request))
+    return ogc.process_description(base_url(request), ogc.parameter_inputs())
 
 
 @router.post(
@@ -92,13 +92,6 @@ def problem_type(slug: str) -> dict[str, Any]:
     if ptype is None:
         raise Problem("not-found", f"no problem type {slug!r}")
     return {"type": ptype.uri, "title": ptype.title, "status": ptype.status}
-
-
-def parameter_inputs(request: Request) -> dict[str, dict[str, Any]]:
-    """Parameter inputs of the process description: the pipeline's schema when it offers one."""
-    pipeline = service(request).scheduler.pipeline
-    describe = getattr(pipeline, "parameter_schema", None)
-    return describe() if callable(describe) else ogc.PARAMETERS
 
 
 def _check_process(process_id: str) -> None:

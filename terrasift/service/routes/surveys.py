@@ -80,7 +80,7 @@ async def create_survey(request: Request, who: Annotated[str, Depends(tenant)]) 
     return JSONResponse(doc, status_code=201, headers={"Location": doc["links"][0]["href"]})
 
 
-@router.get("/surveys/{survey_id}", summary="A survey and its runs", response_model=SurveyInfo, responses=problem_responses(404))
+@router.get("/surveys/{survey_id}", summary="A survey and its runs", response_model=SurveyInfo, responses=problem_responses(401, 404))
 def get_survey(survey_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> dict[str, Any]:
     """The survey's files, parameters and the jobs it ran."""
     svc = service(request)
