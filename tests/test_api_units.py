@@ -107,3 +107,43 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Pa
     assert s.data_dir == tmp_path and s.dask_scheduler == "tcp://sched:8786" and s.max_upload_bytes == 1234
     assert s.db_path == tmp_path / "jobs.sqlite"
     assert Settings.model_config["env_file"] == ".env"
+
+
+class _Pool:
+    """A one-thread pool with the executor interface's wait_any."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pool = ThreadPoolExecutor(1)
+
+    def submit(self, fn, *args):
+        return self.pool.submit(fn, *args)
+
+    def wait_any(self, futures, timeout):
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        return wait(list(futures), timeout=timeout, return_when=FIRST_COMPLETED)[0]
+
+
+def test_a_cancelled_job_stops_waiting_at_once() -> None:
+    import threading
+    import time
+
+    from terrasift.errors import JobCancelled
+    from terrasift.service.scheduler import JobExecutor
+
+    inner = _Pool()
+    release = threading.Event()
+    ex = JobExecutor(inner)
+    running = ex.submit(release.wait, 10)
+    queued = ex.submit(time.sleep, 0)
+    assert ex.cancel() == 1 and queued.cancelled() and not running.done()
+    t0 = time.monotonic()
+    # the pool alone would report the cancelled future only after the running one ends
+    assert ex.wait_any([running, queued], timeout=5) == {queued}
+    assert time.monotonic() - t0 < 0.5
+    with pytest.raises(JobCancelled):
+        ex.submit(time.sleep, 0)
+    release.set()
+    inner.pool.shutdown()

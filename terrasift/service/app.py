@@ -13,6 +13,7 @@ from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from typing import Any
 
+import anyio
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
@@ -61,7 +62,8 @@ def create_app(
         try:
             yield
         finally:
-            scheduler.stop()
+            # waits for tasks already running in the pool; off the event loop
+            await anyio.to_thread.run_sync(scheduler.stop)
             store.close()
 
     app = FastAPI(

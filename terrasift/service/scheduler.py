@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from pathlib import Path
 from types import ModuleType
@@ -52,6 +52,16 @@ class JobExecutor:
             self.cancelled = True
             futures, self._futures = self._futures, []
         return sum(1 for f in futures if f.cancel())
+
+    def wait_any(self, futures: Iterable[Any], timeout: float) -> set[Any]:
+        """Futures already done (cancelled ones included) without waiting, else the executor's wait.
+
+        A pool notifies waiters of a cancelled future only when it would have run
+        it, so after a cancel the job would otherwise sit out the running tasks.
+        """
+        futures = list(futures)
+        done = {f for f in futures if f.done()}
+        return done or self._inner.wait_any(futures, timeout)
 
     def shutdown(self, *args: Any, **kwargs: Any) -> None:
         """The scheduler owns the shared executor; a job cannot shut it down."""
