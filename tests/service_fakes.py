@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from terrasift.errors import InputError, JobCancelled, ParameterError, ProcessingError
+from terrasift.errors import InputError, JobCancelled, ParameterError
 
 MARKER = "CANCELLED"
 
@@ -110,4 +110,4 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 10.0) -> Any:
     raise AssertionError("condition not reached in time")
 
 
-__all__ = ["FakePipeline", "ProcessingError", "las_bytes", "thread_executor", "wait_for"]
+__all__ = ["FakePipeline", "las_bytes", "thread_executor", "wait_for"]

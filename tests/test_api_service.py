@@ -7,14 +7,12 @@ depend on the science; `test_api_e2e.py` runs the real pipeline end to end.
 from __future__ import annotations
 
 import json
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import pytest
 from fastapi.testclient import TestClient
 from service_fakes import FakePipeline, las_bytes, thread_executor, wait_for
 
@@ -89,6 +87,10 @@ def test_upload_run_download(tmp_path: Path) -> None:
 
         final = poll(c, job_id, "successful", "failed")
         assert final["status"] == "successful" and final["progress"] == 100
+        allowed = {"processID", "type", "jobID", "status", "message", "created", "started", "finished", "updated", "progress", "links"}
+        assert {"jobID", "status", "type"} <= set(final) <= allowed
+        assert all(final[k].endswith("Z") and "T" in final[k] for k in ("created", "started", "finished", "updated"))
+        assert isinstance(final["progress"], int) and None not in final.values()
         assert final["started"] <= final["finished"] and "message" in final
         results = c.get(f"/jobs/{job_id}/results").json()
         assert set(results) == {"dtm.tif", "report.json"}
