@@ -8,6 +8,7 @@ and is validated against it, so a worker never meets a bad option.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
@@ -32,10 +33,15 @@ class JobParams(BaseModel):
     rotation: Literal["auto", "off", "always"] = Field(
         "auto", description="rotated classification: steep blocks only, never, or every block"
     )
-    sensor_origin: tuple[float, float, float] | None = Field(
-        None, description="X,Y,Z of a ground-based scanner in the tile CRS"
+    sensor_origin: list[tuple[float, float, float]] | None = Field(
+        None,
+        description="X,Y,Z of a ground-based scanner in the tile CRS; several scan positions as "
+        "X,Y,Z;X,Y,Z (point i uses the origin numbered by its scan_dimension value)",
     )
     features: str = Field("all", description="comma list of filter names, 'all' or 'none'")
+    filters: dict[str, str] | None = Field(
+        None, description="user feature filters: name -> filter text in the filter language"
+    )
     block_size: float = Field(200.0, ge=20.0, le=5000.0, description="block edge in metres")
     buffer: float = Field(20.0, ge=0.0, le=500.0, description="halo around each block in metres")
     resolution: float = Field(0.5, ge=0.05, le=100.0, description="DTM/DSM cell size in metres")
@@ -49,10 +55,15 @@ class JobParams(BaseModel):
     @classmethod
     def _split_origin(cls, v: Any) -> Any:
         if isinstance(v, str):
-            parts = [p for p in v.replace(" ", "").split(",") if p]
-            if len(parts) != 3:
-                raise ValueError("sensor_origin must be X,Y,Z")
-            return tuple(float(p) for p in parts)
+            origins = []
+            for item in v.replace(" ", "").split(";"):
+                parts = [p for p in item.split(",") if p]
+                if len(parts) != 3:
+                    raise ValueError("sensor_origin must be X,Y,Z (several: X,Y,Z;X,Y,Z)")
+                origins.append(tuple(float(p) for p in parts))
+            return origins
+        if isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(c, (int, float)) for c in v):
+            return [tuple(v)]
         return v
 
     @field_validator("crs")
@@ -110,12 +121,36 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
         preset = job.ground_preset if stage_id.startswith("ground.") else "default"
         if preset != "default" and preset not in stage.params.presets:
             preset = "default"
-        stage.params.preset(preset, **values)
+        try:
+            stage.params.preset(preset, **values)
+        except ParameterError as exc:
+            raise ParameterError(f"parameter {stage_id}.{exc}") from None
         for k, v in values.items():
             out[f"{stage_id}.{k}"] = v
     if job.ground_preset != "default":
         get_stage(f"ground.{job.ground}").params.preset(job.ground_preset)
+    grid_alignment(out)
+    from terrasift.workers.features import resolve_filters
+
+    resolve_filters(job.features, job.filters)  # unknown names and bad filter text fail now
     return out
+
+
+def grid_alignment(params: Mapping[str, Any]) -> float:
+    """Metres that the job raster's corner, size and blocks are multiples of.
+
+    The vegetation bins and the 2 m category tiles are laid on the DTM grid's
+    origin, so both must be whole multiples of ``resolution``.
+    """
+    res = float(params["resolution"])
+    cells = []
+    for stage_id, field in (("vegetation", "cell"), ("categories", "tile_size")):
+        size = float(getattr(stage_params(params, stage_id), field))
+        k = size / res
+        if round(k) < 1 or abs(k - round(k)) > 1e-6:
+            raise ParameterError(f"{stage_id}.{field} ({size}) must be a whole multiple of resolution ({res})")
+        cells.append(int(round(k)))
+    return math.lcm(*cells) * res
 
 
 def _stage_overrides(rest: dict[str, Any]) -> dict[str, dict[str, Any]]:

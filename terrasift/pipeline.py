@@ -22,7 +22,7 @@ from typing import Any
 import pyproj
 
 from terrasift.errors import InputError, JobCancelled
-from terrasift.params import validate_params
+from terrasift.params import grid_alignment, validate_params
 from terrasift.tiling.blocks import BlockGrid, shard_tile
 from terrasift.tiling.lasfile import TileInfo, read_tile_info
 from terrasift.workers.block import run_block
@@ -168,7 +168,9 @@ def run_job(
     # Progress counts tasks: shards, blocks, finishing tasks, the report.
     shard_root = job_dir / "shards"
     todo = [i for i in range(n_tiles) if not (shard_root / str(i)).is_dir()]
-    counter = {"done": n_tiles - len(todo), "total": n_tiles + grid.nx * grid.ny + len(finish) + 1}
+    terrain = [(outputs.write_terrain, (str(job_dir),))] if products == "all" else []
+    extra = len(finish) + len(terrain) + 1
+    counter = {"done": n_tiles - len(todo), "total": n_tiles + grid.nx * grid.ny + extra}
     progress(counter["done"], counter["total"])
 
     def tick(_: Any) -> None:
@@ -186,7 +188,7 @@ def run_job(
 
     # Blocks: every block that received a point from any tile.
     names = sorted({p.stem for d in shard_root.iterdir() if d.is_dir() for p in d.glob("*.bin")})
-    counter["total"] = n_tiles + len(names) + len(finish) + 1
+    counter["total"] = n_tiles + len(names) + extra
     t = time.perf_counter()
     block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
     block_seconds = time.perf_counter() - t
@@ -194,6 +196,7 @@ def run_job(
     t = time.perf_counter()
     (job_dir / "outputs").mkdir(exist_ok=True)
     _run_mixed_tasks(executor, job_dir, finish, tick)
+    _run_mixed_tasks(executor, job_dir, terrain, tick)  # needs the mosaicked DTM
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     timings = {
@@ -216,7 +219,9 @@ def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
     mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
     maxs = (max(i.maxs[0] for i in infos), max(i.maxs[1] for i in infos))
-    grid = BlockGrid.over(mins, maxs, params["resolution"], params["block_size"], params["buffer"])
+    grid = BlockGrid.over(
+        mins, maxs, params["resolution"], params["block_size"], params["buffer"], grid_alignment(params)
+    )
     plan = {
         "tiles": [dict(i.__dict__) for i in infos],
         "crs_wkt": crs_wkt,

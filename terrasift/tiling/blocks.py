@@ -52,13 +52,28 @@ class BlockGrid:
     buffer: float
 
     @classmethod
-    def over(cls, mins: tuple[float, float], maxs: tuple[float, float], resolution: float, block_size: float, buffer: float) -> BlockGrid:
-        """The grid covering [mins, maxs], its corner on a multiple of ``resolution``."""
-        block_cells = max(1, int(round(block_size / resolution)))
-        x0 = float(np.floor(mins[0] / resolution) * resolution)
-        y0 = float(np.floor(mins[1] / resolution) * resolution)
-        width = int(np.floor((maxs[0] - x0) / resolution)) + 1
-        height = int(np.floor((maxs[1] - y0) / resolution)) + 1
+    def over(
+        cls,
+        mins: tuple[float, float],
+        maxs: tuple[float, float],
+        resolution: float,
+        block_size: float,
+        buffer: float,
+        align: float | None = None,
+    ) -> BlockGrid:
+        """The grid covering [mins, maxs].
+
+        Its corner, its size and the block size are multiples of ``align``
+        metres (itself a multiple of ``resolution``), so coarser grids laid on
+        the same origin (vegetation bins, 2 m category tiles) fit it exactly.
+        """
+        k = max(1, int(round((align or resolution) / resolution)))
+        step = k * resolution
+        block_cells = k * max(1, int(round(block_size / step)))
+        x0 = float(np.floor(mins[0] / step) * step)
+        y0 = float(np.floor(mins[1] / step) * step)
+        width = k * (int(np.floor((maxs[0] - x0) / step)) + 1)
+        height = k * (int(np.floor((maxs[1] - y0) / step)) + 1)
         return cls(x0, y0, resolution, width, height, block_cells * resolution, buffer)
 
     @property

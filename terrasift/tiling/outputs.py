@@ -20,6 +20,7 @@ import pyproj
 
 from terrasift.errors import ProcessingError
 from terrasift.tiling.blocks import BlockGrid
+from terrasift.params import stage_params
 from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, job_transform
 
 MEDIA_TYPES = {
@@ -31,6 +32,7 @@ MEDIA_TYPES = {
 
 #: the float rasters every job writes; name -> how to make it from a block's arrays
 FLOAT_RASTERS = ("dtm", "dsm", "chm")
+COVERAGE_NODATA = 255
 
 
 def _load(job_dir: Path, name: str) -> Any:
@@ -42,13 +44,14 @@ def _block_files(job_dir: Path) -> list[Path]:
 
 
 def write_rasters(job_dir: str) -> list[str]:
-    """Task: mosaic every block's raster windows into the job's COGs."""
+    """Task: mosaic every block's raster windows into the job's COGs (DTM, DSM, CHM, coverage)."""
     job = Path(job_dir)
-    wanted = [f"{n}.tif" for n in FLOAT_RASTERS]
+    wanted = [f"{n}.tif" for n in FLOAT_RASTERS] + ["coverage.tif"]
     out = job / "outputs"
     if all((out / w).exists() for w in wanted):
         return wanted
     plan = _load(job, "plan.json")
+    params = _load(job, "job.json")["params"]
     grid = BlockGrid(**plan["grid"])
     transform = job_transform(grid.x0, grid.y_top, grid.resolution)
     work = job / "work"
@@ -57,7 +60,18 @@ def write_rasters(job_dir: str) -> list[str]:
         n: RasterMosaic(work / f"{n}.tif", width=grid.width, height=grid.height, transform=transform, crs=plan["crs_wkt"])
         for n in FLOAT_RASTERS
     }
-    for m in mosaics.values():
+    cell = float(stage_params(params, "vegetation").cell)
+    f = int(round(cell / grid.resolution))  # DTM cells per coverage cell (the grid is aligned to it)
+    coverage = RasterMosaic(
+        work / "coverage.tif",
+        width=grid.width // f,
+        height=grid.height // f,
+        transform=job_transform(grid.x0, grid.y_top, cell),
+        crs=plan["crs_wkt"],
+        dtype="uint8",
+        nodata=COVERAGE_NODATA,
+    )
+    for m in [*mosaics.values(), coverage]:
         m.fill_nodata()
     for path in _block_files(job):
         with np.load(path) as data:
@@ -69,9 +83,94 @@ def write_rasters(job_dir: str) -> list[str]:
             arrays = {"dtm": dtm, "dsm": dsm, "chm": np.clip(dsm - dtm, 0, None)}
             for n, m in mosaics.items():
                 m.write(row_off, col_off, arrays[n])
+            cov = data["raster_coverage"]
+            # cells outside the data reach are nodata, like the DTM's
+            reach = ~np.isnan(dtm[:: f, :: f][: cov.shape[0], : cov.shape[1]])
+            coverage.write(row_off // f, col_off // f, np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8))
     for n, m in mosaics.items():
         m.close_as_cog(out / f"{n}.tif")
+    coverage.close_as_cog(out / "coverage.tif", resampling="mode")
     return wanted
+
+
+def write_terrain(job_dir: str) -> list[str]:
+    """Task: slope, categories and terrain objects from the job's mosaicked DTM.
+
+    Runs on the whole job's DTM so that objects crossing block or tile borders
+    come out once. Needs the DTM in memory: 4 bytes per cell.
+    """
+    import rasterio
+
+    from terrasift.workers import categories as cat
+    from terrasift.workers import features as feat
+    from terrasift.workers import terrain
+
+    job = Path(job_dir)
+    out = job / "outputs"
+    plan = _load(job, "plan.json")
+    params = _load(job, "job.json")["params"]
+    with rasterio.open(out / "dtm.tif") as ds:
+        dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+        transform = ds.transform
+    names = []
+    work = job / "work"
+    work.mkdir(exist_ok=True)
+    res = abs(transform.a)
+    if not (out / "slope.tif").exists():
+        slope = terrain.slope_degrees(dtm, res, int(params.get("terrain.median_size", 3)))
+        m = RasterMosaic(work / "slope.tif", width=dtm.shape[1], height=dtm.shape[0], transform=transform, crs=plan["crs_wkt"])
+        m.write(0, 0, slope)
+        m.close_as_cog(out / "slope.tif")
+    names.append("slope.tif")
+
+    cparams = stage_params(params, "categories")
+    cats = cat.compute_categories(dtm, res, cparams)
+    if not (out / "categories.tif").exists():
+        bands = cats.bands()
+        m = RasterMosaic(
+            work / "categories.tif",
+            width=bands.shape[2],
+            height=bands.shape[1],
+            transform=cats.transform(transform),
+            crs=plan["crs_wkt"],
+            dtype="uint8",
+            nodata=cat.NODATA,
+            count=4,
+            descriptions=("inclination", "orientation", "state", "height_x10"),
+        )
+        m.write(0, 0, bands)
+        m.close_as_cog(out / "categories.tif", resampling="nearest")
+    names.append("categories.tif")
+
+    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    if filters:
+        result = feat.detect_features(cats, filters, transform, cats.tile_size, stage_params(params, "features"))
+        crs = plan["crs_wkt"]
+        native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
+        if native is not None:
+            _write_json(out / "features.native.geojson", native)
+            _write_json(out / "features.geojson", feat.features_geojson(result, crs, job.name, to_wgs84=True))
+            names += ["features.geojson", "features.native.geojson"]
+        for fname, marks in result.marked.items():
+            m = RasterMosaic(
+                work / f"{fname}.tif",
+                width=marks.shape[1],
+                height=marks.shape[0],
+                transform=cats.transform(transform),
+                crs=crs,
+                dtype="uint8",
+                nodata=255,
+            )
+            m.write(0, 0, np.where(cats.nodata, 255, marks.astype(np.uint8)))
+            m.close_as_cog(out / f"{fname}.tif", resampling="nearest")
+            names.append(f"{fname}.tif")
+    return names
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(json.dumps(data))
+    os.replace(tmp, path)
 
 
 def classified_name(plan: Mapping[str, Any], tile_index: int) -> str:

@@ -18,9 +18,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from terrasift.errors import ProcessingError
 from terrasift.params import stage_params
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points
 from terrasift.workers import dem
+from terrasift.workers.bins import Grid
 from terrasift.workers.registry import get_stage
 
 UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
@@ -63,8 +65,11 @@ def classify_block(
 ) -> BlockResult:
     """Run the stages on one block's core + halo points (a SHARD_DTYPE array).
 
-    Every stage sees the halo so its decisions at the core edge match the
-    neighbour's; only core points are labelled and only core cells rastered.
+    Order: mixed measurements (scans with a sensor origin) → steepness test →
+    ground (rotated ×8 and OR'ed on steep blocks) → vegetation bins → DTM,
+    DSM, coverage → point classes. Every stage sees the halo so its decisions
+    at the core edge match the neighbour's; only core points are labelled and
+    only core cells rastered.
     """
     timer = _Timer()
     xyz = np.column_stack([points["x"], points["y"], points["z"]])
@@ -72,33 +77,60 @@ def classify_block(
     n = xyz.shape[0]
     labels = np.full(n, UNCLASSIFIED, np.uint8)
     stats: dict[str, Any] = {"points_core": int(core.sum()), "points_total": n}
+    origins = params.get("sensor_origin")
 
-    active = np.ones(n, dtype=bool)  # points still in the pipeline (not removed as noise)
-    origin = params.get("sensor_origin")
+    # Mixed measurements leave the pipeline before anything else sees them.
+    active = np.ones(n, dtype=bool)
+    if origins:
+        check_cancel()
+        with timer("mixed"):
+            mixed = _mark_mixed(xyz, points["scan_id"], origins, params)
+        labels[mixed.marked] = NOISE
+        active &= ~mixed.marked
+        stats["mixed"] = {
+            "marked": int(mixed.marked[core].sum()),
+            "unclassified": int(mixed.unclassified[core].sum()),
+            "loss_rate": float(mixed.unclassified[core].mean()) if core.any() else 0.0,
+        }
+    act = np.flatnonzero(active)
+    sub = xyz[act]
 
+    # Ground, rotated on steep blocks.
     check_cancel()
-    method = params["ground"]
-    stage = get_stage(f"ground.{method}")
-    gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
-    with timer("ground"):
-        is_ground = np.zeros(n, dtype=bool)
-        if active.sum() >= 3:
-            sub = xyz[active]
-            kwargs = {"sensor_origin": np.asarray(origin, float)} if origin else {}
-            is_ground[np.flatnonzero(active)] = stage.run(sub, gparams, **kwargs)
+    is_ground_sub, stats["steep"] = _ground(sub, params, origins, timer)
+    is_ground = np.zeros(n, dtype=bool)
+    is_ground[act] = is_ground_sub
     labels[is_ground] = GROUND
 
+    # Vegetation bins on the core window, and vegetation classes for the points in them.
+    check_cancel()
+    xmin, ymin, xmax, ymax = grid.core_bounds(ix, iy)
+    vparams = stage_params(params, "vegetation")
+    vgrid = Grid(xmin, ymin, vparams.cell, int(round((xmax - xmin) / vparams.cell)), int(round((ymax - ymin) / vparams.cell)))
+    from terrasift.workers import vegetation
+
+    with timer("vegetation"):
+        veg = vegetation.classify_bins(sub, is_ground_sub, vgrid, vparams)
+        surface = vegetation.ground_surface(sub[is_ground_sub], vgrid) if is_ground_sub.any() else None
+        if surface is not None:
+            flat = vgrid.index(sub[:, 0], sub[:, 1])
+            in_veg = (flat >= 0) & np.isin(veg.bin_class[np.maximum(flat, 0)], (vegetation.BUSH, vegetation.TREE))
+            pick = in_veg & ~is_ground_sub
+            hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
+            labels[act[pick]] = vegetation.height_classes(hag)
+    stats["vegetation"] = veg.counts
+    stats["vegetation_nogo"] = int(veg.nogo.sum())
+
+    # Elevation models on the core window.
     check_cancel()
     row_off, col_off, rows, cols = grid.core_window(ix, iy)
-    xmin, _, _, ymax = grid.core_bounds(ix, iy)
     window = dem.Window(xmin, ymax, grid.resolution, rows, cols)
     with timer("dtm"):
-        keep = active & (labels != NOISE)
-        reach = dem.default_reach(int(keep.sum()), _block_area(grid), grid.resolution)
-        valid = dem.data_reach_mask(xyz[keep], window, reach)
-        dtm = dem.dtm_window(xyz[is_ground], window)
+        reach = dem.default_reach(sub.shape[0], _block_area(grid), grid.resolution)
+        valid = dem.data_reach_mask(sub, window, reach)
+        dtm = dem.dtm_window(sub[is_ground_sub], window)
         dtm[~valid] = np.nan
-        dsm = dem.dsm_window(xyz[keep], window)
+        dsm = dem.dsm_window(sub, window)
         dsm[~valid] = np.nan
         dsm = np.fmax(dsm, dtm)
 
@@ -110,9 +142,55 @@ def classify_block(
         index=points["index"][core],
         classes=labels[core],
         window=(row_off, col_off, rows, cols),
-        rasters={"dtm": dtm, "dsm": dsm},
+        rasters={"dtm": dtm, "dsm": dsm, "coverage": veg.raster()},
         stats=stats,
     )
+
+
+def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[str, Any]) -> Any:
+    from terrasift.workers import mixed
+
+    origin_arr = np.asarray(origins, dtype=np.float64)
+    ids = None
+    if origin_arr.shape[0] > 1:
+        ids = scan_id.astype(np.int64)
+        if ids.max(initial=0) >= origin_arr.shape[0]:
+            raise ProcessingError(
+                f"scan id {int(ids.max())} has no sensor origin ({origin_arr.shape[0]} given)"
+            )
+    else:
+        origin_arr = origin_arr[0]
+    return mixed.mark_mixed(xyz, stage_params(params, "mixed"), origin_arr, ids)
+
+
+def _ground(
+    xyz: NDArray, params: Mapping[str, Any], origins: list | None, timer: _Timer
+) -> tuple[NDArray[np.bool_], dict[str, Any]]:
+    """Ground labels, with the steepness test and rotated classification of DESIGN §5.3."""
+    from terrasift.workers.ground import rotation
+
+    stage = get_stage(f"ground.{params['ground']}")
+    kwargs = {"sensor_origin": np.asarray(origins[0], float)} if origins else {}
+    steep_info: dict[str, Any] = {}
+    if xyz.shape[0] < 3:
+        return np.zeros(xyz.shape[0], dtype=bool), steep_info
+    mode = params.get("rotation", "auto")
+    steep = False
+    if mode != "off":
+        with timer("steep_test"):
+            test = rotation.steepness(xyz, stage_params(params, "ground.steep"))
+        steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
+        steep = test.steep or mode == "always"
+    with timer("ground"):
+        if not steep:
+            gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
+            return np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool), steep_info
+        rparams = stage_params(params, "ground.rotation")
+        cparams = stage_params(params, stage.id, rparams.preset)
+        result = rotation.classify_rotated(xyz, lambda p: stage.run(p, cparams, **kwargs), rparams)
+    steep_info["rotated"] = True
+    steep_info["added_per_rotation"] = [int(a) for a in result.added]
+    return np.asarray(result.is_ground, dtype=bool), steep_info
 
 
 def _block_area(grid: BlockGrid) -> float:
