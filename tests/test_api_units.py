@@ -88,6 +88,13 @@ def test_token_file(tmp_path: Path) -> None:
     path.write_text("only-a-token\n")
     with pytest.raises(ValueError, match="line 1"):
         load_tokens(path)
+    path.write_text('{"abc123": "alice", "xyz": "bob"}')
+    assert load_tokens(path) == {"abc123": "alice", "xyz": "bob"}
+    path.write_text('{"abc123": 7}')
+    with pytest.raises(ValueError, match="tenant strings"):
+        load_tokens(path)
+    with pytest.raises(ValueError, match="missing"):
+        load_tokens(tmp_path / "missing")
 
 
 def test_auth_defaults(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,13 +1,14 @@
 """Bearer tokens map to tenants; a tenant sees only its own jobs and surveys.
 
 The token file holds one ``token tenant`` pair per line (``#`` starts a
-comment). With auth off (a loopback bind without a token file, or
+comment), or a JSON object mapping tokens to tenants. With auth off (a loopback bind without a token file, or
 ``TERRASIFT_AUTH=off``) every request belongs to the tenant ``local``.
 """
 
 from __future__ import annotations
 
 import hmac
+import json
 from pathlib import Path
 
 from fastapi import Request
@@ -18,15 +19,31 @@ LOCAL_TENANT = "local"
 
 
 def load_tokens(path: Path) -> dict[str, str]:
-    """token → tenant from a token file; malformed lines raise ValueError naming the line."""
-    tokens: dict[str, str] = {}
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    """token → tenant from a token file: ``token tenant`` lines, or a JSON object ``{"token": "tenant"}``.
+
+    A missing or malformed file raises ValueError naming the file (and line), so
+    the service refuses to start rather than run with auth silently broken.
+    """
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"token file {path}: {exc.strerror}") from None
+    if text.lstrip().startswith("{"):
+        try:
+            tokens = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"token file {path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        if not all(isinstance(k, str) and isinstance(v, str) and k and v for k, v in tokens.items()):
+            raise ValueError(f"token file {path}: expected an object of token strings to tenant strings")
+        return tokens
+    tokens = {}
+    for number, line in enumerate(text.splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
         parts = line.split()
         if len(parts) != 2:
-            raise ValueError(f"{path.name}, line {number}: expected `token tenant`")
+            raise ValueError(f"token file {path}, line {number}: expected `token tenant`")
         tokens[parts[0]] = parts[1]
     return tokens
 
