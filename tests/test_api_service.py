@@ -165,6 +165,7 @@ def test_dismissing_a_queued_job(tmp_path: Path) -> None:
         time.sleep(0.3)
         assert c.get(f"/jobs/{second}").json()["status"] == "dismissed"
         assert all(job == first for job, _ in fake.ran)
+        assert not (tmp_path / "data" / "jobs" / second / "inputs").exists()
 
 
 def test_restart_resumes_only_missing_tasks(tmp_path: Path) -> None:

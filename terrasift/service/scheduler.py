@@ -222,7 +222,10 @@ class Scheduler:
     def _run_job(self, job_id: str) -> None:
         job_dir = self.job_dir(job_id)
         if not self.store.mark_running(job_id):
-            return  # dismissed while queued
+            job = self.store.get_job(job_id)
+            if job is not None and job.status == DISMISSED:  # dismissed while queued
+                self.purge(job_dir)
+            return
         try:
             ex = JobExecutor(self._executor_or_create())
         except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
