@@ -43,7 +43,7 @@ class MixedParams(StageParams):
     (points reported by at least ``votes`` boxes), exclusive (box but the interest
     point), blind_window (box but a slab of ``blind_depth`` behind the interest
     point), exclusive_blind_window (blind window and not the interest point)."""
-    trigger: Trigger = "surfaceness"
+    trigger: Trigger = "normal"
     """surfaceness: surface saliency dominates the box; normal: the fitted plane
     contains the ray within ``normal_angle``; both: the two together."""
     votes: int = Field(3, ge=1, le=1000)
@@ -62,15 +62,17 @@ class MixedParams(StageParams):
     """Largest deviation of the plane normal from orthogonal to the ray (normal trigger)."""
     surface_ratio: float = Field(1.0, ge=0.1, le=100.0)
     """surfaceness fires when surface > surface_ratio × max(linear, random)."""
-    thinness: float = Field(0.25, gt=0.0, le=1.0)
+    thinness: float = Field(0.6, gt=0.0, le=1.0)
     """The fitted sheet must be thinner (rms across it) than thinness × box_width / √12,
     the rms of points filling the box width; random clutter fills it."""
     voxel_size: float = Field(0.05, ge=0.0, le=1.0)
     """Range step of the sparse voxels that share one interest box (0: one box per point)."""
     cell_angle: float = Field(0.25, gt=0.0, le=5.0)
     """Angular size of the hash cells seen from the sensor; sets the lateral precision."""
-    min_points: int = Field(3, ge=3, le=1000)
-    """Boxes with fewer points are not classified (saliency needs three)."""
+    min_points: int = Field(12, ge=3, le=1000)
+    """Boxes with fewer points are not classified. Saliency needs three (the seed's
+    minimum); 12 keeps sparse random clutter, whose few points always look planar
+    in a thin box, from firing (seed §V-D)."""
 
     @model_validator(mode="after")
     def _check(self) -> MixedParams:
@@ -197,6 +199,8 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     )
     lo = np.searchsorted(key, pc * big + r0[it], side="left")
     hi = np.searchsorted(key, pc * big + r0[it] + p.box_depth, side="right")
+    nz = hi > lo  # most covered cells hold nothing within the box's range interval
+    it, pc, lo, hi = it[nz], pc[nz], lo[nz], hi[nz]
 
     # Box moments from prefix sums, coordinates relative to each interest point's sensor frame.
     mom = np.empty((r.size + 1, 10))
@@ -214,13 +218,11 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
 
     # Marking through a difference array over the sorted points.
     sel = fired[it]
-    votes = np.zeros(r.size + 1, dtype=np.int64)
     if p.variant in ("blind_window", "exclusive_blind_window"):
         lo_m = np.searchsorted(key, pc[sel] * big + r0[it[sel]] + p.blind_depth, side="left")
     else:
         lo_m = lo[sel]
-    np.add.at(votes, lo_m, 1)
-    np.add.at(votes, hi[sel], -1)
+    votes = np.bincount(lo_m, minlength=r.size + 1) - np.bincount(hi[sel], minlength=r.size + 1)
     votes = np.cumsum(votes[:-1])
     own = fired[item_of]  # the point's own box fired
     own_in_window = own & (r - r0[item_of] >= (p.blind_depth if "blind" in p.variant else 0.0))
