@@ -1,15 +1,18 @@
 """Objects out: labelled tiles → shapely polygons with length and width in metres.
 
 An object's polygon is the union of its tiles (holes it encloses filled, since
-e.g. a hill is found by its outline), simplified by half a tile. Length and
-width are those of the rectangle with the area and perimeter of that outline
-smoothed by a morphological closing and opening of 0.75 tile
-(L + W = P/2, L·W = A; a compact shape whose perimeter is too short for any
-rectangle is taken as a square). This keeps the seed's idea (width across,
-length = area / width) but does not depend on the object's angle to the rows:
-the seed's mean row-segment width overstates the width of a diagonal object by
-1/cos of its angle and so understates its length by as much (§5.3.2 notes the
-width is inexact).
+e.g. a hill is found by its outline), simplified by half a tile.
+
+Length and width keep the seed's idea (width across, length = area / width)
+but do not depend on the object's angle to the rows: the seed's mean
+row-segment width overstates the width of a diagonal object by 1/cos of its
+angle and so understates its length by as much (§5.3.2 notes the width is
+inexact). The outline is first smoothed by a morphological closing and opening
+of 0.75 tile (a tile staircase is up to √2 too long). An elongated object
+takes the rectangle with the outline's area and perimeter (L + W = P/2,
+L·W = A), which follows bends; a compact one (that rectangle's aspect below
+3, where the solution is ill-conditioned) the axes of the ellipse with the
+outline's second moments, so a round hill's length is its diameter.
 """
 
 from __future__ import annotations
@@ -48,6 +51,36 @@ def fill_object_holes(labels: NDArray[np.int32]) -> NDArray[np.int32]:
     out = labels.copy()
     out[holes] = owner[hole_lab[holes] - 1]
     return out
+
+
+def moment_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
+    """Axes of the ellipse with the second area moments of ``poly`` (4√λ1, 4√λ2): a disc's diameter."""
+    parts = poly.geoms if isinstance(poly, MultiPolygon) else [poly]
+    area = sxx = syy = sxy = 0.0
+    cx, cy = poly.centroid.x, poly.centroid.y
+    for p in parts:
+        xy = np.asarray(p.exterior.coords) - (cx, cy)
+        x0, y0, x1, y1 = xy[:-1, 0], xy[:-1, 1], xy[1:, 0], xy[1:, 1]
+        cr = x0 * y1 - x1 * y0
+        area += cr.sum() / 2
+        sxx += (cr * (y0 * y0 + y0 * y1 + y1 * y1)).sum() / 12  # ∫ y²
+        syy += (cr * (x0 * x0 + x0 * x1 + x1 * x1)).sum() / 12  # ∫ x²
+        sxy += (cr * (x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0)).sum() / 24
+    if area == 0:
+        return 0.0, 0.0
+    cov = np.array([[syy, sxy], [sxy, sxx]]) / area  # signed sums over signed area: orientation-free
+    lam = np.sort(np.linalg.eigvalsh(cov))[::-1]
+    return float(4 * np.sqrt(max(lam[0], 0))), float(4 * np.sqrt(max(lam[1], 0)))
+
+
+def object_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
+    """(length, width): the equal area-and-perimeter rectangle for elongated
+    objects (it follows bends), the equal-moments ellipse for compact ones
+    (aspect < 3: hills, ponds), where the perimeter-based solution is ill-conditioned."""
+    length, width = rectangle_size(poly)
+    if length < 3 * width:
+        return moment_size(poly)
+    return length, width
 
 
 def rectangle_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
@@ -108,7 +141,7 @@ def objects_from_labels(
     min_l, max_l, min_w, max_w = limits
     feats = []
     for lab, poly in polygons(labels, transform, simplify_tiles * tile_size).items():
-        length, width = rectangle_size(_smoothed(poly, tile_size))
+        length, width = object_size(_smoothed(poly, tile_size))
         lt, wt = length / tile_size, width / tile_size
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
             continue
