@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 from importlib import resources
 
 import numpy as np
+import shapely
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy import ndimage
 from rasterio import Affine
+from scipy import ndimage
 from shapely.geometry import mapping
 from shapely.geometry.polygon import orient
-from shapely.ops import transform as shapely_transform
 
 from terrasift.errors import ParameterError
 from terrasift.workers.categories import Categories
@@ -170,12 +170,13 @@ def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: 
 
         src = CRS.from_user_input(crs_wkt_or_epsg)
         tr = Transformer.from_crs(src, CRS.from_epsg(4326), always_xy=True)
-        project = tr.transform
+        def project(xy: NDArray) -> NDArray:
+            return np.column_stack(tr.transform(xy[:, 0], xy[:, 1]))
     feats = []
     for i, f in enumerate(result.objects):
         geom = orient(f.geometry, 1.0) if f.geometry.geom_type == "Polygon" else f.geometry
         if project is not None:
-            geom = shapely_transform(project, geom)
+            geom = shapely.transform(geom, project)
         props = {
             "kind": f.kind,
             "length_m": round(f.length_m, 2),

@@ -1,7 +1,8 @@
 """Objects out: labelled tiles → shapely polygons with length and width in metres.
 
 An object's polygon is the union of its tiles (holes it encloses filled, since
-e.g. a hill is found by its outline), simplified by half a tile.
+e.g. a hill is found by its outline; pieces an edge or segment connect joined
+across a missing line closed into one outline), simplified by half a tile.
 
 Length and width keep the seed's idea (width across, length = area / width)
 but do not depend on the object's angle to the rows: the seed's mean
@@ -113,12 +114,14 @@ def polygons(labels: NDArray[np.int32], transform: Affine, simplify: float) -> d
     pieces: dict[int, list] = {}
     for geom, value in shapes(labels, mask=labels > 0, transform=transform, connectivity=8):
         pieces.setdefault(int(value), []).append(shape(geom))
-    eps = abs(transform.a) * 1e-3
+    tile = abs(transform.a)
     out = {}
     for lab, parts in pieces.items():
         g = unary_union(parts)
-        if isinstance(g, MultiPolygon):  # tiles touching only at corners
-            g = g.buffer(eps, join_style="mitre").buffer(-eps, join_style="mitre")
+        if isinstance(g, MultiPolygon):  # tiles touching at corners only
+            g = g.buffer(tile * 1e-3, join_style="mitre").buffer(-tile * 1e-3, join_style="mitre")
+        if isinstance(g, MultiPolygon):  # pieces joined across bridged gaps (≤ 2 tiles)
+            g = g.buffer(tile, join_style="mitre").buffer(-tile, join_style="mitre")
         if simplify > 0:
             g = g.simplify(simplify, preserve_topology=True)
         out[lab] = g
@@ -155,8 +158,8 @@ def rectangle_features(rects: list[tuple[int, int, int, int]], kind: str, transf
     """Features for rectangles (row0, col0, rows, cols) on the tile grid."""
     feats = []
     for r, c, h, w in rects:
-        x0, y0 = transform * (c, r)
-        x1, y1 = transform * (c + w, r + h)
+        x0, y0 = transform @ (c, r)
+        x1, y1 = transform @ (c + w, r + h)
         poly = Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
         feats.append(Feature(kind, poly, max(h, w) * tile_size, min(h, w) * tile_size, h * w))
     return feats
