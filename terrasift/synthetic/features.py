@@ -85,9 +85,40 @@ def make_feature_scene(
     noise: float = 0.015,
     vegetation_share: float = 0.002,
     nodata_holes: int = 25,
+    jitter: float = 8.0,
 ) -> FeatureScene:
-    """The scene described in the module docstring, ``size`` m square (layout fixed for 640 m, scaled otherwise)."""
+    """The scene described in the module docstring, ``size`` m square.
+
+    The layout is planned for 640 m and scaled to ``size``; every anchor point
+    moves by up to ``jitter`` m and every radius by up to ±10 % at random
+    (drawn again until objects keep 8 m apart), so seeds differ in layout as
+    well as in noise.
+    """
+    for attempt in range(100):
+        try:
+            return _build(size, cell, origin, seed, attempt, noise, vegetation_share, nodata_holes, jitter)
+        except _Overlap:
+            continue
+    raise RuntimeError("no layout with objects apart; lower jitter")
+
+
+class _Overlap(Exception):
+    pass
+
+
+def _build(
+    size: float,
+    cell: float,
+    origin: tuple[float, float],
+    seed: int,
+    attempt: int,
+    noise: float,
+    vegetation_share: float,
+    nodata_holes: int,
+    jitter: float,
+) -> FeatureScene:
     rng = np.random.default_rng(seed)
+    lay = np.random.default_rng([seed, attempt])
     n = int(round(size / cell))
     s = size / 640.0
     c = (np.arange(n) + 0.5) * cell
@@ -100,7 +131,11 @@ def make_feature_scene(
         return float(100.0 + gx * px + gy * py + 1.0 * np.sin(2 * np.pi * (px + 0.3 * py) / (300.0 * s)))
 
     def P(px: float, py: float) -> tuple[float, float]:
-        return px * s, py * s
+        dx, dy = lay.uniform(-jitter, jitter, 2)
+        return px * s + dx, py * s + dy
+
+    def R(r: float) -> float:
+        return r * s * lay.uniform(0.9, 1.1)
 
     def win(geom_bounds: tuple[float, float, float, float], pad: float) -> tuple[slice, slice]:
         x0, y0, x1, y1 = geom_bounds
@@ -120,7 +155,7 @@ def make_feature_scene(
     truth.append(TruthFeature("flat-area", box(fx0, fy0, fx0 + side, fy0 + side), side))
 
     # --- hills: cones, steep enough (≥ 0.35) that no flank levels out against the hillside
-    for (hx, hy), radius, height in ((P(260, 500), 22 * s, 8.0), (P(400, 470), 20 * s, 7.5), (P(540, 420), 24 * s, 9.0)):
+    for (hx, hy), radius, height in ((P(260, 500), R(22), 8.0), (P(400, 470), R(20), 7.5), (P(540, 420), R(24), 9.0)):
         w_ = win((hx, hy, hx, hy), radius)
         r = np.hypot(x[w_] - hx, y[w_] - hy)
         zz = z[w_]
@@ -140,7 +175,7 @@ def make_feature_scene(
         truth.append(TruthFeature("ridge", line.buffer(half), line.length))
 
     # --- ponds: flat floor 2 m below the lowest point of the rim, banks over 5 m
-    for (px, py), floor_r in ((P(110, 330), 14 * s), (P(270, 370), 11 * s)):
+    for (px, py), floor_r in ((P(110, 330), R(14)), (P(270, 370), R(11))):
         bank = 5.0
         w_ = win((px, py, px, py), floor_r + bank)
         r = np.hypot(x[w_] - px, y[w_] - py)
@@ -210,4 +245,4 @@ def _check_apart(truth: list[TruthFeature], gap: float = 8.0) -> None:
     for i, a in enumerate(truth):
         for b in truth[i + 1 :]:
             if a.polygon.distance(b.polygon) < gap:
-                raise AssertionError(f"scene layout: {a.kind} and {b.kind} are closer than {gap} m")
+                raise _Overlap(f"{a.kind} and {b.kind} are closer than {gap} m")

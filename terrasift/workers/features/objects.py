@@ -103,7 +103,7 @@ def _smoothed(poly: Polygon | MultiPolygon, tile_size: float) -> Polygon | Multi
     Objects too thin to survive the opening are measured simplified instead.
     """
     t = 0.75 * tile_size
-    smooth = poly.buffer(t).buffer(-2 * t).buffer(t)
+    smooth = poly.buffer(t, quad_segs=3).buffer(-2 * t, quad_segs=3).buffer(t, quad_segs=3)
     if smooth.is_empty or smooth.area < 0.5 * poly.area:
         return poly.simplify(t, preserve_topology=True)
     return smooth
@@ -142,6 +142,18 @@ def objects_from_labels(
         return []
     counts = np.bincount(labels.ravel())
     min_l, max_l, min_w, max_w = limits
+    # Cheap bounds first: an object's length is at most 2 × its tiles (half a
+    # perimeter of 4 edges per tile) and a width w needs about w² tiles.
+    small = np.zeros(counts.size, dtype=bool)
+    if min_l is not None:
+        small |= 2 * counts < min_l
+    if min_w is not None:
+        small |= counts < 0.5 * min_w * min_w
+    small[0] = False
+    if small.any():
+        labels = np.where(small[labels], 0, labels)
+        if labels.max() == 0:
+            return []
     feats = []
     for lab, poly in polygons(labels, transform, simplify_tiles * tile_size).items():
         length, width = object_size(_smoothed(poly, tile_size))
