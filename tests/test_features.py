@@ -406,3 +406,11 @@ def test_stages_are_registered():
 
     assert _STAGES["categories"].params.__name__ == "CategoryParams"
     assert _STAGES["features"].params.__name__ == "FeatureParams"
+
+
+def test_search_in_row_bands_matches_one_pass():
+    rng = np.random.default_rng(9)
+    inc = rng.choice(np.array([0, 1, 5], np.uint8), size=(50, 20))
+    arrays = (inc, np.zeros_like(inc), np.zeros_like(inc))
+    seg = parse_filter(DITCHLIKE).segments[0]
+    assert (search_rows(arrays, seg, band=7) == search_rows(arrays, seg)).all()

@@ -162,6 +162,10 @@ def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32
     return np.where(keep[labels], labels, 0).astype(np.int32)
 
 
+def _round_mm(xy: NDArray) -> NDArray:
+    return np.round(xy, 3)
+
+
 def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: str | None, to_wgs84: bool) -> dict:
     """RFC 7946 FeatureCollection of ``result.objects``: lon/lat WGS 84 when ``to_wgs84``, else native coordinates."""
     project = None
@@ -171,12 +175,11 @@ def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: 
         src = CRS.from_user_input(crs_wkt_or_epsg)
         tr = Transformer.from_crs(src, CRS.from_epsg(4326), always_xy=True)
         def project(xy: NDArray) -> NDArray:
-            return np.column_stack(tr.transform(xy[:, 0], xy[:, 1]))
+            return np.round(np.column_stack(tr.transform(xy[:, 0], xy[:, 1])), 7)  # ~1 cm
     feats = []
     for i, f in enumerate(result.objects):
         geom = orient(f.geometry, 1.0) if f.geometry.geom_type == "Polygon" else f.geometry
-        if project is not None:
-            geom = shapely.transform(geom, project)
+        geom = shapely.transform(geom, project) if project is not None else shapely.transform(geom, _round_mm)
         props = {
             "kind": f.kind,
             "length_m": round(f.length_m, 2),

@@ -38,7 +38,7 @@ def _components(shape: tuple[int, int], a: NDArray[np.int64], b: NDArray[np.int6
     _, comp = connected_components(graph, directed=False)
     flat = nodes.ravel()
     # renumber the components that hold nodes as 1..k
-    used, labels = np.unique(comp[flat], return_inverse=True)
+    _, labels = np.unique(comp[flat], return_inverse=True)
     out = np.zeros(n, dtype=np.int32)
     out[flat] = labels + 1
     return out.reshape(shape)
