@@ -136,6 +136,9 @@ def run_worker(scheduler: str | None, nthreads: int) -> int:
     import asyncio
     import os
 
+    from terrasift.workers.executors import single_threaded_blas
+
+    single_threaded_blas()
     from distributed import Worker
 
     address = scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")

@@ -30,11 +30,24 @@ class Executor(Protocol):
     def shutdown(self) -> None: ...
 
 
+BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_blas() -> None:
+    """One BLAS thread per worker process: the pool already uses every core, and
+    threaded BLAS on top of it makes small per-block solves crawl. Must run
+    before numpy is imported in the worker, so it is set in the environment the
+    workers inherit."""
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, "1")
+
+
 class LocalExecutor:
     """A process pool with one worker per core (or ``workers``)."""
 
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
+        single_threaded_blas()
         # spawn: the service has threads, and forking a threaded process is unsafe.
         ctx = multiprocessing.get_context("spawn")
         self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
