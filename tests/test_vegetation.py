@@ -19,6 +19,7 @@ from terrasift.workers.vegetation import (
     from_north_up,
     height_classes,
     north_up,
+    support_for_density,
 )
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -212,3 +213,14 @@ def test_mixed_conifer_tree_coverage():
     canopy_share = float((st.zmax[ne] > 3.75).mean())
     vb = classify_bins(xyz, np.asarray(las.classification) == 2, grid, VegetationParams())
     assert abs(vb.tree_coverage - canopy_share) <= 0.05
+
+
+def test_support_for_density_and_empty_input():
+    assert support_for_density(50.0, 1.0) == 1
+    assert support_for_density(5.0, 1.0) == 3  # 45 points in 3 x 3 m
+    assert support_for_density(1.0, 1.0) == 7
+    assert support_for_density(5.0, 2.0) == 3
+    g = Grid(0.0, 0.0, 1.0, 4, 3)
+    vb = classify_bins(np.empty((0, 3)), np.empty(0, bool), g, VegetationParams(mow_height=3.0))
+    assert vb.counts == {"empty": 12, "open": 0, "bush": 0, "tree": 0}
+    assert vb.tree_coverage == 0.0 and not vb.nogo.any()

@@ -183,6 +183,17 @@ def auto_support(n: NDArray, grid: Grid, min_points: int) -> int:
     return 15
 
 
+def support_for_density(density: float, cell: float, min_points: int = 20) -> int:
+    """Smallest odd window width whose k × k bins expect ≥ 2 (min_points + 1) points
+    at ``density`` points per m². The spine can fix ``support`` once per job from
+    the header's point count and area, so neighbouring blocks never differ."""
+    need = 2 * (min_points + 1)
+    for k in range(1, 16, 2):
+        if density * (k * cell) ** 2 >= need:
+            return k
+    return 15
+
+
 def _window_sum(n2: NDArray, k: int) -> NDArray[np.int64]:
     if k == 1:
         return n2.astype(np.int64)
