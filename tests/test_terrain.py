@@ -225,4 +225,4 @@ def test_terrain_params():
     with pytest.raises(ParameterError):
         TerrainParams.preset(median_size=4)
     assert TerrainParams().cell == 1.0
-    assert any(s.id == "terrain.roughness" and s.run is roughness for s in stages())
+    assert any(s.id == "terrain" and s.run is roughness for s in stages())

@@ -204,7 +204,7 @@ def combine(parts: Iterable[Roughness]) -> Roughness:
     return Roughness(n, mx, my, m2x, m2y)
 
 
-@register("terrain.roughness", TerrainParams, "Terrain roughness from least-squares planes of accepted bins (NIST §5.2)")
+@register("terrain", TerrainParams, "Terrain roughness from least-squares planes of accepted bins (NIST §5.2)")
 def roughness(xyz: NDArray[np.float64], grid: Grid, params: TerrainParams | None = None) -> Roughness:
     """Roughness over the bins of ``grid``.
 
