@@ -20,9 +20,9 @@ import sys
 import time
 from pathlib import Path
 
-# One BLAS thread, as a worker process should run: scipy's Delaunay computes its
-# barycentric transforms with one tiny LAPACK call per triangle, and OpenBLAS
-# threading makes that up to a few hundred times slower on a busy machine.
+# One BLAS thread, as a worker process should run: stages make many tiny LAPACK
+# calls (per-bin solves, scipy's Delaunay.transform), and OpenBLAS threads
+# fighting over busy cores made those up to a few hundred times slower here.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
