@@ -167,8 +167,6 @@ def _ground(
     xyz: NDArray, params: Mapping[str, Any], origins: list | None, timer: _Timer
 ) -> tuple[NDArray[np.bool_], dict[str, Any]]:
     """Ground labels, with the steepness test and rotated classification of DESIGN §5.3."""
-    from terrasift.workers.ground import rotation
-
     stage = get_stage(f"ground.{params['ground']}")
     kwargs = {"sensor_origin": np.asarray(origins[0], float)} if origins else {}
     steep_info: dict[str, Any] = {}
@@ -177,6 +175,8 @@ def _ground(
     mode = params.get("rotation", "auto")
     steep = False
     if mode != "off":
+        from terrasift.workers.ground import rotation
+
         with timer("steep_test"):
             test = rotation.steepness(xyz, stage_params(params, "ground.steep"))
         steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}

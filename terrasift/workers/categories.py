@@ -92,7 +92,7 @@ class Categories:
 
     def transform(self, dtm_transform: Affine) -> Affine:
         """The tile grid's geotransform given the DTM's."""
-        return dtm_transform * Affine.scale(self.cells_per_tile)
+        return dtm_transform @ Affine.scale(self.cells_per_tile)
 
     def bands(self) -> NDArray[np.uint8]:
         """(4, rows, cols) uint8 in the order of ``categories.tif``."""

@@ -8,9 +8,10 @@ without their recursion-depth limit:
 - ``segment``: horizontal segments joined to overlapping segments in the rows
   below (vertical segments to the columns to the right), bridging up to
   ``gap`` missing rows/columns;
-- ``edge``: neighbours joined when the step follows the current tile's edge
-  (or the line 90° from its inclination) within 45° and the two tiles' edges
-  agree within ±45°, plus tiles of one segment.
+- ``edge``: neighbours (and tiles two steps away, bridging one missing
+  cross-section) joined when the step follows either tile's edge (or the
+  line 90° from its inclination) within 45° and the two tiles' edges agree
+  within ±45°, plus tiles of one segment.
 
 ``h_and_v`` and ``find_rectangles`` are the seed's logical AND and rectangle search.
 """
@@ -37,7 +38,7 @@ def _components(shape: tuple[int, int], a: NDArray[np.int64], b: NDArray[np.int6
     _, comp = connected_components(graph, directed=False)
     flat = nodes.ravel()
     # renumber the components that hold nodes as 1..k
-    used, labels = np.unique(comp[flat], return_inverse=True)
+    _, labels = np.unique(comp[flat], return_inverse=True)
     out = np.zeros(n, dtype=np.int32)
     out[flat] = labels + 1
     return out.reshape(shape)
@@ -96,13 +97,21 @@ def _angle_diff(a: NDArray, b: NDArray | float) -> NDArray:
     return np.minimum(d, np.pi - d)
 
 
-def edges(cats: Categories, h: NDArray[np.bool_], v: NDArray[np.bool_], marks: NDArray[np.bool_]) -> NDArray[np.int32]:
-    """The seed's edge-connect: follow edges and inclinations through marked tiles."""
+def edges(
+    cats: Categories, h: NDArray[np.bool_], v: NDArray[np.bool_], marks: NDArray[np.bool_], reach: int = 2
+) -> NDArray[np.int32]:
+    """The seed's edge-connect: follow edges and inclinations through marked tiles.
+
+    With ``reach`` 2 a step along the edge may also jump one tile, so a single
+    missing cross-section does not cut an object in two (the seed's version
+    stops there; its segment-connect has the same kind of tolerance).
+    """
     axis = _axis(cats)
     rows, cols = marks.shape
     edges_a, edges_b = [], []
     eps = 1e-6
-    for dr, dc, phi in _STEPS:
+    steps = [(dr * k, dc * k, phi) for k in range(1, reach + 1) for dr, dc, phi in _STEPS]
+    for dr, dc, phi in steps:
         a, b = _pairs(marks, marks, dr, dc)
         if a.size:
             ta, tb = axis.ravel()[a], axis.ravel()[b]

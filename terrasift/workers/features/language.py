@@ -12,11 +12,12 @@ numbered counter-clockwise from east: 1 E, 2 NE, 3 N, 4 NW, 5 W, 6 SW, 7 S, 8 SE
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from terrasift.errors import FilterSyntaxError
-from terrasift.workers.categories import EDGES, EXTREMES, ORIENTATIONS
+from terrasift.workers.categories import ORIENTATIONS
 
 #: maximal segment length in tiles; matches are tracked as 64-bit length sets
 MAX_SEGMENT_TILES = 63
@@ -50,7 +51,7 @@ class ValueSet:
             return True
         return (v in self.values) != self.negate
 
-    def map(self, fn) -> ValueSet:
+    def map(self, fn: Callable[[int], int]) -> ValueSet:
         if self.values is None:
             return self
         return replace(self, values=frozenset(fn(v) for v in self.values))

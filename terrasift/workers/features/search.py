@@ -46,8 +46,19 @@ def class_mask(cats, sub: SubSegment) -> NDArray[np.bool_]:
     return out
 
 
-def search_rows(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArray[np.bool_]:
-    """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east."""
+def search_rows(cats: tuple[NDArray, NDArray, NDArray], seg: Segment, band: int = 512) -> NDArray[np.bool_]:
+    """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
+
+    Rows are independent, so they go through in bands of ``band`` rows to bound
+    memory (the length sets take 8 bytes per tile and subsegment).
+    """
+    nrows = cats[0].shape[0]
+    if nrows <= band:
+        return _search_band(cats, seg)
+    return np.concatenate([_search_band(tuple(a[r : r + band] for a in cats), seg) for r in range(0, nrows, band)])
+
+
+def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArray[np.bool_]:
     inc = cats[0]
     nrows, ncols = inc.shape
     nb = ncols + 1
