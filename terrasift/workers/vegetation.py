@@ -121,16 +121,17 @@ class VegetationBins:
 
     def crop(self, sub: Grid) -> VegetationBins:
         """The part of this result on ``sub``, a window of the same grid (e.g. a block's core)."""
-        ix0 = round((sub.x0 - self.grid.x0) / self.grid.cell)
-        iy0 = round((sub.y0 - self.grid.y0) / self.grid.cell)
+        g = self.grid
+        ix0, iy0 = round((sub.x0 - g.x0) / g.cell), round((sub.y0 - g.y0) / g.cell)
+        tol = 1e-6 * g.cell
         if (
-            not np.isclose(sub.cell, self.grid.cell)
-            or not np.isclose(sub.x0, self.grid.x0 + ix0 * self.grid.cell)
-            or not np.isclose(sub.y0, self.grid.y0 + iy0 * self.grid.cell)
+            abs(sub.cell - g.cell) > tol
+            or abs(sub.x0 - (g.x0 + ix0 * g.cell)) > tol
+            or abs(sub.y0 - (g.y0 + iy0 * g.cell)) > tol
             or ix0 < 0
             or iy0 < 0
-            or ix0 + sub.nx > self.grid.nx
-            or iy0 + sub.ny > self.grid.ny
+            or ix0 + sub.nx > g.nx
+            or iy0 + sub.ny > g.ny
         ):
             raise ValueError("crop grid is not an aligned window of the bin grid")
 
@@ -178,6 +179,17 @@ def auto_support(n: NDArray, grid: Grid, min_points: int) -> int:
     for k in range(1, 16, 2):
         win = _window_sum(n2, k)
         if np.median(win[n2 > 0]) >= need:
+            return k
+    return 15
+
+
+def support_for_density(density: float, cell: float, min_points: int = 20) -> int:
+    """Smallest odd window width whose k × k bins expect ≥ 2 (min_points + 1) points
+    at ``density`` points per m². The spine can fix ``support`` once per job from
+    the header's point count and area, so neighbouring blocks never differ."""
+    need = 2 * (min_points + 1)
+    for k in range(1, 16, 2):
+        if density * (k * cell) ** 2 >= need:
             return k
     return 15
 
