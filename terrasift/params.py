@@ -144,7 +144,7 @@ def grid_alignment(params: Mapping[str, Any]) -> float:
     """
     res = float(params["resolution"])
     cells = []
-    for stage_id, field in (("vegetation", "cell"), ("categories", "tile_size")):
+    for stage_id, field in (("vegetation", "cell"), ("terrain", "cell"), ("categories", "tile_size")):
         size = float(getattr(stage_params(params, stage_id), field))
         k = size / res
         if round(k) < 1 or abs(k - round(k)) > 1e-6:

@@ -117,7 +117,8 @@ def write_terrain(job_dir: str) -> list[str]:
     work.mkdir(exist_ok=True)
     res = abs(transform.a)
     if not (out / "slope.tif").exists():
-        slope = terrain.slope_degrees(dtm, res, int(params.get("terrain.median_size", 3)))
+        tparams = stage_params(params, "terrain")
+        slope = terrain.slope_degrees(dtm, res, tparams.median_size, tparams.smooth)
         m = RasterMosaic(work / "slope.tif", width=dtm.shape[1], height=dtm.shape[0], transform=transform, crs=plan["crs_wkt"])
         m.write(0, 0, slope)
         m.close_as_cog(out / "slope.tif")
@@ -236,6 +237,16 @@ def write_report_and_item(
         for k, v in s.get("timings", {}).items():
             stage_times[k] = stage_times.get(k, 0.0) + v
     points = sum(int(t["point_count"]) for t in plan["tiles"])
+    from terrasift.workers import terrain, vegetation
+
+    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
+    for s in block_stats:
+        for k in bins:
+            bins[k] += s.get("vegetation", {}).get(k, 0)
+    tree_cov, bush_cov = vegetation.coverage_from_counts(bins)
+    rough = terrain.combine(terrain.Roughness(*s["roughness_sums"]) for s in block_stats if "roughness_sums" in s)
+    steep = [s for s in block_stats if s.get("steep", {}).get("rotated")]
+    mixed = [s["mixed"] for s in block_stats if "mixed" in s]
     report = {
         "job": job.name,
         "points": points,
@@ -243,6 +254,26 @@ def write_report_and_item(
         "crs": plan["crs"],
         "blocks": len(block_stats),
         "counts_per_class": dict(sorted(counts.items(), key=lambda kv: int(kv[0]))),
+        "vegetation": {
+            "tree_coverage": tree_cov,
+            "bush_coverage": bush_cov,
+            "bins": bins,
+            "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
+        },
+        "roughness": rough.to_dict(),
+        "steep_blocks": {
+            "tested": sum(1 for s in block_stats if s.get("steep")),
+            "rotated": len(steep),
+            "blocks": {s["name"]: s["steep"] for s in steep},
+        },
+        "mixed_measurements": (
+            {
+                "marked": sum(m["marked"] for m in mixed),
+                "unclassified": sum(m["unclassified"] for m in mixed),
+            }
+            if mixed
+            else "not run: no sensor_origin given"
+        ),
         "parameters": dict(params),
         "timings_seconds": {
             "job": dict(timings),

@@ -121,6 +121,15 @@ def classify_block(
     stats["vegetation"] = veg.counts
     stats["vegetation_nogo"] = int(veg.nogo.sum())
 
+    # Roughness gauge over the core's bins (ground points, plane per accepted bin).
+    from terrasift.workers import terrain
+
+    tparams = stage_params(params, "terrain")
+    rgrid = Grid(xmin, ymin, tparams.cell, int(round((xmax - xmin) / tparams.cell)), int(round((ymax - ymin) / tparams.cell)))
+    with timer("roughness"):
+        rough = terrain.roughness(sub[is_ground_sub], rgrid, tparams)
+    stats["roughness_sums"] = [rough.n_bins, rough.mean_sx, rough.mean_sy, rough.m2_sx, rough.m2_sy]
+
     # Elevation models on the core window.
     check_cancel()
     row_off, col_off, rows, cols = grid.core_window(ix, iy)
