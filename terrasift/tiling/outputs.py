@@ -282,6 +282,7 @@ def write_report_and_item(
         "points_per_second": points / timings["total"] if timings.get("total") else None,
         "warnings": list(plan.get("warnings", [])),
     }
+    _write_json(out / "steep_blocks.geojson", steep_blocks_geojson(plan, steep))
     tmp = out / "report.json.part"
     tmp.write_text(json.dumps(report, indent=2))
     os.replace(tmp, out / "report.json")
@@ -291,6 +292,36 @@ def write_report_and_item(
     tmp.write_text(json.dumps(item, indent=2))
     os.replace(tmp, out / "item.json")
     return sorted([*names, "item.json"])
+
+
+def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> dict[str, Any]:
+    """Blocks that went through rotated classification, as RFC 7946 polygons (WGS 84 when the CRS is known)."""
+    from terrasift.tiling.blocks import parse_block_name
+
+    grid = BlockGrid(**plan["grid"])
+    tf = None
+    if plan.get("crs_wkt"):
+        tf = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True)
+    feats = []
+    for s in steep_stats:
+        ix, iy = parse_block_name(s["name"])
+        x0, y0, x1, y1 = grid.core_bounds(ix, iy)
+        ring = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]
+        if tf is not None:
+            ring = [tf.transform(x, y) for x, y in ring]
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in ring]]},
+                "properties": {
+                    "block": s["name"],
+                    "facet_share": s["steep"].get("facet_share"),
+                    "points_added_per_rotation": s["steep"].get("added_per_rotation", []),
+                    "points": s.get("points_core"),
+                },
+            }
+        )
+    return {"type": "FeatureCollection", "features": feats}
 
 
 def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[str, Any]:
