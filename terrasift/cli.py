@@ -1,4 +1,4 @@
-"""Command line: ``terrasift serve | process | classify | survey | worker``.
+"""Command line: ``terrasift serve | process | classify | survey | path | worker``.
 
 ``process`` and ``classify`` run the same pipeline as the service, without a
 server. Their working files live in ``OUT/.terrasift-work`` until the job
@@ -12,7 +12,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from terrasift.errors import TerrasiftError
+from terrasift.errors import ParameterError, TerrasiftError
 from terrasift.params import parse_cli_params
 
 WORK_DIR = ".terrasift-work"
@@ -44,6 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--token", default=None)
 
+    p = sub.add_parser("path", help="pitch and roll along a GeoJSON LineString over a DTM")
+    p.add_argument("dtm", type=Path, help="a DTM GeoTIFF, e.g. OUT/dtm.tif from `process`")
+    p.add_argument("line", type=Path, help="GeoJSON file with a LineString (or a Feature holding one)")
+    p.add_argument("--crs", default=None, help="CRS of the line: WGS 84 if omitted, `native` for the DTM's")
+    p.add_argument("--spacing", type=float, default=1.0, help="metres between samples")
+    p.add_argument("--format", choices=["csv", "json"], default="csv")
+
     p = sub.add_parser("worker", help="join a Dask cluster as a terrasift worker")
     p.add_argument("scheduler", nargs="?", default=None, help="tcp://host:8786 (default: TERRASIFT_DASK_SCHEDULER)")
     p.add_argument("--nthreads", type=int, default=1)
@@ -66,6 +73,21 @@ def main(argv: list[str] | None = None) -> int:
             from terrasift.survey import run_survey
 
             return run_survey(args.folder, args.server, parse_cli_params(args.param), token=args.token)
+        if args.command == "path":
+            import json
+
+            from terrasift.pipeline import dtm_path_profile
+
+            try:
+                geometry = json.loads(args.line.read_text())
+            except (OSError, ValueError) as exc:
+                raise ParameterError(f"{args.line}: not a readable GeoJSON file ({exc})") from None
+            profile = dtm_path_profile(args.dtm, geometry, crs=args.crs, spacing=args.spacing)
+            if args.format == "csv":
+                sys.stdout.write(profile.to_csv())
+            else:
+                print(json.dumps(profile.to_records()))
+            return 0
         if args.command == "worker":
             return run_worker(args.scheduler, args.nthreads)
     except TerrasiftError as exc:

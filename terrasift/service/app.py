@@ -21,7 +21,7 @@ from terrasift import __version__
 from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.context import Service
-from terrasift.service.routes import jobs, processes, surveys
+from terrasift.service.routes import jobs, path, processes, surveys
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
@@ -78,6 +78,7 @@ def create_app(
     problems.install(app)
     app.include_router(processes.router)
     app.include_router(jobs.router)
+    app.include_router(path.router)
     app.include_router(surveys.router)
 
     def openapi() -> dict[str, Any]:

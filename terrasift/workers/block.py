@@ -105,12 +105,20 @@ def classify_block(
     # Vegetation bins on the core window, and vegetation classes for the points in them.
     check_cancel()
     xmin, ymin, xmax, ymax = grid.core_bounds(ix, iy)
-    vparams = stage_params(params, "vegetation")
-    vgrid = Grid(xmin, ymin, vparams.cell, int(round((xmax - xmin) / vparams.cell)), int(round((ymax - ymin) / vparams.cell)))
     from terrasift.workers import vegetation
 
+    vparams = stage_params(params, "vegetation")
+    if vparams.support is None:
+        # One support window for the whole job, from its mean density, so
+        # neighbouring blocks judge bins alike.
+        support = vegetation.support_for_density(float(params.get("_density", 1.0)), vparams.cell, vparams.min_points)
+        vparams = vparams.model_copy(update={"support": support})
+    c = vparams.cell
+    vgrid = Grid(xmin, ymin, c, int(round((xmax - xmin) / c)), int(round((ymax - ymin) / c)))
+    pad = 7  # bins: the widest support window reaches this far into the halo
+    hgrid = Grid(xmin - pad * c, ymin - pad * c, c, vgrid.nx + 2 * pad, vgrid.ny + 2 * pad)
     with timer("vegetation"):
-        veg = vegetation.classify_bins(sub, is_ground_sub, vgrid, vparams)
+        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams).crop(vgrid)
         surface = vegetation.ground_surface(sub[is_ground_sub], vgrid) if is_ground_sub.any() else None
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
@@ -228,7 +236,7 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
         return json.loads(stats_path.read_text())
     check_cancel(job_dir_p)
     plan = load_json(job_dir_p / "plan.json")
-    params = load_json(job_dir_p / "job.json")["params"]
+    params = {**load_json(job_dir_p / "job.json")["params"], "_density": plan.get("density", 1.0)}
     grid = BlockGrid(**plan["grid"])
     shard_dirs = [job_dir_p / "shards" / str(i) for i in range(len(plan["tiles"]))]
     points = read_block_points(shard_dirs, name)
