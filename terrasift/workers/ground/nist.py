@@ -1,0 +1,294 @@
+"""Ground determination as NIST does it (Witzgall, Cheok, Gilsinn; DESIGN §5.1).
+
+Four procedures, combined by the schedule of the paper's §6.1:
+
+- select/reject on a grid: a bin is rejected when it holds fewer than
+  ``min_points``, when the RMS of its elevations exceeds ``z_tol``, or when a
+  mask point falls in it; the lowest point of each accepted bin is a ground
+  candidate (``select_reject``);
+- masking: a partial TIN built by largest-deviation insertion, stopped at
+  ``mask_fraction`` of the points; vertices of its triangles whose edges are all
+  shorter than ``mask_edge`` block bins (``masking.py``);
+- meshing and screening: Delaunay TIN through the candidates; vertices more
+  than ``screen_tol`` above the median of their neighbours are deleted, until
+  none is (``tin.screen``);
+- mowing: points more than a tolerance above the current surface are dropped.
+
+Default recipe (§6.1): mask → bin (cell_1) → mesh/screen → mow (mow_tol_1)
+→ screen the mowed points → mask them → bin (cell_2) → mesh/screen → mow the
+original points (mow_tol_2) → bin (cell_3) → mesh/screen. Final labels: ground
+is every point within ``ground_tol`` (plus ``ground_slope`` × local TIN slope)
+of the last surface.
+
+§7 extensions: ``bin_fit="plane"`` judges RMS and the lowest point relative
+to a least-squares plane per bin, so steep bare bins are not taken for
+vegetation; ``grid="concentric"`` bins a ground-based scan in rings around the
+sensor.
+
+Cell sizes follow the point density when left at 0 (auto): with the mean point
+spacing s = 1/sqrt(points per m²), cell_1 = max(10 s, 6 m), cell_2 =
+max(4 s, 3 m), cell_3 = max(s, 1 m), mask_edge = 2.5 s. At 1 pt/m² (ISPRS)
+this gives 10, 4, 1 m; at 8 pts/m² 6, 3, 1 m. The floors keep bins wider
+than a tree crown's gap-free core and the last TIN coarse enough to stay fast.
+Example::
+
+    from terrasift.workers.ground.nist import NistParams, classify_ground
+    ground = classify_ground(xyz, NistParams.preset("default", bin_fit="plane"))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from terrasift.workers.bins import BinStats, Grid, PlaneStats, bin_statistics, plane_fit_statistics
+from terrasift.workers.ground.concentric import ConcentricGrid
+from terrasift.workers.ground.masking import extremes_per_cell, mask_points
+from terrasift.workers.ground.tin import Tin, screen
+from terrasift.workers.registry import StageParams, register
+
+#: why a bin was not accepted
+ACCEPTED, EMPTY, OCCUPANCY, RMS, MASK = 0, 1, 2, 3, 4
+
+_AUTO_CELLS = ((10.0, 6.0), (4.0, 3.0), (1.0, 1.0))  # (× spacing, floor in m) per pass
+
+
+class NistParams(StageParams):
+    """Parameters of ``ground.nist``; lengths in metres, 0 means derived from point density."""
+
+    grid: Literal["auto", "regular", "concentric"] = "auto"
+    """Binning grid; ``auto`` is concentric when a sensor origin is given, else regular."""
+    bin_fit: Literal["level", "plane"] = "plane"
+    """Judge bin RMS and lowest point about the bin mean (``level``) or a least-squares plane."""
+    cell_1: float = Field(0.0, ge=0, le=500)
+    """Bin size of the first select/reject pass (0: max(10 s, 6 m))."""
+    cell_2: float = Field(0.0, ge=0, le=500)
+    """Bin size of the second pass (0: max(4 s, 3 m))."""
+    cell_3: float = Field(0.0, ge=0, le=500)
+    """Bin size of the third, final pass (0: max(s, 1 m))."""
+    min_points: int = Field(1, ge=1, le=1000)
+    """Minimum bin occupancy; the paper also accepts single occupancy."""
+    z_tol: float = Field(3.0, gt=0, le=100)
+    """RMS of elevations (about the mean or the plane) above which a bin is rejected."""
+    mask: bool = True
+    """Run TIN masking before the first and second select/reject."""
+    mask_fraction: float = Field(0.12, gt=0, le=0.5)
+    """Share of the (pooled) points the partial TIN takes in; the paper uses 10–15 %."""
+    mask_edge: float = Field(0.0, ge=0, le=100)
+    """Partial-TIN triangles with every edge shorter than this are mask triangles (0: 2.5 s)."""
+    mask_rule: Literal["deviation", "area"] = "deviation"
+    """Insertion order: largest deviation, or deviation × triangle area."""
+    mask_pool_cell: float = Field(0.0, ge=0, le=100)
+    """Masking inserts from the lowest and highest point of each such cell (0: max(1.25 s, 0.75 m))."""
+    screen_tol: float = Field(1.0, gt=0, le=100)
+    """A TIN vertex more than this above the median of its neighbours is deleted."""
+    screen_low_tol: float = Field(1.0, ge=0, le=100)
+    """A vertex more than this below its second-lowest neighbour is a low outlier (0: off)."""
+    mow_tol_1: float = Field(3.0, gt=0, le=100)
+    """First mowing: drop points this far above the first surface."""
+    mow_tol_2: float = Field(0.3, gt=0, le=100)
+    """Second mowing, of the original points, against the second surface."""
+    mow_slope: float = Field(0.5, ge=0, le=10)
+    """Mowing tolerance grows by this × local surface slope × the pass's bin size."""
+    ground_tol: float = Field(0.3, gt=0, le=10)
+    """Final labels: ground within this height of the final surface."""
+    ground_tol_below: float = Field(0.5, gt=0, le=10)
+    """Final labels: ground down to this depth below the final surface."""
+    ground_slope: float = Field(1.0, ge=0, le=10)
+    """Extra tolerance per unit of local TIN slope (rise/run), for steep terrain."""
+    ring_step_deg: float = Field(3.0, gt=0.1, le=45)
+    """Concentric grid: angular step of the final pass (earlier passes scale it up)."""
+    ring_inner: float = Field(2.0, gt=0, le=100)
+    """Concentric grid: inner radius; closer points share the central bin."""
+
+    presets = {
+        "conservative": {"screen_tol": 0.5, "mow_tol_2": 0.2, "ground_tol": 0.2, "z_tol": 1.0},
+        "aggressive": {"screen_tol": 2.0, "mow_tol_2": 0.5, "ground_tol": 0.5, "z_tol": 5.0},
+    }
+
+
+@dataclass(frozen=True)
+class SelectReject:
+    """Outcome of one select/reject pass over a grid.
+
+    ``stats`` are the plain per-bin elevation statistics (n, lowest point,
+    mean, max, RMS about the mean) the vegetation stage uses; ``plane`` is set
+    when bins were judged about planes. ``reason`` is ACCEPTED, EMPTY,
+    OCCUPANCY, RMS or MASK per bin; ``candidates`` index the input points.
+    """
+
+    grid: Grid | ConcentricGrid
+    stats: BinStats
+    plane: PlaneStats | None
+    accepted: NDArray[np.bool_]
+    reason: NDArray[np.uint8]
+    candidates: NDArray[np.int64]
+
+
+def point_spacing(xy: NDArray[np.float64]) -> float:
+    """Mean point spacing 1/sqrt(density), density over the occupied area only."""
+    n = xy.shape[0]
+    if n < 2:
+        return 1.0
+    span = np.ptp(xy, axis=0)
+    area = max(float(span[0] * span[1]), 1e-6)
+    for _ in range(2):  # refine: the second pass sizes cells from the first density
+        c = max(np.sqrt(4.0 * area / n), 1e-3)
+        g = Grid.covering(xy[:, 0], xy[:, 1], c)
+        occupied = np.count_nonzero(np.bincount(g.index(xy[:, 0], xy[:, 1]), minlength=g.size))
+        area = occupied * c * c
+    return float(np.sqrt(area / n))
+
+
+def select_reject(
+    xyz: NDArray[np.float64],
+    params: NistParams,
+    grid: Grid | ConcentricGrid,
+    *,
+    mask_xy: NDArray[np.float64] | None = None,
+) -> SelectReject:
+    """Select/reject over ``grid`` (NIST §3.1): accepted bins give their lowest point.
+
+    Mask points block bins; without ``mask_xy`` they are computed from ``xyz``
+    when ``params.mask`` is on (pass an empty array to skip masking).
+    """
+    stats = bin_statistics(xyz, grid)
+    if mask_xy is None:
+        mask_xy = _mask(xyz, params, point_spacing(xyz[:, :2])) if params.mask else np.zeros((0, 2))
+    rms, lowest = stats.rms, stats.lowest
+    plane = None
+    if params.bin_fit == "plane":
+        plane = plane_fit_statistics(xyz, grid)
+        fitted = np.isfinite(plane.rms)
+        rms = np.where(fitted, plane.rms, rms)
+        lowest = np.where(fitted, plane.lowest, lowest)
+    reason = np.full(grid.size, ACCEPTED, dtype=np.uint8)
+    with np.errstate(invalid="ignore"):
+        reason[rms > params.z_tol] = RMS
+    if mask_xy.shape[0]:
+        blocked = grid.index(mask_xy[:, 0], mask_xy[:, 1])
+        blocked = blocked[blocked >= 0]
+        reason[blocked] = np.where(reason[blocked] == ACCEPTED, MASK, reason[blocked])
+    reason[stats.n < params.min_points] = OCCUPANCY
+    reason[stats.n == 0] = EMPTY
+    accepted = (reason == ACCEPTED) & (lowest >= 0)
+    return SelectReject(grid, stats, plane, accepted, reason, lowest[accepted])
+
+
+def _mask(xyz: NDArray[np.float64], params: NistParams, spacing: float) -> NDArray[np.float64]:
+    pool_cell = params.mask_pool_cell or max(1.25 * spacing, 0.75)
+    edge = params.mask_edge or 2.5 * spacing
+    pool = extremes_per_cell(xyz, pool_cell)
+    return xyz[pool[mask_points(xyz[pool], params.mask_fraction, edge, params.mask_rule)], :2]
+
+
+def _grids(
+    xyz: NDArray[np.float64], params: NistParams, spacing: float, origin: NDArray[np.float64] | None
+) -> list[Grid | ConcentricGrid]:
+    fixed = (params.cell_1, params.cell_2, params.cell_3)
+    cells = [c or max(f * spacing, floor) for c, (f, floor) in zip(fixed, _AUTO_CELLS, strict=True)]
+    concentric = params.grid == "concentric" or (params.grid == "auto" and origin is not None)
+    if not concentric:
+        return [Grid.covering(xyz[:, 0], xyz[:, 1], c) for c in cells]
+    if origin is None:
+        raise ValueError('grid="concentric" needs a sensor origin')
+    r = np.hypot(xyz[:, 0] - origin[0], xyz[:, 1] - origin[1])
+    r_outer = float(r.max()) * (1 + 1e-9) + 1e-6
+    r_inner = min(params.ring_inner, 0.5 * r_outer)
+    return [
+        ConcentricGrid.build(origin[0], origin[1], r_inner, r_outer, params.ring_step_deg * c / cells[2])
+        for c in cells
+    ]
+
+
+def _surface(
+    xyz: NDArray[np.float64], sr: SelectReject, params: NistParams, origin_xy: NDArray, scale: float = 1.0
+) -> Tin:
+    """Mesh the candidates of ``sr`` and screen them until stable (tolerance × ``scale``)."""
+    cand = xyz[sr.candidates]
+    slopes = None
+    if sr.plane is not None:
+        b = sr.grid.index(cand[:, 0], cand[:, 1])
+        slopes = np.nan_to_num(np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]))
+    keep = screen(cand, params.screen_tol * scale, params.screen_low_tol * scale, slopes=slopes)
+    if keep.size < 3:
+        keep = np.arange(cand.shape[0])
+    return Tin(cand[keep], origin=origin_xy)
+
+
+def _cell_of(g: Grid | ConcentricGrid) -> float:
+    return float(np.median(g.cell)) if isinstance(g, ConcentricGrid) else g.cell
+
+
+def _mow_tol(tin: Tin, xyz: NDArray, tol: float, cell: float, params: NistParams) -> NDArray | float:
+    """Mowing tolerance: ``tol`` plus ``mow_slope`` × facet slope × bin size.
+
+    A TIN through vertices one bin apart cuts convex slope breaks by up to
+    the slope change times half the spacing; steep facets flag where that happens.
+    """
+    if params.mow_slope <= 0:
+        return tol
+    return tol + params.mow_slope * cell * tin.slope_local(xyz[:, :2] - tin.origin)
+
+
+def _height(tin: Tin, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
+    return xyz[:, 2] - tin.at_local(xyz[:, :2] - tin.origin)
+
+
+@register("ground.nist", NistParams, "NIST select/reject, TIN masking, meshing, screening, mowing")
+def classify_ground(
+    xyz: NDArray[np.float64],
+    params: NistParams,
+    *,
+    sensor_origin: NDArray[np.float64] | None = None,
+) -> NDArray[np.bool_]:
+    """Ground mask of the (n, 3) block ``xyz`` (core + halo) by the §6.1 schedule."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = xyz.shape[0]
+    if n < 4:
+        return np.ones(n, dtype=bool)
+    # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
+    shift = np.floor(xyz[:, :2].min(axis=0))
+    local = np.column_stack([xyz[:, :2] - shift, xyz[:, 2]])
+    origin = None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
+    spacing = point_spacing(local[:, :2])
+    g1, g2, g3 = _grids(local, params, spacing, origin)
+    # Screening tolerances grow with the bin size of a pass: with vertices
+    # further apart, smooth terrain departs further from neighbour votes.
+    scales = [_cell_of(g) / _cell_of(g3) for g in (g1, g2)]
+    centre = local[:, :2].mean(axis=0)
+    none = np.zeros((0, 2))
+
+    # Pass 1: mask, bin, mesh/screen; mow the original points.
+    mask1 = _mask(local, params, spacing) if params.mask else none
+    tin1 = _surface(local, select_reject(local, params, g1, mask_xy=mask1), params, centre, scales[0])
+    mowed = np.flatnonzero(_height(tin1, local) <= _mow_tol(tin1, local, params.mow_tol_1, _cell_of(g1), params))
+
+    # Pass 2: screen the mowed points, mask them, bin, mesh/screen; mow the originals again.
+    mowed_pts = local[mowed]
+    mask2 = none
+    if params.mask:
+        pool_cell = params.mask_pool_cell or max(1.25 * spacing, 0.75)
+        pool = extremes_per_cell(mowed_pts, pool_cell)
+        pool = pool[screen(mowed_pts[pool], params.screen_tol, params.screen_low_tol, max_rounds=1)]
+        edge = params.mask_edge or 2.5 * spacing
+        mask2 = mowed_pts[pool[mask_points(mowed_pts[pool], params.mask_fraction, edge, params.mask_rule)], :2]
+    tin2 = _surface(mowed_pts, select_reject(mowed_pts, params, g2, mask_xy=mask2), params, centre, scales[1])
+    mowed = np.flatnonzero(_height(tin2, local) <= _mow_tol(tin2, local, params.mow_tol_2, _cell_of(g2), params))
+
+    # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
+    mowed_pts = local[mowed]
+    tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
+    q = local[:, :2] - tin3.origin
+    h = local[:, 2] - tin3.at_local(q)
+    tol_up = params.ground_tol
+    tol_down = params.ground_tol_below
+    if params.ground_slope > 0:
+        slope = tin3.slope_local(q)
+        tol_up = tol_up + params.ground_slope * slope
+        tol_down = tol_down + params.ground_slope * slope
+    return (h <= tol_up) & (h >= -tol_down)
