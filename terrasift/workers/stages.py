@@ -6,3 +6,4 @@ import terrasift.workers.features  # noqa: F401
 import terrasift.workers.vegetation  # noqa: F401
 import terrasift.workers.mixed  # noqa: F401
 import terrasift.workers.terrain  # noqa: F401
+import terrasift.workers.ground.nist  # noqa: F401
