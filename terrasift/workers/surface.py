@@ -11,6 +11,33 @@ from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 
+def with_transform(tri: Delaunay) -> Delaunay:
+    """Give a 2-D ``tri`` its barycentric transforms, computed here in numpy.
+
+    scipy builds ``Delaunay.transform`` (needed by ``find_simplex``) with one
+    LAPACK call per simplex; under a multi-threaded OpenBLAS on a busy machine
+    that costs up to 100x more than this closed-form 2x2 inverse. Degenerate
+    (zero-area) simplices get NaN, as scipy gives them.
+    """
+    if getattr(tri, "_transform", 0) is not None or tri.ndim != 2:
+        return tri
+    pts = tri.points[tri.simplices]
+    r = pts[:, 2]
+    a = pts[:, 0] - r
+    b = pts[:, 1] - r
+    det = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+    scale = np.maximum(np.abs(a).sum(axis=1) * np.abs(b).sum(axis=1), np.finfo(float).tiny)
+    det = np.where(np.abs(det) > 1e3 * np.finfo(float).eps * scale, det, np.nan)
+    t = np.empty((det.size, 3, 2))
+    t[:, 0, 0] = b[:, 1] / det
+    t[:, 0, 1] = -b[:, 0] / det
+    t[:, 1, 0] = -a[:, 1] / det
+    t[:, 1, 1] = a[:, 0] / det
+    t[:, 2] = r
+    tri._transform = t
+    return tri
+
+
 class TinSurface:
     """z(x, y) linearly interpolated on the TIN of ``xyz``; nearest vertex outside the hull."""
 
@@ -24,7 +51,7 @@ class TinSurface:
         self.tri: Delaunay | None = None
         if xyz.shape[0] >= 3:
             try:
-                self.tri = Delaunay(self.xy)
+                self.tri = with_transform(Delaunay(self.xy))
             except QhullError:  # all points collinear or coincident
                 self.tri = None
         self._kd: cKDTree | None = None
