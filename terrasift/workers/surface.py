@@ -1,9 +1,10 @@
 """A ground surface through points: linear on a Delaunay TIN, nearest outside it.
 
-Point location does not use ``Delaunay.find_simplex``: its walk is pathological
-for ordered queries (over 100 s for 160 k raster-cell centres on a 150 k point
-TIN). ``TriangleLocator`` buckets triangles on a grid instead and tests each
-query against its bucket's triangles, all vectorised.
+Point location uses ``TriangleLocator``, which buckets triangles on a grid and
+tests each query against its bucket's triangles, all vectorised and with no
+per-simplex LAPACK calls (scipy's ``Delaunay.transform`` makes one per simplex,
+which under a threaded BLAS on a busy machine took over 100 s for a 150 k point
+TIN; ``with_transform`` fills it in numpy where ``find_simplex`` is still used).
 
 Coordinates are shifted to a local origin before triangulating, because
 projected coordinates (5e6 m) cost Qhull precision.
@@ -14,6 +15,33 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
+
+
+def with_transform(tri: Delaunay) -> Delaunay:
+    """Give a 2-D ``tri`` its barycentric transforms, computed here in numpy.
+
+    scipy builds ``Delaunay.transform`` (needed by ``find_simplex``) with one
+    LAPACK call per simplex; under a multi-threaded OpenBLAS on a busy machine
+    that costs up to 100x more than this closed-form 2x2 inverse. Degenerate
+    (zero-area) simplices get NaN, as scipy gives them.
+    """
+    if getattr(tri, "_transform", 0) is not None or tri.ndim != 2:
+        return tri
+    pts = tri.points[tri.simplices]
+    r = pts[:, 2]
+    a = pts[:, 0] - r
+    b = pts[:, 1] - r
+    det = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+    scale = np.maximum(np.abs(a).sum(axis=1) * np.abs(b).sum(axis=1), np.finfo(float).tiny)
+    det = np.where(np.abs(det) > 1e3 * np.finfo(float).eps * scale, det, np.nan)
+    t = np.empty((det.size, 3, 2))
+    t[:, 0, 0] = b[:, 1] / det
+    t[:, 0, 1] = -b[:, 0] / det
+    t[:, 1, 0] = -a[:, 1] / det
+    t[:, 1, 1] = a[:, 0] / det
+    t[:, 2] = r
+    tri._transform = t
+    return tri
 
 
 class TriangleLocator:
