@@ -172,7 +172,8 @@ def _stage_overrides(rest: dict[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def stages_params_fields(stage_id: str) -> set[str]:
-    return set(get_stage(stage_id).params.model_fields)
+    fields = get_stage(stage_id).params.model_fields
+    return set(fields) | {f.alias for f in fields.values() if f.alias}
 
 
 def stage_params(params: Mapping[str, Any], stage_id: str, preset: str = "default") -> Any:

@@ -203,7 +203,7 @@ def _ground(
             gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
             return np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool), steep_info
         rparams = stage_params(params, "ground.rotation")
-        cparams = stage_params(params, stage.id, rparams.preset)
+        cparams = stage_params(params, stage.id, rparams.ground_preset)
         result = rotation.classify_rotated(xyz, lambda p: stage.run(p, cparams, **kwargs), rparams)
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

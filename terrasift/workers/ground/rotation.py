@@ -26,7 +26,7 @@ from pydantic import Field
 from scipy.spatial import Delaunay, QhullError
 
 from terrasift.workers.bins import Grid
-from terrasift.workers.registry import StageParams
+from terrasift.workers.registry import StageParams, register
 
 GroundFn = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
 
@@ -74,6 +74,7 @@ class RotatedResult:
     unrotated: int = 0
 
 
+@register("ground.steep", SteepParams, "per-block steepness test: share of steep facets of the lowest-point TIN")
 def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
     """Share of facets steeper than ``facet_angle`` in the TIN of the lowest
     point of every ``cell``; a few sorts and one small Delaunay."""
@@ -121,6 +122,7 @@ def rotation_matrix(azimuth_deg: float, angle_deg: float) -> NDArray[np.float64]
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
 
 
+@register("ground.rotation", RotationParams, "ground on the block and on copies tipped toward 8 directions, OR'ed")
 def classify_rotated(
     xyz: NDArray[np.float64],
     ground: GroundFn,
