@@ -72,6 +72,9 @@ def classify_block(
     only core cells rastered.
     """
     timer = _Timer()
+    # A canonical order, so labels do not depend on how the points were split
+    # into files or shards (stages break ties by position in the array).
+    points = points[np.lexsort((points["z"], points["y"], points["x"]))]
     xyz = np.column_stack([points["x"], points["y"], points["z"]])
     core = points["core"].astype(bool)
     n = xyz.shape[0]

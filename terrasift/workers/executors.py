@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor
 from concurrent.futures import wait as cf_wait
@@ -79,15 +80,15 @@ class DaskExecutor:
         return self._client.submit(fn, *args, pure=False)
 
     def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
-        from distributed import wait as dask_wait
-        from distributed.client import FIRST_COMPLETED as DASK_FIRST
-
+        # distributed.wait needs a default client, which this one is not (a
+        # service may talk to several); futures know their state, so poll them.
         futs = list(futures)
-        try:
-            done, _ = dask_wait(futs, timeout=timeout, return_when=DASK_FIRST)
-        except TimeoutError:
-            return set()
-        return set(done)
+        deadline = time.monotonic() + timeout
+        while True:
+            done = {f for f in futs if f.done()}
+            if done or time.monotonic() >= deadline:
+                return done
+            time.sleep(0.02)
 
     def shutdown(self) -> None:
         self._client.close()
