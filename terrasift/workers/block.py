@@ -136,10 +136,15 @@ def classify_block(
     from terrasift.workers import terrain
 
     tparams = stage_params(params, "terrain")
-    rgrid = Grid(xmin, ymin, tparams.cell, int(round((xmax - xmin) / tparams.cell)), int(round((ymax - ymin) / tparams.cell)))
+    # Sparse clouds get whole multiples of the cell, so a bin expects twice
+    # min_points and the gauge does not go empty (same for every block).
+    density = float(params.get("_density", 1.0))
+    rcell = tparams.cell * max(1, int(np.ceil(np.sqrt(2 * tparams.min_points / max(density, 1e-6)) / tparams.cell)))
+    rgrid = Grid(xmin, ymin, rcell, int((xmax - xmin) // rcell), int((ymax - ymin) // rcell))
     with timer("roughness"):
         rough = terrain.roughness(sub[is_ground_sub], rgrid, tparams)
     stats["roughness_sums"] = [rough.n_bins, rough.mean_sx, rough.mean_sy, rough.m2_sx, rough.m2_sy]
+    stats["roughness_cell"] = rcell
 
     # Elevation models on the core window.
     check_cancel()
