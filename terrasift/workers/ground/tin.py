@@ -34,6 +34,7 @@ class Tin:
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
         self.tri = Delaunay(self.xy)  # QhullError (collinear input) propagates to the caller
+        self._slopes: NDArray[np.float64] | None = None
         self._trans: tuple[NDArray[np.float64], ...] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
 
@@ -109,11 +110,10 @@ class Tin:
             b[:, 1] = t10[tt] * dx + t11[tt] * dy
             b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
             np.nan_to_num(b, copy=False, nan=-1.0)  # degenerate sliver: step on
-            if rnd < _MAX_WALK // 2:
-                j = np.argmin(b, axis=1)
-            else:  # rare cycling walks (round-off near edges): randomise the exit edge
+            j = np.argmin(b, axis=1)
+            done = b[np.arange(tt.size), j] >= -1e-10
+            if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
                 j = np.argmax((b < -1e-10) * rng.random(b.shape), axis=1)
-            done = b.min(axis=1) >= -1e-10
             bary[active[done]] = b[done]
             move = np.flatnonzero(~done)
             nxt = nbr[tt[move], j[move]]
@@ -136,6 +136,12 @@ class Tin:
 
     def at_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Surface height at local points ``q`` (n, 2)."""
+        return self.height_and_slope(q, slope=False)[0]
+
+    def height_and_slope(
+        self, q: NDArray[np.float64], slope: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both."""
         t, bary = self.locate(q)
         inside = t >= 0
         ti = np.where(inside, t, -t - 1)
@@ -147,16 +153,16 @@ class Tin:
             o = np.flatnonzero(~inside)
             d2 = ((self.xy[corners[o]] - q[o, None, :]) ** 2).sum(axis=2)
             out[o] = zc[o, np.argmin(d2, axis=1)]
-        return out
+        return out, (self.facet_slopes()[ti] if slope else None)
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
-        t, _ = self.locate(q)
-        ti = np.where(t >= 0, t, -t - 1)
-        return self.facet_slopes()[ti]
+        return self.height_and_slope(q)[1]
 
     def facet_slopes(self) -> NDArray[np.float64]:
         """Gradient magnitude of each triangle."""
+        if self._slopes is not None:
+            return self._slopes
         s = self.tri.simplices
         p = self.xy[s]
         dz1 = self.z[s[:, 1]] - self.z[s[:, 0]]
@@ -167,7 +173,8 @@ class Tin:
         with np.errstate(divide="ignore", invalid="ignore"):
             gx = (dz1 * b[:, 1] - dz2 * a[:, 1]) / det
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
-        return np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
+        self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
+        return self._slopes
 
 
 def neighbour_order_stats(
@@ -201,8 +208,8 @@ def screen(
     *,
     slopes: NDArray[np.float64] | None = None,
     max_rounds: int = 50,
-) -> NDArray[np.int64]:
-    """Indices of the points of ``xyz`` kept by TIN screening (NIST §3.2), repeated until stable.
+) -> tuple[NDArray[np.int64], Tin | None]:
+    """Points of ``xyz`` kept by TIN screening (NIST §3.2), repeated until stable, and their TIN.
 
     A vertex is deleted when it stands more than ``screen_tol`` above the
     median of its TIN neighbours. With ``slopes`` (per point: dz/dx, dz/dy of
@@ -214,22 +221,26 @@ def screen(
 
     Isolated low outliers (multipath, common in airborne data) would pull the
     surface into pits, so a vertex is also deleted when it lies more than
-    ``low_tol`` below the second-lowest neighbour vote: a pit, not a valley,
+    ``low_tol`` below the second-lowest of its neighbours: a pit, not a valley,
     since along a valley floor the neighbours up and down the valley are as
-    low as the vertex. ``low_tol <= 0`` skips that test.
+    low as the vertex. Pit votes use only the neighbours' own planes, since
+    the plane of the vertex's bin is tilted by the outlier itself.
+    ``low_tol <= 0`` skips that test.
     """
     keep = np.arange(xyz.shape[0])
     origin = xyz[:, :2].mean(axis=0) if xyz.shape[0] else np.zeros(2)
+    tin = None
     for _ in range(max_rounds):
         if keep.size < 4:
-            break
+            return keep, None
         try:
             tin = Tin(xyz[keep], origin=origin)
         except QhullError:
-            break
+            return keep, None
         indptr, indices = tin.neighbours()
         owner = np.repeat(np.arange(keep.size), np.diff(indptr))
         votes = tin.z[indices]
+        pit_votes = votes
         if slopes is not None:
             sl = slopes[keep]
             d = tin.xy[owner] - tin.xy[indices]
@@ -238,7 +249,11 @@ def screen(
             gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
             gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
             votes = votes + gx * d[:, 0] + gy * d[:, 1]
-        med, second = neighbour_order_stats(indptr, votes)
+            pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
+        med, _ = neighbour_order_stats(indptr, votes)
+        # Pits are judged on the neighbours' own planes only: the plane of
+        # the vertex's bin, tilted by the outlier itself, would vouch for it.
+        _, second = neighbour_order_stats(indptr, pit_votes)
         with np.errstate(invalid="ignore"):
             bad = tin.z - med > screen_tol
             if low_tol > 0:
@@ -246,6 +261,6 @@ def screen(
         if slopes is None:
             bad[np.unique(tin.tri.convex_hull)] = False
         if not bad.any():
-            break
+            return keep, tin
         keep = keep[~bad]
-    return keep
+    return keep, None
