@@ -93,8 +93,10 @@ class NistParams(StageParams):
     """First mowing: drop points this far above the first surface."""
     mow_tol_2: float = Field(0.3, gt=0, le=100)
     """Second mowing, of the original points, against the second surface."""
-    mow_slope: float = Field(0.5, ge=0, le=10)
+    mow_slope: float = Field(1.0, ge=0, le=10)
     """Mowing tolerance grows by this × local surface slope × the pass's bin size."""
+    repeats: int = Field(2, ge=0, le=10)
+    """Extra mow (mow_tol_2) → bin (cell_3) → mesh/screen rounds against the last surface."""
     ground_tol: float = Field(0.3, gt=0, le=10)
     """Final labels: ground within this height of the final surface."""
     ground_tol_below: float = Field(0.5, gt=0, le=10)
@@ -306,6 +308,11 @@ def classify_ground(
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = local[mowed]
     tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
+    # Repeats of mow → bin → mesh/screen at the final cell size let the
+    # surface climb back onto convex breaks that the coarser passes cut.
+    for _ in range(params.repeats):
+        mowed_pts = local[_mow(tin3, local, params.mow_tol_2, _cell_of(g3), params)]
+        tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
     surf, slope = tin3.height_and_slope(local[:, :2] - tin3.origin, slope=params.ground_slope > 0)
     h = local[:, 2] - surf
     tol_up: NDArray | float = params.ground_tol

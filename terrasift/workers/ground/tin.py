@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy import sparse
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
@@ -226,41 +227,105 @@ def screen(
     low as the vertex. Pit votes use only the neighbours' own planes, since
     the plane of the vertex's bin is tilted by the outlier itself.
     ``low_tol <= 0`` skips that test.
+
+    Rounds after the first re-triangulate only a patch: the vertices whose
+    neighbourhood a deletion changed, found through the deleted vertices
+    (a peeled roof joins the ground on both sides) plus three rings around.
     """
-    keep = np.arange(xyz.shape[0])
-    origin = xyz[:, :2].mean(axis=0) if xyz.shape[0] else np.zeros(2)
-    tin = None
+    n = xyz.shape[0]
+    if n < 4:
+        return np.arange(n), None
+    origin = xyz[:, :2].mean(axis=0)
+    try:
+        tin = Tin(xyz, origin=origin)
+    except QhullError:
+        return np.arange(n), None
+    indptr, indices = tin.neighbours()
+    graph = sparse.csr_matrix((np.ones(indices.size, dtype=np.int32), indices, indptr), shape=(n, n))
+
+    def spread(v: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return (graph @ v.astype(np.int32)) > 0
+
+    alive = np.ones(n, dtype=bool)
+    test = np.arange(n)  # vertices to judge, global ids
+    sub_ids = np.arange(n)  # global id of each vertex of the current (sub) TIN
+    sub = tin
+    sub_ptr, sub_idx = indptr, indices
+    hull = np.zeros(n, dtype=bool)
+    hull[np.unique(tin.tri.convex_hull)] = True
     for _ in range(max_rounds):
-        if keep.size < 4:
-            return keep, None
-        try:
-            tin = Tin(xyz[keep], origin=origin)
-        except QhullError:
-            return keep, None
-        indptr, indices = tin.neighbours()
-        owner = np.repeat(np.arange(keep.size), np.diff(indptr))
-        votes = tin.z[indices]
-        pit_votes = votes
-        if slopes is not None:
-            sl = slopes[keep]
-            d = tin.xy[owner] - tin.xy[indices]
-            # Trapezoid rule: the mean of both ends' slopes is exact on any
-            # quadratic surface, so curved hills are not taken for objects.
-            gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
-            gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
-            votes = votes + gx * d[:, 0] + gy * d[:, 1]
-            pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
-        med, _ = neighbour_order_stats(indptr, votes)
-        # Pits are judged on the neighbours' own planes only: the plane of
-        # the vertex's bin, tilted by the outlier itself, would vouch for it.
-        _, second = neighbour_order_stats(indptr, pit_votes)
-        with np.errstate(invalid="ignore"):
-            bad = tin.z - med > screen_tol
-            if low_tol > 0:
-                bad |= second - tin.z > low_tol
+        bad_local = _judge(sub, sub_ptr, sub_idx, sub_ids, test, xyz, screen_tol, low_tol, slopes)
         if slopes is None:
-            bad[np.unique(tin.tri.convex_hull)] = False
-        if not bad.any():
-            return keep, tin
-        keep = keep[~bad]
-    return keep, None
+            bad_local &= ~hull[sub_ids]
+        bad = sub_ids[bad_local]
+        if bad.size == 0:
+            break
+        alive[bad] = False
+        # Deleted vertices connected to this round's deletions, then three rings.
+        reach = np.zeros(n, dtype=bool)
+        reach[bad] = True
+        while True:
+            grown = reach | (spread(reach) & ~alive)
+            if grown.sum() == reach.sum():
+                break
+            reach = grown
+        affected = spread(reach) & alive
+        patch = affected.copy()
+        for _ in range(3):
+            patch |= spread(patch)
+        patch &= alive
+        sub_ids = np.flatnonzero(patch)
+        if sub_ids.size < 4:
+            break
+        try:
+            sub = Tin(xyz[sub_ids], origin=origin)
+        except QhullError:
+            break
+        sub_ptr, sub_idx = sub.neighbours()
+        test = np.flatnonzero(affected[sub_ids])
+    keep = np.flatnonzero(alive)
+    if keep.size == n:
+        return keep, tin
+    if keep.size < 4:
+        return keep, None
+    try:
+        return keep, Tin(xyz[keep], origin=origin)
+    except QhullError:
+        return keep, None
+
+
+def _judge(
+    tin: Tin,
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    ids: NDArray[np.int64],
+    test: NDArray[np.int64],
+    xyz: NDArray[np.float64],
+    screen_tol: float,
+    low_tol: float,
+    slopes: NDArray[np.float64] | None,
+) -> NDArray[np.bool_]:
+    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True)."""
+    owner = np.repeat(np.arange(ids.size), np.diff(indptr))
+    votes = tin.z[indices]
+    pit_votes = votes
+    if slopes is not None:
+        sl = slopes[ids]
+        d = tin.xy[owner] - tin.xy[indices]
+        # Trapezoid rule: the mean of both ends' slopes is exact on any
+        # quadratic surface, so curved hills are not taken for objects.
+        gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
+        gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
+        votes = votes + gx * d[:, 0] + gy * d[:, 1]
+        pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
+    med, _ = neighbour_order_stats(indptr, votes)
+    # Pits are judged on the neighbours' own planes only: the plane of the
+    # vertex's bin, tilted by the outlier itself, would vouch for it.
+    _, second = neighbour_order_stats(indptr, pit_votes)
+    bad = np.zeros(ids.size, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        b = tin.z[test] - med[test] > screen_tol
+        if low_tol > 0:
+            b |= second[test] - tin.z[test] > low_tol
+    bad[test] = b
+    return bad
