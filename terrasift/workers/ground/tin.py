@@ -36,7 +36,7 @@ class Tin:
         self.z = xyz[:, 2].copy()
         self.tri = Delaunay(self.xy)  # QhullError (collinear input) propagates to the caller
         self._slopes: NDArray[np.float64] | None = None
-        self._trans: tuple[NDArray[np.float64], ...] | None = None
+        self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
 
     @property
@@ -72,7 +72,7 @@ class Tin:
         iy = np.clip(((q[:, 1] - y0) / h).astype(np.int64), 0, ny - 1)
         return raster[iy, ix]
 
-    def _transform(self) -> tuple[NDArray[np.float64], ...]:
+    def _transform(self) -> NDArray[np.float64]:
         # Barycentric transform per triangle, computed vectorised (scipy's
         # ``Delaunay.transform`` loops in Python-speed LAPACK calls).
         if self._trans is None:
@@ -83,7 +83,7 @@ class Tin:
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv = 1.0 / det
             inv[~np.isfinite(inv)] = np.nan
-            self._trans = (b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2[:, 0].copy(), p2[:, 1].copy())
+            self._trans = np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
         return self._trans
 
     def locate(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -93,7 +93,7 @@ class Tin:
         the mesh and a triangle index of -(t + 1).
         """
         n = q.shape[0]
-        t00, t01, t10, t11, rx, ry = self._transform()
+        trans = self._transform()
         nbr = self.tri.neighbors
         t = self._start_triangles(q)
         bary = np.zeros((n, 3))
@@ -104,11 +104,12 @@ class Tin:
             if active.size == 0:
                 break
             tt = t[active]
-            dx = qx[active] - rx[tt]
-            dy = qy[active] - ry[tt]
+            tr = trans[tt]  # one gather of the six transform numbers per query
+            dx = qx[active] - tr[:, 4]
+            dy = qy[active] - tr[:, 5]
             b = np.empty((tt.size, 3))
-            b[:, 0] = t00[tt] * dx + t01[tt] * dy
-            b[:, 1] = t10[tt] * dx + t11[tt] * dy
+            b[:, 0] = tr[:, 0] * dx + tr[:, 1] * dy
+            b[:, 1] = tr[:, 2] * dx + tr[:, 3] * dy
             b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
             np.nan_to_num(b, copy=False, nan=-1.0)  # degenerate sliver: step on
             j = np.argmin(b, axis=1)
