@@ -252,6 +252,8 @@ def _surface(
 ) -> Tin:
     """Mesh the candidates of ``sr`` and screen them until stable (tolerance × ``scale``)."""
     cand = xyz[sr.candidates]
+    if cand.shape[0] < 3:
+        raise _TooSparse
     slopes = None
     if sr.plane is not None:
         b = sr.grid.index(cand[:, 0], cand[:, 1])
@@ -262,6 +264,10 @@ def _surface(
     if keep.size < 3:
         keep = np.arange(cand.shape[0])
     return Tin(cand[keep], origin=origin_xy)
+
+
+class _TooSparse(Exception):
+    """Fewer than three ground candidates: no surface can be meshed."""
 
 
 def _cell_of(g: Grid | ConcentricGrid) -> float:
@@ -293,6 +299,16 @@ def classify_ground(
     n = xyz.shape[0]
     if n < 4:
         return np.ones(n, dtype=bool)
+    try:
+        return _classify(xyz, params, sensor_origin)
+    except _TooSparse:
+        # A sliver of a block at the edge of the data: too few bins pass
+        # select/reject to mesh anything, so nothing is called ground.
+        return np.zeros(n, dtype=bool)
+
+
+def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None) -> NDArray[np.bool_]:
+    n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
     shift = np.floor(xyz[:, :2].min(axis=0))
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,

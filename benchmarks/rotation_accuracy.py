@@ -1,0 +1,154 @@
+"""Rotated classification on cliffs, its cost on flat blocks, and its effect on ISPRS.
+
+    python benchmarks/rotation_accuracy.py [--length 100] [--density 8] [--no-isprs]
+
+Cliff scene (``terrasift.synthetic.cliffs``): Type I on ground of faces steeper
+than 60°, Type I/II overall, share of covered ground found (under the lip),
+for the unrotated conservative/aggressive/default filters and rotation.
+Cost: steepness test vs a ptd run on a flat block, and a steep block (steepness
++ rotation) vs a flat block of similar point count. ISPRS: mean kappa of
+ptd (default) with and without rotation=auto, where the steepness test runs on
+the unrotated ground (the seed's step 1 preliminary classification).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from terrasift.metrics import ground_score  # noqa: E402
+from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
+from terrasift.synthetic.terrain import make_scene  # noqa: E402
+from terrasift.workers.ground.ptd import PtdParams, classify_ground  # noqa: E402
+from terrasift.workers.ground.rotation import (  # noqa: E402
+    RotationParams,
+    SteepParams,
+    classify_rotated,
+    steepness,
+)
+
+
+def ptd(preset: str):
+    params = PtdParams.preset(preset)
+    return lambda pts: classify_ground(pts, params)
+
+
+def auto(xyz: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The block flow: default ptd, steepness on its ground, rotation if steep."""
+    t0 = time.perf_counter()
+    g = ptd("default")(xyz)
+    t1 = time.perf_counter()
+    test = steepness(xyz[g], SteepParams())
+    t2 = time.perf_counter()
+    info = {"ptd_s": t1 - t0, "steep_s": t2 - t1, "share": test.facet_share, "steep": test.steep}
+    if test.steep:
+        rp = RotationParams()
+        res = classify_rotated(xyz, ptd(rp.ground_preset), rp, unrotated=g)
+        g = res.is_ground
+        info["added"] = res.added
+    info["total_s"] = time.perf_counter() - t0
+    return g, info
+
+
+def row(name: str, scene, pred: np.ndarray, seconds: float) -> None:
+    t = scene.is_ground
+    steep = scene.extra["steep"]
+    cov = scene.extra["covered"]
+    sc = ground_score(t, pred).as_percent()
+    t1_steep = 100.0 * np.count_nonzero(steep & ~pred) / max(np.count_nonzero(steep), 1)
+    found_cov = 100.0 * np.count_nonzero(cov & pred) / max(np.count_nonzero(cov), 1)
+    print(
+        f"{name:28} {t1_steep:10.2f} {sc['type1']:7.2f} {sc['type2']:8.2f} {sc['kappa']:7.2f} {found_cov:9.1f} {seconds:7.1f}"
+    )
+
+
+def cliffs(length: float, density: float) -> None:
+    scene = make_cliffs(length=length, density=density, seed=3)
+    print(f"cliff scene: {len(scene)} points, {int(scene.extra['steep'].sum())} ground points on faces > 60°")
+    print(f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}")
+    for preset in ("default", "conservative", "aggressive"):
+        t = time.perf_counter()
+        g = ptd(preset)(scene.xyz)
+        row(f"unrotated {preset}", scene, g, time.perf_counter() - t)
+    t = time.perf_counter()
+    res = classify_rotated(scene.xyz, ptd("conservative"), RotationParams())
+    row("rotated, all conservative", scene, res.is_ground, time.perf_counter() - t)
+    print(f"  added per direction N..NW: {res.added}")
+    g, info = auto(scene.xyz)
+    row("auto (default + rotated)", scene, g, info["total_s"])
+    print(f"  steep share {info['share']:.3f}, added {info.get('added')}")
+
+
+def cost() -> None:
+    flat = make_scene(size=200, density=8, seed=5)
+    xyz = flat.xyz
+    t = time.perf_counter()
+    g = ptd("default")(xyz)
+    t_ptd = time.perf_counter() - t
+    t = time.perf_counter()
+    for _ in range(5):
+        steepness(xyz, SteepParams())
+    t_raw = (time.perf_counter() - t) / 5
+    t = time.perf_counter()
+    for _ in range(5):
+        test = steepness(xyz[g], SteepParams())
+    t_ground = (time.perf_counter() - t) / 5
+    print(
+        f"flat block {len(flat)} pts: ptd {t_ptd:.2f} s; steepness on all points {t_raw:.3f} s "
+        f"({100 * t_raw / t_ptd:.1f} %), on ptd ground {t_ground:.3f} s ({100 * t_ground / t_ptd:.1f} %), "
+        f"share {test.facet_share:.3f} steep={test.steep}"
+    )
+    _, info_flat = auto(xyz)
+    steep_scene = make_cliffs(length=200.0, density=8, seed=6)
+    _, info = auto(steep_scene.xyz)
+    ratio = (info["total_s"] / len(steep_scene)) / (info_flat["total_s"] / len(flat))
+    print(
+        f"auto flat block {len(flat)} pts {info_flat['total_s']:.2f} s (steep={info_flat['steep']}); "
+        f"auto steep block {len(steep_scene)} pts {info['total_s']:.2f} s (steep={info['steep']}); "
+        f"per-point cost ratio {ratio:.1f}x"
+    )
+
+
+def isprs() -> None:
+    from ptd_accuracy import ISPRS, load_isprs
+
+    if not ISPRS.is_dir():
+        print(f"ISPRS samples not found at {ISPRS}: skipped")
+        return
+    k0, k1 = [], []
+    print(f"{'sample':8} {'kappa off':>10} {'kappa auto':>10} {'share':>6} steep")
+    for name, (xyz, truth) in load_isprs().items():
+        g0 = ptd("default")(xyz)
+        g1, info = auto(xyz)
+        a = 100 * ground_score(truth, g0).kappa
+        b = 100 * ground_score(truth, g1).kappa
+        k0.append(a)
+        k1.append(b)
+        print(f"{name:8} {a:10.2f} {b:10.2f} {info['share']:6.3f} {info['steep']}")
+    print(f"{'mean':8} {np.mean(k0):10.2f} {np.mean(k1):10.2f}  difference {np.mean(k1) - np.mean(k0):+.2f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--length", type=float, default=100.0)
+    ap.add_argument("--density", type=float, default=8.0)
+    ap.add_argument("--no-isprs", action="store_true")
+    ap.add_argument("--no-cost", action="store_true")
+    args = ap.parse_args()
+    cliffs(args.length, args.density)
+    if not args.no_cost:
+        cost()
+    if not args.no_isprs:
+        isprs()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""Pitch and roll along a path over a finished job's DTM (NIST §5.1)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Body, Depends, Query, Request
+from fastapi.responses import JSONResponse, Response
+from starlette.concurrency import run_in_threadpool
+
+from terrasift.service.auth import tenant
+from terrasift.service.routes.jobs import _finished, _job
+from terrasift.service.context import service
+from terrasift.service.schemas import problem_responses
+
+router = APIRouter(tags=["Jobs"])
+
+_EXAMPLE = {"type": "LineString", "coordinates": [[8.501, 48.751], [8.503, 48.752]]}
+
+
+@router.post(
+    "/jobs/{job_id}/path",
+    summary="Pitch and roll profile along a GeoJSON LineString",
+    responses={
+        200: {"content": {"application/json": {}, "text/csv": {}}, "description": "distance, x, y, z, pitch and roll"},
+        **problem_responses(400, 401, 404),
+    },
+)
+async def path_profile(
+    job_id: str,
+    request: Request,
+    who: Annotated[str, Depends(tenant)],
+    line: Annotated[dict[str, Any], Body(description="GeoJSON LineString or a Feature holding one", examples=[_EXAMPLE])],
+    crs: Annotated[
+        str | None, Query(description="CRS of the line: omit for WGS 84 lon/lat, `native` for the tile CRS, or e.g. EPSG:32632")
+    ] = None,
+    spacing: Annotated[float | None, Query(gt=0, le=10_000, description="metres between samples (default terrain.spacing)")] = None,
+    f: Annotated[Literal["json", "csv"], Query(description="response format")] = "json",
+) -> Response:
+    """Samples every `spacing` m along the line: distance, x, y (tile CRS), z, pitch and roll in degrees."""
+    job = _finished(_job(request, job_id, who))
+    svc = service(request)
+    job_dir = svc.scheduler.job_dir(job.id)
+    from terrasift.pipeline import job_path_profile
+
+    profile = await run_in_threadpool(job_path_profile, job_dir, line, crs=crs, spacing=spacing)
+    if f == "csv":
+        return Response(profile.to_csv(), media_type="text/csv")
+    return JSONResponse({"job": job.id, "crs": crs or "EPSG:4326", "samples": profile.to_records()})

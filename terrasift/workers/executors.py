@@ -1,0 +1,124 @@
+"""One executor interface, ``submit(fn, *args) -> future``, over a process pool or Dask.
+
+Tasks are plain module-level functions of paths and names, so they pickle the
+same way for both. Cancelling is two-fold: queued futures are cancelled here,
+and running tasks see the job's cancel marker (``terrasift.pipeline``) between
+stages, which works on any worker that shares the data directory.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor
+from concurrent.futures import wait as cf_wait
+from typing import Any, Protocol
+
+
+class Future(Protocol):
+    def result(self, timeout: float | None = None) -> Any: ...
+    def cancel(self) -> bool: ...
+    def done(self) -> bool: ...
+
+
+class Executor(Protocol):
+    workers: int
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future: ...
+    def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]: ...
+    def shutdown(self) -> None: ...
+
+
+BLAS_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_blas() -> None:
+    """One BLAS thread per worker process: the pool already uses every core, and
+    threaded BLAS on top of it makes small per-block solves crawl. Must run
+    before numpy is imported in the worker, so it is set in the environment the
+    workers inherit."""
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, "1")
+
+
+class LocalExecutor:
+    """A process pool with one worker per core (or ``workers``)."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = workers or os.cpu_count() or 1
+        single_threaded_blas()
+        # spawn: the service has threads, and forking a threaded process is unsafe.
+        ctx = multiprocessing.get_context("spawn")
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        return self._pool.submit(fn, *args)
+
+    def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
+        done, _ = cf_wait(list(futures), timeout=timeout, return_when=FIRST_COMPLETED)  # type: ignore[arg-type]
+        return set(done)
+
+    def shutdown(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor:
+    """Tasks on a Dask distributed cluster; workers must share the data directory."""
+
+    def __init__(self, address: str):
+        from distributed import Client  # imported lazily: the default path needs no Dask
+
+        self._client = Client(address, set_as_default=False)
+        info = self._client.scheduler_info()
+        self.workers = max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        # pure=False gives every submission a fresh key, so a retried task is
+        # never confused with the failed one.
+        return self._client.submit(fn, *args, pure=False)
+
+    def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
+        # distributed.wait needs a default client, which this one is not (a
+        # service may talk to several); futures know their state, so poll them.
+        futs = list(futures)
+        deadline = time.monotonic() + timeout
+        while True:
+            done = {f for f in futs if f.done()}
+            if done or time.monotonic() >= deadline:
+                return done
+            time.sleep(0.02)
+
+    def shutdown(self) -> None:
+        self._client.close()
+
+
+def make_executor(workers: int | None = None, dask_scheduler: str | None = None) -> Executor:
+    """Dask when a scheduler address is given (or in ``TERRASIFT_DASK_SCHEDULER``), else a local pool."""
+    address = dask_scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
+    if address:
+        return DaskExecutor(address)
+    return LocalExecutor(workers)
+
+
+class InlineExecutor:
+    """Runs each task at submission in the calling process: for tests and debugging."""
+
+    workers = 1
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        from concurrent.futures import Future as CFuture
+
+        fut: CFuture = CFuture()
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as exc:  # the future carries it to the waiter
+            fut.set_exception(exc)
+        return fut
+
+    def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
+        return {f for f in futures if f.done()}
+
+    def shutdown(self) -> None:
+        pass

@@ -1,0 +1,326 @@
+"""Ground by progressive TIN densification (DESIGN §5.2; the TerraScan-style
+filter of the rotation seed, after Axelsson 2000).
+
+Seeds are the lowest point of every ``max_building_size`` cell, with isolated
+low outliers removed. A TIN through the seeds is then densified in rounds: a
+point is accepted when its perpendicular distance to the facet it falls in is
+below ``iteration_distance`` and its angles to the facet's vertices are below
+``iteration_angle``; facets steeper than ``terrain_angle`` take no points. Each
+round re-triangulates and accepts at most one point per facet (the one with the
+smallest angle), so a facet's estimate never jumps by more than one point; it
+stops when a round adds nothing.
+
+Speed: every round is a handful of vectorised passes. Points are visited in a
+spatially coherent order (``find_simplex`` walks from the previous hit), and a
+point whose facet survived the re-triangulation unchanged is not tested again,
+since its verdict cannot have changed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.spatial import Delaunay, QhullError
+
+from terrasift.workers.bins import Grid, lowest_per_bin
+from terrasift.workers.registry import StageParams, register
+from terrasift.workers.surface import with_transform
+
+
+class PtdParams(StageParams):
+    """Parameters of progressive TIN densification (seed Table 1 names)."""
+
+    terrain_angle: float = Field(88.0, gt=0.0, le=90.0)
+    """Degrees: facets steeper than this take no new points."""
+    iteration_angle: float = Field(30.0, gt=0.0, le=60.0)
+    """Degrees: largest angle between a point, its projection on the facet and a facet vertex."""
+    iteration_distance: float = Field(1.5, gt=0.0, le=50.0)
+    """Metres: largest perpendicular distance from a point to its facet."""
+    max_building_size: float = Field(12.0, ge=1.0, le=1000.0)
+    """Metres: seed cell size; must exceed the largest building so every cell holds ground."""
+    outlier_depth: float = Field(2.0, gt=0.0, le=100.0)
+    """Metres: a seed this far below the second-lowest point within ``outlier_radius``
+    (and below the median of its seed neighbours) is a low outlier and is replaced."""
+    outlier_radius: float = Field(3.0, gt=0.0, le=50.0)
+    """Metres: neighbourhood radius of the low-outlier test."""
+    max_rounds: int = Field(100, ge=1, le=10_000)
+    """Upper bound on densification rounds (the filter normally stops earlier)."""
+    tail_fraction: float = Field(0.01, ge=0.0, le=1.0)
+    """When a round grows the TIN by less than this share, one last round accepts
+    every remaining point that passes the tests and the filter stops (0: run every
+    one-per-facet round to the end). The tail otherwise costs a full
+    re-triangulation per handful of points."""
+
+    presets = {
+        "conservative": {
+            "terrain_angle": 75.0,
+            "iteration_angle": 15.0,
+            "iteration_distance": 1.0,
+            "max_building_size": 10.0,
+        },
+        "aggressive": {
+            "terrain_angle": 88.0,
+            "iteration_angle": 20.0,
+            "iteration_distance": 1.2,
+            "max_building_size": 10.0,
+        },
+    }
+
+
+@register("ground.ptd", PtdParams, "progressive TIN densification")
+def classify_ground(
+    xyz: NDArray[np.float64],
+    params: PtdParams,
+    *,
+    sensor_origin: NDArray | None = None,
+) -> NDArray[np.bool_]:
+    """Boolean ground label per point of ``xyz`` (N×3, absolute coordinates).
+
+    ``sensor_origin`` is accepted for a uniform ground-stage signature; the TIN
+    filter does not use it.
+    """
+    del sensor_origin
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = xyz.shape[0]
+    ground = np.zeros(n, dtype=bool)
+    if n < 3:
+        return ground
+    local = xyz - xyz.min(axis=0)
+    seeds, excluded = _seeds(local, params)
+    if seeds.size < 3:
+        ground[seeds] = True
+        return ground
+    ground[seeds] = True
+    frame = _frame(local, seeds, excluded, params.max_building_size)
+    _densify(local, ground, excluded, frame, params)
+    return ground
+
+
+# --------------------------------------------------------------------- seeds
+
+
+def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Lowest point per cell, repeated after removing isolated low outliers.
+
+    A seed is an outlier when it lies more than ``outlier_depth`` below the
+    median of its neighbours in the seed TIN *and* below the second-lowest
+    other point within ``outlier_radius``: a lone point metres under its own
+    surroundings. A genuine valley bottom has ground points close around it and
+    survives. Returns seed indices and a mask of excluded (outlier) points.
+    """
+    grid = Grid.covering(local[:, 0], local[:, 1], params.max_building_size)
+    flat = grid.index(local[:, 0], local[:, 1])
+    excluded = np.zeros(local.shape[0], dtype=bool)
+    order = np.argsort(flat, kind="stable")
+    starts = np.searchsorted(flat[order], np.arange(grid.size + 1))
+    for _ in range(8):
+        lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
+        seeds = lowest[lowest >= 0]
+        if seeds.size < 4:
+            return seeds, excluded
+        suspects = seeds[_below_neighbours(local[seeds], params.outlier_depth)]
+        found = False
+        for s in suspects:
+            if _isolated_low(local, s, flat[s], grid, order, starts, excluded, params):
+                excluded[s] = True
+                found = True
+        if not found:
+            return seeds, excluded
+    lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
+    return lowest[lowest >= 0], excluded
+
+
+def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool_]:
+    """Seeds more than ``depth`` below the median z of their TIN neighbours."""
+    try:
+        tri = Delaunay(pts[:, :2])
+    except QhullError:
+        return np.zeros(pts.shape[0], dtype=bool)
+    indptr, nbrs = tri.vertex_neighbor_vertices
+    counts = np.diff(indptr)
+    owner = np.repeat(np.arange(pts.shape[0]), counts)
+    zn = pts[nbrs, 2]
+    o = np.lexsort((zn, owner))
+    zs = zn[o]
+    lo = indptr[:-1] + (counts - 1) // 2
+    hi = indptr[:-1] + counts // 2
+    ok = counts > 0
+    med = np.full(pts.shape[0], np.inf)
+    med[ok] = 0.5 * (zs[lo[ok]] + zs[hi[ok]])
+    return pts[:, 2] < med - depth
+
+
+def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool:
+    """Is point ``s`` more than ``outlier_depth`` below its near neighbours?"""
+    iy, ix = divmod(int(cell), grid.nx)
+    span = int(np.ceil(params.outlier_radius / grid.cell))
+    idx = []
+    for jy in range(max(iy - span, 0), min(iy + span, grid.ny - 1) + 1):
+        a = jy * grid.nx + max(ix - span, 0)
+        b = jy * grid.nx + min(ix + span, grid.nx - 1)
+        idx.append(order[starts[a] : starts[b + 1]])
+    cand = np.concatenate(idx)
+    cand = cand[(cand != s) & ~excluded[cand]]
+    d2 = ((local[cand, :2] - local[s, :2]) ** 2).sum(axis=1)
+    near = np.sort(local[cand[d2 <= params.outlier_radius**2], 2])
+    if near.size == 0:
+        return True  # alone and far below its seed neighbours
+    ref = near[1] if near.size > 1 else near[0]
+    return bool(local[s, 2] < ref - params.outlier_depth)
+
+
+def _frame(
+    local: NDArray[np.float64], seeds: NDArray[np.int64], excluded: NDArray[np.bool_], step: float
+) -> NDArray[np.float64]:
+    """Virtual vertices around the bounding box so every point falls in the TIN.
+
+    Each takes the height of the lowest point within a few metres of the border
+    near it (so a slope is continued, not flattened to the nearest seed), or of
+    its nearest seed where the border is empty. They are triangulated, never labelled.
+    """
+    from scipy.spatial import cKDTree
+
+    lo = local[:, :2].min(axis=0) - 1.0
+    hi = local[:, :2].max(axis=0) + 1.0
+    nxs = max(int(np.ceil((hi[0] - lo[0]) / step)), 1)
+    nys = max(int(np.ceil((hi[1] - lo[1]) / step)), 1)
+    xs = np.linspace(lo[0], hi[0], nxs + 1)
+    ys = np.linspace(lo[1], hi[1], nys + 1)
+    border = np.concatenate(
+        [
+            np.column_stack([xs, np.full_like(xs, lo[1])]),
+            np.column_stack([xs, np.full_like(xs, hi[1])]),
+            np.column_stack([np.full_like(ys[1:-1], lo[0]), ys[1:-1]]),
+            np.column_stack([np.full_like(ys[1:-1], hi[0]), ys[1:-1]]),
+        ]
+    )
+    _, nearest = cKDTree(local[seeds, :2]).query(border)
+    z = local[seeds[nearest], 2]
+    margin = 2.0
+    gap = np.minimum(local[:, :2] - lo, hi - local[:, :2]).min(axis=1)
+    near = np.flatnonzero((gap < margin) & ~excluded)
+    if near.size:
+        _, which = cKDTree(border).query(local[near, :2])
+        low = lowest_per_bin(which.astype(np.int64), local[near, 2], border.shape[0])
+        has = low >= 0
+        z[has] = local[near[low[has]], 2]
+    return np.column_stack([border, z])
+
+
+# ---------------------------------------------------------------- densify
+
+
+def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
+    ix = np.floor(xy[:, 0] / cell).astype(np.int64)
+    iy = np.floor(xy[:, 1] / cell).astype(np.int64)
+    ix = np.where(iy % 2 == 1, ix.max() - ix, ix)
+    return np.lexsort((ix, iy))
+
+
+def _facet_keys(simplices: NDArray, base: int) -> NDArray:
+    """One comparable key per facet from its sorted vertex ids (stable across rounds)."""
+    s = np.sort(simplices, axis=1).astype(np.int64)
+    if base < 2_000_000:
+        return (s[:, 0] * base + s[:, 1]) * base + s[:, 2]
+    return np.ascontiguousarray(s).view(np.dtype((np.void, 24))).ravel()
+
+
+def _densify(
+    local: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    excluded: NDArray[np.bool_],
+    frame: NDArray[np.float64],
+    params: PtdParams,
+) -> None:
+    """Grow ``ground`` in place by rounds of TIN densification."""
+    n = local.shape[0]
+    nf = frame.shape[0]
+    seeds = np.flatnonzero(ground)
+    verts = np.empty((nf + n, 3))
+    verts[:nf] = frame
+    verts[nf : nf + seeds.size] = local[seeds]
+    nv = nf + seeds.size
+    base = nf + n
+
+    cos_terrain = np.cos(np.radians(params.terrain_angle))
+    sin_iter = np.sin(np.radians(params.iteration_angle))
+    dmax = params.iteration_distance
+
+    pending = np.flatnonzero(~ground & ~excluded)
+    spacing = max(np.sqrt((np.ptp(local[:, 0]) * np.ptp(local[:, 1]) + 1.0) / n), 0.1)
+    pending = pending[_spatial_order(local[pending, :2], 8.0 * spacing)]
+    last_key = np.full(pending.size, -1, dtype=np.int64) if base < 2_000_000 else None
+    last_void = None
+
+    bulk = False
+    for _ in range(params.max_rounds):
+        if pending.size == 0:
+            break
+        try:
+            tri = with_transform(Delaunay(verts[:nv, :2]))
+        except QhullError:
+            break
+        simp = tri.simplices
+        keys = _facet_keys(simp, base)
+        if last_key is not None:
+            test = ~np.isin(last_key, keys) if _ > 0 else np.ones(pending.size, dtype=bool)
+        else:
+            test = ~np.isin(last_void, keys) if last_void is not None else np.ones(pending.size, dtype=bool)
+        ti = np.flatnonzero(test)
+        pts = local[pending[ti]]
+        s = tri.find_simplex(pts[:, :2])
+        inside = s >= 0
+        ti, pts, s = ti[inside], pts[inside], s[inside]
+
+        a = verts[simp[s, 0]]
+        b = verts[simp[s, 1]]
+        c = verts[simp[s, 2]]
+        normal = np.cross(b - a, c - a)
+        norm = np.linalg.norm(normal, axis=1)
+        norm[norm == 0] = np.inf
+        nz = np.abs(normal[:, 2]) / norm
+        dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
+        rmin = np.sqrt(
+            np.minimum(
+                np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
+                ((pts - c) ** 2).sum(1),
+            )
+        )
+        # Within a metre of a vertex, scanner noise alone makes steep angles:
+        # judge such points as if a metre away.
+        sin_angle = dist / np.maximum(rmin, 1.0)
+        ok = (dist < dmax) & (sin_angle < sin_iter) & (nz >= cos_terrain)
+
+        # Remember each tested point's facet: unchanged facets are not retested.
+        if last_key is not None:
+            last_key[ti] = keys[s]
+        else:
+            if last_void is None:
+                last_void = np.zeros(pending.size, dtype=keys.dtype)
+            last_void[ti] = keys[s]
+
+        if not ok.any():
+            break
+        if bulk:
+            chosen = ti[ok]
+        else:
+            cand = np.flatnonzero(ok)
+            o = cand[np.lexsort((sin_angle[cand], s[cand]))]
+            first = np.r_[True, s[o][1:] != s[o][:-1]]
+            chosen = ti[o[first]]
+        new = pending[chosen]
+        ground[new] = True
+        verts[nv : nv + new.size] = local[new]
+        nv += new.size
+        keep = np.ones(pending.size, dtype=bool)
+        keep[chosen] = False
+        pending = pending[keep]
+        if last_key is not None:
+            last_key = last_key[keep]
+        else:
+            last_void = last_void[keep]
+        if bulk:
+            break
+        bulk = new.size < params.tail_fraction * nv

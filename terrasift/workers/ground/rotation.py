@@ -1,0 +1,154 @@
+"""Steep blocks and rotated classification (DESIGN §5.3, after Pack, Blonquist & Carter).
+
+A 2.5-D ground filter fails on cliffs: seen from above a vertical face looks
+like the side of a tree, and an overhang hides ground under ground. The block
+is tested cheaply for steep terrain (lowest point per coarse cell, TIN, share
+of facets steeper than ``facet_angle``). A steep block is classified once as it
+is and once per compass direction with the cloud tipped by ``angle`` about its
+centroid, each run with the ground method's conservative parameters; a point is
+ground if any run says so. A 30° tip turns a 90° face into 60° and a 100°
+overhang into 70°, which a TIN filter can follow.
+
+Direction k (k = 0 … ``directions``−1, compass azimuth 360·k/``directions``,
+0 = north, 90 = east) tips the cloud so that faces looking toward that azimuth
+turn toward the sky. Rotated clouds live one at a time and are dropped after
+their run: memory is one extra copy of the block.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.spatial import Delaunay, QhullError
+
+from terrasift.workers.bins import Grid
+from terrasift.workers.registry import StageParams, register
+
+GroundFn = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
+
+
+class SteepParams(StageParams):
+    """Parameters of the per-block steepness test (seed step 2)."""
+
+    cell: float = Field(15.0, ge=1.0, le=1000.0)
+    """Metres: cell of the lowest-point TIN."""
+    facet_angle: float = Field(60.0, gt=0.0, lt=90.0)
+    """Degrees: a facet steeper than this counts as steep."""
+    steep_share: float = Field(0.01, ge=0.0, le=1.0)
+    """A block is steep when more than this share of its facets are steep."""
+    min_rise: float = Field(2.0, ge=0.0, le=100.0)
+    """Metres: a steep facet must also rise this much, so a low outlier or a kerb
+    next to a cell border (two lowest points a metre apart) is not a cliff."""
+
+
+class RotationParams(StageParams):
+    """Parameters of rotated classification (seed steps 3–5)."""
+
+    angle: float = Field(30.0, gt=0.0, le=80.0)
+    """Degrees each rotated cloud is tipped by."""
+    directions: int = Field(8, ge=1, le=64)
+    """Number of compass directions, evenly spaced from north."""
+    ground_preset: str = Field("conservative", alias="preset")
+    """Parameter set of the ground method for every run (seed: conservative)."""
+
+
+@dataclass(frozen=True)
+class SteepTest:
+    """Outcome of the steepness test: share of steep facets, verdict, TIN size."""
+
+    facet_share: float
+    steep: bool
+    n_facets: int
+
+
+@dataclass
+class RotatedResult:
+    """Combined labels; ``added[k]``: points rotation k labelled ground beyond the unrotated run."""
+
+    is_ground: NDArray[np.bool_]
+    added: list[int] = field(default_factory=list)
+    unrotated: int = 0
+
+
+@register("ground.steep", SteepParams, "per-block steepness test: share of steep facets of the lowest-point TIN")
+def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
+    """Share of facets steeper than ``facet_angle`` in the TIN of the lowest
+    point of every ``cell``; a few sorts and one small Delaunay."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.shape[0] < 3:
+        return SteepTest(0.0, False, 0)
+    lo = xyz.min(axis=0)
+    grid = Grid.covering(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1], params.cell)
+    flat = grid.index(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1])
+    order = np.argsort(flat, kind="stable")
+    fs = flat[order]
+    starts = np.flatnonzero(np.r_[True, fs[1:] != fs[:-1]])
+    z = xyz[order, 2]
+    zmin = np.minimum.reduceat(z, starts)
+    counts = np.diff(np.r_[starts, fs.size])
+    is_min = z == np.repeat(zmin, counts)
+    first = np.flatnonzero(is_min)
+    first = first[np.r_[True, fs[first][1:] != fs[first][:-1]]]
+    pts = xyz[order[first]] - lo
+    try:
+        tri = Delaunay(pts[:, :2])
+    except (QhullError, ValueError):
+        return SteepTest(0.0, False, 0)
+    p = pts[tri.simplices]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = np.linalg.norm(normal, axis=1)
+    # Slivers along the convex hull join far-apart border cells; they are no terrain.
+    edge = np.max(np.hypot(*(p[:, [1, 2, 0], :2] - p[:, :, :2]).transpose(2, 0, 1)), axis=1)
+    good = (norm > 0) & (edge <= 3.0 * params.cell)
+    slope = np.degrees(np.arccos(np.abs(normal[good, 2]) / norm[good]))
+    rise = np.ptp(p[good, :, 2], axis=1)
+    n = int(good.sum())
+    steep = (slope > params.facet_angle) & (rise > params.min_rise)
+    share = float(np.count_nonzero(steep) / n) if n else 0.0
+    return SteepTest(share, share > params.steep_share, n)
+
+
+def rotation_matrix(azimuth_deg: float, angle_deg: float) -> NDArray[np.float64]:
+    """Rotation tipping faces that look toward ``azimuth_deg`` (compass) up by ``angle_deg``."""
+    az = np.radians(azimuth_deg)
+    d = np.array([np.sin(az), np.cos(az), 0.0])  # east, north
+    axis = np.array([d[1], -d[0], 0.0])  # d × z
+    t = np.radians(angle_deg)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
+
+
+@register("ground.rotation", RotationParams, "ground on the block and on copies tipped toward 8 directions, OR'ed")
+def classify_rotated(
+    xyz: NDArray[np.float64],
+    ground: GroundFn,
+    params: RotationParams,
+    *,
+    unrotated: NDArray[np.bool_] | None = None,
+) -> RotatedResult:
+    """Boolean OR of ``ground`` on the block as it is and on ``directions``
+    copies tipped by ``angle`` about the centroid.
+
+    ``ground`` is any ground method bound to its parameters. ``unrotated`` may
+    carry labels the caller already has for the block as it is (then that run
+    is not repeated).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    base = np.asarray(ground(xyz) if unrotated is None else unrotated, dtype=bool)
+    combined = base.copy()
+    added: list[int] = []
+    centroid = xyz.mean(axis=0)
+    for k in range(params.directions):
+        rot = rotation_matrix(360.0 * k / params.directions, params.angle)
+        # (x − c) R^T + c, built in one new array: the only extra copy of the block.
+        turned = xyz @ rot.T
+        turned += centroid - rot @ centroid
+        labels = np.asarray(ground(turned), dtype=bool)
+        del turned
+        added.append(int(np.count_nonzero(labels & ~base)))
+        combined |= labels
+    return RotatedResult(combined, added, int(np.count_nonzero(base)))

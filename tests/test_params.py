@@ -1,0 +1,60 @@
+"""Job parameters are checked when the job arrives, with messages that name the key."""
+
+from __future__ import annotations
+
+import pytest
+
+from terrasift.errors import FilterSyntaxError, ParameterError
+from terrasift.params import grid_alignment, parse_cli_params, stage_params, validate_params
+
+
+def test_defaults_are_filled_and_json_ready():
+    p = validate_params({})
+    assert p["rotation"] == "auto" and p["features"] == "all" and p["resolution"] == 0.5
+    assert p["ground"] in {"ptd", "nist"}
+    assert grid_alignment(p) == 2.0
+
+
+@pytest.mark.parametrize(
+    "raw, message",
+    [
+        ({"bogus": 1}, "unknown parameter 'bogus'"),
+        ({"resolution": -1}, "parameter resolution"),
+        ({"block_size": 5}, "parameter block_size"),
+        ({"buffer": 60, "block_size": 100}, "buffer"),
+        ({"ground": "smrf"}, "parameter ground"),
+        ({"rotation": "sometimes"}, "parameter rotation"),
+        ({"crs": "EPSG:999999"}, "unknown CRS"),
+        ({"sensor_origin": "1,2"}, "sensor_origin"),
+        ({"vegetation.cell": 0}, "parameter vegetation.cell"),
+        ({"vegetation.no_such_field": 1}, "stage vegetation has no field 'no_such_field'"),
+        ({"resolution": 0.3}, "whole multiple of resolution"),
+        ({"features": "ditch,volcano"}, "unknown filter 'volcano'"),
+    ],
+)
+def test_bad_values_name_the_problem(raw, message):
+    with pytest.raises(ParameterError, match=message):
+        validate_params(raw)
+
+
+def test_user_filter_errors_carry_the_line():
+    text = "// my ditch\nbeginsegment\n  bogus 3\nendsegment\n"
+    with pytest.raises(FilterSyntaxError) as info:
+        validate_params({"filters": {"mine": text}, "features": "mine"})
+    assert info.value.line == 3
+
+
+def test_stage_overrides_reach_the_stage_model():
+    p = validate_params({"vegetation.tree_height": "4.5", "sensor_origin": "10,20,1.5;11,21,1.5"})
+    assert p["vegetation.tree_height"] == "4.5"
+    assert stage_params(p, "vegetation").tree_height == 4.5
+    assert p["sensor_origin"] == [[10.0, 20.0, 1.5], [11.0, 21.0, 1.5]]
+
+
+def test_cli_pairs():
+    assert parse_cli_params(["resolution=1.0", "ground.preset = conservative"]) == {
+        "resolution": "1.0",
+        "ground.preset": "conservative",
+    }
+    with pytest.raises(ParameterError, match="not key=value"):
+        parse_cli_params(["resolution"])
