@@ -154,3 +154,8 @@ def test_isprs_samp31_kappa():
     xyz = np.column_stack([las.x, las.y, las.z])
     s = ground_score(np.asarray(las.classification) == 2, nist.classify_ground(xyz, nist.NistParams()))
     assert s.kappa > 0.88, s  # measured 91.3 %; PDAL SMRF defaults reach 93.2 %
+
+
+def test_collinear_block_does_not_raise():
+    xyz = np.column_stack([np.linspace(0, 10, 50) + 5e5, np.full(50, 5.4e6), np.zeros(50)])
+    assert nist.classify_ground(xyz, nist.NistParams()).shape == (50,)

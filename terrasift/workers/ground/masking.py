@@ -22,6 +22,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import QhullError
 
 from terrasift.workers.ground.tin import Tin
 
@@ -99,7 +100,10 @@ def mask_points(
     whose three edges are all shorter than ``edge``."""
     if xyz.shape[0] < 8:
         return np.zeros(0, dtype=np.int64)
-    tin, verts = partial_tin(xyz, fraction, rule)
+    try:
+        tin, verts = partial_tin(xyz, fraction, rule)
+    except (ValueError, QhullError):  # collinear or coincident points: nothing to mask
+        return np.zeros(0, dtype=np.int64)
     s = tin.tri.simplices
     p = tin.xy[s]
     e = np.stack(

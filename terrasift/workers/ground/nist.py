@@ -59,6 +59,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
+from scipy.spatial import QhullError
 
 from terrasift.workers.bins import BinStats, Grid, PlaneStats, bin_statistics, plane_fit_statistics
 from terrasift.workers.ground.concentric import ConcentricGrid
@@ -301,9 +302,10 @@ def classify_ground(
         return np.ones(n, dtype=bool)
     try:
         return _classify(xyz, params, sensor_origin)
-    except _TooSparse:
-        # A sliver of a block at the edge of the data: too few bins pass
-        # select/reject to mesh anything, so nothing is called ground.
+    except (_TooSparse, QhullError):
+        # A sliver of a block at the edge of the data: too few (or only
+        # collinear) bins pass select/reject to mesh anything, so nothing is
+        # called ground.
         return np.zeros(n, dtype=bool)
 
 
