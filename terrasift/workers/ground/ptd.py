@@ -46,7 +46,10 @@ class PtdParams(StageParams):
     """Metres: neighbourhood radius of the low-outlier test."""
     max_rounds: int = Field(100, ge=1, le=10_000)
     """Upper bound on densification rounds (the filter normally stops earlier)."""
-    tail_fraction: float = Field(0.01, ge=0.0, le=1.0)
+    min_spacing: float = Field(1.5, gt=0.0, le=100.0)
+    """Metres: facets smaller than min_spacing²/2 take no more TIN vertices; the
+    final pass labels the points in them. Bounds the TIN (and the cost) on dense clouds."""
+    tail_fraction: float = Field(0.1, ge=0.0, le=1.0)
     """When a round grows the TIN by less than this share, one last round accepts
     every remaining point that passes the tests and the filter stops (0: run every
     one-per-facet round to the end). The tail otherwise costs a full
@@ -227,6 +230,44 @@ def _facet_keys(simplices: NDArray, base: int) -> NDArray:
     return np.ascontiguousarray(s).view(np.dtype((np.void, 24))).ravel()
 
 
+def _judge(
+    tri: Delaunay, verts: NDArray[np.float64], pts: NDArray[np.float64], params: PtdParams
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Facet of each point and the acceptance test against it.
+
+    Returns (inside, facet, ok, sin of the angle, facet horizontal area), the
+    last four for the points inside the TIN only.
+    """
+    simp = tri.simplices
+    s = tri.find_simplex(pts[:, :2])
+    inside = s >= 0
+    s, pts = s[inside], pts[inside]
+    a = verts[simp[s, 0]]
+    b = verts[simp[s, 1]]
+    c = verts[simp[s, 2]]
+    normal = np.cross(b - a, c - a)
+    area = 0.5 * np.abs(normal[:, 2])
+    norm = np.linalg.norm(normal, axis=1)
+    norm[norm == 0] = np.inf
+    nz = np.abs(normal[:, 2]) / norm
+    dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
+    rmin = np.sqrt(
+        np.minimum(
+            np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
+            ((pts - c) ** 2).sum(1),
+        )
+    )
+    # Within a metre of a vertex, scanner noise alone makes steep angles:
+    # judge such points as if a metre away.
+    sin_angle = dist / np.maximum(rmin, 1.0)
+    ok = (
+        (dist < params.iteration_distance)
+        & (sin_angle < np.sin(np.radians(params.iteration_angle)))
+        & (nz >= np.cos(np.radians(params.terrain_angle)))
+    )
+    return inside, s, ok, sin_angle, area
+
+
 def _densify(
     local: NDArray[np.float64],
     ground: NDArray[np.bool_],
@@ -234,7 +275,14 @@ def _densify(
     frame: NDArray[np.float64],
     params: PtdParams,
 ) -> None:
-    """Grow ``ground`` in place by rounds of TIN densification."""
+    """Grow ``ground`` in place by rounds of TIN densification.
+
+    One point per facet per round while facets are larger than
+    ``min_spacing``²/2 and rounds still grow the TIN by ``tail_fraction``; then
+    one last pass accepts every pending point that passes against the final
+    TIN without inserting it. Delaunay is the cost, so the TIN stays near one
+    vertex per ``min_spacing``² however dense the cloud.
+    """
     n = local.shape[0]
     nf = frame.shape[0]
     seeds = np.flatnonzero(ground)
@@ -243,84 +291,57 @@ def _densify(
     verts[nf : nf + seeds.size] = local[seeds]
     nv = nf + seeds.size
     base = nf + n
-
-    cos_terrain = np.cos(np.radians(params.terrain_angle))
-    sin_iter = np.sin(np.radians(params.iteration_angle))
-    dmax = params.iteration_distance
+    area_min = 0.5 * params.min_spacing**2
 
     pending = np.flatnonzero(~ground & ~excluded)
     spacing = max(np.sqrt((np.ptp(local[:, 0]) * np.ptp(local[:, 1]) + 1.0) / n), 0.1)
     pending = pending[_spatial_order(local[pending, :2], 8.0 * spacing)]
-    last_key = np.full(pending.size, -1, dtype=np.int64) if base < 2_000_000 else None
-    last_void = None
+    last_key: NDArray | None = None
 
-    bulk = False
-    for _ in range(params.max_rounds):
-        if pending.size == 0:
-            break
-        try:
-            tri = with_transform(Delaunay(verts[:nv, :2]))
-        except QhullError:
-            break
-        simp = tri.simplices
-        keys = _facet_keys(simp, base)
-        if last_key is not None:
-            test = ~np.isin(last_key, keys) if _ > 0 else np.ones(pending.size, dtype=bool)
-        else:
-            test = ~np.isin(last_void, keys) if last_void is not None else np.ones(pending.size, dtype=bool)
-        ti = np.flatnonzero(test)
-        pts = local[pending[ti]]
-        s = tri.find_simplex(pts[:, :2])
-        inside = s >= 0
-        ti, pts, s = ti[inside], pts[inside], s[inside]
-
-        a = verts[simp[s, 0]]
-        b = verts[simp[s, 1]]
-        c = verts[simp[s, 2]]
-        normal = np.cross(b - a, c - a)
-        norm = np.linalg.norm(normal, axis=1)
-        norm[norm == 0] = np.inf
-        nz = np.abs(normal[:, 2]) / norm
-        dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
-        rmin = np.sqrt(
-            np.minimum(
-                np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
-                ((pts - c) ** 2).sum(1),
-            )
-        )
-        # Within a metre of a vertex, scanner noise alone makes steep angles:
-        # judge such points as if a metre away.
-        sin_angle = dist / np.maximum(rmin, 1.0)
-        ok = (dist < dmax) & (sin_angle < sin_iter) & (nz >= cos_terrain)
-
-        # Remember each tested point's facet: unchanged facets are not retested.
-        if last_key is not None:
-            last_key[ti] = keys[s]
-        else:
-            if last_void is None:
-                last_void = np.zeros(pending.size, dtype=keys.dtype)
-            last_void[ti] = keys[s]
-
-        if not ok.any():
-            break
-        if bulk:
-            chosen = ti[ok]
-        else:
-            cand = np.flatnonzero(ok)
-            o = cand[np.lexsort((sin_angle[cand], s[cand]))]
-            first = np.r_[True, s[o][1:] != s[o][:-1]]
-            chosen = ti[o[first]]
+    def accept(chosen: NDArray[np.int64], insert: bool) -> None:
+        nonlocal pending, last_key, nv
         new = pending[chosen]
         ground[new] = True
-        verts[nv : nv + new.size] = local[new]
-        nv += new.size
+        if insert:
+            verts[nv : nv + new.size] = local[new]
+            nv += new.size
         keep = np.ones(pending.size, dtype=bool)
         keep[chosen] = False
         pending = pending[keep]
         if last_key is not None:
             last_key = last_key[keep]
-        else:
-            last_void = last_void[keep]
-        if bulk:
+
+    tri = None
+    for _ in range(params.max_rounds):
+        if pending.size == 0:
+            return
+        try:
+            tri = with_transform(Delaunay(verts[:nv, :2]))
+        except QhullError:
+            return
+        keys = _facet_keys(tri.simplices, base)
+        # A point whose facet survived re-triangulation keeps its verdict.
+        ti = np.flatnonzero(~np.isin(last_key, keys)) if last_key is not None else np.arange(pending.size)
+        inside, s, ok, score, area = _judge(tri, verts, local[pending[ti]], params)
+        ti = ti[inside]
+        if last_key is None:
+            last_key = np.zeros(pending.size, dtype=keys.dtype)
+        last_key[ti] = keys[s]
+        pick = ok & (area >= area_min)
+        if not pick.any():
             break
-        bulk = new.size < params.tail_fraction * nv
+        cand = np.flatnonzero(pick)
+        o = cand[np.lexsort((score[cand], s[cand]))]
+        first = np.r_[True, s[o][1:] != s[o][:-1]]
+        chosen = ti[o[first]]
+        accept(chosen, insert=True)
+        if chosen.size < params.tail_fraction * nv:
+            try:
+                tri = with_transform(Delaunay(verts[:nv, :2]))
+            except QhullError:
+                return
+            break
+    # Final pass: every pending point judged against the last TIN, none inserted.
+    if tri is not None and pending.size:
+        inside, s, ok, score, area = _judge(tri, verts, local[pending], params)
+        accept(np.flatnonzero(inside)[ok], insert=False)

@@ -52,6 +52,12 @@ class RotationParams(StageParams):
     """Degrees each rotated cloud is tipped by."""
     directions: int = Field(8, ge=1, le=64)
     """Number of compass directions, evenly spaced from north."""
+    edge_margin: float | None = Field(None, ge=0.0, le=1000.0)
+    """Metres: a rotated run's labels count only this far inside the rotated
+    block's footprint. Tipping pushes tall objects sideways by height·sin(angle),
+    so near the footprint's edge tree tops and birds stand alone and become TIN
+    seeds. None: the block's height range (2nd–98th percentile) × sin(angle).
+    The unrotated run still labels the margin."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
@@ -140,12 +146,20 @@ def classify_rotated(
     combined = base.copy()
     added: list[int] = []
     centroid = xyz.mean(axis=0)
+    margin = params.edge_margin
+    if margin is None:
+        lo, hi = np.percentile(xyz[:, 2], [2, 98]) if xyz.shape[0] else (0.0, 0.0)
+        margin = float(hi - lo) * np.sin(np.radians(params.angle))
     for k in range(params.directions):
         rot = rotation_matrix(360.0 * k / params.directions, params.angle)
         # (x − c) R^T + c, built in one new array: the only extra copy of the block.
         turned = xyz @ rot.T
         turned += centroid - rot @ centroid
         labels = np.asarray(ground(turned), dtype=bool)
+        if margin > 0 and labels.any():
+            xy = turned[:, :2]
+            inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
+            labels &= inner
         del turned
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
