@@ -57,7 +57,7 @@ def test_classify_rotated_is_or_about_centroid():
         seen.append(p.copy())
         return p[:, 2] < np.median(p[:, 2])
 
-    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20))
+    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0))
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
     expect = base.copy()
@@ -68,9 +68,14 @@ def test_classify_rotated_is_or_about_centroid():
         expect |= lab
     assert np.array_equal(res.is_ground, expect)
     assert res.added == [int(np.count_nonzero((p[:, 2] < np.median(p[:, 2])) & ~base)) for p in seen[1:]]
+    # With an edge margin, rotated runs only add points inside the margin.
+    trimmed = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0))
+    assert np.all(trimmed.is_ground <= res.is_ground) and sum(trimmed.added) < sum(res.added)
     # A given unrotated labelling is used instead of running it again.
     seen.clear()
-    res2 = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20), unrotated=np.zeros(500, bool))
+    res2 = classify_rotated(
+        pts, fake_ground, RotationParams(directions=4, angle=20), unrotated=np.zeros(500, bool)
+    )
     assert len(seen) == 4 and res2.unrotated == 0
 
 

@@ -115,23 +115,29 @@ def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.in
     grid = Grid.covering(local[:, 0], local[:, 1], params.max_building_size)
     flat = grid.index(local[:, 0], local[:, 1])
     excluded = np.zeros(local.shape[0], dtype=bool)
-    order = np.argsort(flat, kind="stable")
+    # One sort by (cell, z): a cell's seed is its first point not excluded.
+    order = np.lexsort((local[:, 2], flat))
     starts = np.searchsorted(flat[order], np.arange(grid.size + 1))
+    occupied = np.flatnonzero(starts[1:] > starts[:-1])
+    pos = starts[occupied].copy()
     for _ in range(8):
-        lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
-        seeds = lowest[lowest >= 0]
+        seeds = order[pos]
         if seeds.size < 4:
             return seeds, excluded
-        suspects = seeds[_below_neighbours(local[seeds], params.outlier_depth)]
+        suspects = np.flatnonzero(_below_neighbours(local[seeds], params.outlier_depth))
         found = False
-        for s in suspects:
+        for k in suspects:
+            s = seeds[k]
             if _isolated_low(local, s, flat[s], grid, order, starts, excluded, params):
                 excluded[s] = True
                 found = True
+                # Next point of the cell, unless the cell has no other.
+                if pos[k] + 1 < starts[occupied[k] + 1]:
+                    pos[k] += 1
         if not found:
-            return seeds, excluded
-    lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
-    return lowest[lowest >= 0], excluded
+            break
+    seeds = order[pos]
+    return seeds[~excluded[seeds]], excluded
 
 
 def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool_]:
@@ -218,8 +224,9 @@ def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
     """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
     ix = np.floor(xy[:, 0] / cell).astype(np.int64)
     iy = np.floor(xy[:, 1] / cell).astype(np.int64)
-    ix = np.where(iy % 2 == 1, ix.max() - ix, ix)
-    return np.lexsort((ix, iy))
+    nx = int(ix.max()) + 1
+    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
+    return np.argsort(iy * nx + ix, kind="stable")
 
 
 def _facet_keys(simplices: NDArray, base: int) -> NDArray:
@@ -228,6 +235,30 @@ def _facet_keys(simplices: NDArray, base: int) -> NDArray:
     if base < 2_000_000:
         return (s[:, 0] * base + s[:, 1]) * base + s[:, 2]
     return np.ascontiguousarray(s).view(np.dtype((np.void, 24))).ravel()
+
+
+def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> None:
+    """Continue the ground TIN to the frame: each frame vertex takes the height of
+    the least-squares plane through its ``k`` nearest ground vertices, clamped to
+    their height range widened by 2 m plus their distance (a 45° bound on the
+    extrapolation), so slopes run on to the border."""
+    from scipy.spatial import cKDTree
+
+    g = verts[nf:nv]
+    if g.shape[0] < max(k, 3):
+        return
+    f = verts[:nf]
+    dist, idx = cKDTree(g[:, :2]).query(f[:, :2], k=k)
+    nb = g[idx]  # (nf, k, 3)
+    d = nb[:, :, :2] - f[:, None, :2]
+    a = np.concatenate([np.ones((nf, k, 1)), d], axis=2)
+    ata = np.einsum("nki,nkj->nij", a, a) + 1e-6 * np.eye(3)
+    atz = np.einsum("nki,nk->ni", a, nb[:, :, 2])
+    z = np.linalg.solve(ata, atz[..., None])[:, 0, 0]
+    reach = 2.0 + dist[:, 0]
+    lo = nb[:, :, 2].min(axis=1) - reach
+    hi = nb[:, :, 2].max(axis=1) + reach
+    verts[:nf, 2] = np.clip(z, lo, hi)
 
 
 def _judge(
@@ -315,6 +346,7 @@ def _densify(
     for _ in range(params.max_rounds):
         if pending.size == 0:
             return
+        _refit_frame(verts, nf, nv)
         try:
             tri = with_transform(Delaunay(verts[:nv, :2]))
         except QhullError:
