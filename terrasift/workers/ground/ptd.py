@@ -77,11 +77,14 @@ def classify_ground(
     params: PtdParams,
     *,
     sensor_origin: NDArray | None = None,
+    seed_mask: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Boolean ground label per point of ``xyz`` (N×3, absolute coordinates).
 
     ``sensor_origin`` is accepted for a uniform ground-stage signature; the TIN
-    filter does not use it.
+    filter does not use it. ``seed_mask`` marks points known to be ground (e.g.
+    from another run): thinned to one per 2·``min_spacing`` cell they join the
+    seeds, so densification starts from them too.
     """
     del sensor_origin
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -91,6 +94,12 @@ def classify_ground(
         return ground
     local = xyz - xyz.min(axis=0)
     seeds, excluded = _seeds(local, params)
+    if seed_mask is not None and np.any(seed_mask):
+        known = np.flatnonzero(np.asarray(seed_mask, dtype=bool) & ~excluded)
+        cell = 2.0 * params.min_spacing
+        g = Grid.covering(local[known, 0], local[known, 1], cell)
+        low = lowest_per_bin(g.index(local[known, 0], local[known, 1]), local[known, 2], g.size)
+        seeds = np.union1d(seeds, known[low[low >= 0]])
     if seeds.size < 3:
         ground[seeds] = True
         return ground
@@ -106,10 +115,11 @@ def classify_ground(
 def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Lowest point per cell, repeated after removing isolated low outliers.
 
-    A seed is an outlier when it lies more than ``outlier_depth`` below the
-    median of its neighbours in the seed TIN *and* below the second-lowest
-    other point within ``outlier_radius``: a lone point metres under its own
-    surroundings. A genuine valley bottom has ground points close around it and
+    A seed is an outlier when it lies more than ``outlier_depth`` off the
+    median of its neighbours in the seed TIN *and* either below the
+    second-lowest other point within ``outlier_radius`` by that much or alone
+    within that radius: a lone point metres under its own surroundings, or a
+    bird seeding an otherwise empty cell. A genuine valley bottom has ground points close around it and
     survives. Returns seed indices and a mask of excluded (outlier) points.
     """
     grid = Grid.covering(local[:, 0], local[:, 1], params.max_building_size)
@@ -157,11 +167,12 @@ def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool
     ok = counts > 0
     med = np.full(pts.shape[0], np.inf)
     med[ok] = 0.5 * (zs[lo[ok]] + zs[hi[ok]])
-    return pts[:, 2] < med - depth
+    return np.abs(pts[:, 2] - med) > depth
 
 
 def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool:
-    """Is point ``s`` more than ``outlier_depth`` below its near neighbours?"""
+    """Is point ``s`` more than ``outlier_depth`` below its near neighbours, or
+    alone within ``outlier_radius`` (a bird, or a point far off the data)?"""
     iy, ix = divmod(int(cell), grid.nx)
     span = int(np.ceil(params.outlier_radius / grid.cell))
     idx = []
@@ -174,7 +185,7 @@ def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool
     d2 = ((local[cand, :2] - local[s, :2]) ** 2).sum(axis=1)
     near = np.sort(local[cand[d2 <= params.outlier_radius**2], 2])
     if near.size == 0:
-        return True  # alone and far below its seed neighbours
+        return True  # alone and far off its seed neighbours' height
     ref = near[1] if near.size > 1 else near[0]
     return bool(local[s, 2] < ref - params.outlier_depth)
 
