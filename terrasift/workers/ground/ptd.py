@@ -31,7 +31,7 @@ from terrasift.workers.surface import with_transform
 class PtdParams(StageParams):
     """Parameters of progressive TIN densification (seed Table 1 names)."""
 
-    terrain_angle: float = Field(88.0, gt=0.0, le=90.0)
+    terrain_angle: float = Field(80.0, gt=0.0, le=90.0)
     """Degrees: facets steeper than this take no new points."""
     iteration_angle: float = Field(30.0, gt=0.0, le=60.0)
     """Degrees: largest angle between a point, its projection on the facet and a facet vertex."""
@@ -115,8 +115,8 @@ def classify_ground(
 def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Lowest point per cell, repeated after removing isolated low outliers.
 
-    A seed is an outlier when it lies more than ``outlier_depth`` off the
-    median of its neighbours in the seed TIN *and* either below the
+    A seed is an outlier when it lies more than ``outlier_depth`` below (or
+    5·``outlier_depth`` above) the median of its neighbours in the seed TIN *and* either below the
     second-lowest other point within ``outlier_radius`` by that much or alone
     within that radius: a lone point metres under its own surroundings, or a
     bird seeding an otherwise empty cell. A genuine valley bottom has ground points close around it and
@@ -151,7 +151,7 @@ def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.in
 
 
 def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool_]:
-    """Seeds more than ``depth`` below the median z of their TIN neighbours."""
+    """Seeds more than ``depth`` below (or 5·``depth`` above) the median z of their TIN neighbours."""
     try:
         tri = Delaunay(pts[:, :2])
     except QhullError:
@@ -167,7 +167,10 @@ def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool
     ok = counts > 0
     med = np.full(pts.shape[0], np.inf)
     med[ok] = 0.5 * (zs[lo[ok]] + zs[hi[ok]])
-    return np.abs(pts[:, 2] - med) > depth
+    dev = pts[:, 2] - med
+    # Low: any depth beyond the limit. High: only far up (birds), since a hill
+    # top or a ridge in sparse data stands above its neighbours too.
+    return (dev < -depth) | (dev > 5.0 * depth)
 
 
 def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool:
