@@ -6,9 +6,9 @@ the elevation varies a lot (trees, bushes, building edges) and large ones on
 open ground. The vertices of the triangles whose edges are all shorter than
 ``edge`` are the mask points; a bin holding one is rejected.
 
-Insertion is batched: each round every triangle takes in its worst point, then
-the TIN is rebuilt. The vertex count roughly triples per round, so about ten
-rounds reach 10–15 % of a block. In the last round only the globally worst of
+Insertion is batched: each round every triangle takes in its three worst
+points, then the TIN is rebuilt. The vertex count grows about sevenfold per
+round, so five or six rounds reach 10–15 % of a block. In the last round only the globally worst of
 the per-triangle candidates go in, so the stop is exact.
 
 Two insertion rules, as the paper offers: ``"deviation"`` (largest |dz|,
@@ -22,6 +22,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import QhullError
 
 from terrasift.workers.ground.tin import Tin
 
@@ -49,9 +50,11 @@ def partial_tin(
     xyz: NDArray[np.float64],
     fraction: float,
     rule: Literal["deviation", "area"] = "deviation",
+    per_round: int = 3,
 ) -> tuple[Tin, NDArray[np.int64]]:
     """Greedy partial TIN over ``xyz`` stopped at ``fraction`` of the points.
 
+    Each round inserts the ``per_round`` worst points of every triangle.
     Returns the TIN and the indices (into ``xyz``) of its vertices.
     """
     n = xyz.shape[0]
@@ -78,12 +81,7 @@ def partial_tin(
         score = np.abs(xyz[rest, 2] - surf)
         if rule == "area":
             score = score * _areas(tin)[ti]
-        best = np.full(tin.tri.simplices.shape[0], -1.0)
-        np.maximum.at(best, ti, score)
-        winners = np.flatnonzero((score == best[ti]) & (score > 0))
-        # one winner per triangle even on ties
-        _, first = np.unique(ti[winners], return_index=True)
-        winners = winners[first]
+        winners = _worst_per_triangle(ti, score, tin.tri.simplices.shape[0], per_round)
         if winners.size == 0:
             return tin, verts
         room = target - verts.size
@@ -102,7 +100,10 @@ def mask_points(
     whose three edges are all shorter than ``edge``."""
     if xyz.shape[0] < 8:
         return np.zeros(0, dtype=np.int64)
-    tin, verts = partial_tin(xyz, fraction, rule)
+    try:
+        tin, verts = partial_tin(xyz, fraction, rule)
+    except (ValueError, QhullError):  # collinear or coincident points: nothing to mask
+        return np.zeros(0, dtype=np.int64)
     s = tin.tri.simplices
     p = tin.xy[s]
     e = np.stack(
@@ -115,6 +116,23 @@ def mask_points(
     )
     small = (e < edge).all(axis=1)
     return verts[np.unique(s[small])]
+
+
+def _worst_per_triangle(ti: NDArray[np.int64], score: NDArray[np.float64], n_tri: int, k: int) -> NDArray[np.int64]:
+    """Indices of the up-to-``k`` highest positive scores per triangle (one scatter-max per rank)."""
+    out = []
+    s = np.where(score > 0, score, -1.0)
+    for _ in range(k):
+        best = np.full(n_tri, -1.0)
+        np.maximum.at(best, ti, s)
+        win = np.flatnonzero((s == best[ti]) & (s > 0))
+        _, first = np.unique(ti[win], return_index=True)  # one per triangle even on ties
+        win = win[first]
+        if win.size == 0:
+            break
+        out.append(win)
+        s[win] = -1.0
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
 
 def _areas(tin: Tin) -> NDArray[np.float64]:

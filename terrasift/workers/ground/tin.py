@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy import sparse
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
@@ -34,7 +35,8 @@ class Tin:
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
         self.tri = Delaunay(self.xy)  # QhullError (collinear input) propagates to the caller
-        self._trans: tuple[NDArray[np.float64], ...] | None = None
+        self._slopes: NDArray[np.float64] | None = None
+        self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
 
     @property
@@ -70,7 +72,7 @@ class Tin:
         iy = np.clip(((q[:, 1] - y0) / h).astype(np.int64), 0, ny - 1)
         return raster[iy, ix]
 
-    def _transform(self) -> tuple[NDArray[np.float64], ...]:
+    def _transform(self) -> NDArray[np.float64]:
         # Barycentric transform per triangle, computed vectorised (scipy's
         # ``Delaunay.transform`` loops in Python-speed LAPACK calls).
         if self._trans is None:
@@ -81,7 +83,7 @@ class Tin:
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv = 1.0 / det
             inv[~np.isfinite(inv)] = np.nan
-            self._trans = (b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2[:, 0].copy(), p2[:, 1].copy())
+            self._trans = np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
         return self._trans
 
     def locate(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -91,7 +93,7 @@ class Tin:
         the mesh and a triangle index of -(t + 1).
         """
         n = q.shape[0]
-        t00, t01, t10, t11, rx, ry = self._transform()
+        trans = self._transform()
         nbr = self.tri.neighbors
         t = self._start_triangles(q)
         bary = np.zeros((n, 3))
@@ -102,18 +104,18 @@ class Tin:
             if active.size == 0:
                 break
             tt = t[active]
-            dx = qx[active] - rx[tt]
-            dy = qy[active] - ry[tt]
+            tr = trans[tt]  # one gather of the six transform numbers per query
+            dx = qx[active] - tr[:, 4]
+            dy = qy[active] - tr[:, 5]
             b = np.empty((tt.size, 3))
-            b[:, 0] = t00[tt] * dx + t01[tt] * dy
-            b[:, 1] = t10[tt] * dx + t11[tt] * dy
+            b[:, 0] = tr[:, 0] * dx + tr[:, 1] * dy
+            b[:, 1] = tr[:, 2] * dx + tr[:, 3] * dy
             b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
             np.nan_to_num(b, copy=False, nan=-1.0)  # degenerate sliver: step on
-            if rnd < _MAX_WALK // 2:
-                j = np.argmin(b, axis=1)
-            else:  # rare cycling walks (round-off near edges): randomise the exit edge
+            j = np.argmin(b, axis=1)
+            done = b[np.arange(tt.size), j] >= -1e-10
+            if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
                 j = np.argmax((b < -1e-10) * rng.random(b.shape), axis=1)
-            done = b.min(axis=1) >= -1e-10
             bary[active[done]] = b[done]
             move = np.flatnonzero(~done)
             nxt = nbr[tt[move], j[move]]
@@ -136,6 +138,12 @@ class Tin:
 
     def at_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Surface height at local points ``q`` (n, 2)."""
+        return self.height_and_slope(q, slope=False)[0]
+
+    def height_and_slope(
+        self, q: NDArray[np.float64], slope: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both."""
         t, bary = self.locate(q)
         inside = t >= 0
         ti = np.where(inside, t, -t - 1)
@@ -147,16 +155,16 @@ class Tin:
             o = np.flatnonzero(~inside)
             d2 = ((self.xy[corners[o]] - q[o, None, :]) ** 2).sum(axis=2)
             out[o] = zc[o, np.argmin(d2, axis=1)]
-        return out
+        return out, (self.facet_slopes()[ti] if slope else None)
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
-        t, _ = self.locate(q)
-        ti = np.where(t >= 0, t, -t - 1)
-        return self.facet_slopes()[ti]
+        return self.height_and_slope(q)[1]
 
     def facet_slopes(self) -> NDArray[np.float64]:
         """Gradient magnitude of each triangle."""
+        if self._slopes is not None:
+            return self._slopes
         s = self.tri.simplices
         p = self.xy[s]
         dz1 = self.z[s[:, 1]] - self.z[s[:, 0]]
@@ -167,7 +175,8 @@ class Tin:
         with np.errstate(divide="ignore", invalid="ignore"):
             gx = (dz1 * b[:, 1] - dz2 * a[:, 1]) / det
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
-        return np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
+        self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
+        return self._slopes
 
 
 def neighbour_order_stats(
@@ -201,8 +210,8 @@ def screen(
     *,
     slopes: NDArray[np.float64] | None = None,
     max_rounds: int = 50,
-) -> NDArray[np.int64]:
-    """Indices of the points of ``xyz`` kept by TIN screening (NIST §3.2), repeated until stable.
+) -> tuple[NDArray[np.int64], Tin | None]:
+    """Points of ``xyz`` kept by TIN screening (NIST §3.2), repeated until stable, and their TIN.
 
     A vertex is deleted when it stands more than ``screen_tol`` above the
     median of its TIN neighbours. With ``slopes`` (per point: dz/dx, dz/dy of
@@ -214,38 +223,110 @@ def screen(
 
     Isolated low outliers (multipath, common in airborne data) would pull the
     surface into pits, so a vertex is also deleted when it lies more than
-    ``low_tol`` below the second-lowest neighbour vote: a pit, not a valley,
+    ``low_tol`` below the second-lowest of its neighbours: a pit, not a valley,
     since along a valley floor the neighbours up and down the valley are as
-    low as the vertex. ``low_tol <= 0`` skips that test.
+    low as the vertex. Pit votes use only the neighbours' own planes, since
+    the plane of the vertex's bin is tilted by the outlier itself.
+    ``low_tol <= 0`` skips that test.
+
+    Rounds after the first re-triangulate only a patch: the vertices whose
+    neighbourhood a deletion changed, found through the deleted vertices
+    (a peeled roof joins the ground on both sides) plus three rings around.
     """
-    keep = np.arange(xyz.shape[0])
-    origin = xyz[:, :2].mean(axis=0) if xyz.shape[0] else np.zeros(2)
+    n = xyz.shape[0]
+    if n < 4:
+        return np.arange(n), None
+    origin = xyz[:, :2].mean(axis=0)
+    try:
+        tin = Tin(xyz, origin=origin)
+    except QhullError:
+        return np.arange(n), None
+    indptr, indices = tin.neighbours()
+    graph = sparse.csr_matrix((np.ones(indices.size, dtype=np.int32), indices, indptr), shape=(n, n))
+
+    def spread(v: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return (graph @ v.astype(np.int32)) > 0
+
+    alive = np.ones(n, dtype=bool)
+    test = np.arange(n)  # vertices to judge, global ids
+    sub_ids = np.arange(n)  # global id of each vertex of the current (sub) TIN
+    sub = tin
+    sub_ptr, sub_idx = indptr, indices
+    hull = np.zeros(n, dtype=bool)
+    hull[np.unique(tin.tri.convex_hull)] = True
     for _ in range(max_rounds):
-        if keep.size < 4:
+        bad_local = _judge(sub, sub_ptr, sub_idx, sub_ids, test, xyz, screen_tol, low_tol, slopes)
+        if slopes is None:
+            bad_local &= ~hull[sub_ids]
+        bad = sub_ids[bad_local]
+        if bad.size == 0:
+            break
+        alive[bad] = False
+        # Deleted vertices connected to this round's deletions, then three rings.
+        reach = np.zeros(n, dtype=bool)
+        reach[bad] = True
+        while True:
+            grown = reach | (spread(reach) & ~alive)
+            if grown.sum() == reach.sum():
+                break
+            reach = grown
+        affected = spread(reach) & alive
+        patch = affected.copy()
+        for _ in range(3):
+            patch |= spread(patch)
+        patch &= alive
+        sub_ids = np.flatnonzero(patch)
+        if sub_ids.size < 4:
             break
         try:
-            tin = Tin(xyz[keep], origin=origin)
+            sub = Tin(xyz[sub_ids], origin=origin)
         except QhullError:
             break
-        indptr, indices = tin.neighbours()
-        owner = np.repeat(np.arange(keep.size), np.diff(indptr))
-        votes = tin.z[indices]
-        if slopes is not None:
-            sl = slopes[keep]
-            d = tin.xy[owner] - tin.xy[indices]
-            # Trapezoid rule: the mean of both ends' slopes is exact on any
-            # quadratic surface, so curved hills are not taken for objects.
-            gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
-            gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
-            votes = votes + gx * d[:, 0] + gy * d[:, 1]
-        med, second = neighbour_order_stats(indptr, votes)
-        with np.errstate(invalid="ignore"):
-            bad = tin.z - med > screen_tol
-            if low_tol > 0:
-                bad |= second - tin.z > low_tol
-        if slopes is None:
-            bad[np.unique(tin.tri.convex_hull)] = False
-        if not bad.any():
-            break
-        keep = keep[~bad]
-    return keep
+        sub_ptr, sub_idx = sub.neighbours()
+        test = np.flatnonzero(affected[sub_ids])
+    keep = np.flatnonzero(alive)
+    if keep.size == n:
+        return keep, tin
+    if keep.size < 4:
+        return keep, None
+    try:
+        return keep, Tin(xyz[keep], origin=origin)
+    except QhullError:
+        return keep, None
+
+
+def _judge(
+    tin: Tin,
+    indptr: NDArray[np.int64],
+    indices: NDArray[np.int64],
+    ids: NDArray[np.int64],
+    test: NDArray[np.int64],
+    xyz: NDArray[np.float64],
+    screen_tol: float,
+    low_tol: float,
+    slopes: NDArray[np.float64] | None,
+) -> NDArray[np.bool_]:
+    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True)."""
+    owner = np.repeat(np.arange(ids.size), np.diff(indptr))
+    votes = tin.z[indices]
+    pit_votes = votes
+    if slopes is not None:
+        sl = slopes[ids]
+        d = tin.xy[owner] - tin.xy[indices]
+        # Trapezoid rule: the mean of both ends' slopes is exact on any
+        # quadratic surface, so curved hills are not taken for objects.
+        gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
+        gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
+        votes = votes + gx * d[:, 0] + gy * d[:, 1]
+        pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
+    med, _ = neighbour_order_stats(indptr, votes)
+    # Pits are judged on the neighbours' own planes only: the plane of the
+    # vertex's bin, tilted by the outlier itself, would vouch for it.
+    _, second = neighbour_order_stats(indptr, pit_votes)
+    bad = np.zeros(ids.size, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        b = tin.z[test] - med[test] > screen_tol
+        if low_tol > 0:
+            b |= second[test] - tin.z[test] > low_tol
+    bad[test] = b
+    return bad
