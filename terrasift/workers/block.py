@@ -197,22 +197,33 @@ def _ground(
     steep_info: dict[str, Any] = {}
     if xyz.shape[0] < 3:
         return np.zeros(xyz.shape[0], dtype=bool), steep_info
-    mode = params.get("rotation", "auto")
-    steep = False
-    if mode != "off":
-        from terrasift.workers.ground import rotation
-
-        with timer("steep_test"):
-            test = rotation.steepness(xyz, stage_params(params, "ground.steep"))
-        steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
-        steep = test.steep or mode == "always"
+    gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
     with timer("ground"):
-        if not steep:
-            gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
-            return np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool), steep_info
-        rparams = stage_params(params, "ground.rotation")
-        cparams = stage_params(params, stage.id, rparams.ground_preset)
-        result = rotation.classify_rotated(xyz, lambda p: stage.run(p, cparams, **kwargs), rparams)
+        is_ground = np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool)
+    mode = params.get("rotation", "auto")
+    if mode == "off":
+        return is_ground, steep_info
+    from terrasift.workers.ground import rotation
+
+    # The test runs on the block's ground points: on the raw cloud, building
+    # walls would make most urban blocks "steep".
+    with timer("steep_test"):
+        test = rotation.steepness(xyz[is_ground], stage_params(params, "ground.steep"))
+    steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
+    if not (test.steep or mode == "always"):
+        return is_ground, steep_info
+    rparams = stage_params(params, "ground.rotation")
+    cparams = stage_params(params, stage.id, rparams.ground_preset)
+    seeded = None
+    if stage.id == "ground.ptd":  # ptd can grow from the labels found so far
+
+        def seeded(p: NDArray, known: NDArray) -> NDArray:
+            return stage.run(p, cparams, seed_mask=known, **kwargs)
+
+    with timer("rotation"):
+        result = rotation.classify_rotated(
+            xyz, lambda p: stage.run(p, cparams, **kwargs), rparams, unrotated=is_ground, seeded=seeded
+        )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
     return np.asarray(result.is_ground, dtype=bool), steep_info
