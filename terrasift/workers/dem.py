@@ -1,8 +1,8 @@
 """Elevation models on a block's window of the job raster.
 
-DTM: the TIN through the lowest ground point of each cell (so an overhang's
-roof, also labelled ground, never lifts the 2.5-D terrain), sampled at cell
-centres. DSM: the highest point per cell, small holes filled from the nearest
+DTM: the TIN through one vertex per cell of ground (the centroid of the
+cell's lowest ground points, so an overhang's roof, also labelled ground,
+never lifts the 2.5-D terrain), sampled at cell centres. DSM: the highest point per cell, small holes filled from the nearest
 filled cell. Cells farther than ``reach`` from any point are nodata (NaN):
 the models do not invent terrain outside the data.
 """
@@ -70,12 +70,40 @@ def data_reach_mask(xyz: NDArray[np.float64], window: Window, reach: float) -> N
     return dist[k : k + window.rows, k : k + window.cols] <= reach
 
 
-def dtm_window(ground_xyz: NDArray[np.float64], window: Window) -> NDArray[np.float32]:
-    """Ground TIN sampled at the window's cell centres (NaN when there is no ground)."""
+def ground_vertices(ground_xyz: NDArray[np.float64], cell: float, band: float = 0.5) -> NDArray[np.float64]:
+    """One TIN vertex per occupied ``cell``: the centroid of the cell's ground
+    points within ``band`` of its lowest one.
+
+    The centroid lies on a plane through its points, so planar ground is kept
+    exactly while noise averages out (a lowest point would sit low by about
+    one noise sigma); the band keeps an overhang's roof out of the 2.5-D
+    surface. Decimating to one vertex per cell makes the Delaunay cheap.
+    """
+    if ground_xyz.shape[0] == 0:
+        return ground_xyz
+    grid = Grid.covering(ground_xyz[:, 0], ground_xyz[:, 1], cell)
+    flat = grid.index(ground_xyz[:, 0], ground_xyz[:, 1])
+    low = lowest_per_bin(flat, ground_xyz[:, 2], grid.size)
+    zmin = np.where(low >= 0, ground_xyz[np.maximum(low, 0), 2], np.inf)
+    near = ground_xyz[:, 2] - zmin[flat] <= band
+    f = flat[near]
+    n = np.bincount(f, minlength=grid.size)
+    occ = n > 0
+    local = ground_xyz[near] - (grid.x0, grid.y0, 0.0)
+    cen = [np.bincount(f, weights=local[:, i], minlength=grid.size)[occ] / n[occ] for i in range(3)]
+    return np.column_stack(cen) + (grid.x0, grid.y0, 0.0)
+
+
+def dtm_window(ground_xyz: NDArray[np.float64], window: Window, vertex_cell: float | None = None) -> NDArray[np.float32]:
+    """Ground TIN sampled at the window's cell centres (NaN when there is no ground).
+
+    The TIN's vertices are ``ground_vertices`` on cells of ``vertex_cell``
+    (default: the larger of the resolution and 1 m).
+    """
     if ground_xyz.shape[0] == 0:
         return np.full((window.rows, window.cols), np.nan, np.float32)
-    lows = lowest_per_cell(ground_xyz, window.resolution)
-    surface = TinSurface(lows)
+    cell = vertex_cell or max(window.resolution, 1.0)
+    surface = TinSurface(ground_vertices(ground_xyz, cell))
     gx, gy = window.centers()
     return surface(gx, gy).astype(np.float32)
 
