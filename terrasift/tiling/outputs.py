@@ -205,6 +205,10 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
     tmp = out.with_name(out.name + ".part")
     with laspy.open(tile["path"]) as reader:
         header = copy.deepcopy(reader.header)
+        if str(header.version) == "1.0":
+            # laspy writes from 1.1 on; 1.0 and 1.2 share the header and point
+            # records of formats 0 and 1, so the copy is written as 1.2.
+            header.version = laspy.header.Version(1, 2)
         params = _load(job, "job.json")["params"]
         if params.get("crs"):
             header.add_crs(pyproj.CRS.from_user_input(params["crs"]))
