@@ -1,6 +1,6 @@
 """Rotated classification on cliffs, its cost on flat blocks, and its effect on ISPRS.
 
-    python benchmarks/rotation_accuracy.py [--length 100] [--density 8] [--no-isprs]
+    python benchmarks/rotation_accuracy.py [--square 130] [--density 8] [--no-isprs] [--no-cost]
 
 Cliff scene (``terrasift.synthetic.cliffs``): Type I on ground of faces steeper
 than 60°, Type I/II overall, share of covered ground found (under the lip),
@@ -51,7 +51,14 @@ def auto(xyz: np.ndarray) -> tuple[np.ndarray, dict]:
     info = {"ptd_s": t1 - t0, "steep_s": t2 - t1, "share": test.facet_share, "steep": test.steep}
     if test.steep:
         rp = RotationParams()
-        res = classify_rotated(xyz, ptd(rp.ground_preset), rp, unrotated=g)
+        params = PtdParams.preset(rp.ground_preset)
+        res = classify_rotated(
+            xyz,
+            lambda p: classify_ground(p, params),
+            rp,
+            unrotated=g,
+            seeded=lambda p, known: classify_ground(p, params, seed_mask=known),
+        )
         g = res.is_ground
         info["added"] = res.added
     info["total_s"] = time.perf_counter() - t0
@@ -70,8 +77,8 @@ def row(name: str, scene, pred: np.ndarray, seconds: float) -> None:
     )
 
 
-def cliffs(length: float, density: float) -> None:
-    scene = make_cliffs(length=length, density=density, seed=3)
+def cliffs(square: float, density: float) -> None:
+    scene = make_cliffs(length=200.0, density=density, seed=3, square=square)
     print(f"cliff scene: {len(scene)} points, {int(scene.extra['steep'].sum())} ground points on faces > 60°")
     print(f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}")
     for preset in ("default", "conservative", "aggressive"):
@@ -82,13 +89,23 @@ def cliffs(length: float, density: float) -> None:
     res = classify_rotated(scene.xyz, ptd("conservative"), RotationParams())
     row("rotated, all conservative", scene, res.is_ground, time.perf_counter() - t)
     print(f"  added per direction N..NW: {res.added}")
+    t = time.perf_counter()
+    cons = PtdParams.preset("conservative")
+    res = classify_rotated(
+        scene.xyz,
+        lambda p: classify_ground(p, cons),
+        RotationParams(),
+        seeded=lambda p, known: classify_ground(p, cons, seed_mask=known),
+    )
+    row("rotated conservative, seeded", scene, res.is_ground, time.perf_counter() - t)
+    print(f"  added per direction N..NW: {res.added}")
     g, info = auto(scene.xyz)
     row("auto (default + rotated)", scene, g, info["total_s"])
     print(f"  steep share {info['share']:.3f}, added {info.get('added')}")
 
 
 def cost() -> None:
-    flat = make_scene(size=200, density=8, seed=5)
+    flat = make_scene(size=130, density=8, seed=5)
     xyz = flat.xyz
     t = time.perf_counter()
     g = ptd("default")(xyz)
@@ -107,7 +124,7 @@ def cost() -> None:
         f"share {test.facet_share:.3f} steep={test.steep}"
     )
     _, info_flat = auto(xyz)
-    steep_scene = make_cliffs(length=200.0, density=8, seed=6)
+    steep_scene = make_cliffs(length=200.0, density=8, seed=6, square=130.0)
     _, info = auto(steep_scene.xyz)
     ratio = (info["total_s"] / len(steep_scene)) / (info_flat["total_s"] / len(flat))
     print(
@@ -138,12 +155,12 @@ def isprs() -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--length", type=float, default=100.0)
+    ap.add_argument("--square", type=float, default=130.0, help="side of the block cut from the cliff scene")
     ap.add_argument("--density", type=float, default=8.0)
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
     args = ap.parse_args()
-    cliffs(args.length, args.density)
+    cliffs(args.square, args.density)
     if not args.no_cost:
         cost()
     if not args.no_isprs:

@@ -57,7 +57,7 @@ def test_classify_rotated_is_or_about_centroid():
         seen.append(p.copy())
         return p[:, 2] < np.median(p[:, 2])
 
-    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20))
+    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0))
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
     expect = base.copy()
@@ -68,9 +68,14 @@ def test_classify_rotated_is_or_about_centroid():
         expect |= lab
     assert np.array_equal(res.is_ground, expect)
     assert res.added == [int(np.count_nonzero((p[:, 2] < np.median(p[:, 2])) & ~base)) for p in seen[1:]]
+    # With an edge margin, rotated runs only add points inside the margin.
+    trimmed = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0))
+    assert np.all(trimmed.is_ground <= res.is_ground) and sum(trimmed.added) < sum(res.added)
     # A given unrotated labelling is used instead of running it again.
     seen.clear()
-    res2 = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20), unrotated=np.zeros(500, bool))
+    res2 = classify_rotated(
+        pts, fake_ground, RotationParams(directions=4, angle=20), unrotated=np.zeros(500, bool)
+    )
     assert len(seen) == 4 and res2.unrotated == 0
 
 
@@ -103,7 +108,13 @@ def test_rotation_finds_steep_ground(cliffs):
     ground = lambda p: classify_ground(p, conservative)  # noqa: E731
     steep = cliffs.extra["steep"]
     plain = ground(cliffs.xyz)
-    res = classify_rotated(cliffs.xyz, ground, RotationParams(), unrotated=plain)
+    res = classify_rotated(
+        cliffs.xyz,
+        ground,
+        RotationParams(),
+        unrotated=plain,
+        seeded=lambda p, known: classify_ground(p, conservative, seed_mask=known),
+    )
     miss_plain = np.count_nonzero(steep & ~plain) / steep.sum()
     miss_rot = np.count_nonzero(steep & ~res.is_ground) / steep.sum()
     assert miss_rot < miss_plain - 0.2
@@ -117,3 +128,25 @@ def test_rotation_finds_steep_ground(cliffs):
     t2_rot = np.count_nonzero(res.is_ground & obj) / obj.sum()
     t2_agg = np.count_nonzero(aggressive & obj) / obj.sum()
     assert t2_rot < t2_agg + 0.06
+
+
+def test_birds_are_not_added_by_rotations(cliffs):
+    # Tipping moves a bird 60 m up by 30 m sideways, alone in its cell: it must
+    # not come back as ground from a rotated run.
+    x0, y0, x1, y1 = cliffs.bounds
+    birds = np.column_stack([np.full(5, (x0 + x1) / 2), np.linspace(y0 + 20, y1 - 20, 5), np.full(5, 90.0)])
+    xyz = np.vstack([cliffs.xyz, birds])
+    conservative = PtdParams.preset("conservative")
+    res = classify_rotated(xyz, lambda p: classify_ground(p, conservative), RotationParams(edge_margin=0.0))
+    assert not res.is_ground[-5:].any()
+
+
+def test_seed_mask_points_start_the_tin():
+    pts = _plane(0.0)[:3000]
+    pts[:, 2] += np.where(np.arange(3000) % 2 == 0, 0.0, 5.0)  # every other point 5 m up
+    known = np.zeros(3000, bool)
+    known[1::2] = True  # claim the raised ones are ground
+    plain = classify_ground(pts, PtdParams())
+    seeded = classify_ground(pts, PtdParams(), seed_mask=known)
+    assert not plain[1::2].any()
+    assert seeded[1::2].sum() > 100  # thinned seeds: one per 2·min_spacing cell at least

@@ -56,11 +56,14 @@ def make_cliffs(
     outlier_rate: float = 0.0005,
     noise_sigma: float = 0.03,
     seed: int = 0,
+    square: float | None = None,
 ) -> Scene:
     """A cliff scene ``profile``-wide across and ``length`` m along strike, at
     ``density`` pulses per m². ``azimuth`` (degrees, counter-clockwise from east)
     is the direction of increasing u, so the vertical cliff faces azimuth + 180°
-    and the overhang and the 70° face face ``azimuth``."""
+    and the overhang and the 70° face face ``azimuth``. ``square``: keep only the
+    axis-aligned square of that side about the scene's centre, as a block of
+    the tiling grid would see it."""
     rng = np.random.default_rng(seed)
     prof = np.asarray(profile, dtype=np.float64)
     a, b = prof[:-1], prof[1:]
@@ -161,8 +164,16 @@ def make_cliffs(
         ret, nret = np.r_[ret, np.ones(n_out, np.uint8)], np.r_[nret, np.ones(n_out, np.uint8)]
         face, cov = np.r_[face, np.full(n_out, np.nan)], np.r_[cov, np.zeros(n_out, bool)]
 
-    order = rng.permutation(uu.size)
     az = np.radians(azimuth)
+    if square is not None:
+        du, dv = uu - width / 2, vv - length / 2
+        ex = du * np.cos(az) - dv * np.sin(az)
+        ey = du * np.sin(az) + dv * np.cos(az)
+        keep = (np.abs(ex) <= square / 2) & (np.abs(ey) <= square / 2)
+        uu, vv, zz, truth, ret, nret, face, cov = (
+            a[keep] for a in (uu, vv, zz, truth, ret, nret, face, cov)
+        )
+    order = rng.permutation(uu.size)
     cu, su_ = np.cos(az), np.sin(az)
     ox, oy = origin
     x = ox + uu * cu - vv * su_

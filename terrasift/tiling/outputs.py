@@ -260,7 +260,7 @@ def write_report_and_item(
             "bins": bins,
             "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
         },
-        "roughness": rough.to_dict(),
+        "roughness": {**rough.to_dict(), "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None)},
         "steep_blocks": {
             "tested": sum(1 for s in block_stats if s.get("steep")),
             "rotated": len(steep),

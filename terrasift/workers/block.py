@@ -136,10 +136,15 @@ def classify_block(
     from terrasift.workers import terrain
 
     tparams = stage_params(params, "terrain")
-    rgrid = Grid(xmin, ymin, tparams.cell, int(round((xmax - xmin) / tparams.cell)), int(round((ymax - ymin) / tparams.cell)))
+    # Sparse clouds get whole multiples of the cell, so a bin expects twice
+    # min_points and the gauge does not go empty (same for every block).
+    density = float(params.get("_density", 1.0))
+    rcell = tparams.cell * max(1, int(np.ceil(np.sqrt(2 * tparams.min_points / max(density, 1e-6)) / tparams.cell)))
+    rgrid = Grid(xmin, ymin, rcell, int((xmax - xmin) // rcell), int((ymax - ymin) // rcell))
     with timer("roughness"):
         rough = terrain.roughness(sub[is_ground_sub], rgrid, tparams)
     stats["roughness_sums"] = [rough.n_bins, rough.mean_sx, rough.mean_sy, rough.m2_sx, rough.m2_sy]
+    stats["roughness_cell"] = rcell
 
     # Elevation models on the core window.
     check_cancel()
@@ -192,22 +197,33 @@ def _ground(
     steep_info: dict[str, Any] = {}
     if xyz.shape[0] < 3:
         return np.zeros(xyz.shape[0], dtype=bool), steep_info
-    mode = params.get("rotation", "auto")
-    steep = False
-    if mode != "off":
-        from terrasift.workers.ground import rotation
-
-        with timer("steep_test"):
-            test = rotation.steepness(xyz, stage_params(params, "ground.steep"))
-        steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
-        steep = test.steep or mode == "always"
+    gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
     with timer("ground"):
-        if not steep:
-            gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
-            return np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool), steep_info
-        rparams = stage_params(params, "ground.rotation")
-        cparams = stage_params(params, stage.id, rparams.ground_preset)
-        result = rotation.classify_rotated(xyz, lambda p: stage.run(p, cparams, **kwargs), rparams)
+        is_ground = np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool)
+    mode = params.get("rotation", "auto")
+    if mode == "off":
+        return is_ground, steep_info
+    from terrasift.workers.ground import rotation
+
+    # The test runs on the block's ground points: on the raw cloud, building
+    # walls would make most urban blocks "steep".
+    with timer("steep_test"):
+        test = rotation.steepness(xyz[is_ground], stage_params(params, "ground.steep"))
+    steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
+    if not (test.steep or mode == "always"):
+        return is_ground, steep_info
+    rparams = stage_params(params, "ground.rotation")
+    cparams = stage_params(params, stage.id, rparams.ground_preset)
+    seeded = None
+    if stage.id == "ground.ptd":  # ptd can grow from the labels found so far
+
+        def seeded(p: NDArray, known: NDArray) -> NDArray:
+            return stage.run(p, cparams, seed_mask=known, **kwargs)
+
+    with timer("rotation"):
+        result = rotation.classify_rotated(
+            xyz, lambda p: stage.run(p, cparams, **kwargs), rparams, unrotated=is_ground, seeded=seeded
+        )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
     return np.asarray(result.is_ground, dtype=bool), steep_info

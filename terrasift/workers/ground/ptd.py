@@ -31,7 +31,7 @@ from terrasift.workers.surface import with_transform
 class PtdParams(StageParams):
     """Parameters of progressive TIN densification (seed Table 1 names)."""
 
-    terrain_angle: float = Field(88.0, gt=0.0, le=90.0)
+    terrain_angle: float = Field(80.0, gt=0.0, le=90.0)
     """Degrees: facets steeper than this take no new points."""
     iteration_angle: float = Field(30.0, gt=0.0, le=60.0)
     """Degrees: largest angle between a point, its projection on the facet and a facet vertex."""
@@ -46,7 +46,10 @@ class PtdParams(StageParams):
     """Metres: neighbourhood radius of the low-outlier test."""
     max_rounds: int = Field(100, ge=1, le=10_000)
     """Upper bound on densification rounds (the filter normally stops earlier)."""
-    tail_fraction: float = Field(0.01, ge=0.0, le=1.0)
+    min_spacing: float = Field(1.5, gt=0.0, le=100.0)
+    """Metres: facets smaller than min_spacing²/2 take no more TIN vertices; the
+    final pass labels the points in them. Bounds the TIN (and the cost) on dense clouds."""
+    tail_fraction: float = Field(0.1, ge=0.0, le=1.0)
     """When a round grows the TIN by less than this share, one last round accepts
     every remaining point that passes the tests and the filter stops (0: run every
     one-per-facet round to the end). The tail otherwise costs a full
@@ -74,11 +77,14 @@ def classify_ground(
     params: PtdParams,
     *,
     sensor_origin: NDArray | None = None,
+    seed_mask: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Boolean ground label per point of ``xyz`` (N×3, absolute coordinates).
 
     ``sensor_origin`` is accepted for a uniform ground-stage signature; the TIN
-    filter does not use it.
+    filter does not use it. ``seed_mask`` marks points known to be ground (e.g.
+    from another run): thinned to one per 2·``min_spacing`` cell they join the
+    seeds, so densification starts from them too.
     """
     del sensor_origin
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -88,6 +94,12 @@ def classify_ground(
         return ground
     local = xyz - xyz.min(axis=0)
     seeds, excluded = _seeds(local, params)
+    if seed_mask is not None and np.any(seed_mask):
+        known = np.flatnonzero(np.asarray(seed_mask, dtype=bool) & ~excluded)
+        cell = 2.0 * params.min_spacing
+        g = Grid.covering(local[known, 0], local[known, 1], cell)
+        low = lowest_per_bin(g.index(local[known, 0], local[known, 1]), local[known, 2], g.size)
+        seeds = np.union1d(seeds, known[low[low >= 0]])
     if seeds.size < 3:
         ground[seeds] = True
         return ground
@@ -103,36 +115,43 @@ def classify_ground(
 def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Lowest point per cell, repeated after removing isolated low outliers.
 
-    A seed is an outlier when it lies more than ``outlier_depth`` below the
-    median of its neighbours in the seed TIN *and* below the second-lowest
-    other point within ``outlier_radius``: a lone point metres under its own
-    surroundings. A genuine valley bottom has ground points close around it and
+    A seed is an outlier when it lies more than ``outlier_depth`` below (or
+    5·``outlier_depth`` above) the median of its neighbours in the seed TIN *and* either below the
+    second-lowest other point within ``outlier_radius`` by that much or alone
+    within that radius: a lone point metres under its own surroundings, or a
+    bird seeding an otherwise empty cell. A genuine valley bottom has ground points close around it and
     survives. Returns seed indices and a mask of excluded (outlier) points.
     """
     grid = Grid.covering(local[:, 0], local[:, 1], params.max_building_size)
     flat = grid.index(local[:, 0], local[:, 1])
     excluded = np.zeros(local.shape[0], dtype=bool)
-    order = np.argsort(flat, kind="stable")
+    # One sort by (cell, z): a cell's seed is its first point not excluded.
+    order = np.lexsort((local[:, 2], flat))
     starts = np.searchsorted(flat[order], np.arange(grid.size + 1))
+    occupied = np.flatnonzero(starts[1:] > starts[:-1])
+    pos = starts[occupied].copy()
     for _ in range(8):
-        lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
-        seeds = lowest[lowest >= 0]
+        seeds = order[pos]
         if seeds.size < 4:
             return seeds, excluded
-        suspects = seeds[_below_neighbours(local[seeds], params.outlier_depth)]
+        suspects = np.flatnonzero(_below_neighbours(local[seeds], params.outlier_depth))
         found = False
-        for s in suspects:
+        for k in suspects:
+            s = seeds[k]
             if _isolated_low(local, s, flat[s], grid, order, starts, excluded, params):
                 excluded[s] = True
                 found = True
+                # Next point of the cell, unless the cell has no other.
+                if pos[k] + 1 < starts[occupied[k] + 1]:
+                    pos[k] += 1
         if not found:
-            return seeds, excluded
-    lowest = lowest_per_bin(np.where(excluded, -1, flat), local[:, 2], grid.size)
-    return lowest[lowest >= 0], excluded
+            break
+    seeds = order[pos]
+    return seeds[~excluded[seeds]], excluded
 
 
 def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool_]:
-    """Seeds more than ``depth`` below the median z of their TIN neighbours."""
+    """Seeds more than ``depth`` below (or 5·``depth`` above) the median z of their TIN neighbours."""
     try:
         tri = Delaunay(pts[:, :2])
     except QhullError:
@@ -148,11 +167,15 @@ def _below_neighbours(pts: NDArray[np.float64], depth: float) -> NDArray[np.bool
     ok = counts > 0
     med = np.full(pts.shape[0], np.inf)
     med[ok] = 0.5 * (zs[lo[ok]] + zs[hi[ok]])
-    return pts[:, 2] < med - depth
+    dev = pts[:, 2] - med
+    # Low: any depth beyond the limit. High: only far up (birds), since a hill
+    # top or a ridge in sparse data stands above its neighbours too.
+    return (dev < -depth) | (dev > 5.0 * depth)
 
 
 def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool:
-    """Is point ``s`` more than ``outlier_depth`` below its near neighbours?"""
+    """Is point ``s`` more than ``outlier_depth`` below its near neighbours, or
+    alone within ``outlier_radius`` (a bird, or a point far off the data)?"""
     iy, ix = divmod(int(cell), grid.nx)
     span = int(np.ceil(params.outlier_radius / grid.cell))
     idx = []
@@ -165,7 +188,7 @@ def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool
     d2 = ((local[cand, :2] - local[s, :2]) ** 2).sum(axis=1)
     near = np.sort(local[cand[d2 <= params.outlier_radius**2], 2])
     if near.size == 0:
-        return True  # alone and far below its seed neighbours
+        return True  # alone and far off its seed neighbours' height
     ref = near[1] if near.size > 1 else near[0]
     return bool(local[s, 2] < ref - params.outlier_depth)
 
@@ -215,8 +238,9 @@ def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
     """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
     ix = np.floor(xy[:, 0] / cell).astype(np.int64)
     iy = np.floor(xy[:, 1] / cell).astype(np.int64)
-    ix = np.where(iy % 2 == 1, ix.max() - ix, ix)
-    return np.lexsort((ix, iy))
+    nx = int(ix.max()) + 1
+    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
+    return np.argsort(iy * nx + ix, kind="stable")
 
 
 def _facet_keys(simplices: NDArray, base: int) -> NDArray:
@@ -227,6 +251,68 @@ def _facet_keys(simplices: NDArray, base: int) -> NDArray:
     return np.ascontiguousarray(s).view(np.dtype((np.void, 24))).ravel()
 
 
+def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> None:
+    """Continue the ground TIN to the frame: each frame vertex takes the height of
+    the least-squares plane through its ``k`` nearest ground vertices, clamped to
+    their height range widened by 2 m plus their distance (a 45° bound on the
+    extrapolation), so slopes run on to the border."""
+    from scipy.spatial import cKDTree
+
+    g = verts[nf:nv]
+    if g.shape[0] < max(k, 3):
+        return
+    f = verts[:nf]
+    dist, idx = cKDTree(g[:, :2]).query(f[:, :2], k=k)
+    nb = g[idx]  # (nf, k, 3)
+    d = nb[:, :, :2] - f[:, None, :2]
+    a = np.concatenate([np.ones((nf, k, 1)), d], axis=2)
+    ata = np.einsum("nki,nkj->nij", a, a) + 1e-6 * np.eye(3)
+    atz = np.einsum("nki,nk->ni", a, nb[:, :, 2])
+    z = np.linalg.solve(ata, atz[..., None])[:, 0, 0]
+    reach = 2.0 + dist[:, 0]
+    lo = nb[:, :, 2].min(axis=1) - reach
+    hi = nb[:, :, 2].max(axis=1) + reach
+    verts[:nf, 2] = np.clip(z, lo, hi)
+
+
+def _judge(
+    tri: Delaunay, verts: NDArray[np.float64], pts: NDArray[np.float64], params: PtdParams
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+    """Facet of each point and the acceptance test against it.
+
+    Returns (inside, facet, ok, sin of the angle, facet horizontal area), the
+    last four for the points inside the TIN only.
+    """
+    simp = tri.simplices
+    s = tri.find_simplex(pts[:, :2])
+    inside = s >= 0
+    s, pts = s[inside], pts[inside]
+    a = verts[simp[s, 0]]
+    b = verts[simp[s, 1]]
+    c = verts[simp[s, 2]]
+    normal = np.cross(b - a, c - a)
+    area = 0.5 * np.abs(normal[:, 2])
+    norm = np.linalg.norm(normal, axis=1)
+    norm[norm == 0] = np.inf
+    nz = np.abs(normal[:, 2]) / norm
+    dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
+    rmin = np.sqrt(
+        np.minimum(
+            np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
+            ((pts - c) ** 2).sum(1),
+        )
+    )
+    # Within a metre of a vertex, scanner noise alone makes steep angles:
+    # judge such points as if a metre away.
+    sin_angle = dist / np.maximum(rmin, 1.0)
+    ok = (
+        (dist < params.iteration_distance)
+        & (sin_angle < np.sin(np.radians(params.iteration_angle)))
+        & (nz >= np.cos(np.radians(params.terrain_angle)))
+    )
+    return inside, s, ok, sin_angle, area
+
+
 def _densify(
     local: NDArray[np.float64],
     ground: NDArray[np.bool_],
@@ -234,7 +320,14 @@ def _densify(
     frame: NDArray[np.float64],
     params: PtdParams,
 ) -> None:
-    """Grow ``ground`` in place by rounds of TIN densification."""
+    """Grow ``ground`` in place by rounds of TIN densification.
+
+    One point per facet per round while facets are larger than
+    ``min_spacing``²/2 and rounds still grow the TIN by ``tail_fraction``; then
+    one last pass accepts every pending point that passes against the final
+    TIN without inserting it. Delaunay is the cost, so the TIN stays near one
+    vertex per ``min_spacing``² however dense the cloud.
+    """
     n = local.shape[0]
     nf = frame.shape[0]
     seeds = np.flatnonzero(ground)
@@ -243,84 +336,58 @@ def _densify(
     verts[nf : nf + seeds.size] = local[seeds]
     nv = nf + seeds.size
     base = nf + n
-
-    cos_terrain = np.cos(np.radians(params.terrain_angle))
-    sin_iter = np.sin(np.radians(params.iteration_angle))
-    dmax = params.iteration_distance
+    area_min = 0.5 * params.min_spacing**2
 
     pending = np.flatnonzero(~ground & ~excluded)
     spacing = max(np.sqrt((np.ptp(local[:, 0]) * np.ptp(local[:, 1]) + 1.0) / n), 0.1)
     pending = pending[_spatial_order(local[pending, :2], 8.0 * spacing)]
-    last_key = np.full(pending.size, -1, dtype=np.int64) if base < 2_000_000 else None
-    last_void = None
+    last_key: NDArray | None = None
 
-    bulk = False
-    for _ in range(params.max_rounds):
-        if pending.size == 0:
-            break
-        try:
-            tri = with_transform(Delaunay(verts[:nv, :2]))
-        except QhullError:
-            break
-        simp = tri.simplices
-        keys = _facet_keys(simp, base)
-        if last_key is not None:
-            test = ~np.isin(last_key, keys) if _ > 0 else np.ones(pending.size, dtype=bool)
-        else:
-            test = ~np.isin(last_void, keys) if last_void is not None else np.ones(pending.size, dtype=bool)
-        ti = np.flatnonzero(test)
-        pts = local[pending[ti]]
-        s = tri.find_simplex(pts[:, :2])
-        inside = s >= 0
-        ti, pts, s = ti[inside], pts[inside], s[inside]
-
-        a = verts[simp[s, 0]]
-        b = verts[simp[s, 1]]
-        c = verts[simp[s, 2]]
-        normal = np.cross(b - a, c - a)
-        norm = np.linalg.norm(normal, axis=1)
-        norm[norm == 0] = np.inf
-        nz = np.abs(normal[:, 2]) / norm
-        dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
-        rmin = np.sqrt(
-            np.minimum(
-                np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
-                ((pts - c) ** 2).sum(1),
-            )
-        )
-        # Within a metre of a vertex, scanner noise alone makes steep angles:
-        # judge such points as if a metre away.
-        sin_angle = dist / np.maximum(rmin, 1.0)
-        ok = (dist < dmax) & (sin_angle < sin_iter) & (nz >= cos_terrain)
-
-        # Remember each tested point's facet: unchanged facets are not retested.
-        if last_key is not None:
-            last_key[ti] = keys[s]
-        else:
-            if last_void is None:
-                last_void = np.zeros(pending.size, dtype=keys.dtype)
-            last_void[ti] = keys[s]
-
-        if not ok.any():
-            break
-        if bulk:
-            chosen = ti[ok]
-        else:
-            cand = np.flatnonzero(ok)
-            o = cand[np.lexsort((sin_angle[cand], s[cand]))]
-            first = np.r_[True, s[o][1:] != s[o][:-1]]
-            chosen = ti[o[first]]
+    def accept(chosen: NDArray[np.int64], insert: bool) -> None:
+        nonlocal pending, last_key, nv
         new = pending[chosen]
         ground[new] = True
-        verts[nv : nv + new.size] = local[new]
-        nv += new.size
+        if insert:
+            verts[nv : nv + new.size] = local[new]
+            nv += new.size
         keep = np.ones(pending.size, dtype=bool)
         keep[chosen] = False
         pending = pending[keep]
         if last_key is not None:
             last_key = last_key[keep]
-        else:
-            last_void = last_void[keep]
-        if bulk:
+
+    tri = None
+    for _ in range(params.max_rounds):
+        if pending.size == 0:
+            return
+        _refit_frame(verts, nf, nv)
+        try:
+            tri = with_transform(Delaunay(verts[:nv, :2]))
+        except QhullError:
+            return
+        keys = _facet_keys(tri.simplices, base)
+        # A point whose facet survived re-triangulation keeps its verdict.
+        ti = np.flatnonzero(~np.isin(last_key, keys)) if last_key is not None else np.arange(pending.size)
+        inside, s, ok, score, area = _judge(tri, verts, local[pending[ti]], params)
+        ti = ti[inside]
+        if last_key is None:
+            last_key = np.zeros(pending.size, dtype=keys.dtype)
+        last_key[ti] = keys[s]
+        pick = ok & (area >= area_min)
+        if not pick.any():
             break
-        bulk = new.size < params.tail_fraction * nv
+        cand = np.flatnonzero(pick)
+        o = cand[np.lexsort((score[cand], s[cand]))]
+        first = np.r_[True, s[o][1:] != s[o][:-1]]
+        chosen = ti[o[first]]
+        accept(chosen, insert=True)
+        if chosen.size < params.tail_fraction * nv:
+            try:
+                tri = with_transform(Delaunay(verts[:nv, :2]))
+            except QhullError:
+                return
+            break
+    # Final pass: every pending point judged against the last TIN, none inserted.
+    if tri is not None and pending.size:
+        inside, s, ok, score, area = _judge(tri, verts, local[pending], params)
+        accept(np.flatnonzero(inside)[ok], insert=False)

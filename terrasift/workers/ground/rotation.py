@@ -52,6 +52,16 @@ class RotationParams(StageParams):
     """Degrees each rotated cloud is tipped by."""
     directions: int = Field(8, ge=1, le=64)
     """Number of compass directions, evenly spaced from north."""
+    edge_margin: float | None = Field(None, ge=0.0, le=1000.0)
+    """Metres: a rotated run's labels count only this far inside the rotated
+    block's footprint. Tipping pushes tall objects sideways by height·sin(angle),
+    so near the footprint's edge tree tops and birds stand alone and become TIN
+    seeds. None: the block's height range (2nd–98th percentile) × sin(angle).
+    The unrotated run still labels the margin."""
+    max_lift: float | None = Field(12.0, gt=0.0, le=1000.0)
+    """Metres: a rotated run may add only points within this height of the
+    unrotated ground surface (a TIN of its lowest ground per 2 m cell); tipping
+    isolates birds and tree tops, which then seed a rotated TIN. None: no limit."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
@@ -129,26 +139,58 @@ def classify_rotated(
     params: RotationParams,
     *,
     unrotated: NDArray[np.bool_] | None = None,
+    seeded: Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]] | None = None,
 ) -> RotatedResult:
     """Boolean OR of ``ground`` on the block as it is and on ``directions``
     copies tipped by ``angle`` about the centroid.
 
     ``ground`` is any ground method bound to its parameters. ``unrotated`` may
     carry labels the caller already has for the block as it is (then that run
-    is not repeated).
+    is not repeated). ``seeded(points, known_ground)``, when the ground method
+    offers it (ground.ptd's ``seed_mask``), runs the rotated clouds with the
+    unrotated ground as extra seeds: the TIN then already holds the cliff's foot
+    and rim, and the tipped face between them is densified instead of being cut
+    off under the rim (a tipped cliff top is a sharp ridge, which a TIN filter
+    grown from cell minima cannot climb).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     base = np.asarray(ground(xyz) if unrotated is None else unrotated, dtype=bool)
     combined = base.copy()
     added: list[int] = []
     centroid = xyz.mean(axis=0)
+    margin = params.edge_margin
+    if margin is None:
+        lo, hi = np.percentile(xyz[:, 2], [2, 98]) if xyz.shape[0] else (0.0, 0.0)
+        margin = float(hi - lo) * np.sin(np.radians(params.angle))
+    near = None
+    if params.max_lift is not None and base.any():
+        near = _near_surface(xyz, base, params.max_lift)
     for k in range(params.directions):
         rot = rotation_matrix(360.0 * k / params.directions, params.angle)
         # (x − c) R^T + c, built in one new array: the only extra copy of the block.
         turned = xyz @ rot.T
         turned += centroid - rot @ centroid
-        labels = np.asarray(ground(turned), dtype=bool)
+        labels = np.asarray(ground(turned) if seeded is None else seeded(turned, combined), dtype=bool)
+        if margin > 0 and labels.any():
+            xy = turned[:, :2]
+            inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
+            labels &= inner
+        if near is not None:
+            labels &= near | base
         del turned
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
+
+
+def _near_surface(xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: float) -> NDArray[np.bool_]:
+    """Points within ``lift`` of the surface through the lowest ``ground`` point per 2 m cell."""
+    from terrasift.workers.bins import lowest_per_bin
+    from terrasift.workers.surface import TinSurface
+
+    g = np.flatnonzero(ground)
+    lo = xyz[g, :2].min(axis=0)
+    grid = Grid.covering(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1], 2.0)
+    low = lowest_per_bin(grid.index(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1]), xyz[g, 2], grid.size)
+    surf = TinSurface(xyz[g[low[low >= 0]]])
+    return np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
