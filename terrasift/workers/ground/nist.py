@@ -108,9 +108,11 @@ class NistParams(StageParams):
     """First mowing: drop points this far above the first surface."""
     mow_tol_2: float = Field(0.3, gt=0, le=100)
     """Second mowing, of the original points, against the second surface."""
-    mow_slope: float = Field(1.0, ge=0, le=10)
+    mow_slope: float = Field(0.5, ge=0, le=10)
     """Mowing tolerance grows by this × local surface slope × the pass's bin size."""
-    repeats: int = Field(2, ge=0, le=10)
+    slope_cap: float = Field(1.0, ge=0, le=10)
+    """Slope allowances (mowing, labels) use min(facet slope, slope_cap)."""
+    repeats: int = Field(1, ge=0, le=10)
     """Extra mow (mow_tol_2) → bin (cell_3) → mesh/screen rounds against the last surface."""
     ground_tol: float = Field(0.3, gt=0, le=10)
     """Final labels: ground within this height of the final surface."""
@@ -271,6 +273,12 @@ class _TooSparse(Exception):
     """Fewer than three ground candidates: no surface can be meshed."""
 
 
+def _capped(slope: NDArray[np.float64], params: NistParams) -> NDArray[np.float64]:
+    # Facets steeper than slope_cap span walls or crown edges, not terrain:
+    # an uncapped allowance there lets mowing keep roofs and the surface climb.
+    return np.minimum(slope, params.slope_cap)
+
+
 def _cell_of(g: Grid | ConcentricGrid) -> float:
     return float(np.median(g.cell)) if isinstance(g, ConcentricGrid) else g.cell
 
@@ -284,7 +292,7 @@ def _mow(tin: Tin, xyz: NDArray[np.float64], tol: float, cell: float, params: Ni
     """
     h, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.mow_slope > 0)
     h = xyz[:, 2] - h
-    limit = tol if slope is None else tol + params.mow_slope * cell * slope
+    limit = tol if slope is None else tol + params.mow_slope * cell * _capped(slope, params)
     return np.flatnonzero(h <= limit)
 
 
@@ -357,6 +365,7 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     tol_up: NDArray | float = params.ground_tol
     tol_down: NDArray | float = params.ground_tol_below
     if slope is not None:
+        slope = _capped(slope, params)
         tol_up = tol_up + params.ground_slope * slope
         tol_down = tol_down + params.ground_slope * slope
     ground = np.empty(n, dtype=bool)
