@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from terrasift.errors import ParameterError
 from terrasift.workers.registry import get_stage, stages
 
-DEFAULT_GROUND = "nist"
+DEFAULT_GROUND = "ptd"
 
 
 class JobParams(BaseModel):
