@@ -13,6 +13,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 
+#: Local origins of blocks are multiples of this many metres, a common multiple
+#: of every usual bin size (0.5 … 240 m), so bins of two blocks line up and a
+#: point near a block edge falls in the same bin whichever block it is in.
+ANCHOR = 240.0
+
+
+def anchored_origin(xy: NDArray[np.float64], anchor: float = ANCHOR) -> NDArray[np.float64]:
+    """The multiple of ``anchor`` at or below the smallest x and y of ``xy``."""
+    return np.floor(np.asarray(xy, dtype=np.float64)[:, :2].min(axis=0) / anchor) * anchor
+
+
 @dataclass(frozen=True)
 class Grid:
     """A regular grid: lower-left corner, square cell size, shape (ny, nx)."""

@@ -61,7 +61,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 from scipy.spatial import QhullError
 
-from terrasift.workers.bins import BinStats, Grid, PlaneStats, bin_statistics, plane_fit_statistics
+from terrasift.workers.bins import BinStats, Grid, PlaneStats, anchored_origin, bin_statistics, plane_fit_statistics
 from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
 from terrasift.workers.ground.tin import Tin, screen
@@ -320,7 +320,8 @@ def classify_ground(
 def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None) -> NDArray[np.bool_]:
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
-    shift = np.floor(xyz[:, :2].min(axis=0))
+    # Anchored origin: bins line up between neighbouring blocks.
+    shift = anchored_origin(xyz)
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
     order = np.argsort(

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 from scipy.spatial import Delaunay, QhullError
 
-from terrasift.workers.bins import Grid, lowest_per_bin
+from terrasift.workers.bins import Grid, anchored_origin, lowest_per_bin
 from terrasift.workers.registry import StageParams, register
 from terrasift.workers.surface import with_transform
 
@@ -92,7 +92,8 @@ def classify_ground(
     ground = np.zeros(n, dtype=bool)
     if n < 3:
         return ground
-    local = xyz - xyz.min(axis=0)
+    # Anchored origin: seed cells line up between neighbouring blocks.
+    local = xyz - np.r_[anchored_origin(xyz), xyz[:, 2].min()]
     seeds, excluded = _seeds(local, params)
     if seed_mask is not None and np.any(seed_mask):
         known = np.flatnonzero(np.asarray(seed_mask, dtype=bool) & ~excluded)
