@@ -129,7 +129,14 @@ def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.in
     # One sort by (cell, z): a cell's seed is its first point not excluded.
     order = np.lexsort((local[:, 2], flat))
     starts = np.searchsorted(flat[order], np.arange(grid.size + 1))
-    occupied = np.flatnonzero(starts[1:] > starts[:-1])
+    counts = starts[1:] - starts[:-1]
+    occupied = np.flatnonzero(counts > 0)
+    # The grid is anchored, not fitted to the data, so cells at the data's
+    # edge can be slivers of a few points whose lowest may be a roof or
+    # canopy point; they seed nothing (densification reaches them).
+    full = occupied[counts[occupied] >= 0.2 * np.median(counts[occupied])]
+    if full.size >= 4:
+        occupied = full
     pos = starts[occupied].copy()
     for _ in range(8):
         seeds = order[pos]
