@@ -78,7 +78,7 @@ def main() -> None:
     res = mark_mixed(big.xyz, p, big.origin)
     dt = time.process_time() - t0
     k = score(big.is_mixed, res.marked, res.unclassified)
-    print(f"\nspeed (exclusive_blind_window, surfaceness): {len(big)} points in {dt:.2f} s CPU "
+    print(f"\nspeed (defaults: exclusive_blind_window, normal trigger): {len(big)} points in {dt:.2f} s CPU "
           f"= {len(big) / dt / 1e3:.0f} k points/s; tpr {k['tpr']:.3f} fpr {k['fpr']:.4f} on that scan")
 
 
