@@ -1,3 +1,7 @@
 """Imports every stage module so each registers itself with the registry."""
 
 # Stage modules are imported for their registration side effect.
+import terrasift.workers.categories  # noqa: F401
+import terrasift.workers.features  # noqa: F401
+import terrasift.workers.vegetation  # noqa: F401
+import terrasift.workers.mixed  # noqa: F401

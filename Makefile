@@ -1,0 +1,31 @@
+# Everything a fresh machine needs: `make serve` runs the service, `make test` the tests.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation openapi clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+serve: $(STAMP)
+	$(VENV)/bin/terrasift serve
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(PY) benchmarks/pipeline_speed.py
+
+bench-ground: $(STAMP)
+	$(PY) benchmarks/ground_accuracy.py
+
+openapi: $(STAMP)
+	$(PY) scripts/export_openapi.py
+
+clean:
+	rm -rf $(VENV) bench-out .pytest_cache

@@ -1,0 +1,5 @@
+import sys
+
+from terrasift.cli import main
+
+sys.exit(main())

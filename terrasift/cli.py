@@ -1,0 +1,155 @@
+"""Command line: ``terrasift serve | process | classify | survey | worker``.
+
+``process`` and ``classify`` run the same pipeline as the service, without a
+server. Their working files live in ``OUT/.terrasift-work`` until the job
+succeeds, so an interrupted run resumes where it stopped when called again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+from terrasift.errors import TerrasiftError
+from terrasift.params import parse_cli_params
+
+WORK_DIR = ".terrasift-work"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="terrasift", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("serve", help="run the HTTP API with embedded workers")
+    p.add_argument("--host", default=None)
+    p.add_argument("--port", type=int, default=None)
+
+    p = sub.add_parser("process", help="process tiles into a folder of outputs")
+    p.add_argument("inputs", nargs="+", type=Path)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("classify", help="write only the classified LAZ")
+    p.add_argument("input", type=Path)
+    p.add_argument("output", type=Path)
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--quiet", action="store_true")
+
+    p = sub.add_parser("survey", help="submit a folder of tiles to a server and wait")
+    p.add_argument("folder", type=Path)
+    p.add_argument("--server", required=True)
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--token", default=None)
+
+    p = sub.add_parser("worker", help="join a Dask cluster as a terrasift worker")
+    p.add_argument("scheduler", nargs="?", default=None, help="tcp://host:8786 (default: TERRASIFT_DASK_SCHEDULER)")
+    p.add_argument("--nthreads", type=int, default=1)
+
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "serve":
+            from terrasift.service.app import serve
+
+            serve(host=args.host, port=args.port)
+            return 0
+        if args.command == "process":
+            names = process(args.inputs, args.out, parse_cli_params(args.param), progress=not args.quiet)
+            print("\n".join(str(args.out / n) for n in names))
+            return 0
+        if args.command == "classify":
+            classify(args.input, args.output, parse_cli_params(args.param), progress=not args.quiet)
+            return 0
+        if args.command == "survey":
+            from terrasift.survey import run_survey
+
+            return run_survey(args.folder, args.server, parse_cli_params(args.param), token=args.token)
+        if args.command == "worker":
+            return run_worker(args.scheduler, args.nthreads)
+    except TerrasiftError as exc:
+        print(f"terrasift: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 1
+
+
+def process(inputs: list[Path], out: Path, raw_params: dict, *, progress: bool = True, products: str = "all") -> list[str]:
+    """Run the pipeline on ``inputs`` into folder ``out``; return the output names."""
+    from terrasift import pipeline
+    from terrasift.workers.executors import make_executor
+
+    params = pipeline.validate_params(raw_params)
+    pipeline.inspect_inputs(list(inputs), params)
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / WORK_DIR
+    job_file = work / "job.json"
+    if job_file.exists():
+        previous = pipeline.load_json(job_file)
+        if previous["inputs"] != [str(p.resolve()) for p in inputs] or previous["params"] != params:
+            shutil.rmtree(work)  # different job: start over
+    if not job_file.exists():
+        pipeline.prepare_job(work, list(inputs), params)
+    executor = make_executor(params.get("workers"))
+    bar = _progress_bar() if progress else None
+    try:
+        names = pipeline.run_job(work, executor, bar.update if bar else None, products=products)
+    finally:
+        executor.shutdown()
+        if bar:
+            bar.close()
+    for name in names:
+        shutil.move(str(pipeline.output_path(work, name)), out / name)
+    shutil.rmtree(work)
+    return names
+
+
+def classify(src: Path, dst: Path, raw_params: dict, *, progress: bool = True) -> None:
+    """Write ``src`` with ground/vegetation/noise classes to ``dst`` (LAZ)."""
+    out = dst.parent / f".{dst.name}.terrasift"
+    names = process([src], out, raw_params, progress=progress, products="classified")
+    shutil.move(str(out / "classified.laz"), dst)
+    for n in names:
+        (out / n).unlink(missing_ok=True)
+    shutil.rmtree(out, ignore_errors=True)
+
+
+class _progress_bar:
+    def __init__(self) -> None:
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=100, unit="%", desc="terrasift", file=sys.stderr)
+
+    def update(self, done: int, total: int) -> None:
+        pct = int(100 * done / total) if total else 0
+        self._bar.n = min(pct, 100)
+        self._bar.refresh()
+
+    def close(self) -> None:
+        self._bar.close()
+
+
+def run_worker(scheduler: str | None, nthreads: int) -> int:
+    """Run a Dask worker that can execute terrasift tasks (it imports this package)."""
+    import asyncio
+    import os
+
+    from distributed import Worker
+
+    address = scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
+    if not address:
+        print("terrasift worker: give a scheduler address or set TERRASIFT_DASK_SCHEDULER", file=sys.stderr)
+        return 2
+
+    async def run() -> None:
+        async with Worker(address, nthreads=nthreads) as worker:
+            await worker.finished()
+
+    asyncio.run(run())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,199 @@
+"""Job parameters: the contract names of DESIGN §8, validated when a job arrives.
+
+Keys are the same in ``--param k=v``, in a job's JSON and in ``report.json``.
+Besides the fixed keys, any ``<stage id>.<field>`` key (for example
+``ground.nist.z_tol=0.4``) overrides one field of that stage's parameter model
+and is validated against it, so a worker never meets a bad option.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import pyproj
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from terrasift.errors import ParameterError
+from terrasift.workers.registry import get_stage, stages
+
+DEFAULT_GROUND = "ptd"
+
+
+class JobParams(BaseModel):
+    """The fixed job parameters (DESIGN §8), with limits."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    ground: Literal["nist", "ptd"] = Field(DEFAULT_GROUND, description="ground method")
+    ground_preset: Literal["default", "conservative", "aggressive"] = Field(
+        "default", alias="ground.preset", description="named parameter set of the ground method"
+    )
+    rotation: Literal["auto", "off", "always"] = Field(
+        "auto", description="rotated classification: steep blocks only, never, or every block"
+    )
+    sensor_origin: list[tuple[float, float, float]] | None = Field(
+        None,
+        description="X,Y,Z of a ground-based scanner in the tile CRS; several scan positions as "
+        "X,Y,Z;X,Y,Z (point i uses the origin numbered by its scan_dimension value)",
+    )
+    features: str = Field("all", description="comma list of filter names, 'all' or 'none'")
+    filters: dict[str, str] | None = Field(
+        None, description="user feature filters: name -> filter text in the filter language"
+    )
+    block_size: float = Field(200.0, ge=20.0, le=5000.0, description="block edge in metres")
+    buffer: float = Field(20.0, ge=0.0, le=500.0, description="halo around each block in metres")
+    resolution: float = Field(0.5, ge=0.05, le=100.0, description="DTM/DSM cell size in metres")
+    crs: str | None = Field(None, description="CRS of the tiles when missing or wrong, e.g. EPSG:32632")
+    workers: int | None = Field(None, ge=1, le=256, description="worker processes for `process`")
+    scan_dimension: str | None = Field(
+        None, description="LAS dimension holding a scan-position id (default point_source_id)"
+    )
+
+    @field_validator("sensor_origin", mode="before")
+    @classmethod
+    def _split_origin(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            origins = []
+            for item in v.replace(" ", "").split(";"):
+                parts = [p for p in item.split(",") if p]
+                if len(parts) != 3:
+                    raise ValueError("sensor_origin must be X,Y,Z (several: X,Y,Z;X,Y,Z)")
+                origins.append(tuple(float(p) for p in parts))
+            return origins
+        if isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(c, (int, float)) for c in v):
+            return [tuple(v)]
+        return v
+
+    @field_validator("crs")
+    @classmethod
+    def _known_crs(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        try:
+            pyproj.CRS.from_user_input(v)
+        except pyproj.exceptions.CRSError:
+            raise ValueError(f"unknown CRS {v!r}") from None
+        return v
+
+    @field_validator("features")
+    @classmethod
+    def _feature_list(cls, v: str) -> str:
+        v = v.strip()
+        if not v:
+            raise ValueError("features must be 'all', 'none' or a comma list of filter names")
+        return v
+
+    @model_validator(mode="after")
+    def _buffer_fits(self) -> JobParams:
+        if self.buffer >= self.block_size / 2:
+            raise ValueError(f"buffer ({self.buffer}) must be less than half the block size ({self.block_size})")
+        if self.resolution > self.block_size / 2:
+            raise ValueError("resolution must be at most half the block size")
+        return self
+
+
+_FIXED_KEYS = {f.alias or name for name, f in JobParams.model_fields.items()}
+
+
+def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Check every key and value; return the normalised parameters as plain JSON.
+
+    Fixed keys are filled with their defaults; stage overrides are kept only
+    when given. Raises ParameterError naming the first bad key.
+    """
+    raw = dict(raw or {})
+    fixed = {k: v for k, v in raw.items() if k in _FIXED_KEYS}
+    rest = {k: v for k, v in raw.items() if k not in _FIXED_KEYS}
+    try:
+        job = JobParams.model_validate(fixed)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"]) or "params"
+        raise ParameterError(f"parameter {loc}: {err['msg']}") from None
+    out = job.model_dump(by_alias=True, mode="json")
+    overrides = _stage_overrides(rest)
+    # Build each stage's model once with the overrides on top, so a bad value
+    # is reported now rather than inside a worker.
+    for stage_id, values in overrides.items():
+        stage = get_stage(stage_id)
+        preset = job.ground_preset if stage_id.startswith("ground.") else "default"
+        if preset != "default" and preset not in stage.params.presets:
+            preset = "default"
+        try:
+            stage.params.preset(preset, **values)
+        except ParameterError as exc:
+            raise ParameterError(f"parameter {stage_id}.{exc}") from None
+        for k, v in values.items():
+            out[f"{stage_id}.{k}"] = v
+    if job.ground_preset != "default":
+        get_stage(f"ground.{job.ground}").params.preset(job.ground_preset)
+    grid_alignment(out)
+    from terrasift.workers.features import resolve_filters
+
+    resolve_filters(job.features, job.filters)  # unknown names and bad filter text fail now
+    return out
+
+
+def grid_alignment(params: Mapping[str, Any]) -> float:
+    """Metres that the job raster's corner, size and blocks are multiples of.
+
+    The vegetation bins and the 2 m category tiles are laid on the DTM grid's
+    origin, so both must be whole multiples of ``resolution``.
+    """
+    res = float(params["resolution"])
+    cells = []
+    for stage_id, field in (("vegetation", "cell"), ("categories", "tile_size")):
+        size = float(getattr(stage_params(params, stage_id), field))
+        k = size / res
+        if round(k) < 1 or abs(k - round(k)) > 1e-6:
+            raise ParameterError(f"{stage_id}.{field} ({size}) must be a whole multiple of resolution ({res})")
+        cells.append(int(round(k)))
+    return math.lcm(*cells) * res
+
+
+def _stage_overrides(rest: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    ids = sorted((s.id for s in stages()), key=len, reverse=True)
+    grouped: dict[str, dict[str, Any]] = {}
+    for key, value in rest.items():
+        stage_id = next((i for i in ids if key.startswith(i + ".")), None)
+        if stage_id is None:
+            known = ", ".join(sorted(_FIXED_KEYS))
+            raise ParameterError(
+                f"unknown parameter {key!r} (known: {known}, or <stage>.<field> for a stage of: "
+                f"{', '.join(sorted(ids))})"
+            )
+        field = key[len(stage_id) + 1 :]
+        if field not in stages_params_fields(stage_id):
+            raise ParameterError(f"unknown parameter {key!r}: stage {stage_id} has no field {field!r}")
+        grouped.setdefault(stage_id, {})[field] = value
+    return grouped
+
+
+def stages_params_fields(stage_id: str) -> set[str]:
+    return set(get_stage(stage_id).params.model_fields)
+
+
+def stage_params(params: Mapping[str, Any], stage_id: str, preset: str = "default") -> Any:
+    """The validated parameter model of ``stage_id`` for a job: preset plus overrides."""
+    stage = get_stage(stage_id)
+    prefix = stage_id + "."
+    overrides = {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix) and "." not in k[len(prefix) :]}
+    if preset != "default" and preset not in stage.params.presets:
+        preset = "default"
+    return stage.params.preset(preset, **overrides)
+
+
+def parse_cli_params(pairs: list[str]) -> dict[str, Any]:
+    """``k=v`` strings from the command line to a raw parameter mapping.
+
+    Values stay strings except JSON-looking numbers; pydantic coerces them.
+    """
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ParameterError(f"parameter {pair!r} is not key=value")
+        k, v = pair.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out

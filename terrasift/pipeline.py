@@ -1,0 +1,273 @@
+"""A job from inputs to outputs: plan, shard, blocks, finish — resumable at every step.
+
+The job directory holds everything: ``job.json`` (inputs, parameters),
+``plan.json`` (tiles, CRS, block grid), ``shards/<tile>/<block>.bin``,
+``blocks/<block>.npz`` and ``outputs/``. Each task writes its result
+atomically and is skipped when the result exists, so a restarted service or
+a repeated ``process`` call redoes only what is missing. The CLI and the
+service both drive jobs through ``run_job``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import pyproj
+
+from terrasift.errors import InputError, JobCancelled
+from terrasift.params import grid_alignment, validate_params
+from terrasift.tiling.blocks import BlockGrid, shard_tile
+from terrasift.tiling.lasfile import TileInfo, read_tile_info
+from terrasift.workers.block import run_block
+from terrasift.workers.executors import Executor, Future
+
+__all__ = [
+    "validate_params",
+    "inspect_inputs",
+    "prepare_job",
+    "run_job",
+    "request_cancel",
+    "check_cancel",
+    "output_path",
+]
+
+log = logging.getLogger(__name__)
+CANCEL_MARKER = "CANCELLED"
+Progress = Callable[[int, int], None]
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def load_json(path: Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=str))
+    os.replace(tmp, path)
+
+
+def output_path(job_dir: Path, name: str) -> Path:
+    """Where output ``name`` of a job lives (it may not exist yet)."""
+    return Path(job_dir) / "outputs" / name
+
+
+def request_cancel(job_dir: Path) -> None:
+    """Mark the job dismissed; running tasks stop at their next stage boundary."""
+    Path(job_dir).mkdir(parents=True, exist_ok=True)
+    (Path(job_dir) / CANCEL_MARKER).touch()
+
+
+def is_cancelled(job_dir: Path) -> bool:
+    return (Path(job_dir) / CANCEL_MARKER).exists()
+
+
+def check_cancel(job_dir: Path) -> None:
+    if is_cancelled(job_dir):
+        raise JobCancelled("job was dismissed")
+
+
+# ------------------------------------------------------------------ submission
+
+
+def inspect_inputs(paths: list[Path], params: Mapping[str, Any], *, max_points: int | None = None) -> dict[str, Any]:
+    """Check every input's header (no points read) and the job's CRS.
+
+    Raises InputError naming the problem. Returns a summary for the job record.
+    """
+    if not paths:
+        raise InputError("no input files")
+    infos = [read_tile_info(p, max_points=max_points) for p in paths]
+    crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
+    mins = [min(i.mins[k] for i in infos) for k in range(3)]
+    maxs = [max(i.maxs[k] for i in infos) for k in range(3)]
+    return {
+        "tiles": len(infos),
+        "points": sum(i.point_count for i in infos),
+        "bounds": [*mins, *maxs],
+        "crs": _crs_label(crs_wkt),
+        "warnings": warnings,
+    }
+
+
+def resolve_crs(infos: list[TileInfo], override: str | None) -> tuple[str | None, list[str]]:
+    """The job's CRS as WKT: the ``crs`` parameter, else the tiles' common CRS."""
+    warnings = [w for i in infos for w in i.warnings]
+    if override:
+        crs = pyproj.CRS.from_user_input(override)
+        return crs.to_wkt(), [w for w in warnings if "no CRS" not in w]
+    found = [pyproj.CRS.from_wkt(i.crs_wkt) for i in infos if i.crs_wkt]
+    if not found:
+        warnings.append("no CRS known: rasters carry none and features.geojson is not written; pass crs=EPSG:...")
+        return None, warnings
+    first = found[0]
+    for other, info in zip(found[1:], [i for i in infos if i.crs_wkt][1:]):
+        if not first.equals(other, ignore_axis_order=True):
+            raise InputError(
+                f"tiles of one job must share a CRS: {Path(info.path).name} is {_crs_label(other.to_wkt())}, "
+                f"the first tile is {_crs_label(first.to_wkt())}"
+            )
+    if len(found) < len(infos):
+        warnings.append("some tiles have no CRS; the others' CRS is used for all")
+    return first.to_wkt(), warnings
+
+
+def _crs_label(wkt: str | None) -> str | None:
+    if not wkt:
+        return None
+    crs = pyproj.CRS.from_wkt(wkt)
+    code = crs.to_epsg()
+    return f"EPSG:{code}" if code else crs.name
+
+
+def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
+    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters)."""
+    job_dir = Path(job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(job_dir / "job.json", {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)})
+
+
+# ------------------------------------------------------------------ running
+
+
+def run_job(
+    job_dir: Path, executor: Executor, progress: Progress | None = None, *, products: str = "all"
+) -> list[str]:
+    """Run (or resume) the job in ``job_dir`` on ``executor``; return output names.
+
+    ``products="classified"`` writes only the classified point clouds (and the report).
+    """
+    job_dir = Path(job_dir)
+    progress = progress or (lambda done, total: None)
+    started = time.perf_counter()
+    check_cancel(job_dir)
+    job = load_json(job_dir / "job.json")
+    params = job["params"]
+    plan = _plan(job_dir, job)
+    grid = BlockGrid(**plan["grid"])
+    n_tiles = len(plan["tiles"])
+
+    from terrasift.tiling import outputs
+
+    # Finishing tasks: rasters, then one classified point cloud per tile.
+    finish: list[tuple[Callable[..., Any], tuple]] = [(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    if products == "all":
+        finish.insert(0, (outputs.write_rasters, (str(job_dir),)))
+
+    # Progress counts tasks: shards, blocks, finishing tasks, the report.
+    shard_root = job_dir / "shards"
+    todo = [i for i in range(n_tiles) if not (shard_root / str(i)).is_dir()]
+    terrain = [(outputs.write_terrain, (str(job_dir),))] if products == "all" else []
+    extra = len(finish) + len(terrain) + 1
+    counter = {"done": n_tiles - len(todo), "total": n_tiles + grid.nx * grid.ny + extra}
+    progress(counter["done"], counter["total"])
+
+    def tick(_: Any) -> None:
+        counter["done"] += 1
+        progress(counter["done"], counter["total"])
+
+    # Shard: one streaming pass per tile.
+    t = time.perf_counter()
+    shard_args = [
+        (plan["tiles"][i]["path"], i, grid, str(shard_root / str(i)), 1_000_000, params.get("scan_dimension"))
+        for i in todo
+    ]
+    _run_tasks(executor, job_dir, shard_tile, shard_args, tick)
+    shard_seconds = time.perf_counter() - t
+
+    # Blocks: every block that received a point from any tile.
+    names = sorted({p.stem for d in shard_root.iterdir() if d.is_dir() for p in d.glob("*.bin")})
+    counter["total"] = n_tiles + len(names) + extra
+    t = time.perf_counter()
+    block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
+    block_seconds = time.perf_counter() - t
+
+    t = time.perf_counter()
+    (job_dir / "outputs").mkdir(exist_ok=True)
+    _run_mixed_tasks(executor, job_dir, finish, tick)
+    _run_mixed_tasks(executor, job_dir, terrain, tick)  # needs the mosaicked DTM
+    finish_seconds = time.perf_counter() - t
+    check_cancel(job_dir)
+    timings = {
+        "shard": shard_seconds,
+        "blocks": block_seconds,
+        "finish": finish_seconds,
+        "total": time.perf_counter() - started,
+    }
+    names_out = outputs.write_report_and_item(job_dir, plan, params, block_stats, timings)
+    tick(None)
+    return names_out
+
+
+def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
+    path = job_dir / "plan.json"
+    if path.exists():
+        return load_json(path)
+    params = job["params"]
+    infos = [read_tile_info(p) for p in job["inputs"]]
+    crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
+    mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
+    maxs = (max(i.maxs[0] for i in infos), max(i.maxs[1] for i in infos))
+    grid = BlockGrid.over(
+        mins, maxs, params["resolution"], params["block_size"], params["buffer"], grid_alignment(params)
+    )
+    plan = {
+        "tiles": [dict(i.__dict__) for i in infos],
+        "crs_wkt": crs_wkt,
+        "crs": _crs_label(crs_wkt),
+        "grid": grid.to_dict(),
+        "warnings": warnings,
+    }
+    write_json_atomic(path, plan)
+    return plan
+
+
+def _run_tasks(
+    executor: Executor, job_dir: Path, fn: Callable[..., Any], arg_list: list[tuple], on_done: Callable[[Any], None]
+) -> list[Any]:
+    return _run_mixed_tasks(executor, job_dir, [(fn, a) for a in arg_list], on_done)
+
+
+def _run_mixed_tasks(
+    executor: Executor, job_dir: Path, calls: list[tuple[Callable[..., Any], tuple]], on_done: Callable[[Any], None]
+) -> list[Any]:
+    """Submit every call, wait, and return results in call order.
+
+    The first failure cancels the rest and is raised; so is a dismissal seen
+    between waits (running tasks see the marker themselves).
+    """
+    futures: list[Future] = [executor.submit(fn, *args) for fn, args in calls]
+    results: dict[int, Any] = {}
+    pending = set(range(len(futures)))
+    by_future = {id(f): i for i, f in enumerate(futures)}
+    try:
+        while pending:
+            done = executor.wait_any([futures[i] for i in pending], timeout=0.5)
+            for f in done:
+                i = by_future[id(f)]
+                results[i] = f.result()
+                pending.discard(i)
+                on_done(results[i])
+            check_cancel(job_dir)
+    except BaseException:
+        for i in pending:
+            futures[i].cancel()
+        raise
+    return [results[i] for i in range(len(futures))]
+
+
+def clear_outputs(job_dir: Path) -> None:
+    """Remove a job's intermediate and output files (after dismissal)."""
+    for sub in ("shards", "blocks", "outputs"):
+        shutil.rmtree(Path(job_dir) / sub, ignore_errors=True)

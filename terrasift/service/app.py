@@ -1,0 +1,102 @@
+"""The FastAPI application: a thin layer that validates, records and schedules.
+
+``create_app(settings)`` builds the app; its lifespan opens the job store and
+starts the scheduler (which resumes interrupted jobs). ``serve`` runs it with
+uvicorn, which ``terrasift serve`` calls.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Callable
+from concurrent.futures import Executor
+from contextlib import asynccontextmanager
+from typing import Any
+
+import anyio
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from terrasift import __version__
+from terrasift.service import problems
+from terrasift.service.auth import Auth, load_tokens
+from terrasift.service.context import Service
+from terrasift.service.routes import jobs, processes, surveys
+from terrasift.service.scheduler import Scheduler
+from terrasift.service.schemas import add_problem_schema
+from terrasift.service.settings import Settings
+from terrasift.service.store import JobStore
+
+log = logging.getLogger(__name__)
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    pipeline: Any | None = None,
+    executor_factory: Callable[[], Executor] | None = None,
+) -> FastAPI:
+    """The terrasift API; ``pipeline``/``executor_factory`` replace the real ones in tests."""
+    settings = settings or Settings()
+    if executor_factory is None:
+
+        def executor_factory() -> Executor:
+            from terrasift.workers.executors import make_executor
+
+            return make_executor(settings.workers, settings.dask_scheduler)
+
+    auth = Auth(settings.auth_enabled, load_tokens(settings.token_file) if settings.token_file else {})
+    if auth.enabled and not auth.tokens:
+        log.warning("auth is on but no tokens are configured: every job request will get 401")
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        settings.surveys_dir.mkdir(parents=True, exist_ok=True)
+        store = JobStore(settings.db_path)
+        scheduler = Scheduler(
+            store, settings.jobs_dir, executor_factory, settings.max_concurrent_jobs, pipeline=pipeline
+        )
+        app.state.svc = Service(settings, store, scheduler)
+        scheduler.start()
+        try:
+            yield
+        finally:
+            # waits for tasks already running in the pool; off the event loop
+            await anyio.to_thread.run_sync(scheduler.stop)
+            store.close()
+
+    app = FastAPI(
+        title="terrasift",
+        version=__version__,
+        description="OGC API – Processes over LAS/LAZ tiles: ground classification, DTM/DSM, "
+        "vegetation, terrain objects. Errors are RFC 9457 problem+json.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.auth = auth
+    problems.install(app)
+    app.include_router(processes.router)
+    app.include_router(jobs.router)
+    app.include_router(surveys.router)
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = add_problem_schema(
+                get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            )
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app
+
+
+def serve(host: str | None = None, port: int | None = None, settings: Settings | None = None) -> None:
+    """Run the API with embedded workers (``terrasift serve``)."""
+    import uvicorn
+
+    settings = settings or Settings()
+    update = {k: v for k, v in (("host", host), ("port", port)) if v is not None}
+    settings = settings.model_copy(update=update)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port)

@@ -1,0 +1,1 @@
+"""HTTP routes: OGC API – Processes core, jobs and outputs, surveys."""

@@ -1,0 +1,276 @@
+"""The scheduler: a background thread that starts accepted jobs, up to a limit at once.
+
+Each running job gets a thread that calls ``pipeline.run_job`` and waits on the
+executor's futures, so no processing ever happens in the API's event loop.
+The executor handed to ``run_job`` is wrapped per job: dismissing the job cancels
+the futures it has queued and refuses new submissions, while
+``pipeline.request_cancel`` writes the marker that running tasks check.
+On start, jobs a stopped service left ``running`` are queued again; ``run_job``
+is resumable and repeats only the tasks that are missing.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+from collections.abc import Callable, Iterable
+from concurrent.futures import Executor
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from terrasift.errors import JobCancelled, TerrasiftError
+from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, SUCCESSFUL, JobStore
+
+log = logging.getLogger(__name__)
+
+GENERIC_FAILURE = "processing failed on an internal error; the service log has the details"
+
+
+class JobExecutor:
+    """One job's view of the shared executor: remembers its futures so they can be cancelled."""
+
+    def __init__(self, inner: Any):
+        self._inner = inner
+        self._futures: list[Any] = []
+        self._lock = threading.Lock()
+        self.cancelled = False
+
+    def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        with self._lock:
+            if self.cancelled:
+                raise JobCancelled("the job was dismissed")
+            future = self._inner.submit(fn, *args, **kwargs)
+            self._futures = [f for f in self._futures if not f.done()]
+            self._futures.append(future)
+            return future
+
+    def cancel(self) -> int:
+        """Cancel every future not yet running; the number cancelled."""
+        with self._lock:
+            self.cancelled = True
+            futures, self._futures = self._futures, []
+        return sum(1 for f in futures if f.cancel())
+
+    def wait_any(self, futures: Iterable[Any], timeout: float) -> set[Any]:
+        """Futures already done (cancelled ones included) without waiting, else the executor's wait.
+
+        A pool notifies waiters of a cancelled future only when it would have run
+        it, so after a cancel the job would otherwise sit out the running tasks.
+        """
+        futures = list(futures)
+        done = {f for f in futures if f.done()}
+        return done or self._inner.wait_any(futures, timeout)
+
+    def shutdown(self, *args: Any, **kwargs: Any) -> None:
+        """The scheduler owns the shared executor; a job cannot shut it down."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class Scheduler:
+    """Runs accepted jobs from the store in worker threads, at most ``max_concurrent`` at once."""
+
+    def __init__(
+        self,
+        store: JobStore,
+        jobs_dir: Path,
+        executor_factory: Callable[[], Executor],
+        max_concurrent: int = 2,
+        pipeline: ModuleType | Any | None = None,
+        poll_seconds: float = 2.0,
+    ):
+        self.store = store
+        self.jobs_dir = jobs_dir
+        self._executor_factory = executor_factory
+        self._executor: Executor | None = None
+        self._executor_lock = threading.Lock()
+        self.max_concurrent = max_concurrent
+        self._pipeline = pipeline
+        self._poll = poll_seconds
+        self._wake = threading.Event()
+        self._stopping = threading.Event()
+        self._active: dict[str, JobExecutor | None] = {}
+        self._threads: dict[str, threading.Thread] = {}
+        self._lock = threading.Lock()
+        self._loop: threading.Thread | None = None
+
+    @property
+    def pipeline(self) -> Any:
+        if self._pipeline is None:
+            import terrasift.pipeline
+
+            self._pipeline = terrasift.pipeline
+        return self._pipeline
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.jobs_dir / job_id
+
+    # -- lifecycle --------------------------------------------------------
+
+    def start(self) -> None:
+        """Queue jobs interrupted by a previous stop and start the dispatch loop."""
+        resumed = self.store.requeue_interrupted()
+        if resumed:
+            log.info("resuming %d interrupted job(s): %s", len(resumed), ", ".join(resumed))
+        self._stopping.clear()
+        self._loop = threading.Thread(target=self._dispatch_loop, name="terrasift-scheduler", daemon=True)
+        self._loop.start()
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop dispatching, cancel queued tasks and wait for job threads.
+
+        Jobs still running stay ``running`` in the store and resume on the next start.
+        """
+        self._stopping.set()
+        self._wake.set()
+        with self._lock:
+            executors = [e for e in self._active.values() if e is not None]
+            threads = list(self._threads.values())
+        for ex in executors:
+            ex.cancel()
+        if self._loop is not None:
+            self._loop.join(timeout)
+        for t in threads:
+            t.join(timeout)
+        with self._executor_lock:
+            if self._executor is not None:
+                try:
+                    self._executor.shutdown()
+                except Exception:  # noqa: BLE001 - shutting down anyway
+                    log.exception("executor shutdown failed")
+                self._executor = None
+
+    @property
+    def stopping(self) -> bool:
+        return self._stopping.is_set()
+
+    def wake(self) -> None:
+        """Look for accepted jobs now rather than at the next poll."""
+        self._wake.set()
+
+    def is_active(self, job_id: str) -> bool:
+        with self._lock:
+            return job_id in self._threads
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no job thread runs (for tests and orderly shutdown)."""
+        with self._lock:
+            threads = list(self._threads.values())
+        for t in threads:
+            t.join(timeout)
+        return not any(t.is_alive() for t in threads)
+
+    # -- cancelling -------------------------------------------------------
+
+    def cancel(self, job_id: str) -> None:
+        """Make a dismissed job stop: the cancel marker for running tasks, future.cancel for queued ones."""
+        job_dir = self.job_dir(job_id)
+        if job_dir.exists():
+            try:
+                self.pipeline.request_cancel(job_dir)
+            except Exception:  # noqa: BLE001 - the futures are still cancelled below
+                log.exception("request_cancel failed for job %s", job_id)
+        with self._lock:
+            ex = self._active.get(job_id)
+            running = job_id in self._threads
+        if ex is not None:
+            ex.cancel()
+        if not running:
+            self.purge(job_dir)
+
+    # -- internals --------------------------------------------------------
+
+    def _executor_or_create(self) -> Executor:
+        with self._executor_lock:
+            if self._executor is None:
+                self._executor = self._executor_factory()
+            return self._executor
+
+    def _dispatch_loop(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                self._dispatch()
+            except Exception:  # noqa: BLE001 - the loop must survive a bad row or a locked db
+                log.exception("scheduler dispatch failed")
+            self._wake.wait(self._poll)
+            self._wake.clear()
+
+    def _dispatch(self) -> None:
+        for job in self.store.jobs_with_status(ACCEPTED):
+            with self._lock:
+                if self._stopping.is_set() or len(self._threads) >= self.max_concurrent:
+                    return
+                if job.id in self._threads:
+                    continue
+                thread = threading.Thread(target=self._run, args=(job.id,), name=f"job-{job.id[:8]}", daemon=True)
+                self._threads[job.id] = thread
+                self._active[job.id] = None
+            thread.start()
+
+    def _run(self, job_id: str) -> None:
+        try:
+            self._run_job(job_id)
+        finally:
+            with self._lock:
+                self._threads.pop(job_id, None)
+                self._active.pop(job_id, None)
+            self._wake.set()
+
+    def _run_job(self, job_id: str) -> None:
+        job_dir = self.job_dir(job_id)
+        if not self.store.mark_running(job_id):
+            job = self.store.get_job(job_id)
+            if job is not None and job.status == DISMISSED:  # dismissed while queued
+                self.purge(job_dir)
+            return
+        try:
+            ex = JobExecutor(self._executor_or_create())
+        except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
+            log.exception("cannot create the executor for job %s", job_id)
+            self.store.finish(job_id, FAILED, f"no workers available: {exc}")
+            return
+        with self._lock:
+            self._active[job_id] = ex
+        if self.store.get_job(job_id).status == DISMISSED:  # dismissed between mark_running and here
+            ex.cancel()
+
+        last = [-1]
+
+        def progress(done: int, total: int) -> None:
+            # 100 only when successful: after the last block the mosaics still run
+            pct = min(99, (100 * done) // total) if total > 0 else 0
+            if pct != last[0]:
+                last[0] = pct
+                self.store.set_progress(job_id, pct, f"{done} of {total} tasks done")
+
+        try:
+            names = self.pipeline.run_job(job_dir, ex, progress)
+        except JobCancelled:
+            # DELETE already stored `dismissed`; a shutdown cancels too, and then the job resumes later
+            if not self._stopping.is_set():
+                self.store.finish(job_id, DISMISSED, "dismissed by request")
+        except TerrasiftError as exc:
+            if not self._stopping.is_set():
+                self.store.finish(job_id, FAILED, str(exc))
+        except BaseException:  # noqa: BLE001 - a job must never stay running
+            if self._stopping.is_set():
+                log.info("job %s interrupted by shutdown; it resumes on the next start", job_id)
+            else:
+                log.exception("job %s failed", job_id)
+                self.store.finish(job_id, FAILED, GENERIC_FAILURE)
+        else:
+            self.store.finish(job_id, SUCCESSFUL, "finished", list(names))
+        job = self.store.get_job(job_id)
+        if job is not None and job.status == DISMISSED:
+            self.purge(job_dir)
+
+    def purge(self, job_dir: Path) -> None:
+        """Remove what a dismissed job produced and its uploads; job.json stays for the record."""
+        clear = getattr(self.pipeline, "clear_outputs", None)
+        if callable(clear):
+            clear(job_dir)
+        for sub in ("outputs", "inputs"):
+            shutil.rmtree(job_dir / sub, ignore_errors=True)

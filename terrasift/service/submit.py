@@ -1,0 +1,115 @@
+"""Turning a request into a recorded job: validate, inspect headers, prepare, persist.
+
+Everything here runs in a worker thread (never the event loop) and raises
+before anything is recorded, so a bad request leaves no job behind. The job
+row is committed before the caller answers 201.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import shutil
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic_core import to_jsonable_python
+
+from terrasift.errors import ParameterError
+from terrasift.service.problems import Problem
+from terrasift.service.scheduler import Scheduler
+from terrasift.service.settings import Settings
+from terrasift.service.store import Job, JobStore
+
+LAS_SUFFIXES = (".las", ".laz")
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+def parse_params(text: str | None) -> dict[str, Any]:
+    """The multipart ``params`` field: a JSON object of parameters (absent = none)."""
+    if text is None or not text.strip():
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ParameterError(f"params is not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    if not isinstance(value, dict):
+        raise ParameterError(f"params must be a JSON object of parameters, not {type(value).__name__}")
+    return value
+
+
+def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
+    """Paths a client named, checked to lie inside the input root; a directory means its LAS/LAZ files."""
+    root = settings.input_root
+    if root is None:
+        raise Problem("forbidden-path", "this service has no input root (TERRASIFT_INPUT_ROOT); upload the files to /jobs instead")
+    if not items:
+        raise Problem("invalid-request", "`files` must name at least one file")
+    root_real = root.resolve()
+    out: list[Path] = []
+    for item in items:
+        text = item.get("href") if isinstance(item, Mapping) else item
+        if not isinstance(text, str) or not text:
+            raise Problem("invalid-request", f"a file must be a path string or {{'href': path}}, not {item!r}")
+        text = text.removeprefix("file://")
+        real = (root_real / text).resolve()  # an absolute `text` replaces the root, then is checked
+        if not real.is_relative_to(root_real):
+            raise Problem("forbidden-path", f"{text!r} is outside the input root")
+        if real.is_dir():
+            found = sorted(p for p in real.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES)
+            if not found:
+                raise Problem("invalid-request", f"directory {text!r} holds no .las/.laz files")
+            out.extend(found)
+        elif real.is_file():
+            out.append(real)
+        else:
+            raise Problem("invalid-request", f"no file {text!r} under the input root")
+    if len(out) > settings.max_files:
+        raise Problem("invalid-request", f"{len(out)} files; the limit is {settings.max_files}")
+    return out
+
+
+def check_inputs(settings: Settings, inputs: list[Path], raw_params: Mapping[str, Any], pipeline: Any) -> dict[str, Any]:
+    """Validated parameters after a header-only look at every input; raises on the first problem."""
+    if not inputs:
+        raise Problem("invalid-request", "no input files: send one or more `file` fields")
+    params = pipeline.validate_params(raw_params)
+    if "max_points" in inspect.signature(pipeline.inspect_inputs).parameters:
+        summary = pipeline.inspect_inputs(inputs, params, max_points=settings.max_points)
+    else:
+        summary = pipeline.inspect_inputs(inputs, params)
+    points = int(summary.get("points", 0)) if isinstance(summary, Mapping) else 0
+    if points > settings.max_points:
+        raise Problem("too-many-points", f"the inputs hold {points} points; this service takes at most {settings.max_points}")
+    return params
+
+
+def create_job(
+    settings: Settings,
+    store: JobStore,
+    scheduler: Scheduler,
+    tenant: str,
+    job_id: str,
+    inputs: list[Path],
+    raw_params: Mapping[str, Any],
+    survey_id: str | None = None,
+) -> Job:
+    """Check, prepare and record a job whose inputs are in place; the job directory goes on error."""
+    job_dir = scheduler.job_dir(job_id)
+    try:
+        params = check_inputs(settings, inputs, raw_params, scheduler.pipeline)
+        job_dir.mkdir(parents=True, exist_ok=True)
+        scheduler.pipeline.prepare_job(job_dir, inputs, params)
+        job = store.create_job(
+            job_id, tenant, to_jsonable_python(params, fallback=str), [str(p) for p in inputs], survey_id=survey_id
+        )
+    except BaseException:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        raise
+    scheduler.wake()
+    return job

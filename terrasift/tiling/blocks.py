@@ -1,0 +1,204 @@
+"""The block grid over a job's area, and one streaming pass per tile into block shards.
+
+Blocks are squares of ``block_size`` laid from a corner snapped to the raster
+grid, so each block's core covers whole raster cells and mosaics have no
+half-pixel seams. A point belongs to the core of exactly one block (half-open
+intervals [x0, x0 + B)), and is copied into the halo of every neighbour whose
+core lies within ``buffer`` of it, corners included.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from terrasift.tiling.lasfile import iter_chunks
+
+SHARD_DTYPE = np.dtype(
+    [
+        ("x", "<f8"),
+        ("y", "<f8"),
+        ("z", "<f8"),
+        ("index", "<i8"),  # point index within its tile (file order)
+        ("tile", "<u2"),
+        ("core", "u1"),  # 1 when the point belongs to this block's core
+        ("return_number", "u1"),
+        ("number_of_returns", "u1"),
+        ("scan_id", "<u2"),
+    ]
+)
+
+
+@dataclass(frozen=True)
+class BlockGrid:
+    """Block layout and the job raster it is snapped to.
+
+    ``x0, y0`` is the raster's lower-left corner; the raster is ``width`` ×
+    ``height`` cells of ``resolution``. Block (ix, iy) has its core at
+    [x0 + ix·B, x0 + (ix+1)·B) × [y0 + iy·B, y0 + (iy+1)·B), clipped to the raster.
+    """
+
+    x0: float
+    y0: float
+    resolution: float
+    width: int
+    height: int
+    block_size: float
+    buffer: float
+
+    @classmethod
+    def over(
+        cls,
+        mins: tuple[float, float],
+        maxs: tuple[float, float],
+        resolution: float,
+        block_size: float,
+        buffer: float,
+        align: float | None = None,
+    ) -> BlockGrid:
+        """The grid covering [mins, maxs].
+
+        Its corner, its size and the block size are multiples of ``align``
+        metres (itself a multiple of ``resolution``), so coarser grids laid on
+        the same origin (vegetation bins, 2 m category tiles) fit it exactly.
+        """
+        k = max(1, int(round((align or resolution) / resolution)))
+        step = k * resolution
+        block_cells = k * max(1, int(round(block_size / step)))
+        x0 = float(np.floor(mins[0] / step) * step)
+        y0 = float(np.floor(mins[1] / step) * step)
+        width = k * (int(np.floor((maxs[0] - x0) / step)) + 1)
+        height = k * (int(np.floor((maxs[1] - y0) / step)) + 1)
+        return cls(x0, y0, resolution, width, height, block_cells * resolution, buffer)
+
+    @property
+    def block_cells(self) -> int:
+        return int(round(self.block_size / self.resolution))
+
+    @property
+    def nx(self) -> int:
+        return -(-self.width // self.block_cells)
+
+    @property
+    def ny(self) -> int:
+        return -(-self.height // self.block_cells)
+
+    @property
+    def y_top(self) -> float:
+        return self.y0 + self.height * self.resolution
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def block_of(self, x: NDArray, y: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Core block column and row of each point (clipped into the grid)."""
+        ix = np.floor((x - self.x0) / self.block_size).astype(np.int64)
+        iy = np.floor((y - self.y0) / self.block_size).astype(np.int64)
+        return np.clip(ix, 0, self.nx - 1), np.clip(iy, 0, self.ny - 1)
+
+    def core_window(self, ix: int, iy: int) -> tuple[int, int, int, int]:
+        """(row_off, col_off, rows, cols) of block (ix, iy) in the north-up job raster."""
+        c = self.block_cells
+        col0 = ix * c
+        cols = min(c, self.width - col0)
+        row_bottom = self.height - iy * c  # exclusive, counted from the top
+        rows = min(c, row_bottom)
+        return row_bottom - rows, col0, rows, cols
+
+    def core_bounds(self, ix: int, iy: int) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) of the block core, clipped to the raster."""
+        row_off, col_off, rows, cols = self.core_window(ix, iy)
+        xmin = self.x0 + col_off * self.resolution
+        ymax = self.y_top - row_off * self.resolution
+        return xmin, ymax - rows * self.resolution, xmin + cols * self.resolution, ymax
+
+
+def block_name(ix: int, iy: int) -> str:
+    return f"{ix}_{iy}"
+
+
+def parse_block_name(name: str) -> tuple[int, int]:
+    a, b = name.split("_")
+    return int(a), int(b)
+
+
+def assign_blocks(grid: BlockGrid, x: NDArray, y: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+    """(point index, flat block id, is-core) for every block each point goes to.
+
+    A point goes to its core block and to each neighbour (8-connected) whose
+    core is within ``buffer`` of it.
+    """
+    ix, iy = grid.block_of(x, y)
+    fx = x - (grid.x0 + ix * grid.block_size)
+    fy = y - (grid.y0 + iy * grid.block_size)
+    b = grid.buffer
+    out_p, out_b, out_core = [], [], []
+    for dx in (-1, 0, 1):
+        mx = np.ones(x.size, bool) if dx == 0 else (fx < b if dx < 0 else fx >= grid.block_size - b)
+        mx &= (ix + dx >= 0) & (ix + dx < grid.nx)
+        for dy in (-1, 0, 1):
+            my = np.ones(x.size, bool) if dy == 0 else (fy < b if dy < 0 else fy >= grid.block_size - b)
+            m = mx & my & (iy + dy >= 0) & (iy + dy < grid.ny)
+            idx = np.flatnonzero(m)
+            out_p.append(idx)
+            out_b.append((iy[idx] + dy) * grid.nx + (ix[idx] + dx))
+            out_core.append(np.full(idx.size, dx == 0 and dy == 0))
+    return np.concatenate(out_p), np.concatenate(out_b), np.concatenate(out_core)
+
+
+def shard_tile(
+    tile_path: str,
+    tile_index: int,
+    grid: BlockGrid,
+    out_dir: str | Path,
+    chunk_size: int = 1_000_000,
+    scan_dim: str | None = None,
+) -> dict[str, int]:
+    """Stream one tile into per-block shard files ``out_dir/<block>.bin``.
+
+    Writes into a temporary sibling folder and renames it when complete, so a
+    crash leaves no half-written shard set. Returns core point counts per block.
+    """
+    out_dir = Path(out_dir)
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    core_counts: dict[str, int] = {}
+    for chunk in iter_chunks(tile_path, chunk_size, scan_dim):
+        x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+        p, bid, core = assign_blocks(grid, x, y)
+        order = np.argsort(bid, kind="stable")
+        p, bid, core = p[order], bid[order], core[order]
+        rec = np.empty(p.size, SHARD_DTYPE)
+        rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
+        rec["index"] = chunk.start + p
+        rec["tile"] = tile_index
+        rec["core"] = core
+        rec["return_number"] = chunk.return_number[p]
+        rec["number_of_returns"] = chunk.number_of_returns[p]
+        rec["scan_id"] = chunk.scan_id[p]
+        starts = np.flatnonzero(np.r_[True, bid[1:] != bid[:-1]])
+        ends = np.r_[starts[1:], bid.size]
+        for s, e in zip(starts, ends):
+            b = int(bid[s])
+            name = block_name(b % grid.nx, b // grid.nx)
+            with open(tmp / f"{name}.bin", "ab") as fh:
+                rec[s:e].tofile(fh)
+            core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp, out_dir)
+    return core_counts
+
+
+def read_block_points(shard_dirs: list[Path], name: str) -> NDArray:
+    """All shard records of block ``name`` over every tile, as one structured array."""
+    parts = [np.fromfile(d / f"{name}.bin", dtype=SHARD_DTYPE) for d in shard_dirs if (d / f"{name}.bin").exists()]
+    if not parts:
+        return np.empty(0, SHARD_DTYPE)
+    return np.concatenate(parts)

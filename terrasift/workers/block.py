@@ -1,0 +1,245 @@
+"""The task a worker runs for one block: stages in order, core labels and rasters out.
+
+``classify_block`` is pure (arrays in, arrays out); ``run_block`` is the task
+wrapper that reads the block's shards and writes its result atomically, so a
+crashed or repeated task never leaves a half result.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from terrasift.errors import ProcessingError
+from terrasift.params import stage_params
+from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points
+from terrasift.workers import dem
+from terrasift.workers.bins import Grid
+from terrasift.workers.registry import get_stage
+
+UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
+
+
+@dataclass
+class BlockResult:
+    """Labels of the block's core points and the rasters of its core window."""
+
+    tile: NDArray[np.uint16]
+    index: NDArray[np.int64]
+    classes: NDArray[np.uint8]
+    window: tuple[int, int, int, int]  # row_off, col_off, rows, cols in the job raster
+    rasters: dict[str, NDArray] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.times: dict[str, float] = {}
+
+    def __call__(self, name: str) -> _Timer:
+        self._name = name
+        return self
+
+    def __enter__(self) -> None:
+        self._t = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.times[self._name] = self.times.get(self._name, 0.0) + time.perf_counter() - self._t
+
+
+def classify_block(
+    points: NDArray,
+    grid: BlockGrid,
+    ix: int,
+    iy: int,
+    params: Mapping[str, Any],
+    check_cancel: Callable[[], None] = lambda: None,
+) -> BlockResult:
+    """Run the stages on one block's core + halo points (a SHARD_DTYPE array).
+
+    Order: mixed measurements (scans with a sensor origin) → steepness test →
+    ground (rotated ×8 and OR'ed on steep blocks) → vegetation bins → DTM,
+    DSM, coverage → point classes. Every stage sees the halo so its decisions
+    at the core edge match the neighbour's; only core points are labelled and
+    only core cells rastered.
+    """
+    timer = _Timer()
+    xyz = np.column_stack([points["x"], points["y"], points["z"]])
+    core = points["core"].astype(bool)
+    n = xyz.shape[0]
+    labels = np.full(n, UNCLASSIFIED, np.uint8)
+    stats: dict[str, Any] = {"points_core": int(core.sum()), "points_total": n}
+    origins = params.get("sensor_origin")
+
+    # Mixed measurements leave the pipeline before anything else sees them.
+    active = np.ones(n, dtype=bool)
+    if origins:
+        check_cancel()
+        with timer("mixed"):
+            mixed = _mark_mixed(xyz, points["scan_id"], origins, params)
+        labels[mixed.marked] = NOISE
+        active &= ~mixed.marked
+        stats["mixed"] = {
+            "marked": int(mixed.marked[core].sum()),
+            "unclassified": int(mixed.unclassified[core].sum()),
+            "loss_rate": float(mixed.unclassified[core].mean()) if core.any() else 0.0,
+        }
+    act = np.flatnonzero(active)
+    sub = xyz[act]
+
+    # Ground, rotated on steep blocks.
+    check_cancel()
+    is_ground_sub, stats["steep"] = _ground(sub, params, origins, timer)
+    is_ground = np.zeros(n, dtype=bool)
+    is_ground[act] = is_ground_sub
+    labels[is_ground] = GROUND
+
+    # Vegetation bins on the core window, and vegetation classes for the points in them.
+    check_cancel()
+    xmin, ymin, xmax, ymax = grid.core_bounds(ix, iy)
+    vparams = stage_params(params, "vegetation")
+    vgrid = Grid(xmin, ymin, vparams.cell, int(round((xmax - xmin) / vparams.cell)), int(round((ymax - ymin) / vparams.cell)))
+    from terrasift.workers import vegetation
+
+    with timer("vegetation"):
+        veg = vegetation.classify_bins(sub, is_ground_sub, vgrid, vparams)
+        surface = vegetation.ground_surface(sub[is_ground_sub], vgrid) if is_ground_sub.any() else None
+        if surface is not None:
+            flat = vgrid.index(sub[:, 0], sub[:, 1])
+            in_veg = (flat >= 0) & np.isin(veg.bin_class[np.maximum(flat, 0)], (vegetation.BUSH, vegetation.TREE))
+            pick = in_veg & ~is_ground_sub
+            hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
+            labels[act[pick]] = vegetation.height_classes(hag)
+    stats["vegetation"] = veg.counts
+    stats["vegetation_nogo"] = int(veg.nogo.sum())
+
+    # Elevation models on the core window.
+    check_cancel()
+    row_off, col_off, rows, cols = grid.core_window(ix, iy)
+    window = dem.Window(xmin, ymax, grid.resolution, rows, cols)
+    with timer("dtm"):
+        reach = dem.default_reach(sub.shape[0], _block_area(grid), grid.resolution)
+        valid = dem.data_reach_mask(sub, window, reach)
+        dtm = dem.dtm_window(sub[is_ground_sub], window)
+        dtm[~valid] = np.nan
+        dsm = dem.dsm_window(sub, window)
+        dsm[~valid] = np.nan
+        dsm = np.fmax(dsm, dtm)
+
+    counts = np.bincount(labels[core], minlength=32)
+    stats["counts"] = {str(c): int(v) for c, v in enumerate(counts) if v}
+    stats["timings"] = timer.times
+    return BlockResult(
+        tile=points["tile"][core],
+        index=points["index"][core],
+        classes=labels[core],
+        window=(row_off, col_off, rows, cols),
+        rasters={"dtm": dtm, "dsm": dsm, "coverage": veg.raster()},
+        stats=stats,
+    )
+
+
+def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[str, Any]) -> Any:
+    from terrasift.workers import mixed
+
+    origin_arr = np.asarray(origins, dtype=np.float64)
+    ids = None
+    if origin_arr.shape[0] > 1:
+        ids = scan_id.astype(np.int64)
+        if ids.max(initial=0) >= origin_arr.shape[0]:
+            raise ProcessingError(
+                f"scan id {int(ids.max())} has no sensor origin ({origin_arr.shape[0]} given)"
+            )
+    else:
+        origin_arr = origin_arr[0]
+    return mixed.mark_mixed(xyz, stage_params(params, "mixed"), origin_arr, ids)
+
+
+def _ground(
+    xyz: NDArray, params: Mapping[str, Any], origins: list | None, timer: _Timer
+) -> tuple[NDArray[np.bool_], dict[str, Any]]:
+    """Ground labels, with the steepness test and rotated classification of DESIGN §5.3."""
+    stage = get_stage(f"ground.{params['ground']}")
+    kwargs = {"sensor_origin": np.asarray(origins[0], float)} if origins else {}
+    steep_info: dict[str, Any] = {}
+    if xyz.shape[0] < 3:
+        return np.zeros(xyz.shape[0], dtype=bool), steep_info
+    mode = params.get("rotation", "auto")
+    steep = False
+    if mode != "off":
+        from terrasift.workers.ground import rotation
+
+        with timer("steep_test"):
+            test = rotation.steepness(xyz, stage_params(params, "ground.steep"))
+        steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
+        steep = test.steep or mode == "always"
+    with timer("ground"):
+        if not steep:
+            gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
+            return np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool), steep_info
+        rparams = stage_params(params, "ground.rotation")
+        cparams = stage_params(params, stage.id, rparams.preset)
+        result = rotation.classify_rotated(xyz, lambda p: stage.run(p, cparams, **kwargs), rparams)
+    steep_info["rotated"] = True
+    steep_info["added_per_rotation"] = [int(a) for a in result.added]
+    return np.asarray(result.is_ground, dtype=bool), steep_info
+
+
+def _block_area(grid: BlockGrid) -> float:
+    side = grid.block_size + 2 * grid.buffer
+    return side * side
+
+
+# ---------------------------------------------------------------- task wrapper
+
+
+def block_result_path(job_dir: Path, name: str) -> Path:
+    return Path(job_dir) / "blocks" / f"{name}.npz"
+
+
+def run_block(job_dir: str, name: str) -> dict[str, Any]:
+    """Task: classify block ``name`` of the job in ``job_dir``; returns its stats.
+
+    Skips the work when the block's result already exists (resumed jobs).
+    """
+    from terrasift.pipeline import check_cancel, load_json  # local: pipeline imports this module
+
+    job_dir_p = Path(job_dir)
+    out = block_result_path(job_dir_p, name)
+    stats_path = out.with_suffix(".json")
+    if out.exists() and stats_path.exists():
+        return json.loads(stats_path.read_text())
+    check_cancel(job_dir_p)
+    plan = load_json(job_dir_p / "plan.json")
+    params = load_json(job_dir_p / "job.json")["params"]
+    grid = BlockGrid(**plan["grid"])
+    shard_dirs = [job_dir_p / "shards" / str(i) for i in range(len(plan["tiles"]))]
+    points = read_block_points(shard_dirs, name)
+    ix, iy = parse_block_name(name)
+    t0 = time.perf_counter()
+    result = classify_block(points, grid, ix, iy, params, lambda: check_cancel(job_dir_p))
+    result.stats["seconds"] = time.perf_counter() - t0
+    result.stats["name"] = name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.stem + ".tmp.npz")
+    np.savez(
+        tmp,
+        tile=result.tile,
+        index=result.index,
+        classes=result.classes,
+        window=np.asarray(result.window),
+        **{f"raster_{k}": v for k, v in result.rasters.items()},
+    )
+    os.replace(tmp, out)
+    tmp_stats = stats_path.with_suffix(".json.tmp")
+    tmp_stats.write_text(json.dumps(result.stats))
+    os.replace(tmp_stats, stats_path)
+    return result.stats

@@ -1,0 +1,192 @@
+"""Terrain objects from categories with the seed's filter language (DESIGN §5.8).
+
+A filter's segments are searched along rows and columns (``search``), the
+marks are combined and connected into objects (``connect``), and objects become
+polygons with length and width (``objects``). Filters without a connect or
+rectangle step (``flat``) give a tile raster instead of objects.
+
+Example::
+
+    cats = compute_categories(dtm, 0.5, CategoryParams())
+    result = detect_features(cats, [load_filter(n) for n in builtin_filter_names()], dtm_transform, cats.tile_size)
+    fc = features_geojson(result, "EPSG:32633", job_id="j1", to_wgs84=True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from pydantic import Field
+from rasterio import Affine
+from scipy import ndimage
+from shapely.geometry import mapping
+from shapely.geometry.polygon import orient
+
+from terrasift.errors import ParameterError
+from terrasift.workers.categories import Categories
+from terrasift.workers.features import connect as _connect
+from terrasift.workers.features.language import Filter, format_filter, parse_filter
+from terrasift.workers.features.objects import Feature, objects_from_labels, rectangle_features
+from terrasift.workers.features.search import search_filter
+from terrasift.workers.registry import StageParams, register
+
+__all__ = [
+    "Feature",
+    "FeatureParams",
+    "FeatureResult",
+    "Filter",
+    "builtin_filter_names",
+    "detect_features",
+    "features_geojson",
+    "format_filter",
+    "load_filter",
+    "parse_filter",
+    "resolve_filters",
+]
+
+_BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
+
+
+class FeatureParams(StageParams):
+    """Parameters of feature detection."""
+
+    filters: str = "all"
+    """Comma list of filter names, ``all`` (every built-in) or ``none``; user filters are added by name."""
+    simplify_tiles: float = Field(0.5, ge=0, le=5)
+    """Polygon simplification tolerance in tiles."""
+
+
+@dataclass
+class FeatureResult:
+    """Objects of filters with a connect/rectangle step; tile marks of the others."""
+
+    objects: list[Feature] = field(default_factory=list)
+    marked: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+
+
+def builtin_filter_names() -> list[str]:
+    """Names of the shipped filters, in the seed's order."""
+    return list(_BUILTIN)
+
+
+def load_filter(name: str) -> Filter:
+    """A built-in filter by name; unknown names raise ParameterError."""
+    if name not in _BUILTIN:
+        raise ParameterError(f"unknown filter {name!r} (built-in: {', '.join(_BUILTIN)})")
+    text = resources.files(__package__).joinpath("filters", f"{name}.flt").read_text(encoding="utf-8")
+    return parse_filter(text, name)
+
+
+def resolve_filters(spec: str = "all", user: dict[str, str] | None = None) -> list[Filter]:
+    """Filters for a job's ``features`` parameter; ``user`` maps names to posted filter texts (parsed here)."""
+    user = user or {}
+    parsed = {name: parse_filter(text, name) for name, text in user.items()}
+    spec = spec.strip()
+    if spec == "none":
+        return []
+    names = [*_BUILTIN, *parsed] if spec == "all" else [n.strip() for n in spec.split(",") if n.strip()]
+    return [parsed[n] if n in parsed else load_filter(n) for n in names]
+
+
+def _tile_transform(cats: Categories, transform: Affine, tile_size: float) -> Affine:
+    step = abs(transform.a)
+    if np.isclose(step, tile_size, rtol=1e-6):
+        return transform
+    if np.isclose(step * cats.cells_per_tile, tile_size, rtol=1e-6):
+        return cats.transform(transform)
+    raise ParameterError(f"transform cell {step} fits neither the tile size {tile_size} nor its DTM cell")
+
+
+@register("features", FeatureParams, "Terrain objects (ditch, ridge, hill, pond, road, flat areas) from categories")
+def detect_features(
+    categories: Categories,
+    filters: list[Filter],
+    transform: Affine,
+    tile_size: float,
+    params: FeatureParams | None = None,
+) -> FeatureResult:
+    """Run ``filters`` over the category grid.
+
+    ``transform`` is the DTM's geotransform or the tile grid's (told apart by
+    cell size); polygons come out in its CRS. Objects of all filters go to
+    ``objects``; filters without connect/findrectangle mark tiles in ``marked``.
+    """
+    params = params or FeatureParams()
+    tt = _tile_transform(categories, transform, tile_size)
+    result = FeatureResult()
+    for flt in filters:
+        h, v = search_filter(categories, flt)
+        if flt.h_and_v:
+            marks = _connect.h_and_v(h, v)
+            h, v = h & marks, v & marks
+        else:
+            marks = h | v
+        if flt.rectangle is not None:
+            r = flt.rectangle
+            rects = _connect.find_rectangles(marks, r.width, r.height, r.error)
+            result.objects += rectangle_features(rects, flt.name, tt, tile_size)
+        elif flt.connect is not None:
+            c = flt.connect
+            if c.method == "simple":
+                labels = _connect.simple(marks)
+            elif c.method == "segment":
+                gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
+                labels = _connect.segments(h, v, gap)
+                labels = _drop_gappy(labels, c.max_error)
+            else:
+                labels = _connect.edges(categories, h, v, marks)
+            limits = (c.min_length, c.max_length, c.min_width, c.max_width)
+            result.objects += objects_from_labels(labels, flt.name, tt, tile_size, limits, params.simplify_tiles)
+        else:
+            result.marked[flt.name] = marks
+    return result
+
+
+def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32]:
+    """Remove segment-connected objects missing more than ``max_error`` % of the lines along their long axis."""
+    n = int(labels.max())
+    if n == 0:
+        return labels
+    keep = np.zeros(n + 1, dtype=bool)
+    for lab_id, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        sub = labels[box] == lab_id
+        rows, cols = sub.any(axis=1), sub.any(axis=0)
+        present, span = (rows.sum(), rows.size) if rows.size >= cols.size else (cols.sum(), cols.size)
+        keep[lab_id] = (span - present) <= max_error / 100 * span
+    return np.where(keep[labels], labels, 0).astype(np.int32)
+
+
+def _round_mm(xy: NDArray) -> NDArray:
+    return np.round(xy, 3)
+
+
+def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: str | None, to_wgs84: bool) -> dict:
+    """RFC 7946 FeatureCollection of ``result.objects``: lon/lat WGS 84 when ``to_wgs84``, else native coordinates."""
+    project = None
+    if to_wgs84:
+        from pyproj import CRS, Transformer
+
+        src = CRS.from_user_input(crs_wkt_or_epsg)
+        tr = Transformer.from_crs(src, CRS.from_epsg(4326), always_xy=True)
+        def project(xy: NDArray) -> NDArray:
+            return np.round(np.column_stack(tr.transform(xy[:, 0], xy[:, 1])), 7)  # ~1 cm
+    feats = []
+    for i, f in enumerate(result.objects):
+        geom = orient(f.geometry, 1.0) if f.geometry.geom_type == "Polygon" else f.geometry
+        geom = shapely.transform(geom, project) if project is not None else shapely.transform(geom, _round_mm)
+        props = {
+            "kind": f.kind,
+            "length_m": round(f.length_m, 2),
+            "width_m": round(f.width_m, 2),
+            "tiles": f.tiles,
+        }
+        if job_id is not None:
+            props["job_id"] = job_id
+        feats.append({"type": "Feature", "id": i + 1, "geometry": mapping(geom), "properties": props})
+    return {"type": "FeatureCollection", "features": feats}

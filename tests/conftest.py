@@ -1,0 +1,34 @@
+"""Shared fixtures: small synthetic tiles with exact truth, and the real data folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from terrasift.synthetic.terrain import make_scene, write_las
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """A file under ../shared/data, or skip the test when the folder is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"reference data not found at ../shared/data/{'/'.join(parts)}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def small_scene():
+    """A 160 m square scene at 6 pulses/m²: slopes, buildings, trees, bushes, outliers."""
+    return make_scene(size=160, density=6, seed=3)
+
+
+@pytest.fixture(scope="session")
+def small_tile(tmp_path_factory, small_scene):
+    """``small_scene`` written as LAZ with a ``truth`` extra dimension."""
+    path = tmp_path_factory.mktemp("tiles") / "small.laz"
+    write_las(small_scene, path, extra_bytes=True)
+    return path

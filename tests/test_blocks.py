@@ -1,0 +1,77 @@
+"""Every point lands in exactly one block core, and in the halo of every block within the buffer."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terrasift.tiling.blocks import BlockGrid, assign_blocks, block_name, read_block_points, shard_tile
+
+
+def _brute_force(grid: BlockGrid, x, y):
+    pairs = set()
+    cores = set()
+    for iy in range(grid.ny):
+        for ix in range(grid.nx):
+            x0 = grid.x0 + ix * grid.block_size
+            y0 = grid.y0 + iy * grid.block_size
+            b = grid.buffer
+            inside = (x >= x0 - b) & (x < x0 + grid.block_size + b) & (y >= y0 - b) & (y < y0 + grid.block_size + b)
+            core = (x >= x0) & (x < x0 + grid.block_size) & (y >= y0) & (y < y0 + grid.block_size)
+            for p in np.flatnonzero(inside):
+                pairs.add((p, iy * grid.nx + ix))
+            for p in np.flatnonzero(core):
+                cores.add((p, iy * grid.nx + ix))
+    return pairs, cores
+
+
+def test_assignment_matches_definition_at_edges_and_corners():
+    grid = BlockGrid.over((0.0, 0.0), (299.9, 199.9), resolution=0.5, block_size=100.0, buffer=10.0)
+    assert (grid.nx, grid.ny) == (3, 2)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 299.9, 3000)
+    y = rng.uniform(0, 199.9, 3000)
+    # points exactly on block edges, on corners, and exactly at the buffer distance
+    special = np.array([[100.0, 100.0], [90.0, 110.0], [110.0, 90.0], [100.0, 50.0], [50.0, 100.0],
+                        [89.999, 100.0], [110.0, 110.0], [200.0, 100.0], [0.0, 0.0], [190.0, 90.0]])
+    x = np.r_[x, special[:, 0]]
+    y = np.r_[y, special[:, 1]]
+    p, b, core = assign_blocks(grid, x, y)
+    expected_pairs, expected_cores = _brute_force(grid, x, y)
+    assert set(zip(p.tolist(), b.tolist())) == expected_pairs
+    assert set(zip(p[core].tolist(), b[core].tolist())) == expected_cores
+    assert np.bincount(p[core], minlength=x.size).tolist() == [1] * x.size
+    # the corner point (100, 100) is core of block (1, 1) and halo of the three others around it
+    corner = x.size - special.shape[0]
+    assert sorted(b[p == corner].tolist()) == [0, 1, 3, 4]
+
+
+def test_core_windows_tile_the_raster_exactly():
+    grid = BlockGrid.over((10.2, 20.7), (333.3, 250.1), resolution=0.5, block_size=64.0, buffer=8.0)
+    cover = np.zeros((grid.height, grid.width), int)
+    for iy in range(grid.ny):
+        for ix in range(grid.nx):
+            r, c, rows, cols = grid.core_window(ix, iy)
+            cover[r : r + rows, c : c + cols] += 1
+            xmin, ymin, xmax, ymax = grid.core_bounds(ix, iy)
+            assert xmin == grid.x0 + c * grid.resolution and ymax == grid.y_top - r * grid.resolution
+    assert (cover == 1).all()
+    assert grid.x0 % 0.5 == 0 and grid.y0 % 0.5 == 0
+
+
+def test_shards_hold_every_point_once_as_core(tmp_path, small_tile, small_scene):
+    xyz = small_scene.xyz
+    grid = BlockGrid.over(xyz[:, :2].min(0), xyz[:, :2].max(0), 0.5, 50.0, 5.0)
+    counts = shard_tile(str(small_tile), 0, grid, tmp_path / "0", 7_000)
+    assert not (tmp_path / "0.tmp").exists()
+    seen = np.zeros(len(small_scene), int)
+    total = 0
+    for iy in range(grid.ny):
+        for ix in range(grid.nx):
+            pts = read_block_points([tmp_path / "0"], block_name(ix, iy))
+            core = pts["core"] == 1
+            np.add.at(seen, pts["index"][core], 1)
+            total += pts.size
+            assert counts.get(block_name(ix, iy), 0) == core.sum()
+            np.testing.assert_allclose(pts["z"], xyz[pts["index"], 2], atol=0.006)
+    assert (seen == 1).all()
+    assert total > len(small_scene)  # halos duplicate points near block edges

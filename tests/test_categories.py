@@ -1,0 +1,143 @@
+"""Category fit on analytic surfaces with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from terrasift.errors import ParameterError
+from terrasift.workers.categories import _POINTS, EDGES, NODATA, CategoryParams, compute_categories
+
+CELL = 0.5
+K = 4  # cells per 2 m tile
+
+
+def grid(tiles: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Cell-centre coordinates (x east, y north) of a north-up DTM, ``tiles`` × ``tiles`` tiles."""
+    n = tiles * K
+    c = (np.arange(n) + 0.5) * CELL
+    return np.meshgrid(c, -c)
+
+
+@pytest.mark.parametrize("code", range(1, 9))
+def test_plane_in_each_direction_gives_that_inclination(code):
+    x, y = grid()
+    a = np.radians(45 * (code - 1))
+    z = 0.32 * (x * np.cos(a) + y * np.sin(a)) + 50
+    cats = compute_categories(z, CELL, CategoryParams())
+    assert (cats.inclination == code).all()
+    assert (cats.orientation == 0).all() and (cats.state == 0).all()
+    # rise of the plane over the cell centres of one tile, in decimetres
+    span = 0.32 * 1.5 * (abs(np.cos(a)) + abs(np.sin(a)))
+    assert np.allclose(cats.height10, np.round(span * 10))
+
+
+def test_flat_and_nearly_flat_tiles_are_all_zero():
+    x, y = grid()
+    rng = np.random.default_rng(1)
+    z = 10 + 0.02 * x + rng.normal(0, 0.01, x.shape)
+    cats = compute_categories(z, CELL)
+    for band in (cats.inclination, cats.orientation, cats.state):
+        assert (band == 0).all()
+
+
+def test_gentle_slope_below_flat_height_is_flat_but_steeper_is_not():
+    x, y = grid()
+    gentle = compute_categories(0.1 * y, CELL)  # 0.15 m over a tile's cell centres
+    steep = compute_categories(0.2 * y, CELL)  # 0.30 m
+    assert (gentle.inclination == 0).all()
+    assert (steep.inclination == 3).all()
+    rough = compute_categories(0.1 * y, CELL, CategoryParams(flat_height=0.1))
+    assert (rough.inclination == 3).all()
+
+
+def hinge_tile(code: int, depth: float) -> np.ndarray:
+    """One 2 m tile (4 × 4 cells) shaped as two planes meeting along edge ``code``."""
+    half = K * CELL / 2
+    c = (np.arange(K) + 0.5) * CELL - half
+    x, y = np.meshgrid(c, -c)
+    pa, pb = (np.array(_POINTS[d], float) * half for d in divmod(code, 10))
+    t = pb - pa
+    n = np.array([-t[1], t[0]]) / np.hypot(*t)
+    d = np.abs((x - pa[0]) * n[0] + (y - pa[1]) * n[1])
+    return depth * d
+
+
+@pytest.mark.parametrize("code", EDGES)
+@pytest.mark.parametrize("shape, state", [("V", 2), ("Λ", 1)])
+def test_v_and_lambda_edges_in_every_orientation(code, shape, state):
+    sign = 1.0 if shape == "V" else -1.0
+    z = 100 + hinge_tile(code, sign * 0.6)
+    cats = compute_categories(z, CELL)
+    assert cats.shape == (1, 1)
+    assert cats.orientation[0, 0] == code
+    assert cats.state[0, 0] == state
+    if code in (15, 37, 26, 48):  # symmetric in the tile: the mean plane is level
+        assert cats.inclination[0, 0] == 0
+
+
+def test_off_centre_edge_keeps_the_inclination_of_its_larger_plane():
+    # a V whose bottom runs along the tile's west quarter: the east plane dominates
+    half = K * CELL / 2
+    c = (np.arange(K) + 0.5) * CELL - half
+    x, _ = np.meshgrid(c, -c)
+    z = 0.8 * np.abs(x + 0.5)
+    cats = compute_categories(z, CELL)
+    assert cats.state[0, 0] == 2 and cats.orientation[0, 0] == 37
+    assert cats.inclination[0, 0] == 1
+
+
+def test_edge_with_a_dominant_slope_along_it_is_an_extreme_point():
+    # a gully falling steeply to the south: concave, lowest at the south midpoint
+    z = hinge_tile(37, 0.3)
+    half = K * CELL / 2
+    c = (np.arange(K) + 0.5) * CELL - half
+    _, y = np.meshgrid(c, -c)
+    cats = compute_categories(z + 0.6 * y, CELL)
+    assert cats.state[0, 0] == 2 and cats.orientation[0, 0] == 77
+    # the same as a spur (convex): highest at the north midpoint
+    cats = compute_categories(-z + 0.6 * y, CELL)
+    assert cats.state[0, 0] == 1 and cats.orientation[0, 0] == 33
+
+
+def test_rotating_the_dtm_turns_every_direction():
+    rng = np.random.default_rng(3)
+    x, y = grid(8)
+    z = 2 * np.sin(x / 3) + 1.5 * np.cos(y / 4) + 0.4 * np.abs(x - 7.3) + rng.normal(0, 0.01, x.shape)
+    a = compute_categories(z, CELL)
+    b = compute_categories(np.rot90(z), CELL)  # contents turned 90° counter-clockwise
+    inc_a = np.rot90(a.inclination)
+    turned = np.where(inc_a > 0, (inc_a + 1) % 8 + 1, 0)
+    assert (b.inclination == turned).mean() > 0.95
+    assert (b.state == np.rot90(a.state)).mean() > 0.95
+
+
+def test_nodata_and_partial_tiles_are_marked():
+    x, y = grid(3)
+    z = 0.3 * x
+    z[5, 5] = np.nan  # tile (1, 1)
+    z = np.pad(z, ((0, 2), (0, 0)), constant_values=1.0)  # a partial tile row at the bottom
+    cats = compute_categories(z, CELL)
+    assert cats.shape == (4, 3)
+    for band in cats.bands():
+        assert band[1, 1] == NODATA
+        assert (band[3] == NODATA).all()
+    assert cats.nodata.sum() == 4
+
+
+def test_tile_size_snaps_to_cells_and_transform_scales():
+    from rasterio import Affine
+
+    x, y = grid(4)
+    cats = compute_categories(0.3 * x, CELL, CategoryParams(tile_size=3.0))
+    assert cats.cells_per_tile == 6 and cats.tile_size == 3.0
+    t = cats.transform(Affine(CELL, 0, 1000, 0, -CELL, 2000))
+    assert (t.a, t.e, t.c, t.f) == (3.0, -3.0, 1000, 2000)
+    with pytest.raises(ParameterError):
+        compute_categories(0.3 * x, 2.0, CategoryParams(tile_size=0.5))
+
+
+def test_parameters_are_validated():
+    with pytest.raises(ParameterError):
+        CategoryParams.preset("default", flat_height=-1)
+    assert CategoryParams.preset("rough").flat_height == 0.3

@@ -1,0 +1,416 @@
+"""Filter language, segment search, connect algorithms, objects and the end-to-end run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rasterio import Affine
+from shapely.geometry import box
+
+from terrasift.errors import FilterSyntaxError, ParameterError
+from terrasift.workers.categories import NODATA, Categories, compute_categories
+from terrasift.workers.features import (
+    builtin_filter_names,
+    detect_features,
+    features_geojson,
+    format_filter,
+    load_filter,
+    parse_filter,
+    resolve_filters,
+)
+from terrasift.workers.features import connect as C
+from terrasift.workers.features.language import rotate_orientation, transform_segment
+from terrasift.workers.features.objects import object_size, objects_from_labels
+from terrasift.workers.features.search import search_filter, search_rows
+
+
+def cats_from(inc, ori=None, state=None) -> Categories:
+    inc = np.asarray(inc, dtype=np.uint8)
+    ori = np.zeros_like(inc) if ori is None else np.asarray(ori, dtype=np.uint8)
+    state = np.zeros_like(inc) if state is None else np.asarray(state, dtype=np.uint8)
+    return Categories(inc, ori, state, np.zeros_like(inc), 4, 2.0)
+
+
+# --------------------------------------------------------------------------- language
+
+FULL = """// every construct of the language
+beginsegment 3 9
+  invert
+  vertical
+  beginsubsegment 1 2 exclude
+    begincategory not
+      inclination 0
+      state 0
+      orientation 0
+    endcategory
+  endsubsegment
+  beginsubsegment 0 4   // trailing comment
+    maxerrors 1
+    begincategory
+      inclination 1 2 8
+      state any
+      orientation not 37 73 11
+    endcategory
+    begincategory
+      inclination any
+      state 1 2
+    endcategory
+  endsubsegment
+endsegment
+h-and-v
+connect segment 10 -1 2 6 20
+"""
+
+
+def test_every_builtin_filter_parses_and_round_trips():
+    assert builtin_filter_names() == ["ditch", "ridge", "hill", "pond", "flat", "flat-area", "road"]
+    for name in builtin_filter_names():
+        f = load_filter(name)
+        assert parse_filter(format_filter(f), name) == f
+    assert load_filter("flat").makes_objects is False
+    assert load_filter("flat-area").rectangle.width == 50
+
+
+def test_full_filter_round_trip_and_values():
+    f = parse_filter(FULL, "mine")
+    assert parse_filter(format_filter(f), "mine") == f
+    (seg,) = f.segments
+    assert (seg.min_total, seg.max_total, seg.invert, seg.direction) == (3, 9, True, "vertical")
+    ex, mid = seg.subsegments
+    assert ex.exclude and ex.categories[0].negate and ex.categories[0].inclination.allows(0)
+    assert (mid.min_len, mid.max_len, mid.max_errors) == (0, 4, 1)
+    cat = mid.categories[0]
+    assert cat.inclination.allows(8) and not cat.inclination.allows(3)
+    assert not cat.orientation.allows(37) and cat.orientation.allows(15)  # 73 is 37 written backwards
+    assert not cat.orientation.allows(11)
+    assert mid.categories[1].orientation.values is None  # omitted = any
+    assert f.h_and_v and f.connect.method == "segment"
+    assert (f.connect.min_length, f.connect.max_length, f.connect.min_width, f.connect.max_width) == (10, None, 2, 6)
+    assert f.connect.max_error == 20
+
+
+@pytest.mark.parametrize(
+    "text, line, reason",
+    [
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 9\nendcategory\nendsubsegment\nendsegment", 4, "0–8"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nstate 3\nendcategory\nendsubsegment\nendsegment", 4, "state"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\norientation 12\nendcategory\nendsubsegment\nendsegment", 4, "orientation 12"),
+        ("// c\nbeginsegment\n  beginsubsegment 3 1\n", 3, "bad length range"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\n", 1, "without endsegment"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nslope 2\nendcategory\nendsubsegment\nendsegment", 4, "slope"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect wiggle 1 1 1 1", 7, "algorithm"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 1 1", 7, "minlen"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 1 -1 20", 7, "minlen"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nfindrectangle 5 5", 7, "findrectangle"),
+        ("beginsegment\nbeginsubsegment 1 x\n", 2, "whole number"),
+        ("beginsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nendsegment", 1, "at most 63"),
+        ("\n\n", 1, "at least one"),
+        ("beginsegment\nendsegment", 2, "at least one subsegment"),
+        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 -1 -1\nbeginsegment", 8, "before"),
+    ],
+)
+def test_bad_filters_name_line_and_reason(text, line, reason):
+    with pytest.raises(FilterSyntaxError) as err:
+        parse_filter(text, "bad")
+    assert err.value.line == line
+    assert reason in str(err.value)
+    assert str(err.value).startswith(f"bad, line {line}: ")
+
+
+def test_resolve_filters_and_unknown_names():
+    assert [f.name for f in resolve_filters("all")] == builtin_filter_names()
+    assert resolve_filters("none") == []
+    fs = resolve_filters("pond, mine", {"mine": FULL})
+    assert [f.name for f in fs] == ["pond", "mine"]
+    with pytest.raises(ParameterError):
+        resolve_filters("volcano")
+    with pytest.raises(FilterSyntaxError):
+        resolve_filters("all", {"broken": "beginsegment\n"})
+
+
+def test_rotation_and_invert_of_a_segment():
+    assert rotate_orientation(37) == 15 and rotate_orientation(26) == 48 and rotate_orientation(33) == 11
+    seg = parse_filter(FULL).segments[0]
+    cat = seg.subsegments[1].categories[0]
+    inv = transform_segment(seg, 0).subsegments[1].categories[0]
+    assert inv.inclination.values == frozenset({5, 6, 4})  # 1 2 8 + 4
+    assert transform_segment(seg, 0).subsegments[1].categories[1].state.values == frozenset({1, 2})
+    rot = transform_segment(seg, 1).subsegments[1].categories[0]
+    assert rot.inclination.values == frozenset({3, 4, 2})  # inverted, then turned: 5 6 4 - 2
+    assert rot.orientation.values == frozenset({15, 11 * 7}) and cat.orientation.values == frozenset({37, 11})
+
+
+# --------------------------------------------------------------------------- search
+
+DITCHLIKE = """beginsegment
+  beginsubsegment 1 2
+    begincategory
+      inclination 5
+    endcategory
+  endsubsegment
+  beginsubsegment 0 2
+    begincategory
+      inclination 0
+    endcategory
+  endsubsegment
+  beginsubsegment 1 2
+    begincategory
+      inclination 1
+    endcategory
+  endsubsegment
+endsegment
+connect simple -1 -1 -1 -1
+"""
+
+
+def test_search_marks_exact_cross_sections_along_rows_and_columns():
+    inc = np.full((7, 9), 3, dtype=np.uint8)
+    inc[1] = [3, 5, 0, 0, 1, 3, 5, 1, 3]  # two hits: cols 1-4 and 6-7
+    inc[3] = [3, 5, 0, 0, 0, 1, 3, 3, 3]  # bottom of three flats is too wide
+    inc[5] = [5, 5, 5, 0, 1, 1, 1, 3, 3]  # long banks: only the last two / first two belong
+    h, v = search_filter(cats_from(inc), parse_filter(DITCHLIKE))
+    expect = np.zeros_like(h)
+    expect[1, 1:5] = expect[1, 6:8] = True
+    expect[5, 1:6] = True
+    assert (h == expect).all()
+    # columns, north to south: the rotated pattern wants 3 (falling south), flat, 7
+    col = np.array([3, 3, 0, 7, 7, 7, 3], dtype=np.uint8)
+    grid = np.full((7, 4), 2, dtype=np.uint8)
+    grid[:, 2] = col
+    h, v = search_filter(cats_from(grid), parse_filter(DITCHLIKE))
+    assert not h.any()
+    assert v[:, 2].tolist() == [True, True, True, True, True, False, False]
+    assert v[:, [0, 1, 3]].sum() == 0
+
+
+def test_exclude_maxerrors_total_length_and_nodata():
+    road = load_filter("road")
+    inc = np.array([[3, 0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0]], dtype=np.uint8)
+    h, _ = search_filter(cats_from(inc), road)
+    assert np.flatnonzero(h[0]).tolist() == [1, 2, 3]  # bounding tiles excluded; 7 flats too wide; open end
+    pond = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 5\nendcategory\nendsubsegment\n"
+        "beginsubsegment 4 6\nmaxerrors 1\nbegincategory\ninclination 0\nendcategory\nendsubsegment\n"
+        "beginsubsegment 1 1\nbegincategory\ninclination 1\nendcategory\nendsubsegment\nendsegment\n"
+    )
+    rows = np.array(
+        [
+            [5, 0, 0, 3, 0, 1],  # one misfit allowed
+            [5, 0, 3, 3, 0, 1],  # two are not
+            [5, 0, 0, NODATA, 0, 1],  # nodata counts as a misfit
+        ],
+        dtype=np.uint8,
+    )
+    h, _ = search_filter(cats_from(rows), pond)
+    assert h[0].all() and not h[1].any() and h[2].all()
+    total = parse_filter(DITCHLIKE.replace("beginsegment\n", "beginsegment 5 6\n", 1))
+    inc = np.array([[5, 0, 1, 3, 5, 5, 0, 0, 1, 1]], dtype=np.uint8)
+    h, _ = search_filter(cats_from(inc), total)
+    assert np.flatnonzero(h[0]).tolist() == [4, 5, 6, 7, 8, 9]  # the 3-tile hit is too short
+
+
+def test_search_uses_orientation_and_state_and_not_categories():
+    flt = parse_filter(
+        "beginsegment\nhorizontal\nbeginsubsegment 1 1\nbegincategory\ninclination 0\nstate 2\n"
+        "orientation not 0 11 33\nendcategory\nendsubsegment\nendsegment\n"
+    )
+    inc = np.zeros((1, 5), np.uint8)
+    ori = np.array([[37, 33, 15, 37, 0]], np.uint8)
+    st = np.array([[2, 2, 2, 1, 2]], np.uint8)
+    h, v = search_filter(cats_from(inc, ori, st), flt)
+    assert h[0].tolist() == [True, False, True, False, False] and not v.any()
+
+
+def test_search_rows_matches_a_brute_force_scan():
+    rng = np.random.default_rng(5)
+    inc = rng.choice(np.array([0, 1, 5], np.uint8), size=(40, 30), p=[0.4, 0.3, 0.3])
+    arrays = (inc, np.zeros_like(inc), np.zeros_like(inc))
+    seg = parse_filter(DITCHLIKE).segments[0]
+    got = search_rows(arrays, seg)
+    want = np.zeros_like(got)
+    for r in range(inc.shape[0]):
+        s = "".join({0: "f", 1: "u", 5: "d"}[v] for v in inc[r])
+        for end in range(1, len(s) + 1):
+            best = None
+            for a in (1, 2):
+                for m in (0, 1, 2):
+                    for b in (1, 2):
+                        st = end - a - m - b
+                        if st >= 0 and s[st:end] == "d" * a + "f" * m + "u" * b:
+                            best = max(best or 0, a + m + b)
+            if best:
+                want[r, end - best : end] = True
+    assert (got == want).all()
+
+
+# --------------------------------------------------------------------------- connect
+
+def test_simple_connect_and_h_and_v():
+    m = np.zeros((6, 6), bool)
+    m[0, 0:3] = m[1, 2] = True  # one object of 4
+    m[4:6, 4:6] = True  # another
+    m[3, 3] = True  # touches the second only diagonally
+    lab = C.simple(m)
+    assert lab.max() == 3 and len({lab[0, 0], lab[1, 2]}) == 1
+    h = np.zeros((3, 3), bool)
+    v = np.zeros((3, 3), bool)
+    h[1] = True
+    v[:, 1] = True
+    assert C.h_and_v(h, v).sum() == 1 and C.h_and_v(h, v)[1, 1]
+
+
+def test_segment_connect_bridges_gaps_and_needs_overlap():
+    h = np.zeros((10, 12), bool)
+    for r in (0, 1, 2, 5, 6):  # rows 3-4 missing
+        h[r, 3:6] = True
+    h[7, 8:10] = True  # not beneath: a separate object
+    v = np.zeros_like(h)
+    lab = C.segments(h, v, gap=2)
+    assert lab[0, 3] == lab[6, 4] != lab[7, 8]
+    lab = C.segments(h, v, gap=1)
+    assert lab[0, 3] != lab[6, 4]
+
+
+def test_edge_connect_follows_edges_not_across_them():
+    inc = np.zeros((5, 5), np.uint8)
+    inc[:, 1] = 5  # west bank of a north-south ditch: its line runs north-south
+    inc[2, 3] = 3  # a tile whose line runs east-west
+    cats = cats_from(inc)
+    marks = inc > 0
+    lab = C.edges(cats, np.zeros_like(marks), np.zeros_like(marks), marks, reach=1)
+    assert len(set(lab[:, 1])) == 1 and lab[2, 3] != lab[2, 1]
+    inc[2, 1] = 0  # a missing tile is bridged with reach 2 only
+    marks = inc > 0
+    none = np.zeros_like(marks)
+    lab = C.edges(cats_from(inc), none, none, marks, reach=1)
+    assert lab[0, 1] != lab[4, 1]
+    lab = C.edges(cats_from(inc), none, none, marks, reach=2)
+    assert lab[0, 1] == lab[4, 1]
+    # tiles without an axis join through their segment only
+    inc2 = np.array([[5, 0, 1]], np.uint8)
+    h = np.ones((1, 3), bool)
+    lab = C.edges(cats_from(inc2), h, np.zeros_like(h), h)
+    assert len(set(lab[0])) == 1
+
+
+def test_find_rectangles_first_fit_with_tolerance():
+    m = np.zeros((20, 30), bool)
+    m[2:12, 5:15] = True
+    m[6, 8] = False  # 1 % missing
+    m[10:20, 18:28] = True
+    rects = C.find_rectangles(m, 10, 10, 2)
+    assert rects == [(2, 5, 10, 10), (10, 18, 10, 10)]
+    assert C.find_rectangles(m, 10, 10, 0) == [(10, 18, 10, 10)]
+
+
+# --------------------------------------------------------------------------- objects
+
+@pytest.mark.parametrize("angle", [0, 30, 45, 90])
+def test_object_length_does_not_depend_on_direction(angle):
+    from shapely import affinity
+
+    strip = affinity.rotate(box(0, 0, 100, 6), angle)
+    length, width = object_size(strip)
+    assert abs(length - 100) < 2 and abs(width - 6) < 0.5
+
+
+def test_objects_from_labels_polygons_and_limits():
+    lab = np.zeros((20, 40), np.int32)
+    lab[5:8, 2:38] = 1  # 36 × 3 tiles
+    lab[12:18, 10:16] = 2  # 6 × 6 with a hole
+    lab[14, 12] = 0
+    t = Affine(2.0, 0, 1000.0, 0, -2.0, 5000.0)
+    feats = objects_from_labels(lab, "thing", t, 2.0)
+    assert len(feats) == 2
+    strip = max(feats, key=lambda f: f.length_m)
+    assert strip.geometry.bounds == (1004.0, 4984.0, 1076.0, 4990.0)
+    assert abs(strip.length_m - 72) < 3 and abs(strip.width_m - 6) < 1
+    square = min(feats, key=lambda f: f.length_m)
+    assert square.tiles == 36 and square.geometry.area == 144.0  # hole filled
+    assert len(objects_from_labels(lab, "thing", t, 2.0, (20, None, None, None))) == 1  # square too short
+
+
+# --------------------------------------------------------------------------- end to end
+
+@pytest.fixture(scope="module")
+def scene_result():
+    from terrasift.synthetic.features import make_feature_scene
+
+    scene = make_feature_scene(seed=0)
+    cats = compute_categories(scene.dtm, scene.cell)
+    result = detect_features(cats, resolve_filters("all"), scene.transform, cats.tile_size)
+    return scene, cats, result
+
+
+def _iou(a, b) -> float:
+    inter = a.intersection(b).area
+    return inter / (a.area + b.area - inter)
+
+
+def test_end_to_end_finds_every_constructed_object(scene_result):
+    scene, _, result = scene_result
+    for kind in scene.kinds():
+        truth = [t for t in scene.truth if t.kind == kind]
+        found = [f for f in result.objects if f.kind == kind]
+        for t in truth:
+            best = max(found, key=lambda f: _iou(f.geometry, t.polygon))
+            assert _iou(best.geometry, t.polygon) >= 0.3, kind
+            assert abs(best.length_m - t.length_m) <= 0.25 * t.length_m, kind
+        matched = sum(max(_iou(f.geometry, t.polygon) for t in truth) >= 0.3 for f in found)
+        assert matched / len(found) >= 0.8, kind
+    assert "flat" in result.marked and not any(f.kind == "flat" for f in result.objects)
+
+
+def test_flat_marks_the_field_and_spares_the_hillside(scene_result):
+    scene, cats, result = scene_result
+    flat = result.marked["flat"]
+    field = next(t.polygon for t in scene.truth if t.kind == "flat-area")
+    tt = cats.transform(scene.transform)
+    from rasterio.features import geometry_mask
+
+    inside = ~geometry_mask([field.buffer(-4)], cats.shape, tt)
+    assert flat[inside].mean() > 0.9
+    assert flat[~inside].mean() < 0.2
+
+
+def test_detect_features_accepts_tile_or_dtm_transform(scene_result):
+    scene, cats, _ = scene_result
+    flt = [load_filter("pond")]
+    a = detect_features(cats, flt, scene.transform, cats.tile_size)
+    b = detect_features(cats, flt, cats.transform(scene.transform), cats.tile_size)
+    assert [f.geometry.wkt for f in a.objects] == [f.geometry.wkt for f in b.objects]
+    with pytest.raises(ParameterError):
+        detect_features(cats, flt, Affine(0.7, 0, 0, 0, -0.7, 0), cats.tile_size)
+
+
+def test_geojson_native_and_wgs84(scene_result):
+    _, _, result = scene_result
+    native = features_geojson(result, "EPSG:32633", "job-1", to_wgs84=False)
+    wgs = features_geojson(result, 32633, None, to_wgs84=True)
+    assert native["type"] == "FeatureCollection" and "crs" not in native
+    assert len(native["features"]) == len(result.objects)
+    props = native["features"][0]["properties"]
+    assert set(props) == {"kind", "length_m", "width_m", "tiles", "job_id"} and props["job_id"] == "job-1"
+    assert "job_id" not in wgs["features"][0]["properties"]
+    lon, lat = wgs["features"][0]["geometry"]["coordinates"][0][0]
+    assert 14 < lon < 16 and 48 < lat < 49  # UTM 33N, x 500 km, y 5400 km
+    x, y = native["features"][0]["geometry"]["coordinates"][0][0]
+    assert 500_000 < x < 501_000 and 5_400_000 < y < 5_401_000
+    ring = np.array(native["features"][0]["geometry"]["coordinates"][0])
+    signed = np.sum(ring[:-1, 0] * ring[1:, 1] - ring[1:, 0] * ring[:-1, 1])
+    assert signed > 0  # exterior counter-clockwise (RFC 7946 §3.1.6)
+
+
+def test_stages_are_registered():
+    from terrasift.workers.registry import _STAGES
+
+    assert _STAGES["categories"].params.__name__ == "CategoryParams"
+    assert _STAGES["features"].params.__name__ == "FeatureParams"
+
+
+def test_search_in_row_bands_matches_one_pass():
+    rng = np.random.default_rng(9)
+    inc = rng.choice(np.array([0, 1, 5], np.uint8), size=(50, 20))
+    arrays = (inc, np.zeros_like(inc), np.zeros_like(inc))
+    seg = parse_filter(DITCHLIKE).segments[0]
+    assert (search_rows(arrays, seg, band=7) == search_rows(arrays, seg)).all()

@@ -1,0 +1,199 @@
+"""A job end to end without the service: outputs, accuracy, seams, resume, cancel, executors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import laspy
+import numpy as np
+import pytest
+import rasterio
+from rio_cogeo.cogeo import cog_validate
+
+from terrasift import pipeline
+from terrasift.errors import JobCancelled
+from terrasift.workers.executors import InlineExecutor, LocalExecutor
+
+BLOCK = {"block_size": 80, "buffer": 15}
+
+
+def _run(tmp_path, tile, params, name="job", executor=None):
+    job = tmp_path / name
+    validated = pipeline.validate_params(params)
+    pipeline.prepare_job(job, [tile], validated)
+    names = pipeline.run_job(job, executor or InlineExecutor())
+    return job, names
+
+
+@pytest.fixture(scope="module")
+def finished_job(tmp_path_factory, small_tile):
+    tmp = tmp_path_factory.mktemp("pipeline")
+    return _run(tmp, small_tile, BLOCK)
+
+
+def test_outputs_exist_and_cogs_are_valid(finished_job):
+    job, names = finished_job
+    for name in ["classified.laz", "dtm.tif", "dsm.tif", "chm.tif", "report.json", "item.json"]:
+        assert name in names
+        assert pipeline.output_path(job, name).stat().st_size > 0
+    for name in ["dtm.tif", "dsm.tif", "chm.tif"]:
+        valid, errors, _ = cog_validate(str(pipeline.output_path(job, name)), quiet=True)
+        assert valid, errors
+        with rasterio.open(pipeline.output_path(job, name)) as ds:
+            assert ds.crs.to_epsg() == 32632
+            assert ds.dtypes[0] == "float32" and ds.nodata is not None
+            assert ds.overviews(1), "COG should carry overviews"
+
+
+def test_classified_laz_keeps_every_point_order_and_dimension(finished_job, small_tile, small_scene):
+    job, _ = finished_job
+    src = laspy.read(small_tile)
+    out = laspy.read(pipeline.output_path(job, "classified.laz"))
+    assert len(out.points) == len(src.points)
+    assert list(out.point_format.dimension_names) == list(src.point_format.dimension_names)
+    for dim in ["X", "Y", "Z", "intensity", "return_number", "number_of_returns", "truth"]:
+        assert np.array_equal(out[dim], src[dim]), dim
+    assert out.header.parse_crs().to_epsg() == 32632
+    classes = np.asarray(out.classification)
+    assert set(np.unique(classes)) <= {1, 2, 3, 4, 5, 7}
+    # ground labels agree with the truth for most points
+    truth_ground = small_scene.truth == 2
+    agree = np.mean((classes == 2) == truth_ground)
+    assert agree > 0.9
+
+
+def test_dtm_matches_true_surface(finished_job, small_scene):
+    job, _ = finished_job
+    with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+        dtm = ds.read(1, masked=True)
+        rows, cols = np.nonzero(~np.ma.getmaskarray(dtm))
+        xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
+        # cells holding at least one true ground point
+        g = small_scene.xyz[small_scene.truth == 2]
+        gr, gc = rasterio.transform.rowcol(ds.transform, g[:, 0], g[:, 1])
+        has_ground = np.zeros(dtm.shape, bool)
+        ok = (np.asarray(gr) >= 0) & (np.asarray(gr) < dtm.shape[0]) & (np.asarray(gc) >= 0) & (np.asarray(gc) < dtm.shape[1])
+        has_ground[np.asarray(gr)[ok], np.asarray(gc)[ok]] = True
+    truth = small_scene.surface(np.asarray(xs), np.asarray(ys))
+    err = np.asarray(dtm[rows, cols]) - truth
+    sel = has_ground[rows, cols]
+    rmse = float(np.sqrt(np.mean(err[sel] ** 2)))
+    assert rmse <= 0.15, rmse
+
+
+def test_report_and_stac_item(finished_job, small_scene):
+    job, names = finished_job
+    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    assert report["points"] == len(small_scene)
+    assert sum(report["counts_per_class"].values()) == len(small_scene)
+    assert report["parameters"]["block_size"] == 80
+    assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]
+    item = json.loads(pipeline.output_path(job, "item.json").read_text())
+    assert item["properties"]["proj:code"] == "EPSG:32632"
+    assert item["assets"]["dtm.tif"]["type"].startswith("image/tiff; application=geotiff; profile=cloud-optimized")
+    assert set(item["assets"]) == set(names) - {"item.json"}
+    lon0, lat0, lon1, lat1 = item["bbox"]
+    assert 7 < lon0 < lon1 < 11 and 47 < lat0 < lat1 < 50
+
+
+def test_block_seams_do_not_change_labels(tmp_path, small_tile, small_scene, finished_job):
+    """2×2-ish small blocks against one block: same labels away from the tile edge."""
+    job_small, _ = finished_job
+    job_one, _ = _run(tmp_path, small_tile, {"block_size": 400, "buffer": 15}, "one")
+    a = np.asarray(laspy.read(pipeline.output_path(job_small, "classified.laz")).classification)
+    b = np.asarray(laspy.read(pipeline.output_path(job_one, "classified.laz")).classification)
+    x, y = small_scene.xyz[:, 0], small_scene.xyz[:, 1]
+    x0, y0, x1, y1 = small_scene.bounds
+    inner = (x > x0 + 20) & (x < x1 - 20) & (y > y0 + 20) & (y < y1 - 20)
+    same = np.mean(a[inner] == b[inner])
+    assert same >= 0.995, same
+
+
+def test_resume_redoes_only_missing_work(tmp_path, small_tile):
+    job, names = _run(tmp_path, small_tile, BLOCK)
+    before = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}
+    victim = sorted(before)[1]
+    (job / "blocks" / victim).unlink()
+    pipeline.output_path(job, "dtm.tif").unlink()
+    reference = laspy.read(pipeline.output_path(job, "classified.laz")).classification.copy()
+    pipeline.output_path(job, "classified.laz").unlink()
+    pipeline.run_job(job, InlineExecutor())
+    after = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}
+    changed = {n for n in after if after[n] != before.get(n)}
+    assert changed == {victim}
+    assert np.array_equal(laspy.read(pipeline.output_path(job, "classified.laz")).classification, reference)
+    assert pipeline.output_path(job, "dtm.tif").exists()
+
+
+def test_cancelled_job_stops(tmp_path, small_tile):
+    job = tmp_path / "job"
+    pipeline.prepare_job(job, [small_tile], pipeline.validate_params(BLOCK))
+    pipeline.request_cancel(job)
+    with pytest.raises(JobCancelled):
+        pipeline.run_job(job, InlineExecutor())
+    assert not (job / "outputs" / "classified.laz").exists()
+
+
+def test_process_pool_gives_the_same_labels(tmp_path, small_tile, finished_job):
+    job_inline, _ = finished_job
+    executor = LocalExecutor(2)
+    try:
+        job, _ = _run(tmp_path, small_tile, BLOCK, executor=executor)
+    finally:
+        executor.shutdown()
+    a = laspy.read(pipeline.output_path(job_inline, "classified.laz")).classification
+    b = laspy.read(pipeline.output_path(job, "classified.laz")).classification
+    assert np.array_equal(a, b)
+
+
+def test_dask_cluster_gives_the_same_labels(tmp_path, small_tile, finished_job):
+    distributed = pytest.importorskip("distributed")
+    from terrasift.workers.executors import make_executor
+
+    job_inline, _ = finished_job
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        executor = make_executor(dask_scheduler=cluster.scheduler_address)
+        try:
+            assert executor.workers == 2
+            job, _ = _run(tmp_path, small_tile, BLOCK, executor=executor)
+        finally:
+            executor.shutdown()
+    a = laspy.read(pipeline.output_path(job_inline, "classified.laz")).classification
+    b = laspy.read(pipeline.output_path(job, "classified.laz")).classification
+    assert np.array_equal(a, b)
+
+
+def test_multi_tile_job_has_no_seam(tmp_path, small_scene):
+    """Two tiles split down the middle give one seamless DTM and a classified file each."""
+    from terrasift.synthetic.terrain import Scene, write_las
+
+    mid = (small_scene.bounds[0] + small_scene.bounds[2]) / 2
+    paths = []
+    for i, sel in enumerate([small_scene.xyz[:, 0] < mid, small_scene.xyz[:, 0] >= mid]):
+        part = Scene(small_scene.xyz[sel], small_scene.truth[sel], small_scene.return_number[sel],
+                     small_scene.number_of_returns[sel], small_scene.surface, small_scene.bounds)
+        paths.append(write_las(part, tmp_path / f"part{i}.laz"))
+    job = tmp_path / "job"
+    pipeline.prepare_job(job, paths, pipeline.validate_params(BLOCK))
+    names = pipeline.run_job(job, InlineExecutor())
+    assert {"classified-part0.laz", "classified-part1.laz", "dtm.tif"} <= set(names)
+    with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+        dtm = ds.read(1, masked=True)
+        col = int((mid - ds.transform.c) / ds.transform.a)
+        inner = dtm[20:-20, col - 3 : col + 3]
+        assert not np.ma.getmaskarray(inner).any()
+        # no step at the tile border: neighbouring columns differ like elsewhere
+        step = np.abs(np.diff(inner, axis=1)).max()
+        assert step < 0.5
+
+
+def test_tiles_with_different_crs_are_refused(tmp_path, small_scene):
+    from terrasift.errors import InputError
+    from terrasift.synthetic.terrain import write_las
+
+    a = write_las(small_scene, tmp_path / "a.laz", crs="EPSG:32632")
+    b = write_las(small_scene, tmp_path / "b.laz", crs="EPSG:25832")
+    with pytest.raises(InputError, match="share a CRS"):
+        pipeline.inspect_inputs([a, b], pipeline.validate_params({}))
+    shutil.rmtree(tmp_path, ignore_errors=True)

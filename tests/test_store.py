@@ -1,0 +1,106 @@
+"""The SQLite job store: persistence, tenant filtering and guarded status changes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, RUNNING, SUCCESSFUL, JobStore
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> JobStore:
+    s = JobStore(tmp_path / "jobs.sqlite")
+    yield s
+    s.close()
+
+
+def test_job_survives_reopening(tmp_path: Path) -> None:
+    s = JobStore(tmp_path / "db.sqlite")
+    s.create_job("j1", "alice", {"resolution": 0.5}, ["/in/a.laz"])
+    s.close()
+    job = JobStore(tmp_path / "db.sqlite").get_job("j1")
+    assert job is not None
+    assert (job.status, job.tenant, job.params, job.inputs) == (ACCEPTED, "alice", {"resolution": 0.5}, ["/in/a.laz"])
+    assert job.progress == 0 and job.started is None and job.created.endswith("Z")
+
+
+def test_tenant_sees_only_its_jobs(store: JobStore) -> None:
+    store.create_job("a1", "alice", {}, [])
+    store.create_job("b1", "bob", {}, [])
+    store.create_job("a2", "alice", {}, [])
+    assert [j.id for j in store.list_jobs("alice")] == ["a2", "a1"]  # newest first
+    assert store.get_job("b1", tenant="alice") is None
+    assert store.get_job("b1", tenant="bob").id == "b1"
+    assert len(store.list_jobs(None)) == 3
+
+
+def test_list_filters_and_paging(store: JobStore) -> None:
+    for i in range(5):
+        store.create_job(f"j{i}", "t", {}, [])
+    store.mark_running("j1")
+    store.mark_running("j3")
+    assert {j.id for j in store.list_jobs("t", statuses=[RUNNING])} == {"j1", "j3"}
+    page1 = store.list_jobs("t", limit=2)
+    page2 = store.list_jobs("t", limit=2, offset=2)
+    assert [j.id for j in page1] == ["j4", "j3"] and [j.id for j in page2] == ["j2", "j1"]
+
+
+def test_status_transitions_are_guarded(store: JobStore) -> None:
+    store.create_job("j", "t", {}, [])
+    assert store.mark_running("j")
+    assert not store.mark_running("j")  # only from accepted
+    store.set_progress("j", 40, "2 of 5 tasks done")
+    job = store.get_job("j")
+    assert (job.status, job.progress, job.message) == (RUNNING, 40, "2 of 5 tasks done")
+    assert job.started is not None
+    assert store.finish("j", SUCCESSFUL, "finished", ["dtm.tif"])
+    job = store.get_job("j")
+    assert (job.status, job.progress, job.outputs) == (SUCCESSFUL, 100, ["dtm.tif"])
+    assert not store.finish("j", FAILED, "late report")  # a finished job stays finished
+    store.set_progress("j", 10)  # ignored outside running
+    assert store.get_job("j").progress == 100
+
+
+def test_dismissed_job_is_never_revived(store: JobStore) -> None:
+    store.create_job("j", "t", {}, [])
+    store.mark_running("j")
+    job = store.dismiss("j")
+    assert job.status == DISMISSED and job.finished is not None
+    assert not store.finish("j", SUCCESSFUL, "worker finished late", ["dtm.tif"])
+    assert not store.mark_running("j")
+    job = store.get_job("j")
+    assert job.status == DISMISSED and job.outputs == []
+    assert store.dismiss("nope") is None
+
+
+def test_requeue_interrupted_jobs(store: JobStore) -> None:
+    for name in ("run", "queued", "done"):
+        store.create_job(name, "t", {}, [])
+    store.mark_running("run")
+    store.mark_running("done")
+    store.finish("done", SUCCESSFUL, "ok")
+    assert store.requeue_interrupted() == ["run"]
+    assert [j.id for j in store.jobs_with_status(ACCEPTED)] == ["run", "queued"]  # oldest first
+    assert store.get_job("run").message == "resumed after a service restart"
+    store.mark_running("run")
+    assert store.get_job("run").status == RUNNING
+
+
+def test_progress_is_clamped(store: JobStore) -> None:
+    store.create_job("j", "t", {}, [])
+    store.mark_running("j")
+    store.set_progress("j", 250)
+    assert store.get_job("j").progress == 100
+    store.set_progress("j", -3)
+    assert store.get_job("j").progress == 0
+
+
+def test_surveys(store: JobStore) -> None:
+    store.create_survey("s", "alice", ["/a.laz", "/b.laz"], {"resolution": 1.0})
+    assert store.get_survey("s", tenant="bob") is None
+    survey = store.get_survey("s", tenant="alice")
+    assert survey.files == ["/a.laz", "/b.laz"] and survey.params == {"resolution": 1.0}
+    store.create_job("run1", "alice", {}, survey.files, survey_id="s")
+    assert [j.id for j in store.survey_jobs("s")] == ["run1"]
