@@ -69,7 +69,7 @@ class MixedParams(StageParams):
     """Votes a point needs to be marked by the accumulator variant."""
     box_width: float = Field(0.15, gt=0.0, le=10.0)
     """Box extent across the ray, horizontal before roll."""
-    box_height: float = Field(0.5, gt=0.0, le=10.0)
+    box_height: float = Field(0.8, gt=0.0, le=10.0)
     """Box extent across the ray, vertical before roll."""
     box_depth: float = Field(2.5, gt=0.0, le=20.0)
     """Box extent along the ray behind the interest point (the seed saw mixing up to 2.5 m)."""
@@ -120,7 +120,12 @@ class MixedParams(StageParams):
 
 @dataclass(frozen=True)
 class MixedResult:
-    """Marked points, points no box could classify, and counts."""
+    """Marked points, points no box could classify, and counts.
+
+    A supported point (on a surface crossing the boxes) is classified by that; an
+    unsupported one is unclassified when no box of its own held ``min_points`` of
+    content and it was not marked (the seed's loss).
+    """
 
     marked: NDArray[np.bool_]
     unclassified: NDArray[np.bool_]
@@ -241,7 +246,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     n_regions = n_triggered = 0
     rolls = [p.box_roll] + ([p.box_roll + 90.0 if p.box_roll <= 0 else p.box_roll - 90.0] if p.cross_box else [])
     for roll in rolls:
-        # Box content: points no surface crosses the box at (no same-range neighbour across its width).
+        # Box content: the points not supported across the box's width axis.
         across_az = abs(roll) < 45.0
         sup = sup_az if across_az else sup_el
         cand = np.flatnonzero(~sup)
