@@ -5,6 +5,12 @@ Metrics follow Tuley et al. §V-A, over all points of each scan (unclassified
 points stay in the cloud, so they count as "not marked"): tpr, fpr, precision,
 F1, accuracy, loss (unclassified share) and the seed's score (+5 correct,
 -3 false negative, -4 false positive, -1 lost, over 5 per point).
+
+Last run with the defaults (3 scans × 0.15°, 467 945 points, 12 681 mixed/ghost):
+normal-triggered exclusive blind window tpr 0.862, fpr 0.009, precision 0.724,
+F1 0.787, loss 0.006; with cross_box tpr 0.910, fpr 0.033. Uniform random
+points 0.000 % marked at 0.3–15 pts/m³. Speed on the 0.08° scan (533 762 points):
+326 k points/s CPU, tpr 0.854, fpr 0.0044.
 """
 
 from __future__ import annotations
@@ -69,6 +75,26 @@ def main() -> None:
             k = score(truth, m, lost)
             print(f"{trig:<12}{var:<24}" + "".join(f"{k[c]:7.3f}" for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")))
 
+    print("\nwith cross_box (a second box rolled 90° for horizontal edges):")
+    for trig in TRIGGERS:
+        p = MixedParams(trigger=trig, cross_box=True)
+        res = [mark_mixed(s.xyz, p, s.origin) for s in scans]
+        m = np.concatenate([r.marked for r in res])
+        lost = np.concatenate([r.unclassified for r in res])
+        k = score(truth, m, lost)
+        print(f"{trig:<12}{'exclusive_blind_window':<24}" + "".join(f"{k[c]:7.3f}" for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")))
+
+    # Seed §V-D: uniform random points in 10 m cubes, five clouds per density.
+    print("\nuniform random points (10 m cube, sensor 5 m off its face), share marked by the default:")
+    for density in (0.3, 1.5, 2.0, 6.0, 15.0):
+        marked = total = 0
+        for seed in range(5):
+            rng = np.random.default_rng(seed)
+            pts = rng.uniform(0.0, 10.0, (int(1000 * density), 3)) + [5.0, -5.0, 0.0]
+            marked += mark_mixed(pts, MixedParams(), np.array([0.0, 0.0, 5.0])).n_marked
+            total += len(pts)
+        print(f"  {density:5.1f} pts/m³: {100 * marked / total:.3f} %")
+
     if args.no_speed:
         return
     big = make_scan(step_deg=args.speed_step, seed=7)
@@ -78,7 +104,7 @@ def main() -> None:
     res = mark_mixed(big.xyz, p, big.origin)
     dt = time.process_time() - t0
     k = score(big.is_mixed, res.marked, res.unclassified)
-    print(f"\nspeed (exclusive_blind_window, surfaceness): {len(big)} points in {dt:.2f} s CPU "
+    print(f"\nspeed (defaults: exclusive_blind_window, normal trigger): {len(big)} points in {dt:.2f} s CPU "
           f"= {len(big) / dt / 1e3:.0f} k points/s; tpr {k['tpr']:.3f} fpr {k['fpr']:.4f} on that scan")
 
 

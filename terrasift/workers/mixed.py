@@ -9,6 +9,25 @@ face; the scatter matrix of the points in the box gives eigenvalues
 A trigger (surface dominates, or the fitted normal is near orthogonal to the
 ray, or both) starts one of six marking variants.
 
+Extensions to the seed, each a parameter:
+
+- Box content. A mixed return is isolated in range from the surfaces on both
+  sides of it, so the points of a surface crossing the box would swamp the thin
+  sheet (the board face in front, the wall strip behind). A point is *supported*
+  when the surface seen in the next two angular cells across the box, extrapolated
+  linearly, passes through it (``support_tol``); supported points are interest
+  points but never box content, so they neither enter the scatter matrix nor get
+  marked. Marking variants act on the content (and the interest point).
+- Background. Mixing needs a surface behind: a box fires only when at least
+  ``background_share`` of its content has a supported point behind it within
+  ``box_depth``. Random clutter has none, so it is never marked (seed §V-D).
+- Normal trigger. The seed compares the fitted normal with the ray. We fit the
+  best plane constrained to contain the ray to the content's centroid and compare
+  its residual with the free fit's; that is the same angle, and stays defined
+  when the content is a line along the ray (one mixed column).
+- ``cross_box``: a second box rolled 90° for horizontal edges (off by default:
+  far ground at grazing incidence passes for a horizontal sheet and costs fpr).
+
 Neighbours are gathered through a sparse hash of sensor-centred angular cells:
 points are sorted by (cell, range) and carry prefix sums of their first and
 second moments, so the points of one cell inside a range interval — the part of
@@ -28,7 +47,7 @@ from numpy.typing import NDArray
 from pydantic import Field, model_validator
 
 from terrasift.errors import InputError, ParameterError
-from terrasift.workers.mixed_box import box_frames, window_pairs
+from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
 from terrasift.workers.registry import StageParams, register
 
 Variant = Literal["naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"]
@@ -50,29 +69,45 @@ class MixedParams(StageParams):
     """Votes a point needs to be marked by the accumulator variant."""
     box_width: float = Field(0.15, gt=0.0, le=10.0)
     """Box extent across the ray, horizontal before roll."""
-    box_height: float = Field(0.5, gt=0.0, le=10.0)
+    box_height: float = Field(0.8, gt=0.0, le=10.0)
     """Box extent across the ray, vertical before roll."""
     box_depth: float = Field(2.5, gt=0.0, le=20.0)
     """Box extent along the ray behind the interest point (the seed saw mixing up to 2.5 m)."""
     box_roll: float = Field(0.0, ge=-90.0, le=90.0)
     """Rotation of the box about the ray, to find mixed sheets in non-vertical planes."""
-    blind_depth: float = Field(0.15, ge=0.0, le=10.0)
-    """Depth behind the interest point left unmarked by the blind-window variants."""
-    normal_angle: float = Field(5.0, gt=0.0, le=90.0)
+    blind_depth: float = Field(0.05, ge=0.0, le=10.0)
+    """Depth behind the interest point left unmarked by the blind-window variants.
+    Surfaces crossing the box are never its content, so this only has to cover the
+    range noise and the voxel step."""
+    normal_angle: float = Field(8.0, gt=0.0, le=90.0)
     """Largest deviation of the plane normal from orthogonal to the ray (normal trigger)."""
     surface_ratio: float = Field(1.0, ge=0.1, le=100.0)
     """surfaceness fires when surface > surface_ratio × max(linear, random)."""
-    thinness: float = Field(0.6, gt=0.0, le=1.0)
-    """The fitted sheet must be thinner (rms across it) than thinness × box_width / √12,
-    the rms of points filling the box width; random clutter fills it."""
+    thinness: float = Field(1.0, gt=0.0, le=1.0)
+    """The sheet must be thinner (rms across it) than thinness × the rms of points
+    filling the box width, taken at the content's range (the box is the angular
+    window of its front face, so it widens with range)."""
     voxel_size: float = Field(0.05, ge=0.0, le=1.0)
     """Range step of the sparse voxels that share one interest box (0: one box per point)."""
     cell_angle: float = Field(0.25, gt=0.0, le=5.0)
-    """Angular size of the hash cells seen from the sensor; sets the lateral precision."""
-    min_points: int = Field(12, ge=3, le=1000)
-    """Boxes with fewer points are not classified. Saliency needs three (the seed's
-    minimum); 12 keeps sparse random clutter, whose few points always look planar
-    in a thin box, from firing (seed §V-D)."""
+    """Angular size of the hash cells seen from the sensor; sets the lateral precision.
+    Must be at least the scan's angular step, or neighbouring cells are empty and
+    lateral support fails."""
+    support_tol: float = Field(0.02, gt=0.0, le=1.0)
+    """Lateral support: a point where the surface seen in the next two angular cells
+    across the box, extrapolated linearly, lands within support_tol of its range
+    lies on a surface crossing the box, so it is not box content (it can still be
+    an interest point). Mixed returns lie off that line."""
+    cross_box: bool = False
+    """Also evaluate a second box turned 90° about the ray, for mixed sheets along
+    horizontal edges (board tops and bottoms)."""
+    background_share: float = Field(0.5, ge=0.0, le=1.0)
+    """Share of the box content that must have a surface behind it (within box_depth,
+    in its own or the next cell across the box). A mixed return blends a foreground
+    with a background; random clutter has none (seed §V-D)."""
+    min_points: int = Field(8, ge=3, le=1000)
+    """Boxes with fewer content points are not classified. Saliency needs three (the
+    seed's minimum); a few more keep the fitted plane meaningful."""
 
     @model_validator(mode="after")
     def _check(self) -> MixedParams:
@@ -85,7 +120,12 @@ class MixedParams(StageParams):
 
 @dataclass(frozen=True)
 class MixedResult:
-    """Marked points, points no box could classify, and counts."""
+    """Marked points, points no box could classify, and counts.
+
+    A supported point (on a surface crossing the boxes) is classified by that; an
+    unsupported one is unclassified when no box of its own held ``min_points`` of
+    content and it was not marked (the seed's loss).
+    """
 
     marked: NDArray[np.bool_]
     unclassified: NDArray[np.bool_]
@@ -178,11 +218,13 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     ie = np.minimum(((el + np.pi / 2) / beta).astype(np.int64), n_el - 1)
     cell = ia * n_el + ie
     order = np.lexsort((r, cell))
-    q, r, cell, ia, ie = q[order], r[order], cell[order], ia[order], ie[order]
+    q, r, cell, ia, ie, az, el = q[order], r[order], cell[order], ia[order], ie[order], az[order], el[order]
     big = float(2 ** int(np.ceil(np.log2(r.max() + p.box_depth + 2.0))))
     key = cell * big + r
-    occupied = np.zeros(n_az * n_el, dtype=bool)
-    occupied[cell] = True
+
+    # Lateral support: the surface through the neighbours across azimuth (elevation) continues through the point.
+    sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=0)
+    sup_el = _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=1) if p.cross_box else sup_az
 
     # Interest voxels: runs of one cell within one range step; the nearest point is the interest point.
     rbin = np.floor(r / p.voxel_size).astype(np.int64) if p.voxel_size > 0 else np.arange(r.size)
@@ -191,62 +233,189 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     first = np.flatnonzero(new)
     item_of = np.cumsum(new) - 1
     n_items = first.size
-    P, r0 = q[first], r[first]
+    P, r0, ia0, ie0 = q[first], r[first], ia[first], ie[first]
 
-    frames = box_frames(P, np.radians(p.box_roll))
-    it, pc = window_pairs(
-        P, r0, ia[first], ie[first], frames, p.box_width, p.box_height, beta, n_az, n_el, occupied
-    )
-    lo = np.searchsorted(key, pc * big + r0[it], side="left")
-    hi = np.searchsorted(key, pc * big + r0[it] + p.box_depth, side="right")
-    nz = hi > lo  # most covered cells hold nothing within the box's range interval
-    it, pc, lo, hi = it[nz], pc[nz], lo[nz], hi[nz]
+    blind = p.blind_depth if "blind" in p.variant else 0.0
+    box_votes = np.zeros(r.size, dtype=np.int64)  # boxes whose region holds the point
+    win_votes = np.zeros(r.size, dtype=np.int64)  # ... beyond the blind window
+    self_box = np.zeros(r.size, dtype=np.int64)  # of those, the point's own box
+    self_win = np.zeros(r.size, dtype=np.int64)
+    own = np.zeros(r.size, dtype=bool)  # the point's own box fired
+    candidate = np.zeros(r.size, dtype=bool)
+    decided = np.zeros(r.size, dtype=bool)  # a box holding enough content judged the point
+    n_regions = n_triggered = 0
+    rolls = [p.box_roll] + ([p.box_roll + 90.0 if p.box_roll <= 0 else p.box_roll - 90.0] if p.cross_box else [])
+    for roll in rolls:
+        # Box content: the points not supported across the box's width axis.
+        across_az = abs(roll) < 45.0
+        sup = sup_az if across_az else sup_el
+        cand = np.flatnonzero(~sup)
+        candidate[cand] = True
+        frames = box_frames(P, np.radians(roll))
+        na, ne = window_extent(P, r0, frames, p.box_width, p.box_height, beta, n_az)
+        fired = np.zeros(n_items, dtype=bool)
+        counted = np.zeros(n_items, dtype=bool)
+        if cand.size:
+            kc = key[cand]
+            img = np.bincount(cell[cand], minlength=n_az * n_el).reshape(n_az, n_el)
+            look = np.flatnonzero(_window_count(img, ia0, ie0, na, ne) > 0)
+            it, pc = window_pairs(
+                r0[look], ia0[look], ie0[look], na[look], ne[look], frames[look],
+                p.box_width, p.box_height, beta, n_az, n_el, img.ravel() > 0,
+            )
+            it = look[it]
+            lo = np.searchsorted(kc, pc * big + r0[it], side="left")
+            hi = np.searchsorted(kc, pc * big + r0[it] + p.box_depth, side="right")
+            nz = hi > lo  # most covered cells hold nothing within the box's range interval
+            it, pc, lo, hi = it[nz], pc[nz], lo[nz], hi[nz]
 
-    # Box moments from prefix sums, coordinates relative to each interest point's sensor frame.
-    mom = np.empty((r.size + 1, 10))
-    mom[0] = 0.0
-    x, y, z = q[:, 0], q[:, 1], q[:, 2]
-    np.cumsum(np.column_stack([np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z]), axis=0, out=mom[1:])
-    diff = mom[hi] - mom[lo]
-    S = np.column_stack([np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(10)])
-    cnt = S[:, 0]
-    classified = cnt >= p.min_points
-    fired = np.zeros(n_items, dtype=bool)
-    ci = np.flatnonzero(classified)
-    if ci.size:
-        fired[ci] = _trigger(S[ci], frames[ci], p)
+            # Box moments of the content from prefix sums.
+            x, y, z = q[cand, 0], q[cand, 1], q[cand, 2]
+            bg = _background(key[sup], cell[cand], r[cand], n_el if across_az else 1, big, p.box_depth)
+            mom = np.zeros((cand.size + 1, 11))
+            np.cumsum(np.column_stack([np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z, bg]), axis=0, out=mom[1:])
+            diff = mom[hi] - mom[lo]
+            S = np.column_stack([np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(11)])
+            counted = S[:, 0] >= p.min_points
+            ci = np.flatnonzero(counted)
+            if ci.size:
+                fired[ci] = _trigger(S[ci], frames[ci], r0[ci], p)
 
-    # Marking through a difference array over the sorted points.
-    sel = fired[it]
-    if p.variant in ("blind_window", "exclusive_blind_window"):
-        lo_m = np.searchsorted(key, pc[sel] * big + r0[it[sel]] + p.blind_depth, side="left")
-    else:
-        lo_m = lo[sel]
-    votes = np.bincount(lo_m, minlength=r.size + 1) - np.bincount(hi[sel], minlength=r.size + 1)
-    votes = np.cumsum(votes[:-1])
-    own = fired[item_of]  # the point's own box fired
-    own_in_window = own & (r - r0[item_of] >= (p.blind_depth if "blind" in p.variant else 0.0))
+            # Marking through difference arrays over the sorted content.
+            sel = fired[it]
+            box_c = np.cumsum(np.bincount(lo[sel], minlength=cand.size + 1) - np.bincount(hi[sel], minlength=cand.size + 1))
+            box_votes[cand] += box_c[:-1]
+            lo_w = np.searchsorted(kc, pc[sel] * big + r0[it[sel]] + blind, side="left") if blind > 0 else lo[sel]
+            win_c = np.cumsum(np.bincount(lo_w, minlength=cand.size + 1) - np.bincount(hi[sel], minlength=cand.size + 1))
+            win_votes[cand] += win_c[:-1]
+            behind = r[cand] - r0[item_of[cand]] >= blind
+            f_own = fired[item_of[cand]]
+            self_box[cand] += f_own
+            self_win[cand] += f_own & behind
+            decided[cand] |= counted[item_of[cand]]
+        own |= fired[item_of]
+        n_regions += int(counted.sum())
+        n_triggered += int(fired.sum())
+
+    # The interest voxel belongs to its own region even when it is not box content.
+    region = box_votes + (own & (self_box == 0))
     if p.variant == "naive":
         m = own
     elif p.variant == "aggressive":
-        m = votes > 0
+        m = region > 0
     elif p.variant == "accumulator":
-        m = votes >= p.votes
+        m = region >= p.votes
     elif p.variant == "exclusive":
-        m = (votes - own_in_window) > 0
+        m = (box_votes - self_box) > 0
     elif p.variant == "blind_window":
-        m = (votes > 0) | own
+        m = (win_votes > 0) | own
     else:  # exclusive_blind_window
-        m = (votes - own_in_window) > 0
-    unc = ~classified[item_of] & ~m
+        m = (win_votes - self_win) > 0
+    # Points on a surface crossing every box are judged by that; the rest by their own box.
+    unc = candidate & ~decided & ~m
 
     back = valid[order]
     marked[back] = m
     unclassified[back] = unc
-    return marked, unclassified, n_items, int(fired.sum())
+    return marked, unclassified, n_regions, n_triggered
 
 
-def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], p: MixedParams) -> NDArray[np.bool_]:
+def _continued(
+    key: NDArray[np.float64],
+    r: NDArray[np.float64],
+    ang: NDArray[np.float64],
+    ang_other: NDArray[np.float64],
+    ia: NDArray[np.int64],
+    ie: NDArray[np.int64],
+    n_az: int,
+    n_el: int,
+    big: float,
+    beta: float,
+    tol: float,
+    axis: int,
+) -> NDArray[np.bool_]:
+    """Whether a surface seen on one side of each point continues through it.
+
+    On each side along ``axis`` (0 azimuth, 1 elevation) take the point of the
+    next cell nearest in range (j, within a gate of 4·tol + 2·range·cell) and,
+    from j, the next cell's (k); the point is supported when the range
+    extrapolated linearly in angle from k through j lands within ``tol`` of its
+    own. Planes at moderate incidence pass; a mixed return, off the line from
+    foreground to background, does not. (Grazing surfaces such as far ground
+    curve too fast in range along elevation to pass the elevation test.)
+    """
+    gate = 4.0 * tol + 2.0 * r * beta
+    out = np.zeros(r.size, dtype=bool)
+    # The other axis: a scan line near a cell border may fall either side of it,
+    # so each step looks at the cell across the nearer border too.
+    other = (ang_other + (np.pi if axis == 0 else np.pi / 2)) / beta
+    side = np.where(other - np.floor(other) >= 0.5, 1, -1)
+
+    def nearest(a, e, rr, sd):
+        best = np.zeros(rr.size, dtype=np.int64)
+        dist = np.full(rr.size, np.inf)
+        for off in (0, 1):
+            aa, ee = (a, e + off * sd) if axis == 0 else (a + off * sd, e)
+            aa, ee = aa % n_az, np.clip(ee, 0, n_el - 1)
+            k = (aa * n_el + ee) * big + rr
+            i = np.searchsorted(key, k)
+            for c in (np.minimum(i, key.size - 1), np.maximum(i - 1, 0)):
+                d = np.abs(key[c] - k)
+                better = d < dist
+                best[better], dist[better] = c[better], d[better]
+        return best, dist <= gate
+
+    for s in (1, -1):
+        if axis == 0:
+            ok = np.ones(r.size, dtype=bool)
+            j, okj = nearest(ia + s, ie, r, side)
+            k, okk = nearest(ia + 2 * s, ie, r[j], side[j])
+        else:
+            ok = (ie + 2 * s >= 0) & (ie + 2 * s < n_el)
+            j, okj = nearest(ia, ie + s, r, side)
+            k, okk = nearest(ia, ie + 2 * s, r[j], side[j])
+        djk = ang[j] - ang[k]
+        dij = ang - ang[j]
+        if axis == 0:  # across the azimuth seam
+            djk = (djk + np.pi) % (2 * np.pi) - np.pi
+            dij = (dij + np.pi) % (2 * np.pi) - np.pi
+        good = ok & okj & okk & (np.abs(djk) > 1e-9)
+        pred = r[j] + (r[j] - r[k]) * dij / np.where(good, djk, 1.0)
+        out |= good & (np.abs(pred - r) <= tol)
+    return out
+
+
+def _background(
+    ksup: NDArray[np.float64], cell: NDArray[np.int64], r: NDArray[np.float64], step: int, big: float, depth: float
+) -> NDArray[np.float64]:
+    """1 where a supported point (a surface) lies behind the point within ``depth``,
+    in its own cell or the next one either side across the box (``step`` cells)."""
+    out = np.zeros(r.size, dtype=bool)
+    if ksup.size == 0:
+        return out.astype(np.float64)
+    for dc in (0, step, -step):
+        k = (cell + dc) * big + r
+        i = np.searchsorted(ksup, k, side="right")
+        out |= (i < ksup.size) & (ksup[np.minimum(i, ksup.size - 1)] - k <= depth)
+    return out.astype(np.float64)
+
+
+def _window_count(
+    img: NDArray[np.int64], ia: NDArray[np.int64], ie: NDArray[np.int64], na: NDArray[np.int64], ne: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """Points of ``img`` (azimuth × elevation counts) in each window; windows across the azimuth seam count as full."""
+    n_az, n_el = img.shape
+    sat = np.zeros((n_az + 1, n_el + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(img, axis=0), axis=1, out=sat[1:, 1:])
+    a0, a1 = ia - na, ia + na + 1
+    e0, e1 = np.maximum(ie - ne, 0), np.minimum(ie + ne + 1, n_el)
+    wrap = (a0 < 0) | (a1 > n_az)
+    a0, a1 = np.clip(a0, 0, n_az), np.clip(a1, 0, n_az)
+    cnt = sat[a1, e1] - sat[a0, e1] - sat[a1, e0] + sat[a0, e0]
+    return np.where(wrap, 1, cnt)
+
+
+def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], r0: NDArray[np.float64], p: MixedParams) -> NDArray[np.bool_]:
     """Saliency of each box from its moment sums; which boxes fire."""
     n = S[:, 0]
     mean = S[:, 1:4] / n[:, None]
@@ -258,15 +427,27 @@ def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], p: MixedParams
     cov[:, 1, 1] = yy - mean[:, 1] ** 2
     cov[:, 1, 2] = cov[:, 2, 1] = yz - mean[:, 1] * mean[:, 2]
     cov[:, 2, 2] = zz - mean[:, 2] ** 2
-    # normal: a thin sheet whose plane contains the ray, i.e. passes through the
-    # sensor: the normal is orthogonal to the ray to the box's centroid. The
-    # ground, seen from a mast, is a plane that misses the sensor by the mast height.
-    w, v = np.linalg.eigh(cov)  # ascending
-    lam2, lam1 = np.maximum(w[:, 0], 0.0), w[:, 1]
-    thin = lam2 < (p.thinness * p.box_width) ** 2 / 12.0
-    mdir = mean / np.linalg.norm(mean, axis=1, keepdims=True)
-    cos_nr = np.abs(np.einsum("ij,ij->i", v[:, :, 0], mdir))
-    perp = thin & (lam1 > 4.0 * lam2) & (cos_nr <= np.sin(np.radians(p.normal_angle)))
+    # normal: the content lies on a thin sheet containing the ray (through the
+    # sensor). The best plane constrained to contain the ray to the centroid, m,
+    # leaves the spread mu across it; a plane tilted by d from containing m leaves
+    # about lam2 + tan²(d)·(spread along m) — the seed's normal-to-ray angle, still
+    # defined when the content is a line along the ray (a single mixed column).
+    # The ground seen from a mast misses the sensor by the mast height.
+    w = np.linalg.eigvalsh(cov)  # ascending
+    lam2 = np.maximum(w[:, 0], 0.0)
+    rbar = np.linalg.norm(mean, axis=1)
+    mdir = mean / rbar[:, None]
+    proj = np.eye(3)[None] - mdir[:, :, None] * mdir[:, None, :]
+    wp = np.linalg.eigvalsh(proj @ cov @ proj)
+    mu, mu_max = wp[:, 1], wp[:, 2]
+    along = np.einsum("ij,ijk,ik->i", mdir, cov, mdir)
+    # Thin: rms across the sheet under thinness × that of points filling the box
+    # width, the box being the angular window of its front face, widened with range.
+    fill = (p.box_width * rbar / r0) ** 2 / 12.0
+    thin = mu <= p.thinness**2 * fill
+    # The content must reach along the ray (at least half as far, in rms, as across
+    # it): a row of ground points across the ray lies in such a plane too.
+    perp = thin & (along >= 0.25 * mu_max) & (mu - lam2 <= np.tan(np.radians(p.normal_angle)) ** 2 * along)
     # surfaceness: saliency in box units (each axis over the box's extent), so a
     # box filled at random is isotropic; the sheet must be the box's long plane
     # (normal along the width axis), which roll turns about the ray.
@@ -278,8 +459,10 @@ def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], p: MixedParams
     linear, surface, random = b0 - b1, b1 - b2, b2
     along_u = np.abs(vb[:, 1, 0]) >= np.abs(vb[:, [0, 2], 0]).max(axis=1)
     surf = along_u & (surface > p.surface_ratio * np.maximum(linear, random))
+    # Mixing needs a background: most of the content lies in front of a surface.
+    backed = S[:, 10] >= p.background_share * n
     if p.trigger == "surfaceness":
-        return surf
+        return backed & surf
     if p.trigger == "normal":
-        return perp
-    return surf & perp
+        return backed & perp
+    return backed & surf & perp

@@ -29,11 +29,36 @@ def box_frames(P: NDArray[np.float64], roll: float) -> NDArray[np.float64]:
     return np.stack([t, u, v], axis=1)
 
 
-def window_pairs(
+def window_extent(
     P: NDArray[np.float64],
+    r0: NDArray[np.float64],
+    frames: NDArray[np.float64],
+    width: float,
+    height: float,
+    beta: float,
+    n_az: int,
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Half-extent (azimuth, elevation), in angular cells, of the cell window around each box's front face."""
+    # Angle between the box's height axis and the local elevation direction.
+    t = frames[:, 0]
+    horiz = np.hypot(t[:, 0], t[:, 1])
+    e_el = np.column_stack([-t[:, 2] * t[:, 0], -t[:, 2] * t[:, 1], horiz * horiz]) / np.maximum(horiz, 1e-12)[:, None]
+    roll_c = np.clip(np.abs(np.einsum("ij,ij->i", frames[:, 2], e_el)), 0.0, 1.0)
+    roll_s = np.sqrt(1 - roll_c**2)
+    hu = roll_c * width / 2 + roll_s * height / 2
+    hv = roll_s * width / 2 + roll_c * height / 2
+    cos_el = np.maximum(np.hypot(P[:, 0], P[:, 1]) / r0, 0.05)
+    na = np.ceil(hu / (r0 * cos_el) / beta + 0.5).astype(np.int64)
+    ne = np.ceil(hv / r0 / beta + 0.5).astype(np.int64)
+    return np.minimum(na, n_az // 2), ne
+
+
+def window_pairs(
     r0: NDArray[np.float64],
     ia: NDArray[np.int64],
     ie: NDArray[np.int64],
+    na: NDArray[np.int64],
+    ne: NDArray[np.int64],
     frames: NDArray[np.float64],
     width: float,
     height: float,
@@ -47,19 +72,10 @@ def window_pairs(
 
     A cell belongs to a box when the ray through the cell's centre crosses the
     box's front face (|u| ≤ width/2, |v| ≤ height/2); the box's own cell always does.
+    ``na``, ``ne`` are the half-extents of the candidate window (``window_extent``).
     """
-    # Angle between the box's height axis and the local elevation direction.
-    t = frames[:, 0]
-    horiz = np.hypot(t[:, 0], t[:, 1])
-    e_el = np.column_stack([-t[:, 2] * t[:, 0], -t[:, 2] * t[:, 1], horiz * horiz]) / np.maximum(horiz, 1e-12)[:, None]
-    roll_c = np.clip(np.abs(np.einsum("ij,ij->i", frames[:, 2], e_el)), 0.0, 1.0)
-    roll_s = np.sqrt(1 - roll_c**2)
-    hu = roll_c * width / 2 + roll_s * height / 2
-    hv = roll_s * width / 2 + roll_c * height / 2
-    cos_el = np.maximum(np.hypot(P[:, 0], P[:, 1]) / r0, 0.05)
-    na = np.ceil(hu / (r0 * cos_el) / beta + 0.5).astype(np.int64)
-    ne = np.ceil(hv / r0 / beta + 0.5).astype(np.int64)
-    na = np.minimum(na, n_az // 2)
+    if r0.size == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.int64)
     wa, we = 2 * na + 1, 2 * ne + 1
     counts = wa * we
     out_i: list[NDArray] = []
