@@ -220,11 +220,13 @@ def _ground(
         def seeded(p: NDArray, known: NDArray) -> NDArray:
             return stage.run(p, cparams, seed_mask=known, **kwargs)
 
-    # Steep blocks: all nine runs conservative, as in the seed (the default
-    # run's low vegetation alone exceeds the Type II budget on cliff scenes).
     with timer("rotation"):
         result = rotation.classify_rotated(
-            xyz, lambda p: stage.run(p, cparams, **kwargs), rparams, seeded=seeded
+            xyz,
+            lambda p: stage.run(p, cparams, **kwargs),
+            rparams,
+            unrotated=None if rparams.rerun_unrotated else is_ground,
+            seeded=seeded,
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

@@ -69,6 +69,11 @@ class RotationParams(StageParams):
     steep facet (> 50°) of the unrotated ground surface. A rotation exists for
     faces; on the flats it only isolates crowns, which its TIN then takes.
     None: no limit."""
+    rerun_unrotated: bool = False
+    """Steep blocks: run the unrotated cloud again with ``ground_preset`` (the
+    seed: nine conservative runs) instead of keeping the block's normal labels.
+    On cliff scenes this keeps Type II near the aggressive filter's; on the
+    ISPRS samples it costs samp11 (a steep town) 15 kappa points."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
