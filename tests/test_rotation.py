@@ -57,7 +57,7 @@ def test_classify_rotated_is_or_about_centroid():
         seen.append(p.copy())
         return p[:, 2] < np.median(p[:, 2])
 
-    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0))
+    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0, steep_reach=None))
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
     expect = base.copy()

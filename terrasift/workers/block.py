@@ -222,7 +222,11 @@ def _ground(
 
     with timer("rotation"):
         result = rotation.classify_rotated(
-            xyz, lambda p: stage.run(p, cparams, **kwargs), rparams, unrotated=is_ground, seeded=seeded
+            xyz,
+            lambda p: stage.run(p, cparams, **kwargs),
+            rparams,
+            unrotated=None if rparams.rerun_unrotated else is_ground,
+            seeded=seeded,
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

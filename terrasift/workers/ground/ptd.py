@@ -54,6 +54,14 @@ class PtdParams(StageParams):
     every remaining point that passes the tests and the filter stops (0: run every
     one-per-facet round to the end). The tail otherwise costs a full
     re-triangulation per handful of points."""
+    mirror_slope: float | None = Field(None, gt=0.0, le=90.0)
+    """Degrees: a point failing the tests in a facet steeper than this is tested
+    again by its mirror image through the facet's nearest vertex, against the
+    facet the image falls in (after Axelsson 2000). At a convex break (a
+    plateau's rim above a cliff, a tipped cliff's top) the facet under the point
+    drops away, but the surface behind the vertex continues the point's own.
+    Gentle facets never mirror. None: off (the default: on the ISPRS samples
+    mirrors let roofs in); the conservative set of rotated runs uses it."""
 
     presets = {
         "conservative": {
@@ -61,6 +69,7 @@ class PtdParams(StageParams):
             "iteration_angle": 15.0,
             "iteration_distance": 1.0,
             "max_building_size": 10.0,
+            "mirror_slope": 45.0,
         },
         "aggressive": {
             "terrain_angle": 88.0,
@@ -313,11 +322,37 @@ def _judge(
     # Within a metre of a vertex, scanner noise alone makes steep angles:
     # judge such points as if a metre away.
     sin_angle = dist / np.maximum(rmin, 1.0)
-    ok = (
-        (dist < params.iteration_distance)
-        & (sin_angle < np.sin(np.radians(params.iteration_angle)))
-        & (nz >= np.cos(np.radians(params.terrain_angle)))
-    )
+    sin_max = np.sin(np.radians(params.iteration_angle))
+    cos_max = np.cos(np.radians(params.terrain_angle))
+    ok = (dist < params.iteration_distance) & (sin_angle < sin_max) & (nz >= cos_max)
+    if params.mirror_slope is not None and not ok.all():
+        # Mirror image p' = 2v - p through the nearest vertex v, judged against
+        # the facet p' falls in: the surface behind v, continued past it.
+        bad = np.flatnonzero(~ok & (nz < np.cos(np.radians(params.mirror_slope))))
+        pb = pts[bad]
+        vs = np.stack([a[bad], b[bad], c[bad]], axis=1)
+        near = np.argmin(((vs - pb[:, None, :]) ** 2).sum(axis=2), axis=1)
+        img = 2.0 * vs[np.arange(bad.size), near] - pb
+        s2 = tri.find_simplex(img[:, :2])
+        has = np.flatnonzero(s2 >= 0)
+        bad, img, s2 = bad[has], img[has], s2[has]
+        a2 = verts[simp[s2, 0]]
+        b2 = verts[simp[s2, 1]]
+        c2 = verts[simp[s2, 2]]
+        n2 = np.cross(b2 - a2, c2 - a2)
+        norm2 = np.linalg.norm(n2, axis=1)
+        norm2[norm2 == 0] = np.inf
+        d2 = np.abs(np.einsum("ij,ij->i", img - a2, n2)) / norm2
+        r2 = np.sqrt(
+            np.minimum(
+                np.minimum(((img - a2) ** 2).sum(1), ((img - b2) ** 2).sum(1)),
+                ((img - c2) ** 2).sum(1),
+            )
+        )
+        sin2 = d2 / np.maximum(r2, 1.0)
+        ok2 = (d2 < params.iteration_distance) & (sin2 < sin_max) & (np.abs(n2[:, 2]) / norm2 >= cos_max)
+        ok[bad[ok2]] = True
+        sin_angle[bad[ok2]] = sin2[ok2]
     return inside, s, ok, sin_angle, area
 
 

@@ -58,10 +58,22 @@ class RotationParams(StageParams):
     so near the footprint's edge tree tops and birds stand alone and become TIN
     seeds. None: the block's height range (2nd–98th percentile) × sin(angle).
     The unrotated run still labels the margin."""
-    max_lift: float | None = Field(12.0, gt=0.0, le=1000.0)
+    max_lift: float | None = Field(30.0, gt=0.0, le=1000.0)
     """Metres: a rotated run may add only points within this height of the
     unrotated ground surface (a TIN of its lowest ground per 2 m cell); tipping
-    isolates birds and tree tops, which then seed a rotated TIN. None: no limit."""
+    isolates birds, which then seed a rotated TIN. High, since a cliff's upper
+    face and an overhang's roof stand far above that surface at their foot
+    (``steep_reach`` keeps crowns out). None: no limit."""
+    steep_reach: float | None = Field(4.0, gt=0.0, le=1000.0)
+    """Metres: a rotated run may add only points this close (horizontally) to a
+    steep facet (> 50°) of the unrotated ground surface. A rotation exists for
+    faces; on the flats it only isolates crowns, which its TIN then takes.
+    None: no limit."""
+    rerun_unrotated: bool = False
+    """Steep blocks: run the unrotated cloud again with ``ground_preset`` (the
+    seed: nine conservative runs) instead of keeping the block's normal labels.
+    On cliff scenes this keeps Type II near the aggressive filter's; on the
+    ISPRS samples it costs samp11 (a steep town) 15 kappa points."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
@@ -163,8 +175,8 @@ def classify_rotated(
         lo, hi = np.percentile(xyz[:, 2], [2, 98]) if xyz.shape[0] else (0.0, 0.0)
         margin = float(hi - lo) * np.sin(np.radians(params.angle))
     near = None
-    if params.max_lift is not None and base.any():
-        near = _near_surface(xyz, base, params.max_lift)
+    if (params.max_lift is not None or params.steep_reach is not None) and base.any():
+        near = _near_surface(xyz, base, params.max_lift, params.steep_reach)
     for k in range(params.directions):
         rot = rotation_matrix(360.0 * k / params.directions, params.angle)
         # (x − c) R^T + c, built in one new array: the only extra copy of the block.
@@ -183,8 +195,13 @@ def classify_rotated(
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
 
 
-def _near_surface(xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: float) -> NDArray[np.bool_]:
-    """Points within ``lift`` of the surface through the lowest ``ground`` point per 2 m cell."""
+def _near_surface(
+    xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: float | None, reach: float | None
+) -> NDArray[np.bool_]:
+    """Points within ``lift`` of the surface through the lowest ``ground`` point
+    per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°."""
+    from scipy.spatial import cKDTree
+
     from terrasift.workers.bins import lowest_per_bin
     from terrasift.workers.surface import TinSurface
 
@@ -192,5 +209,22 @@ def _near_surface(xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: flo
     lo = xyz[g, :2].min(axis=0)
     grid = Grid.covering(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1], 2.0)
     low = lowest_per_bin(grid.index(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1]), xyz[g, 2], grid.size)
-    surf = TinSurface(xyz[g[low[low >= 0]]])
-    return np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
+    verts = xyz[g[low[low >= 0]]] - [lo[0], lo[1], 0.0]
+    ok = np.ones(xyz.shape[0], dtype=bool)
+    if lift is not None:
+        surf = TinSurface(verts + [lo[0], lo[1], 0.0])
+        ok &= np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
+    if reach is not None:
+        try:
+            tri = Delaunay(verts[:, :2])
+        except (QhullError, ValueError):
+            return ok
+        p = verts[tri.simplices]
+        nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
+        if not slope.any():
+            return np.zeros(xyz.shape[0], dtype=bool)
+        anchors = np.unique(tri.simplices[slope])
+        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=reach)
+        ok &= np.isfinite(dist)
+    return ok
