@@ -25,7 +25,9 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     scan, path = _scan_tile(tmp_path)
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
-    params = pipeline.validate_params({"sensor_origin": origin, "resolution": 0.5, "features": "none", "block_size": 40, "buffer": 4})
+    # the angular cells of the mixed filter must be at least the scan step (0.4°)
+    params = pipeline.validate_params({"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4,
+                                       "mixed.cell_angle": 0.5})
     pipeline.prepare_job(job, [path], params)
     pipeline.run_job(job, InlineExecutor())
     classes = np.asarray(laspy.read(pipeline.output_path(job, "classified.laz")).classification)
