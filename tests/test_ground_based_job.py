@@ -36,7 +36,7 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     # most marked points are real mixed or ghost returns, and few correct points are lost
     precision = np.mean(scan.is_mixed[marked])
     fpr = np.mean(marked[~scan.is_mixed])
-    assert precision > 0.15 and fpr < 0.08, (precision, fpr)
+    assert precision > 0.4 and fpr < 0.03, (precision, fpr)  # measured 0.51 and 0.014 on this coarse scan
     report = json.loads(pipeline.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"]["marked"] == int(marked.sum())
     assert report["counts_per_class"]["7"] == int(marked.sum())
