@@ -16,6 +16,7 @@ from typing import Any
 
 import laspy
 import numpy as np
+from numpy.typing import NDArray
 import pyproj
 
 from terrasift.errors import ProcessingError
@@ -93,13 +94,19 @@ def write_rasters(job_dir: str) -> list[str]:
     return wanted
 
 
+BAND_ROWS = 512  # DTM rows per band for slope and categories (a multiple of any tile's cells)
+
+
 def write_terrain(job_dir: str) -> list[str]:
     """Task: slope, categories and terrain objects from the job's mosaicked DTM.
 
-    Runs on the whole job's DTM so that objects crossing block or tile borders
-    come out once. Needs the DTM in memory: 4 bytes per cell.
+    Slope and categories are local, so they run over bands of DTM rows (with
+    a margin for the slope's smoothing) and memory follows the band. Objects
+    are found on the whole job's category grid (one byte per 2 m tile per
+    band), so an object crossing block or tile borders comes out once.
     """
     import rasterio
+    from rasterio.windows import Window
 
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
@@ -109,23 +116,36 @@ def write_terrain(job_dir: str) -> list[str]:
     out = job / "outputs"
     plan = _load(job, "plan.json")
     params = _load(job, "job.json")["params"]
-    with rasterio.open(out / "dtm.tif") as ds:
-        dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
-        transform = ds.transform
+    tparams = stage_params(params, "terrain")
+    cparams = stage_params(params, "categories")
     names = []
     work = job / "work"
     work.mkdir(exist_ok=True)
-    res = abs(transform.a)
-    if not (out / "slope.tif").exists():
-        tparams = stage_params(params, "terrain")
-        slope = terrain.slope_degrees(dtm, res, tparams.median_size, tparams.smooth)
-        m = RasterMosaic(work / "slope.tif", width=dtm.shape[1], height=dtm.shape[0], transform=transform, crs=plan["crs_wkt"])
-        m.write(0, 0, slope)
-        m.close_as_cog(out / "slope.tif")
-    names.append("slope.tif")
+    with rasterio.open(out / "dtm.tif") as ds:
+        transform, height, width = ds.transform, ds.height, ds.width
+        res = abs(transform.a)
+        k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
+        band = max(k, BAND_ROWS // k * k)
+        margin = tparams.median_size // 2 + 2
 
-    cparams = stage_params(params, "categories")
-    cats = cat.compute_categories(dtm, res, cparams)
+        def read(r0: int, r1: int) -> NDArray:
+            return ds.read(1, window=Window(0, r0, width, r1 - r0), masked=True).filled(np.nan).astype(np.float64)
+
+        if not (out / "slope.tif").exists():
+            m = RasterMosaic(work / "slope.tif", width=width, height=height, transform=transform, crs=plan["crs_wkt"])
+            for r in range(0, height, band):
+                lo, hi = max(0, r - margin), min(height, r + band + margin)
+                slope = terrain.slope_degrees(read(lo, hi), res, tparams.median_size, tparams.smooth)
+                m.write(r, 0, slope[r - lo : r - lo + min(band, height - r)])
+            m.close_as_cog(out / "slope.tif")
+        names.append("slope.tif")
+
+        parts = [cat.compute_categories(read(r, min(height, r + band)), res, cparams) for r in range(0, height, band)]
+    cats = cat.Categories(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("inclination", "orientation", "state", "height10")),
+        cells_per_tile=parts[0].cells_per_tile,
+        tile_size=parts[0].tile_size,
+    )
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(

@@ -56,6 +56,9 @@ class RasterMosaic:
             blockysize=256,
             compress="deflate",
             BIGTIFF="IF_SAFER",
+            # Four uint8 bands would otherwise default to RGB + alpha, and the
+            # COG step would mask every pixel whose fourth band is 0.
+            photometric="MINISBLACK",
         )
         self._ds = rasterio.open(self.path, "w", **profile)
         if descriptions:
@@ -86,6 +89,7 @@ class RasterMosaic:
         tmp = out_path.with_name(out_path.name + ".part")
         profile = cog_profiles.get("deflate")
         profile.update(blockxsize=256, blockysize=256)
+        profile["photometric"] = "MINISBLACK"
         if self.dtype.startswith("float"):
             profile["predictor"] = 3
         cog_translate(
