@@ -188,7 +188,12 @@ def run_job(
     shard_seconds = time.perf_counter() - t
 
     # Blocks: every block that received a point from any tile.
-    names = sorted({p.stem for d in shard_root.iterdir() if d.is_dir() for p in d.glob("*.bin")})
+    sizes: dict[str, int] = {}
+    for shard in (p for d in shard_root.iterdir() if d.is_dir() for p in d.glob("*.bin")):
+        sizes[shard.stem] = sizes.get(shard.stem, 0) + shard.stat().st_size
+    # Largest blocks first, so the last tasks to finish are short ones and
+    # workers do not idle at the end of the job.
+    names = sorted(sizes, key=lambda n: (-sizes[n], n))
     counter["total"] = n_tiles + len(names) + extra
     t = time.perf_counter()
     block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
