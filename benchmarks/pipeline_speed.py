@@ -9,9 +9,6 @@ and of a job on a 4× larger tile; and ground accuracy on the ISPRS samples.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import resource
 import statistics
 import subprocess
 import sys
