@@ -186,3 +186,26 @@ def test_bad_parameters_are_refused_at_submission(
     body = r.json()
     assert r.headers["content-type"] == PROBLEM and body["type"] == "/problems/invalid-parameter"
     assert mention in body["detail"]
+
+
+def test_path_profile_json_csv_and_bad_line(client: TestClient, tmp_path: Path) -> None:
+    scene = make_scene(size=60, density=4, seed=3, n_buildings=0)  # the profile, not the ground filter, is tested
+    path = write_las(scene, tmp_path / "bare.laz")
+    job_id = submit(client, "bare.laz", path.read_bytes(), {**PARAMS, "features": "none"}).json()["jobID"]
+    info, _ = wait_final(client, job_id)
+    assert info["status"] == "successful", info
+    x0, y0, x1, y1 = scene.bounds
+    line = {"type": "LineString", "coordinates": [[x0 + 10, y0 + 30], [x1 - 10, y0 + 30]]}
+    r = client.post(f"/jobs/{job_id}/path", params={"crs": "native", "spacing": 5}, json=line)
+    assert r.status_code == 200, r.text
+    samples = r.json()["samples"]
+    assert len(samples) == 9 and samples[-1]["distance"] == pytest.approx(40.0)
+    # the scene's surface: its z along the line, and pitch from its slope toward the east
+    xs = np.array([s["x"] for s in samples])
+    truth = scene.surface(xs, np.full_like(xs, y0 + 30))
+    assert np.abs(np.array([s["z"] for s in samples]) - truth).max() < 0.3
+    csv = client.post(f"/jobs/{job_id}/path", params={"crs": "native", "f": "csv"}, json=line)
+    assert csv.headers["content-type"].startswith("text/csv") and csv.text.splitlines()[0].startswith("distance")
+    bad = client.post(f"/jobs/{job_id}/path", json={"type": "Point", "coordinates": [1, 2]})
+    assert bad.status_code == 400 and bad.headers["content-type"].startswith(PROBLEM)
+    assert "LineString" in bad.json()["detail"]

@@ -105,6 +105,12 @@ def test_report_and_stac_item(finished_job, small_scene):
     assert sum(report["counts_per_class"].values()) == len(small_scene)
     assert report["parameters"]["block_size"] == 80
     assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]
+    # the job's roughness gauge covers exactly the bins of its blocks
+    per_block = report["roughness_per_block"]
+    assert len(per_block) == report["blocks"]
+    assert report["roughness"]["n_bins"] == sum(b["n_bins"] for b in per_block.values()) > 0
+    veg = report["vegetation"]
+    assert 0 < veg["tree_coverage"] < 1 and sum(veg["bins"].values()) > 0
     item = json.loads(pipeline.output_path(job, "item.json").read_text())
     assert item["properties"]["proj:code"] == "EPSG:32632"
     assert item["assets"]["dtm.tif"]["type"].startswith("image/tiff; application=geotiff; profile=cloud-optimized")

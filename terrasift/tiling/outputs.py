@@ -285,6 +285,9 @@ def write_report_and_item(
             "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
         },
         "roughness": {**rough.to_dict(), "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None)},
+        "roughness_per_block": {
+            s["name"]: terrain.Roughness(*s["roughness_sums"]).to_dict() for s in block_stats if "roughness_sums" in s
+        },
         "steep_blocks": {
             "tested": sum(1 for s in block_stats if s.get("steep")),
             "rotated": len(steep),
