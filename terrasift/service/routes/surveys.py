@@ -17,28 +17,22 @@ from terrasift.service.auth import tenant
 from terrasift.service.context import Service, base_url, service
 from terrasift.service.problems import Problem
 from terrasift.service.routes.jobs import created
-from terrasift.service.schemas import RunRequest, StatusInfo, SurveyInfo, SurveyRequest, problem_responses
+from terrasift.service.schemas import (
+    RunRequest,
+    StatusInfo,
+    SurveyInfo,
+    SurveyRequest,
+    multipart_body,
+    problem_responses,
+)
 from terrasift.service.store import Survey
 from terrasift.service.submit import check_inputs, create_job, new_id, parse_params, resolve_server_paths
 
 router = APIRouter(tags=["Surveys"])
 
-_SURVEY_BODY = {
-    "required": True,
-    "content": {
-        "application/json": {"schema": SurveyRequest.model_json_schema()},
-        "multipart/form-data": {
-            "schema": {
-                "type": "object",
-                "required": ["file"],
-                "properties": {
-                    "file": {"type": "array", "items": {"type": "string", "format": "binary"}},
-                    "params": {"type": "string", "description": "JSON object of parameters"},
-                },
-            }
-        },
-    },
-}
+# The same multipart form as POST /jobs, or JSON naming files under the input root.
+_SURVEY_BODY = multipart_body("one or more `file` fields (LAS/LAZ) and an optional `params` JSON object")
+_SURVEY_BODY["content"]["application/json"] = {"schema": SurveyRequest.model_json_schema()}
 
 
 @router.post(
