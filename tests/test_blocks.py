@@ -75,3 +75,16 @@ def test_shards_hold_every_point_once_as_core(tmp_path, small_tile, small_scene)
             np.testing.assert_allclose(pts["z"], xyz[pts["index"], 2], atol=0.006)
     assert (seen == 1).all()
     assert total > len(small_scene)  # halos duplicate points near block edges
+
+
+def test_canonical_order_is_the_lexsort_order():
+    from terrasift.workers.block import canonical_order
+
+    rng = np.random.default_rng(5)
+    # LAS-like coordinates on a 1 cm lattice, with exact duplicates and ties in x and y.
+    xyz = np.round(rng.uniform([5e5, 5.4e6, 100], [5e5 + 240, 5.4e6 + 240, 180], (20_000, 3)), 2)
+    xyz[100:200] = xyz[:100]
+    xyz[300:400, 0] = xyz[0, 0]
+    for pts in (xyz, xyz + rng.uniform(0, 1e-4, xyz.shape)):  # on and off the millimetre lattice
+        x, y, z = pts.T.copy()
+        assert np.array_equal(canonical_order(x, y, z), np.lexsort((z, y, x)))

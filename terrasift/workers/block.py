@@ -74,7 +74,7 @@ def classify_block(
     timer = _Timer()
     # A canonical order, so labels do not depend on how the points were split
     # into files or shards (stages break ties by position in the array).
-    points = points[np.lexsort((points["z"], points["y"], points["x"]))]
+    points = points[canonical_order(points["x"], points["y"], points["z"])]
     xyz = np.column_stack([points["x"], points["y"], points["z"]])
     core = points["core"].astype(bool)
     n = xyz.shape[0]
@@ -120,12 +120,16 @@ def classify_block(
     vgrid = Grid(xmin, ymin, c, int(round((xmax - xmin) / c)), int(round((ymax - ymin) / c)))
     pad = 7  # bins: the widest support window reaches this far into the halo
     hgrid = Grid(xmin - pad * c, ymin - pad * c, c, vgrid.nx + 2 * pad, vgrid.ny + 2 * pad)
+    # One ground TIN (1 m vertices, lowest ground only) for vegetation heights and the DTM.
+    row_off, col_off, rows, cols = grid.core_window(ix, iy)
+    window = dem.Window(xmin, ymax, grid.resolution, rows, cols)
+    with timer("dtm"):
+        surface = dem.ground_tin(sub[is_ground_sub], max(grid.resolution, 1.0))
     with timer("vegetation"):
-        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams).crop(vgrid)
-        surface = vegetation.ground_surface(sub[is_ground_sub], vgrid) if is_ground_sub.any() else None
+        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams, surface=surface).crop(vgrid)
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
-            in_veg = (flat >= 0) & np.isin(veg.bin_class[np.maximum(flat, 0)], (vegetation.BUSH, vegetation.TREE))
+            in_veg = (flat >= 0) & (veg.bin_class[np.maximum(flat, 0)] >= vegetation.BUSH)
             pick = in_veg & ~is_ground_sub
             hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
             labels[act[pick]] = vegetation.height_classes(hag)
@@ -148,12 +152,10 @@ def classify_block(
 
     # Elevation models on the core window.
     check_cancel()
-    row_off, col_off, rows, cols = grid.core_window(ix, iy)
-    window = dem.Window(xmin, ymax, grid.resolution, rows, cols)
     with timer("dtm"):
         reach = dem.default_reach(sub.shape[0], _block_area(grid), grid.resolution)
         valid = dem.data_reach_mask(sub, window, reach)
-        dtm = dem.dtm_window(sub[is_ground_sub], window)
+        dtm = dem.sample_window(surface, window)
         dtm[~valid] = np.nan
         dsm = dem.dsm_window(sub, window)
         dsm[~valid] = np.nan
@@ -170,6 +172,26 @@ def classify_block(
         rasters={"dtm": dtm, "dsm": dsm, "coverage": veg.raster()},
         stats=stats,
     )
+
+
+def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
+    """Indices sorting points by (x, y, z), equal points in input order: the
+    order of ``np.lexsort((z, y, x))``.
+
+    When every coordinate lies on a 1 mm lattice (LAS scales of a millimetre
+    or coarser), the three are packed into one int64 key whose stable sort is
+    ~3x faster than the three-key lexsort; otherwise the lexsort runs.
+    """
+    if x.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    offsets = [v - v.min() for v in (x, y, z)]
+    q = [np.round(d * 1000.0).astype(np.int64) for d in offsets]
+    on_lattice = all(np.abs(k * 0.001 - d).max() < 1e-5 for k, d in zip(q, offsets))
+    bits = [max(int(k.max()).bit_length(), 1) for k in q]
+    if not on_lattice or sum(bits) > 63:
+        return np.lexsort((z, y, x))
+    key = (q[0] << (bits[1] + bits[2])) | (q[1] << bits[2]) | q[2]
+    return np.argsort(key, kind="stable")
 
 
 def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[str, Any]) -> Any:

@@ -94,18 +94,29 @@ def ground_vertices(ground_xyz: NDArray[np.float64], cell: float, band: float = 
     return np.column_stack(cen) + (grid.x0, grid.y0, 0.0)
 
 
+def ground_tin(ground_xyz: NDArray[np.float64], cell: float = 1.0) -> TinSurface | None:
+    """The block's ground surface: a TIN through ``ground_vertices`` on ``cell``
+    cells (None without ground). One TIN serves the DTM and heights above ground."""
+    if ground_xyz.shape[0] == 0:
+        return None
+    return TinSurface(ground_vertices(ground_xyz, cell))
+
+
+def sample_window(surface: TinSurface | None, window: Window) -> NDArray[np.float32]:
+    """``surface`` at the window's cell centres (NaN everywhere without a surface)."""
+    if surface is None:
+        return np.full((window.rows, window.cols), np.nan, np.float32)
+    gx, gy = window.centers()
+    return surface(gx, gy).astype(np.float32)
+
+
 def dtm_window(ground_xyz: NDArray[np.float64], window: Window, vertex_cell: float | None = None) -> NDArray[np.float32]:
     """Ground TIN sampled at the window's cell centres (NaN when there is no ground).
 
     The TIN's vertices are ``ground_vertices`` on cells of ``vertex_cell``
     (default: the larger of the resolution and 1 m).
     """
-    if ground_xyz.shape[0] == 0:
-        return np.full((window.rows, window.cols), np.nan, np.float32)
-    cell = vertex_cell or max(window.resolution, 1.0)
-    surface = TinSurface(ground_vertices(ground_xyz, cell))
-    gx, gy = window.centers()
-    return surface(gx, gy).astype(np.float32)
+    return sample_window(ground_tin(ground_xyz, vertex_cell or max(window.resolution, 1.0)), window)
 
 
 def dsm_window(xyz: NDArray[np.float64], window: Window) -> NDArray[np.float32]:
