@@ -47,7 +47,7 @@ def median_time(fn, runs: int) -> float:
 def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]:
     """Points/s of read, shard, and ground + DTM over all blocks, in this process."""
     from terrasift import pipeline
-    from terrasift.tiling.blocks import BlockGrid, shard_tile
+    from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
     from terrasift.tiling.lasfile import iter_chunks
     from terrasift.workers.block import run_block
 
@@ -62,8 +62,14 @@ def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]
     pipeline.prepare_job(job, [tile], validated)
     plan = pipeline._plan(job, pipeline.load_json(job / "job.json"))
     grid = BlockGrid(**plan["grid"])
-    out["shard"] = n / median_time(lambda: shard_tile(str(tile), 0, grid, job / "shards" / "0"), runs)
-    names = sorted(p.stem for p in (job / "shards" / "0").glob("*.bin"))
+    parts = shard_parts([n])
+
+    def shard() -> None:
+        for p in parts:
+            shard_tile(str(tile), 0, grid, job / "shards" / p.name, start=p.start, stop=p.stop)
+
+    out["shard"] = n / median_time(shard, runs)
+    names = sorted({p.stem for p in (job / "shards").glob("*/*.bin")})
     ground, dtm = [], []
     for _ in range(runs):
         for p in (job / "blocks").glob("*"):

@@ -16,6 +16,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ import pyproj
 
 from terrasift.errors import InputError, JobCancelled
 from terrasift.params import grid_alignment, validate_params
-from terrasift.tiling.blocks import BlockGrid, shard_tile
+from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
 from terrasift.tiling.lasfile import TileInfo, read_tile_info
 from terrasift.workers.block import run_block
 from terrasift.workers.executors import Executor, Future
@@ -161,28 +162,31 @@ def run_job(
 
     from terrasift.tiling import outputs
 
-    # Finishing tasks: rasters, then one classified point cloud per tile.
-    finish: list[tuple[Callable[..., Any], tuple]] = [(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    # Finishing tasks: one classified point cloud per tile, and (all products)
+    # the rasters, then slope/categories/features from the mosaicked DTM.
+    finish: list[Task] = [Task(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
     if products == "all":
-        finish.insert(0, (outputs.write_rasters, (str(job_dir),)))
+        finish.insert(0, Task(outputs.write_rasters, (str(job_dir),)))
+        finish.append(Task(outputs.write_terrain, (str(job_dir),), after=(0,)))
 
     # Progress counts tasks: shards, blocks, finishing tasks, the report.
     shard_root = job_dir / "shards"
-    todo = [i for i in range(n_tiles) if not (shard_root / str(i)).is_dir()]
-    terrain = [(outputs.write_terrain, (str(job_dir),))] if products == "all" else []
-    extra = len(finish) + len(terrain) + 1
-    counter = {"done": n_tiles - len(todo), "total": n_tiles + grid.nx * grid.ny + extra}
+    parts = shard_parts([t["point_count"] for t in plan["tiles"]])
+    todo = [p for p in parts if not (shard_root / p.name).is_dir()]
+    extra = len(finish) + 1
+    counter = {"done": len(parts) - len(todo), "total": len(parts) + grid.nx * grid.ny + extra}
     progress(counter["done"], counter["total"])
 
     def tick(_: Any) -> None:
         counter["done"] += 1
         progress(counter["done"], counter["total"])
 
-    # Shard: one streaming pass per tile.
+    # Shard: one streaming pass per tile (per part of a large tile).
     t = time.perf_counter()
     shard_args = [
-        (plan["tiles"][i]["path"], i, grid, str(shard_root / str(i)), 1_000_000, params.get("scan_dimension"))
-        for i in todo
+        (plan["tiles"][p.tile]["path"], p.tile, grid, str(shard_root / p.name), 1_000_000,
+         params.get("scan_dimension"), p.start, p.stop)
+        for p in todo
     ]
     _run_tasks(executor, job_dir, shard_tile, shard_args, tick)
     shard_seconds = time.perf_counter() - t
@@ -194,7 +198,7 @@ def run_job(
     # Largest blocks first, so the last tasks to finish are short ones and
     # workers do not idle at the end of the job.
     names = sorted(sizes, key=lambda n: (-sizes[n], n))
-    counter["total"] = n_tiles + len(names) + extra
+    counter["total"] = len(parts) + len(names) + extra
     t = time.perf_counter()
     block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
     block_seconds = time.perf_counter() - t
@@ -202,7 +206,6 @@ def run_job(
     t = time.perf_counter()
     (job_dir / "outputs").mkdir(exist_ok=True)
     _run_mixed_tasks(executor, job_dir, finish, tick)
-    _run_mixed_tasks(executor, job_dir, terrain, tick)  # needs the mosaicked DTM
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     timings = {
@@ -241,38 +244,61 @@ def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     return plan
 
 
+@dataclass(frozen=True)
+class Task:
+    """A call to submit, once the tasks at positions ``after`` (same list) are done."""
+
+    fn: Callable[..., Any]
+    args: tuple
+    after: tuple[int, ...] = ()
+
+
 def _run_tasks(
     executor: Executor, job_dir: Path, fn: Callable[..., Any], arg_list: list[tuple], on_done: Callable[[Any], None]
 ) -> list[Any]:
-    return _run_mixed_tasks(executor, job_dir, [(fn, a) for a in arg_list], on_done)
+    return _run_mixed_tasks(executor, job_dir, [Task(fn, a) for a in arg_list], on_done)
 
 
 def _run_mixed_tasks(
-    executor: Executor, job_dir: Path, calls: list[tuple[Callable[..., Any], tuple]], on_done: Callable[[Any], None]
+    executor: Executor, job_dir: Path, tasks: list[Task], on_done: Callable[[Any], None]
 ) -> list[Any]:
-    """Submit every call, wait, and return results in call order.
+    """Submit every task as soon as the tasks it comes after are done; wait for
+    all and return their results in list order.
 
     The first failure cancels the rest and is raised; so is a dismissal seen
     between waits (running tasks see the marker themselves).
     """
-    futures: list[Future] = [executor.submit(fn, *args) for fn, args in calls]
     results: dict[int, Any] = {}
-    pending = set(range(len(futures)))
-    by_future = {id(f): i for i, f in enumerate(futures)}
+    futures: dict[int, Future] = {}
+    position: dict[int, int] = {}  # id(future) -> task position
+    waiting = set(range(len(tasks)))
+
+    def submit_ready() -> None:
+        for i in sorted(waiting):
+            if all(j in results for j in tasks[i].after):
+                futures[i] = executor.submit(tasks[i].fn, *tasks[i].args)
+                position[id(futures[i])] = i
+                waiting.discard(i)
+
     try:
-        while pending:
-            done = executor.wait_any([futures[i] for i in pending], timeout=0.5)
+        submit_ready()
+        while len(results) < len(tasks):
+            running = [f for i, f in futures.items() if i not in results]
+            if not running:
+                raise RuntimeError(f"tasks {sorted(waiting)} wait on tasks that never run")
+            done = executor.wait_any(running, timeout=0.5)
             for f in done:
-                i = by_future[id(f)]
+                i = position[id(f)]
                 results[i] = f.result()
-                pending.discard(i)
                 on_done(results[i])
+            submit_ready()
             check_cancel(job_dir)
     except BaseException:
-        for i in pending:
-            futures[i].cancel()
+        for i, f in futures.items():
+            if i not in results:
+                f.cancel()
         raise
-    return [results[i] for i in range(len(futures))]
+    return [results[i] for i in range(len(tasks))]
 
 
 def clear_outputs(job_dir: Path) -> None:

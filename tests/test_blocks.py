@@ -88,3 +88,20 @@ def test_canonical_order_is_the_lexsort_order():
     for pts in (xyz, xyz + rng.uniform(0, 1e-4, xyz.shape)):  # on and off the millimetre lattice
         x, y, z = pts.T.copy()
         assert np.array_equal(canonical_order(x, y, z), np.lexsort((z, y, x)))
+
+
+def test_tile_parts_shard_to_the_same_points(tmp_path, small_tile, small_scene):
+    from terrasift.tiling.blocks import shard_parts
+
+    grid = BlockGrid.over(small_scene.xyz[:, :2].min(0), small_scene.xyz[:, :2].max(0), 0.5, 80, 15)
+    n = len(small_scene)
+    parts = shard_parts([n, 10], part_points=n // 3)
+    assert [(p.tile, p.start) for p in parts][:3] == [(0, 0), (0, n // 3), (0, 2 * n // 3)]
+    assert parts[2].stop == n and parts[3] == type(parts[3])(1, 0, 10)
+    shard_tile(str(small_tile), 0, grid, tmp_path / "whole")
+    for p in parts[:3]:
+        shard_tile(str(small_tile), 0, grid, tmp_path / p.name, start=p.start, stop=p.stop)
+    for name in sorted(q.stem for q in (tmp_path / "whole").glob("*.bin")):
+        whole = read_block_points([tmp_path / "whole"], name)
+        split = read_block_points([tmp_path / p.name for p in parts[:3]], name)
+        assert np.array_equal(np.sort(whole, order="index"), np.sort(split, order="index"))

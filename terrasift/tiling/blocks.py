@@ -158,8 +158,11 @@ def shard_tile(
     out_dir: str | Path,
     chunk_size: int = 1_000_000,
     scan_dim: str | None = None,
+    start: int = 0,
+    stop: int | None = None,
 ) -> dict[str, int]:
-    """Stream one tile into per-block shard files ``out_dir/<block>.bin``.
+    """Stream one tile (or its points ``start``..``stop``) into per-block shard
+    files ``out_dir/<block>.bin``.
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -169,7 +172,7 @@ def shard_tile(
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     core_counts: dict[str, int] = {}
-    for chunk in iter_chunks(tile_path, chunk_size, scan_dim):
+    for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop):
         x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
         p, bid, core = assign_blocks(grid, x, y)
         order = np.argsort(bid, kind="stable")
@@ -194,6 +197,33 @@ def shard_tile(
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return core_counts
+
+
+@dataclass(frozen=True)
+class ShardPart:
+    """A run of one tile's points, sharded by one task into ``shards/<name>``."""
+
+    tile: int
+    start: int
+    stop: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.tile}-{self.start}"
+
+
+def shard_parts(point_counts: list[int], part_points: int = 2_500_000) -> list[ShardPart]:
+    """Split each tile into about equal runs of roughly ``part_points`` points.
+
+    A large tile is sharded by several tasks at once (LAZ readers seek through
+    the chunk table), so a one-tile job does not wait on one reader.
+    """
+    parts = []
+    for tile, n in enumerate(point_counts):
+        k = max(1, int(round(n / part_points)))
+        bounds = [n * i // k for i in range(k + 1)]
+        parts += [ShardPart(tile, a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    return parts
 
 
 def read_block_points(shard_dirs: list[Path], name: str) -> NDArray:

@@ -162,11 +162,19 @@ class PointChunk:
     scan_id: NDArray[np.uint16]
 
 
-def iter_chunks(path: str | Path, chunk_size: int = 1_000_000, scan_dim: str | None = None) -> Iterator[PointChunk]:
-    """Yield the tile's points in file order, ``chunk_size`` at a time.
+def iter_chunks(
+    path: str | Path,
+    chunk_size: int = 1_000_000,
+    scan_dim: str | None = None,
+    start: int = 0,
+    stop: int | None = None,
+) -> Iterator[PointChunk]:
+    """Yield the tile's points ``start``..``stop`` (default: all) in file order,
+    ``chunk_size`` at a time.
 
     Only the dimensions the science uses are decompressed. ``scan_dim`` names a
     dimension holding a scan-position id (default: point_source_id, 0 if absent).
+    A LAZ reader seeks to ``start`` through the chunk table.
     """
     try:
         sel = laspy.DecompressionSelection
@@ -175,32 +183,37 @@ def iter_chunks(path: str | Path, chunk_size: int = 1_000_000, scan_dim: str | N
     except Exception as exc:
         raise InputError(f"{Path(path).name}: cannot open for reading: {exc}") from None
     with reader:
-        start = 0
+        total = int(reader.header.point_count)
+        stop = total if stop is None else min(stop, total)
         names = set(reader.header.point_format.dimension_names)
         dim = scan_dim or "point_source_id"
         if scan_dim and scan_dim not in names:
             raise InputError(f"{Path(path).name}: no dimension {scan_dim!r} for scan ids")
+        pos = start
         try:
-            for pts in reader.chunk_iterator(chunk_size):
+            if start:
+                reader.seek(start)
+            while pos < stop:
+                pts = reader.read_points(min(chunk_size, stop - pos))
                 n = len(pts)
+                if n == 0:
+                    break
                 xyz = np.empty((n, 3))
                 xyz[:, 0] = pts.x
                 xyz[:, 1] = pts.y
                 xyz[:, 2] = pts.z
                 scan = np.asarray(pts[dim], dtype=np.uint16) if dim in names else np.zeros(n, np.uint16)
                 yield PointChunk(
-                    start=start,
+                    start=pos,
                     xyz=xyz,
                     return_number=np.asarray(pts.return_number, dtype=np.uint8),
                     number_of_returns=np.asarray(pts.number_of_returns, dtype=np.uint8),
                     scan_id=scan,
                 )
-                start += n
+                pos += n
         except InputError:
             raise
         except Exception as exc:  # lazrs / laspy errors on corrupt or cut data
-            raise InputError(f"{Path(path).name}: point data unreadable after {start} points: {exc}") from None
-        if start != reader.header.point_count:
-            raise InputError(
-                f"{Path(path).name}: header claims {reader.header.point_count} points but only {start} could be read"
-            )
+            raise InputError(f"{Path(path).name}: point data unreadable after {pos} points: {exc}") from None
+        if pos != stop:
+            raise InputError(f"{Path(path).name}: header claims {total} points but only {pos} could be read")

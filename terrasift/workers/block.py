@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
 from terrasift.params import stage_params
-from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points
+from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers import dem
 from terrasift.workers.bins import Grid
 from terrasift.workers.registry import get_stage
@@ -283,7 +283,7 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
     plan = load_json(job_dir_p / "plan.json")
     params = {**load_json(job_dir_p / "job.json")["params"], "_density": plan.get("density", 1.0)}
     grid = BlockGrid(**plan["grid"])
-    shard_dirs = [job_dir_p / "shards" / str(i) for i in range(len(plan["tiles"]))]
+    shard_dirs = [job_dir_p / "shards" / p.name for p in shard_parts([t["point_count"] for t in plan["tiles"]])]
     points = read_block_points(shard_dirs, name)
     ix, iy = parse_block_name(name)
     t0 = time.perf_counter()
