@@ -226,3 +226,18 @@ def test_terrain_params():
         TerrainParams.preset(median_size=4)
     assert TerrainParams().cell == 1.0
     assert any(s.id == "terrain" and s.run is roughness for s in stages())
+
+
+def test_median_smooth_is_the_window_median_where_the_window_is_full():
+    rng = np.random.default_rng(4)
+    z = rng.normal(size=(40, 50))
+    z[rng.random(z.shape) < 0.08] = np.nan
+    for size in (3, 5):
+        out = median_smooth(z, size)
+        r = size // 2
+        for i, j in [(0, 0), (r, r), (10, 17), (39, 49), (20, 25), (5, 44)]:
+            win = z[max(i - r, 0) : i + r + 1, max(j - r, 0) : j + r + 1]
+            full = win.shape == (size, size) and np.isfinite(win).all()
+            expected = np.median(win) if full else z[i, j]
+            assert np.array_equal(out[i, j], expected, equal_nan=True), (size, i, j)
+        assert np.isnan(out[np.isnan(z)]).all()
