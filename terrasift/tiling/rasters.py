@@ -54,7 +54,9 @@ class RasterMosaic:
             tiled=True,
             blockxsize=256,
             blockysize=256,
-            compress="deflate",
+            # Intermediate only (the COG is deflate): fast to write and to read back.
+            compress="zstd",
+            zstd_level=1,
             BIGTIFF="IF_SAFER",
             # Four uint8 bands would otherwise default to RGB + alpha, and the
             # COG step would mask every pixel whose fourth band is 0.
