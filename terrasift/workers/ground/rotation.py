@@ -43,6 +43,16 @@ class SteepParams(StageParams):
     min_rise: float = Field(2.0, ge=0.0, le=100.0)
     """Metres: a steep facet must also rise this much, so a low outlier or a kerb
     next to a cell border (two lowest points a metre apart) is not a cliff."""
+    support: int = Field(2, ge=0, le=100)
+    """A steep facet counts only if its lowest vertex has this many other points
+    of the tested cloud within ``support_radius`` (x, y) and ``support_gap`` (z).
+    A cliff's foot is a floor of many points at one height; a lone low outlier
+    (multipath) that the ground filter took is no terrain, and its cell is
+    dropped from the TIN. 0: no check (the seed's plain test)."""
+    support_radius: float = Field(2.0, gt=0.0, le=100.0)
+    """Metres: horizontal radius of the support check."""
+    support_gap: float = Field(1.0, gt=0.0, le=100.0)
+    """Metres: height band above the vertex that counts as the same surface."""
 
 
 class RotationParams(StageParams):
@@ -116,22 +126,47 @@ def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
     first = np.flatnonzero(is_min)
     first = first[np.r_[True, fs[first][1:] != fs[first][:-1]]]
     pts = xyz[order[first]] - lo
+    steep, n = _steep_facets(pts, params)
+    if params.support > 0 and steep.size:
+        # Drop lone low vertices under steep facets and test again.
+        xs = np.argsort(xyz[:, 0])
+        cloud = xyz[xs] - lo
+        lone = [v for v in np.unique(steep) if not _supported(cloud, pts[v], params)]
+        if lone:
+            pts = np.delete(pts, lone, axis=0)
+            steep, n = _steep_facets(pts, params)
+    steep = steep.shape[0]
+    share = float(steep / n) if n else 0.0
+    return SteepTest(share, share > params.steep_share, n)
+
+
+def _steep_facets(pts: NDArray[np.float64], params: SteepParams) -> tuple[NDArray[np.int64], int]:
+    """Lowest vertex of every steep facet of the TIN of ``pts``, and the number of facets counted."""
     try:
         tri = Delaunay(pts[:, :2])
     except (QhullError, ValueError):
-        return SteepTest(0.0, False, 0)
+        return np.zeros(0, dtype=np.int64), 0
     p = pts[tri.simplices]
     normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     norm = np.linalg.norm(normal, axis=1)
     # Slivers along the convex hull join far-apart border cells; they are no terrain.
     edge = np.max(np.hypot(*(p[:, [1, 2, 0], :2] - p[:, :, :2]).transpose(2, 0, 1)), axis=1)
-    good = (norm > 0) & (edge <= 3.0 * params.cell)
+    good = np.flatnonzero((norm > 0) & (edge <= 3.0 * params.cell))
     slope = np.degrees(np.arccos(np.abs(normal[good, 2]) / norm[good]))
     rise = np.ptp(p[good, :, 2], axis=1)
-    n = int(good.sum())
-    steep = (slope > params.facet_angle) & (rise > params.min_rise)
-    share = float(np.count_nonzero(steep) / n) if n else 0.0
-    return SteepTest(share, share > params.steep_share, n)
+    hit = good[(slope > params.facet_angle) & (rise > params.min_rise)]
+    low = tri.simplices[hit, np.argmin(p[hit, :, 2], axis=1)]
+    return low, int(good.size)
+
+
+def _supported(cloud: NDArray[np.float64], v: NDArray[np.float64], params: SteepParams) -> bool:
+    """Has ``v`` ``support`` other points of ``cloud`` (sorted by x) near it, just above it?"""
+    r = params.support_radius
+    a, b = np.searchsorted(cloud[:, 0], [v[0] - r, v[0] + r])
+    c = cloud[a:b]
+    dz = c[:, 2] - v[2]
+    near = (np.hypot(c[:, 0] - v[0], c[:, 1] - v[1]) <= r) & (np.abs(dz) <= params.support_gap) & (dz != 0)
+    return int(np.count_nonzero(near)) >= params.support
 
 
 def rotation_matrix(azimuth_deg: float, angle_deg: float) -> NDArray[np.float64]:
