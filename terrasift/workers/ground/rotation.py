@@ -79,6 +79,11 @@ class RotationParams(StageParams):
     steep facet (> 50°) of the unrotated ground surface. A rotation exists for
     faces; on the flats it only isolates crowns, which its TIN then takes.
     None: no limit."""
+    context: float | None = Field(6.0, ge=0.0, le=1000.0)
+    """Metres: with ``steep_reach``, a rotated run sees only the points within
+    ``steep_reach`` + this of the steep facets: the faces with their foot and
+    rim as context for the TIN, not the flats it may not add to anyway. This
+    is what keeps a steep block's cost near a flat one's. None: whole block."""
     rerun_unrotated: bool = False
     """Steep blocks: run the unrotated cloud again with ``ground_preset`` (the
     seed: nine conservative runs) instead of keeping the block's normal labels.
@@ -210,14 +215,21 @@ def classify_rotated(
         lo, hi = np.percentile(xyz[:, 2], [2, 98]) if xyz.shape[0] else (0.0, 0.0)
         margin = float(hi - lo) * np.sin(np.radians(params.angle))
     near = None
+    work = slice(None)
     if (params.max_lift is not None or params.steep_reach is not None) and base.any():
-        near = _near_surface(xyz, base, params.max_lift, params.steep_reach)
+        wide = None if params.steep_reach is None or params.context is None else params.steep_reach + params.context
+        near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
+        if seen is not None:
+            work = np.flatnonzero(seen)
     for k in range(params.directions):
         rot = rotation_matrix(360.0 * k / params.directions, params.angle)
         # (x − c) R^T + c, built in one new array: the only extra copy of the block.
         turned = xyz @ rot.T
         turned += centroid - rot @ centroid
-        labels = np.asarray(ground(turned) if seeded is None else seeded(turned, combined), dtype=bool)
+        labels = np.zeros(xyz.shape[0], dtype=bool)
+        if isinstance(work, slice) or work.size >= 3:
+            part = turned[work]
+            labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
         if margin > 0 and labels.any():
             xy = turned[:, :2]
             inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
@@ -231,10 +243,15 @@ def classify_rotated(
 
 
 def _near_surface(
-    xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: float | None, reach: float | None
-) -> NDArray[np.bool_]:
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    lift: float | None,
+    reach: float | None,
+    wide: float | None = None,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_] | None]:
     """Points within ``lift`` of the surface through the lowest ``ground`` point
-    per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°."""
+    per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°;
+    and the points within ``wide`` of those facets (None when not asked)."""
     from scipy.spatial import cKDTree
 
     from terrasift.workers.bins import lowest_per_bin
@@ -253,13 +270,17 @@ def _near_surface(
         try:
             tri = Delaunay(verts[:, :2])
         except (QhullError, ValueError):
-            return ok
+            return ok, None
         p = verts[tri.simplices]
         nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
         if not slope.any():
-            return np.zeros(xyz.shape[0], dtype=bool)
+            none = np.zeros(xyz.shape[0], dtype=bool)
+            return none, (none if wide is not None else None)
         anchors = np.unique(tri.simplices[slope])
-        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=reach)
-        ok &= np.isfinite(dist)
-    return ok
+        far = reach if wide is None else max(wide, reach)
+        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
+        ok &= dist <= reach
+        if wide is not None:
+            return ok, np.isfinite(dist)
+    return ok, None
