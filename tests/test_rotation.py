@@ -151,3 +151,37 @@ def test_seed_mask_points_start_the_tin():
     # the anchored seed grid leaves a few raised points at a data corner (4 of 1500 measured)
     assert plain[1::2].mean() < 0.01
     assert seeded[1::2].sum() > 100  # thinned seeds: one per 2·min_spacing cell at least
+
+
+def test_lone_low_points_are_no_cliff():
+    # Low outliers (multipath) that a ground filter let through: each makes
+    # steep facets with its neighbour cells, but stands alone in its height band.
+    pts = _plane(0.0)
+    rng = np.random.default_rng(3)
+    sunk = rng.choice(pts.shape[0], 12, replace=False)
+    pts[sunk, 2] -= rng.uniform(3.0, 5.0, 12)
+    plain = steepness(pts, SteepParams(support=0))
+    assert plain.steep
+    assert steepness(pts, SteepParams()).facet_share == 0.0
+    # A real 25 m step keeps its steep facets: its foot is a floor of many points.
+    cliff = _plane(25.0)
+    assert steepness(cliff, SteepParams()).facet_share == steepness(cliff, SteepParams(support=0)).facet_share > 0
+
+
+def test_rotated_runs_see_only_the_faces(cliffs):
+    # With steep_reach and context, each rotated run gets the points near the
+    # steep facets of the unrotated ground, not the whole block.
+    conservative = PtdParams.preset("conservative")
+    plain = classify_ground(cliffs.xyz, conservative)
+    sizes = []
+
+    def spy(p):
+        sizes.append(p.shape[0])
+        return classify_ground(p, conservative)
+
+    res = classify_rotated(cliffs.xyz, spy, RotationParams(context=6.0), unrotated=plain)
+    assert len(sizes) == 8 and max(sizes) < 0.8 * cliffs.xyz.shape[0] and min(sizes) > 100
+    steep = cliffs.extra["steep"]
+    assert np.count_nonzero(steep & res.is_ground) > np.count_nonzero(steep & plain) + 0.2 * steep.sum()
+    whole = classify_rotated(cliffs.xyz, lambda p: classify_ground(p, conservative), RotationParams(context=None), unrotated=plain)
+    assert abs(int(np.count_nonzero(steep & res.is_ground)) - int(np.count_nonzero(steep & whole.is_ground))) < 0.1 * steep.sum()

@@ -43,6 +43,16 @@ class SteepParams(StageParams):
     min_rise: float = Field(2.0, ge=0.0, le=100.0)
     """Metres: a steep facet must also rise this much, so a low outlier or a kerb
     next to a cell border (two lowest points a metre apart) is not a cliff."""
+    support: int = Field(2, ge=0, le=100)
+    """A steep facet counts only if its lowest vertex has this many other points
+    of the tested cloud within ``support_radius`` (x, y) and ``support_gap`` (z).
+    A cliff's foot is a floor of many points at one height; a lone low outlier
+    (multipath) that the ground filter took is no terrain, and its cell is
+    dropped from the TIN. 0: no check (the seed's plain test)."""
+    support_radius: float = Field(2.0, gt=0.0, le=100.0)
+    """Metres: horizontal radius of the support check."""
+    support_gap: float = Field(1.0, gt=0.0, le=100.0)
+    """Metres: height band above the vertex that counts as the same surface."""
 
 
 class RotationParams(StageParams):
@@ -69,6 +79,11 @@ class RotationParams(StageParams):
     steep facet (> 50°) of the unrotated ground surface. A rotation exists for
     faces; on the flats it only isolates crowns, which its TIN then takes.
     None: no limit."""
+    context: float | None = Field(6.0, ge=0.0, le=1000.0)
+    """Metres: with ``steep_reach``, a rotated run sees only the points within
+    ``steep_reach`` + this of the steep facets: the faces with their foot and
+    rim as context for the TIN, not the flats it may not add to anyway. This
+    is what keeps a steep block's cost near a flat one's. None: whole block."""
     rerun_unrotated: bool = False
     """Steep blocks: run the unrotated cloud again with ``ground_preset`` (the
     seed: nine conservative runs) instead of keeping the block's normal labels.
@@ -116,22 +131,47 @@ def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
     first = np.flatnonzero(is_min)
     first = first[np.r_[True, fs[first][1:] != fs[first][:-1]]]
     pts = xyz[order[first]] - lo
+    steep, n = _steep_facets(pts, params)
+    if params.support > 0 and steep.size:
+        # Drop lone low vertices under steep facets and test again.
+        xs = np.argsort(xyz[:, 0])
+        cloud = xyz[xs] - lo
+        lone = [v for v in np.unique(steep) if not _supported(cloud, pts[v], params)]
+        if lone:
+            pts = np.delete(pts, lone, axis=0)
+            steep, n = _steep_facets(pts, params)
+    steep = steep.shape[0]
+    share = float(steep / n) if n else 0.0
+    return SteepTest(share, share > params.steep_share, n)
+
+
+def _steep_facets(pts: NDArray[np.float64], params: SteepParams) -> tuple[NDArray[np.int64], int]:
+    """Lowest vertex of every steep facet of the TIN of ``pts``, and the number of facets counted."""
     try:
         tri = Delaunay(pts[:, :2])
     except (QhullError, ValueError):
-        return SteepTest(0.0, False, 0)
+        return np.zeros(0, dtype=np.int64), 0
     p = pts[tri.simplices]
     normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     norm = np.linalg.norm(normal, axis=1)
     # Slivers along the convex hull join far-apart border cells; they are no terrain.
     edge = np.max(np.hypot(*(p[:, [1, 2, 0], :2] - p[:, :, :2]).transpose(2, 0, 1)), axis=1)
-    good = (norm > 0) & (edge <= 3.0 * params.cell)
+    good = np.flatnonzero((norm > 0) & (edge <= 3.0 * params.cell))
     slope = np.degrees(np.arccos(np.abs(normal[good, 2]) / norm[good]))
     rise = np.ptp(p[good, :, 2], axis=1)
-    n = int(good.sum())
-    steep = (slope > params.facet_angle) & (rise > params.min_rise)
-    share = float(np.count_nonzero(steep) / n) if n else 0.0
-    return SteepTest(share, share > params.steep_share, n)
+    hit = good[(slope > params.facet_angle) & (rise > params.min_rise)]
+    low = tri.simplices[hit, np.argmin(p[hit, :, 2], axis=1)]
+    return low, int(good.size)
+
+
+def _supported(cloud: NDArray[np.float64], v: NDArray[np.float64], params: SteepParams) -> bool:
+    """Has ``v`` ``support`` other points of ``cloud`` (sorted by x) near it, just above it?"""
+    r = params.support_radius
+    a, b = np.searchsorted(cloud[:, 0], [v[0] - r, v[0] + r])
+    c = cloud[a:b]
+    dz = c[:, 2] - v[2]
+    near = (np.hypot(c[:, 0] - v[0], c[:, 1] - v[1]) <= r) & (np.abs(dz) <= params.support_gap) & (dz != 0)
+    return int(np.count_nonzero(near)) >= params.support
 
 
 def rotation_matrix(azimuth_deg: float, angle_deg: float) -> NDArray[np.float64]:
@@ -175,14 +215,21 @@ def classify_rotated(
         lo, hi = np.percentile(xyz[:, 2], [2, 98]) if xyz.shape[0] else (0.0, 0.0)
         margin = float(hi - lo) * np.sin(np.radians(params.angle))
     near = None
+    work = slice(None)
     if (params.max_lift is not None or params.steep_reach is not None) and base.any():
-        near = _near_surface(xyz, base, params.max_lift, params.steep_reach)
+        wide = None if params.steep_reach is None or params.context is None else params.steep_reach + params.context
+        near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
+        if seen is not None:
+            work = np.flatnonzero(seen)
     for k in range(params.directions):
         rot = rotation_matrix(360.0 * k / params.directions, params.angle)
         # (x − c) R^T + c, built in one new array: the only extra copy of the block.
         turned = xyz @ rot.T
         turned += centroid - rot @ centroid
-        labels = np.asarray(ground(turned) if seeded is None else seeded(turned, combined), dtype=bool)
+        labels = np.zeros(xyz.shape[0], dtype=bool)
+        if isinstance(work, slice) or work.size >= 3:
+            part = turned[work]
+            labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
         if margin > 0 and labels.any():
             xy = turned[:, :2]
             inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
@@ -196,10 +243,15 @@ def classify_rotated(
 
 
 def _near_surface(
-    xyz: NDArray[np.float64], ground: NDArray[np.bool_], lift: float | None, reach: float | None
-) -> NDArray[np.bool_]:
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    lift: float | None,
+    reach: float | None,
+    wide: float | None = None,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_] | None]:
     """Points within ``lift`` of the surface through the lowest ``ground`` point
-    per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°."""
+    per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°;
+    and the points within ``wide`` of those facets (None when not asked)."""
     from scipy.spatial import cKDTree
 
     from terrasift.workers.bins import lowest_per_bin
@@ -218,13 +270,17 @@ def _near_surface(
         try:
             tri = Delaunay(verts[:, :2])
         except (QhullError, ValueError):
-            return ok
+            return ok, None
         p = verts[tri.simplices]
         nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
         if not slope.any():
-            return np.zeros(xyz.shape[0], dtype=bool)
+            none = np.zeros(xyz.shape[0], dtype=bool)
+            return none, (none if wide is not None else None)
         anchors = np.unique(tri.simplices[slope])
-        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=reach)
-        ok &= np.isfinite(dist)
-    return ok
+        far = reach if wide is None else max(wide, reach)
+        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
+        ok &= dist <= reach
+        if wide is not None:
+            return ok, np.isfinite(dist)
+    return ok, None
