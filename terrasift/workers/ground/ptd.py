@@ -8,7 +8,9 @@ below ``iteration_distance`` and its angles to the facet's vertices are below
 ``iteration_angle``; facets steeper than ``terrain_angle`` take no points. Each
 round re-triangulates and accepts at most one point per facet (the one with the
 smallest angle), so a facet's estimate never jumps by more than one point; it
-stops when a round adds nothing.
+stops when a round adds nothing. Parts of the TIN that stand above the rest
+behind steps all round (roofs wider than a seed cell) are then dropped, and
+one final pass labels every other point against the TIN.
 
 Speed: the rounds only ever see the lowest point of each ``min_spacing``
 cell (the TIN holds no more vertices than that anyway), so a round judges one
