@@ -79,19 +79,7 @@ def _dtm_rmse(job, scene) -> float:
     return float(np.sqrt(np.mean(err[sel] ** 2)))
 
 
-@pytest.mark.parametrize(
-    "ground",
-    [
-        "nist",
-        pytest.param(
-            "ptd",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="ptd keeps some roof edges as ground on this scene: RMSE 0.156 m, target 0.15 (nist 0.038)",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("ground", ["nist", "ptd"])
 def test_dtm_matches_true_surface(tmp_path, small_tile, small_scene, ground):
     job, _ = _run(tmp_path, small_tile, {**BLOCK, "ground": ground, "features": "none"})
     rmse = _dtm_rmse(job, small_scene)

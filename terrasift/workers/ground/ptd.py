@@ -8,12 +8,16 @@ below ``iteration_distance`` and its angles to the facet's vertices are below
 ``iteration_angle``; facets steeper than ``terrain_angle`` take no points. Each
 round re-triangulates and accepts at most one point per facet (the one with the
 smallest angle), so a facet's estimate never jumps by more than one point; it
-stops when a round adds nothing.
+stops when a round adds nothing. Parts of the TIN that stand above the rest
+behind steps all round (roofs wider than a seed cell) are then dropped, and
+one final pass labels every other point against the TIN.
 
-Speed: every round is a handful of vectorised passes. Points are visited in a
-spatially coherent order (``find_simplex`` walks from the previous hit), and a
-point whose facet survived the re-triangulation unchanged is not tested again,
-since its verdict cannot have changed.
+Speed: the rounds only ever see the lowest point of each ``min_spacing``
+cell (the TIN holds no more vertices than that anyway), so a round judges one
+candidate per cell, not the cloud; every other point is judged once, against
+the final TIN. Each facet's plane is computed once per TIN, and a point's angle
+is only worked out where it can decide the test. Points are located with
+``find_simplex`` in a spatially coherent order (it walks from the previous hit).
 """
 
 from __future__ import annotations
@@ -21,9 +25,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.spatial import Delaunay, QhullError
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from terrasift.workers.bins import Grid, anchored_origin, lowest_per_bin
+from terrasift.workers.bins import ANCHOR, Grid, lowest_per_bin
 from terrasift.workers.registry import StageParams, register
 from terrasift.workers.surface import with_transform
 
@@ -47,8 +51,9 @@ class PtdParams(StageParams):
     max_rounds: int = Field(100, ge=1, le=10_000)
     """Upper bound on densification rounds (the filter normally stops earlier)."""
     min_spacing: float = Field(1.5, gt=0.0, le=100.0)
-    """Metres: facets smaller than min_spacing²/2 take no more TIN vertices; the
-    final pass labels the points in them. Bounds the TIN (and the cost) on dense clouds."""
+    """Metres: TIN vertices are drawn from the lowest point of each min_spacing
+    cell, and facets smaller than min_spacing²/2 take no more; the final pass
+    labels every other point. Bounds the TIN (and the cost) on dense clouds."""
     tail_fraction: float = Field(0.1, ge=0.0, le=1.0)
     """When a round grows the TIN by less than this share, one last round accepts
     every remaining point that passes the tests and the filter stops (0: run every
@@ -62,6 +67,17 @@ class PtdParams(StageParams):
     drops away, but the surface behind the vertex continues the point's own.
     Gentle facets never mirror. None: off (the default: on the ISPRS samples
     mirrors let roofs in); the conservative set of rotated runs uses it."""
+
+    island_step: float | None = Field(2.5, gt=0.0, le=100.0)
+    """Metres: a part of the ground TIN that meets the rest only across steps
+    up of this height (steeper than ``island_slope``), away from the block's
+    border, is an object (a roof seeded in a cell it fills) and is dropped
+    before the final pass. None: off."""
+    island_slope: float = Field(5.0, gt=0.0, lt=90.0)
+    """Degrees: an edge of the TIN steeper than this, rising ``island_step`` or more, is a step.
+    Low, because the TIN is not densified next to walls: a roof meets the ground
+    by edges of 5-12 m at 25-35°, while terrain vertices 1.5-3 m apart rarely
+    differ by ``island_step``."""
 
     presets = {
         "conservative": {
@@ -102,28 +118,57 @@ def classify_ground(
     if n < 3:
         return ground
     # Anchored origin: seed cells line up between neighbouring blocks.
-    local = xyz - np.r_[anchored_origin(xyz), xyz[:, 2].min()]
-    seeds, excluded = _seeds(local, params)
+    lo = xyz.min(axis=0)
+    hi = xyz.max(axis=0)
+    shift = np.r_[np.floor(lo[:2] / ANCHOR) * ANCHOR, lo[2]]
+    local = xyz - shift
+    box = (lo[:2] - shift[:2], hi[:2] - shift[:2])
+    # Everything before the final pass works on the lowest point per
+    # min_spacing cell: the TIN holds no more vertices than that anyway.
+    cand = _lowest_per_cell(local, params.min_spacing)
+    cand_seeds, cand_excluded = _seeds(local[cand], params)
+    seeds = cand[cand_seeds]
+    excluded = np.zeros(n, dtype=bool)
+    excluded[cand[cand_excluded]] = True
     if seed_mask is not None and np.any(seed_mask):
         known = np.flatnonzero(np.asarray(seed_mask, dtype=bool) & ~excluded)
         cell = 2.0 * params.min_spacing
         g = Grid.covering(local[known, 0], local[known, 1], cell)
         low = lowest_per_bin(g.index(local[known, 0], local[known, 1]), local[known, 2], g.size)
         seeds = np.union1d(seeds, known[low[low >= 0]])
-    if seeds.size < 3:
-        ground[seeds] = True
-        return ground
     ground[seeds] = True
-    frame = _frame(local, seeds, excluded, params.max_building_size)
-    _densify(local, ground, excluded, frame, params)
+    if seeds.size < 3:
+        return ground
+    cand = cand[~excluded[cand]]
+    frame = _frame(local[cand], local[seeds], box, params.max_building_size)
+    _densify(local, ground, excluded, cand, frame, params)
     return ground
+
+
+def _lowest_per_cell(local: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Index of the lowest point of every occupied ``cell``-sized cell (local
+    coordinates, cells anchored at 0), in cell order. Ties in z go to the
+    smaller x, then y, so the choice does not depend on the order of the points."""
+    ix = np.floor(local[:, 0] / cell).astype(np.int64)
+    iy = np.floor(local[:, 1] / cell).astype(np.int64)
+    ix -= ix.min()
+    iy -= iy.min()
+    flat = iy * (int(ix.max()) + 1) + ix
+    zmin = np.full(int(flat.max()) + 1, np.inf)
+    np.minimum.at(zmin, flat, local[:, 2])
+    hit = np.flatnonzero(local[:, 2] == zmin[flat])
+    o = np.lexsort((local[hit, 1], local[hit, 0], flat[hit]))
+    hit = hit[o]
+    f = flat[hit]
+    return hit[np.r_[True, f[1:] != f[:-1]]]
 
 
 # --------------------------------------------------------------------- seeds
 
 
 def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Lowest point per cell, repeated after removing isolated low outliers.
+    """Lowest point per cell of ``local`` (the candidates: lowest point per
+    ``min_spacing`` cell), repeated after removing isolated low outliers.
 
     A seed is an outlier when it lies more than ``outlier_depth`` below (or
     5·``outlier_depth`` above) the median of its neighbours in the seed TIN *and* either below the
@@ -211,18 +256,20 @@ def _isolated_low(local, s, cell, grid, order, starts, excluded, params) -> bool
 
 
 def _frame(
-    local: NDArray[np.float64], seeds: NDArray[np.int64], excluded: NDArray[np.bool_], step: float
+    cand: NDArray[np.float64],
+    seeds: NDArray[np.float64],
+    box: tuple[NDArray[np.float64], NDArray[np.float64]],
+    step: float,
 ) -> NDArray[np.float64]:
-    """Virtual vertices around the bounding box so every point falls in the TIN.
+    """Virtual vertices around the bounding ``box`` of the points so every point falls in the TIN.
 
-    Each takes the height of the lowest point within a few metres of the border
-    near it (so a slope is continued, not flattened to the nearest seed), or of
-    its nearest seed where the border is empty. They are triangulated, never labelled.
+    Each takes the height of the lowest candidate (``cand``, the lowest point of
+    each small cell) within a few metres of the border near it, so a slope is
+    continued, not flattened to the nearest seed; or of its nearest seed where
+    the border is empty. They are triangulated, never labelled.
     """
-    from scipy.spatial import cKDTree
-
-    lo = local[:, :2].min(axis=0) - 1.0
-    hi = local[:, :2].max(axis=0) + 1.0
+    lo = box[0] - 1.0
+    hi = box[1] + 1.0
     nxs = max(int(np.ceil((hi[0] - lo[0]) / step)), 1)
     nys = max(int(np.ceil((hi[1] - lo[1]) / step)), 1)
     xs = np.linspace(lo[0], hi[0], nxs + 1)
@@ -235,37 +282,20 @@ def _frame(
             np.column_stack([np.full_like(ys[1:-1], hi[0]), ys[1:-1]]),
         ]
     )
-    _, nearest = cKDTree(local[seeds, :2]).query(border)
-    z = local[seeds[nearest], 2]
+    _, nearest = cKDTree(seeds[:, :2]).query(border)
+    z = seeds[nearest, 2]
     margin = 2.0
-    gap = np.minimum(local[:, :2] - lo, hi - local[:, :2]).min(axis=1)
-    near = np.flatnonzero((gap < margin) & ~excluded)
+    gap = np.minimum(cand[:, :2] - lo, hi - cand[:, :2]).min(axis=1)
+    near = np.flatnonzero(gap < margin)
     if near.size:
-        _, which = cKDTree(border).query(local[near, :2])
-        low = lowest_per_bin(which.astype(np.int64), local[near, 2], border.shape[0])
+        _, which = cKDTree(border).query(cand[near, :2])
+        low = lowest_per_bin(which.astype(np.int64), cand[near, 2], border.shape[0])
         has = low >= 0
-        z[has] = local[near[low[has]], 2]
+        z[has] = cand[near[low[has]], 2]
     return np.column_stack([border, z])
 
 
 # ---------------------------------------------------------------- densify
-
-
-def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
-    """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
-    ix = np.floor(xy[:, 0] / cell).astype(np.int64)
-    iy = np.floor(xy[:, 1] / cell).astype(np.int64)
-    nx = int(ix.max()) + 1
-    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
-    return np.argsort(iy * nx + ix, kind="stable")
-
-
-def _facet_keys(simplices: NDArray, base: int) -> NDArray:
-    """One comparable key per facet from its sorted vertex ids (stable across rounds)."""
-    s = np.sort(simplices, axis=1).astype(np.int64)
-    if base < 2_000_000:
-        return (s[:, 0] * base + s[:, 1]) * base + s[:, 2]
-    return np.ascontiguousarray(s).view(np.dtype((np.void, 24))).ravel()
 
 
 def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> None:
@@ -273,8 +303,6 @@ def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> No
     the least-squares plane through its ``k`` nearest ground vertices, clamped to
     their height range widened by 2 m plus their distance (a 45° bound on the
     extrapolation), so slopes run on to the border."""
-    from scipy.spatial import cKDTree
-
     g = verts[nf:nv]
     if g.shape[0] < max(k, 3):
         return
@@ -292,145 +320,224 @@ def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> No
     verts[:nf, 2] = np.clip(z, lo, hi)
 
 
-def _judge(
-    tri: Delaunay, verts: NDArray[np.float64], pts: NDArray[np.float64], params: PtdParams
-) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
-    """Facet of each point and the acceptance test against it.
+def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
+    ix = np.floor(xy[:, 0] / cell).astype(np.int64)
+    iy = np.floor(xy[:, 1] / cell).astype(np.int64)
+    ix -= ix.min()
+    iy -= iy.min()
+    nx = int(ix.max()) + 1
+    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
+    return np.argsort(iy * nx + ix, kind="stable")
 
-    Returns (inside, facet, ok, sin of the angle, facet horizontal area), the
-    last four for the points inside the TIN only.
+
+class _Tin:
+    """The current TIN: triangulation, point location and per-facet planes."""
+
+    def __init__(self, verts: NDArray[np.float64]):
+        # find_simplex walks from the last hit: cheap on spatially ordered
+        # queries; with_transform spares scipy's per-simplex LAPACK calls.
+        self.tri = with_transform(Delaunay(verts[:, :2]))
+        self.simplices = self.tri.simplices
+        self.verts = verts
+        p = verts[self.simplices]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        self.area = 0.5 * np.abs(normal[:, 2])
+        norm = np.linalg.norm(normal, axis=1)
+        norm[norm == 0] = np.inf
+        self.unit = normal / norm[:, None]
+        self.nz = np.abs(self.unit[:, 2])
+        self.offset = np.einsum("ij,ij->i", self.unit, p[:, 0])
+
+    def locate(self, xy: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Facet of each point, -1 outside; fastest when consecutive points are close."""
+        return self.tri.find_simplex(xy)
+
+    def distance(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Perpendicular distance of each point to the plane of its facet ``s``."""
+        return np.abs(np.einsum("ij,ij->i", pts, self.unit[s]) - self.offset[s])
+
+    def nearest_vertex(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+        """Distance to the nearest vertex of facet ``s`` and that vertex, per point."""
+        vs = self.verts[self.simplices[s]]  # (m, 3, 3)
+        d2 = ((vs - pts[:, None, :]) ** 2).sum(axis=2)
+        k = np.argmin(d2, axis=1)
+        r = np.arange(s.size)
+        return np.sqrt(d2[r, k]), vs[r, k]
+
+
+def _judge(
+    tin: _Tin, pts: NDArray[np.float64], params: PtdParams, scores: bool
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Facet of each point (-1 outside the TIN) and the acceptance test against it.
+
+    Returns (facet, ok, sin of the angle). The angle is only worked out where
+    it decides the test (``scores``: for every point that passes otherwise):
+    within a metre of a vertex, scanner noise alone makes steep angles, so a
+    point is judged as if a metre away, and a point closer to the facet than
+    sin(iteration_angle) metres passes the angle test wherever it is.
     """
-    simp = tri.simplices
-    s = tri.find_simplex(pts[:, :2])
-    inside = s >= 0
-    s, pts = s[inside], pts[inside]
-    a = verts[simp[s, 0]]
-    b = verts[simp[s, 1]]
-    c = verts[simp[s, 2]]
-    normal = np.cross(b - a, c - a)
-    area = 0.5 * np.abs(normal[:, 2])
-    norm = np.linalg.norm(normal, axis=1)
-    norm[norm == 0] = np.inf
-    nz = np.abs(normal[:, 2]) / norm
-    dist = np.abs(np.einsum("ij,ij->i", pts - a, normal)) / norm
-    rmin = np.sqrt(
-        np.minimum(
-            np.minimum(((pts - a) ** 2).sum(1), ((pts - b) ** 2).sum(1)),
-            ((pts - c) ** 2).sum(1),
-        )
-    )
-    # Within a metre of a vertex, scanner noise alone makes steep angles:
-    # judge such points as if a metre away.
-    sin_angle = dist / np.maximum(rmin, 1.0)
+    s = tin.locate(pts[:, :2])
+    inside = np.flatnonzero(s >= 0)
+    si, pi = s[inside], pts[inside]
+    dist = tin.distance(si, pi)
     sin_max = np.sin(np.radians(params.iteration_angle))
     cos_max = np.cos(np.radians(params.terrain_angle))
-    ok = (dist < params.iteration_distance) & (sin_angle < sin_max) & (nz >= cos_max)
+    ok = (dist < params.iteration_distance) & (tin.nz[si] >= cos_max)
+    sin_angle = np.full(inside.size, np.inf)
+    need = np.flatnonzero(ok & (scores | (dist >= sin_max)))
+    if need.size:
+        rmin, _ = tin.nearest_vertex(si[need], pi[need])
+        sin_angle[need] = dist[need] / np.maximum(rmin, 1.0)
+    easy = ok.copy()
+    easy[need] = False
+    sin_angle[easy] = dist[easy]  # below sin_max: passes
+    ok &= sin_angle < sin_max
     if params.mirror_slope is not None and not ok.all():
         # Mirror image p' = 2v - p through the nearest vertex v, judged against
         # the facet p' falls in: the surface behind v, continued past it.
-        bad = np.flatnonzero(~ok & (nz < np.cos(np.radians(params.mirror_slope))))
-        pb = pts[bad]
-        vs = np.stack([a[bad], b[bad], c[bad]], axis=1)
-        near = np.argmin(((vs - pb[:, None, :]) ** 2).sum(axis=2), axis=1)
-        img = 2.0 * vs[np.arange(bad.size), near] - pb
-        s2 = tri.find_simplex(img[:, :2])
-        has = np.flatnonzero(s2 >= 0)
-        bad, img, s2 = bad[has], img[has], s2[has]
-        a2 = verts[simp[s2, 0]]
-        b2 = verts[simp[s2, 1]]
-        c2 = verts[simp[s2, 2]]
-        n2 = np.cross(b2 - a2, c2 - a2)
-        norm2 = np.linalg.norm(n2, axis=1)
-        norm2[norm2 == 0] = np.inf
-        d2 = np.abs(np.einsum("ij,ij->i", img - a2, n2)) / norm2
-        r2 = np.sqrt(
-            np.minimum(
-                np.minimum(((img - a2) ** 2).sum(1), ((img - b2) ** 2).sum(1)),
-                ((img - c2) ** 2).sum(1),
-            )
-        )
-        sin2 = d2 / np.maximum(r2, 1.0)
-        ok2 = (d2 < params.iteration_distance) & (sin2 < sin_max) & (np.abs(n2[:, 2]) / norm2 >= cos_max)
-        ok[bad[ok2]] = True
-        sin_angle[bad[ok2]] = sin2[ok2]
-    return inside, s, ok, sin_angle, area
+        bad = np.flatnonzero(~ok & (tin.nz[si] < np.cos(np.radians(params.mirror_slope))))
+        if bad.size:
+            _, v = tin.nearest_vertex(si[bad], pi[bad])
+            img = 2.0 * v - pi[bad]
+            s2 = tin.locate(img[:, :2])
+            has = np.flatnonzero(s2 >= 0)
+            bad, img, s2 = bad[has], img[has], s2[has]
+            d2 = tin.distance(s2, img)
+            r2, _ = tin.nearest_vertex(s2, img)
+            sin2 = d2 / np.maximum(r2, 1.0)
+            ok2 = (d2 < params.iteration_distance) & (sin2 < sin_max) & (tin.nz[s2] >= cos_max)
+            ok[bad[ok2]] = True
+            sin_angle[bad[ok2]] = sin2[ok2]
+    facet = np.full(pts.shape[0], -1, dtype=np.int64)
+    facet[inside] = si
+    full_ok = np.zeros(pts.shape[0], dtype=bool)
+    full_ok[inside] = ok
+    full_sin = np.full(pts.shape[0], np.inf)
+    full_sin[inside] = sin_angle
+    return facet, full_ok, full_sin
 
 
 def _densify(
     local: NDArray[np.float64],
     ground: NDArray[np.bool_],
     excluded: NDArray[np.bool_],
+    cand: NDArray[np.int64],
     frame: NDArray[np.float64],
     params: PtdParams,
 ) -> None:
     """Grow ``ground`` in place by rounds of TIN densification.
 
-    One point per facet per round while facets are larger than
-    ``min_spacing``²/2 and rounds still grow the TIN by ``tail_fraction``; then
-    one last pass accepts every pending point that passes against the final
-    TIN without inserting it. Delaunay is the cost, so the TIN stays near one
-    vertex per ``min_spacing``² however dense the cloud.
+    Rounds insert candidates only (``cand``: the lowest point of each
+    ``min_spacing`` cell), one per facet per round, while facets are larger
+    than ``min_spacing``²/2 and rounds still grow the TIN by ``tail_fraction``;
+    then one last pass accepts every remaining point that passes against the
+    final TIN without inserting it. Delaunay is the cost, so the TIN stays
+    near one vertex per ``min_spacing``² however dense the cloud, and each
+    round judges one point per cell, not the cloud.
     """
-    n = local.shape[0]
     nf = frame.shape[0]
     seeds = np.flatnonzero(ground)
-    verts = np.empty((nf + n, 3))
+    pending = cand[~ground[cand]]
+    verts = np.empty((nf + seeds.size + pending.size, 3))
     verts[:nf] = frame
     verts[nf : nf + seeds.size] = local[seeds]
     nv = nf + seeds.size
-    base = nf + n
+    vid = np.full(verts.shape[0], -1, dtype=np.int64)  # point index of each vertex
+    vid[nf:nv] = seeds
     area_min = 0.5 * params.min_spacing**2
 
-    pending = np.flatnonzero(~ground & ~excluded)
-    spacing = max(np.sqrt((np.ptp(local[:, 0]) * np.ptp(local[:, 1]) + 1.0) / n), 0.1)
-    pending = pending[_spatial_order(local[pending, :2], 8.0 * spacing)]
-    last_key: NDArray | None = None
-
-    def accept(chosen: NDArray[np.int64], insert: bool) -> None:
-        nonlocal pending, last_key, nv
+    tin = None
+    for _ in range(params.max_rounds):
+        _refit_frame(verts, nf, nv)
+        try:
+            tin = _Tin(verts[:nv])
+        except QhullError:
+            return
+        if pending.size == 0:
+            break
+        s, ok, score = _judge(tin, local[pending], params, scores=True)
+        pick = np.flatnonzero(ok & (tin.area[np.maximum(s, 0)] >= area_min))
+        if pick.size == 0:
+            break
+        o = pick[np.lexsort((score[pick], s[pick]))]
+        first = np.r_[True, s[o][1:] != s[o][:-1]]
+        chosen = o[first]
         new = pending[chosen]
         ground[new] = True
-        if insert:
-            verts[nv : nv + new.size] = local[new]
-            nv += new.size
+        verts[nv : nv + new.size] = local[new]
+        vid[nv : nv + new.size] = new
+        nv += new.size
         keep = np.ones(pending.size, dtype=bool)
         keep[chosen] = False
         pending = pending[keep]
-        if last_key is not None:
-            last_key = last_key[keep]
-
-    tri = None
-    for _ in range(params.max_rounds):
-        if pending.size == 0:
-            return
-        _refit_frame(verts, nf, nv)
-        try:
-            tri = with_transform(Delaunay(verts[:nv, :2]))
-        except QhullError:
-            return
-        keys = _facet_keys(tri.simplices, base)
-        # A point whose facet survived re-triangulation keeps its verdict.
-        ti = np.flatnonzero(~np.isin(last_key, keys)) if last_key is not None else np.arange(pending.size)
-        inside, s, ok, score, area = _judge(tri, verts, local[pending[ti]], params)
-        ti = ti[inside]
-        if last_key is None:
-            last_key = np.zeros(pending.size, dtype=keys.dtype)
-        last_key[ti] = keys[s]
-        pick = ok & (area >= area_min)
-        if not pick.any():
-            break
-        cand = np.flatnonzero(pick)
-        o = cand[np.lexsort((score[cand], s[cand]))]
-        first = np.r_[True, s[o][1:] != s[o][:-1]]
-        chosen = ti[o[first]]
-        accept(chosen, insert=True)
         if chosen.size < params.tail_fraction * nv:
+            _refit_frame(verts, nf, nv)
             try:
-                tri = with_transform(Delaunay(verts[:nv, :2]))
+                tin = _Tin(verts[:nv])
             except QhullError:
                 return
             break
-    # Final pass: every pending point judged against the last TIN, none inserted.
-    if tri is not None and pending.size:
-        inside, s, ok, score, area = _judge(tri, verts, local[pending], params)
-        accept(np.flatnonzero(inside)[ok], insert=False)
+    if tin is not None and params.island_step is not None:
+        drop = _islands(tin, nf, params.island_step, params.island_slope)
+        if drop.any():
+            ground[vid[:nv][drop]] = False
+            verts = verts[:nv][~drop]
+            _refit_frame(verts, nf, verts.shape[0])
+            try:
+                tin = _Tin(verts)
+            except QhullError:
+                return
+    # Final pass: every other point judged against the last TIN, none inserted.
+    if tin is not None:
+        rest = np.flatnonzero(~ground & ~excluded)
+        if rest.size:
+            rest = rest[_spatial_order(local[rest, :2], 8.0)]
+            _, ok, _ = _judge(tin, local[rest], params, scores=False)
+            ground[rest[ok]] = True
+
+
+def _islands(tin: _Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]:
+    """TIN vertices of raised islands: parts of the ground TIN that only meet
+    the rest across downward steps (edges rising at least ``step`` metres at
+    more than ``slope`` degrees), nowhere the block's border, and are not its
+    largest part. A roof seeded in a cell it fills is such an island; terrain
+    joins its surroundings somewhere without a step. Repeated so a roof under
+    a raised part (a tower) goes too."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nv = tin.verts.shape[0]
+    simp = tin.simplices
+    e = np.concatenate([simp[:, [0, 1]], simp[:, [1, 2]], simp[:, [2, 0]]])
+    v = tin.verts
+    dz = v[e[:, 1], 2] - v[e[:, 0], 2]
+    h = np.hypot(v[e[:, 1], 0] - v[e[:, 0], 0], v[e[:, 1], 1] - v[e[:, 0], 1])
+    is_step = (np.abs(dz) >= step) & (np.abs(dz) >= np.tan(np.radians(slope)) * h)
+    to_frame = (e < nf).any(axis=1)
+    gentle = ~is_step & ~to_frame
+    g = coo_matrix((np.ones(np.count_nonzero(gentle)), (e[gentle, 0], e[gentle, 1])), shape=(nv, nv))
+    ncomp, comp = connected_components(g, directed=False)
+    size = np.bincount(comp[nf:], minlength=ncomp)
+    fixed = np.zeros(ncomp, dtype=bool)
+    fixed[comp[:nf]] = True  # frame vertices: one component each
+    fixed[np.argmax(size)] = True
+    fe = e[to_frame]
+    fixed[comp[np.where(fe[:, 0] < nf, fe[:, 1], fe[:, 0])]] = True
+    se = e[is_step & ~to_frame]
+    lo = np.where(v[se[:, 0], 2] < v[se[:, 1], 2], se[:, 0], se[:, 1])
+    hi = np.where(v[se[:, 0], 2] < v[se[:, 1], 2], se[:, 1], se[:, 0])
+    cross = comp[lo] != comp[hi]
+    lo, hi = comp[lo[cross]], comp[hi[cross]]
+    gone = np.zeros(ncomp, dtype=bool)
+    for _ in range(4):
+        live = ~gone[lo] & ~gone[hi]
+        below = np.zeros(ncomp, dtype=bool)
+        below[lo[live]] = True  # the lower side of a step: something stands on it
+        island = ~fixed & ~gone & ~below & (size > 0)
+        if not island.any():
+            break
+        gone |= island
+    drop = gone[comp]
+    drop[:nf] = False
+    return drop
