@@ -185,3 +185,15 @@ def test_rotated_runs_see_only_the_faces(cliffs):
     assert np.count_nonzero(steep & res.is_ground) > np.count_nonzero(steep & plain) + 0.2 * steep.sum()
     whole = classify_rotated(cliffs.xyz, lambda p: classify_ground(p, conservative), RotationParams(context=None), unrotated=plain)
     assert abs(int(np.count_nonzero(steep & res.is_ground)) - int(np.count_nonzero(steep & whole.is_ground))) < 0.1 * steep.sum()
+
+
+def test_rolling_ground_cut_by_the_data_edge_is_not_steep():
+    # Rolling ground ending a metre or so into a last column of cells: lowest
+    # points along cell borders and along the data's edge are nearly collinear,
+    # and the thin facets between them tilt with any height difference.
+    for seed, width in [(0, 0.8), (1, 1.5), (2, 0.8), (3, 0.8)]:
+        rng = np.random.default_rng(seed)
+        xy = rng.uniform(0, [150 + width, 136.0], (30000, 2))
+        z = 0.05 * xy[:, 1] + 1.5 * np.sin(xy[:, 1] / 6.0) + 0.5 * np.sin(xy[:, 0] / 5) + rng.normal(0, 0.1, len(xy))
+        test = steepness(np.column_stack([xy + [5e5, 5.4e6], z]), SteepParams())
+        assert test.facet_share == 0.0, (seed, test)

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 from scipy.spatial import Delaunay, QhullError
 
-from terrasift.workers.bins import Grid
+from terrasift.workers.bins import Grid, lowest_per_bin
 from terrasift.workers.registry import StageParams, register
 
 GroundFn = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
@@ -49,6 +49,11 @@ class SteepParams(StageParams):
     A cliff's foot is a floor of many points at one height; a lone low outlier
     (multipath) that the ground filter took is no terrain, and its cell is
     dropped from the TIN. 0: no check (the seed's plain test)."""
+    thin_facet: float = Field(0.1, ge=0.0, le=1.0)
+    """Cells: a facet whose plan height onto its longest side is below this
+    (nearly collinear lowest points along cell borders or the data's edge) is
+    judged by its steepest side, not its normal, which tilts with any small
+    height difference across it. 0: every facet by its normal."""
     support_radius: float = Field(2.0, gt=0.0, le=100.0)
     """Metres: horizontal radius of the support check."""
     support_gap: float = Field(1.0, gt=0.0, le=100.0)
@@ -84,11 +89,12 @@ class RotationParams(StageParams):
     ``steep_reach`` + this of the steep facets: the faces with their foot and
     rim as context for the TIN, not the flats it may not add to anyway. This
     is what keeps a steep block's cost near a flat one's. None: whole block."""
-    rerun_unrotated: bool = False
-    """Steep blocks: run the unrotated cloud again with ``ground_preset`` (the
-    seed: nine conservative runs) instead of keeping the block's normal labels.
-    On cliff scenes this keeps Type II near the aggressive filter's; on the
-    ISPRS samples it costs samp11 (a steep town) 15 kappa points."""
+    rerun_unrotated: bool = True
+    """Steep blocks: run the unrotated cloud again with ``ground_preset``, as
+    the seed does (nine conservative runs OR'ed), instead of keeping the
+    block's default labels. On the cliff scene the default labels carry 7.4 %
+    Type II (low vegetation on the rims) into the OR; the conservative run
+    keeps it at 4.7 % (benchmarks/rotation_accuracy.py). False: keep them."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
@@ -118,19 +124,23 @@ def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape[0] < 3:
         return SteepTest(0.0, False, 0)
-    lo = xyz.min(axis=0)
-    grid = Grid.covering(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1], params.cell)
-    flat = grid.index(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1])
-    order = np.argsort(flat, kind="stable")
-    fs = flat[order]
-    starts = np.flatnonzero(np.r_[True, fs[1:] != fs[:-1]])
-    z = xyz[order, 2]
-    zmin = np.minimum.reduceat(z, starts)
-    counts = np.diff(np.r_[starts, fs.size])
-    is_min = z == np.repeat(zmin, counts)
-    first = np.flatnonzero(is_min)
-    first = first[np.r_[True, fs[first][1:] != fs[first][:-1]]]
-    pts = xyz[order[first]] - lo
+    x, y = xyz[:, 0], xyz[:, 1]
+    lo = np.array([x.min(), y.min(), xyz[:, 2].min()])
+    grid = Grid.covering(x - lo[0], y - lo[1], params.cell)
+    flat = grid.index(x - lo[0], y - lo[1])
+    low = lowest_per_bin(flat, xyz[:, 2], grid.size)
+    # Cells the tested points span less than half of in x or y (slivers at the
+    # data's edge, ground in a corner beside a building) give no lowest point:
+    # several of them along an edge make thin facets with arbitrary slopes.
+    spans = []
+    for v in (x, y):
+        vmin = np.full(grid.size, np.inf)
+        vmax = np.full(grid.size, -np.inf)
+        np.minimum.at(vmin, flat, v)
+        np.maximum.at(vmax, flat, v)
+        spans.append(vmax - vmin)
+    low = low[(low >= 0) & (spans[0] >= 0.5 * params.cell) & (spans[1] >= 0.5 * params.cell)]
+    pts = xyz[low] - lo
     steep, n = _steep_facets(pts, params)
     if params.support > 0 and steep.size:
         # Drop lone low vertices under steep facets and test again.
@@ -158,6 +168,16 @@ def _steep_facets(pts: NDArray[np.float64], params: SteepParams) -> tuple[NDArra
     edge = np.max(np.hypot(*(p[:, [1, 2, 0], :2] - p[:, :, :2]).transpose(2, 0, 1)), axis=1)
     good = np.flatnonzero((norm > 0) & (edge <= 3.0 * params.cell))
     slope = np.degrees(np.arccos(np.abs(normal[good, 2]) / norm[good]))
+    # A thin facet (plan height onto its longest side < thin_facet cells: nearly
+    # collinear lowest points, as along cell borders on rolling ground) tilts
+    # its normal by any small height difference across it; it counts as steep
+    # only when one of its sides is.
+    thin = np.abs(normal[good, 2]) / edge[good] < params.thin_facet * params.cell  # |normal_z| = 2 * plan area
+    if thin.any():
+        q = p[good[thin]]
+        d = q[:, [1, 2, 0]] - q
+        side = np.degrees(np.arctan2(np.abs(d[..., 2]), np.hypot(d[..., 0], d[..., 1])))
+        slope[thin] = side.max(axis=1)
     rise = np.ptp(p[good, :, 2], axis=1)
     hit = good[(slope > params.facet_angle) & (rise > params.min_rise)]
     low = tri.simplices[hit, np.argmin(p[hit, :, 2], axis=1)]
@@ -254,7 +274,6 @@ def _near_surface(
     and the points within ``wide`` of those facets (None when not asked)."""
     from scipy.spatial import cKDTree
 
-    from terrasift.workers.bins import lowest_per_bin
     from terrasift.workers.surface import TinSurface
 
     g = np.flatnonzero(ground)
