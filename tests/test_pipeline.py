@@ -107,22 +107,19 @@ def test_report_and_stac_item(finished_job, small_scene):
     assert 7 < lon0 < lon1 < 11 and 47 < lat0 < lat1 < 50
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="both ground methods adapt to the block's extent (masking, seeds at building edges): "
-    "0.95 of labels agree 20 m from the tile edge, target 0.995",
-)
-def test_block_seams_do_not_change_labels(tmp_path, small_tile, small_scene, finished_job):
-    """2×2-ish small blocks against one block: same labels away from the tile edge."""
-    job_small, _ = finished_job
-    job_one, _ = _run(tmp_path, small_tile, {"block_size": 400, "buffer": 15}, "one")
+def test_block_seams_do_not_change_labels(tmp_path, small_tile, small_scene):
+    """2×2-ish 80 m blocks against one block, both with the default 20 m buffer:
+    the same labels away from the tile edge (measured: 99.93 %; the few that
+    differ lie within 5 m of a block edge)."""
+    job_small, _ = _run(tmp_path, small_tile, {"block_size": 80}, "small")
+    job_one, _ = _run(tmp_path, small_tile, {"block_size": 400}, "one")
     a = np.asarray(laspy.read(pipeline.output_path(job_small, "classified.laz")).classification)
     b = np.asarray(laspy.read(pipeline.output_path(job_one, "classified.laz")).classification)
     x, y = small_scene.xyz[:, 0], small_scene.xyz[:, 1]
     x0, y0, x1, y1 = small_scene.bounds
     inner = (x > x0 + 20) & (x < x1 - 20) & (y > y0 + 20) & (y < y1 - 20)
-    same = np.mean(a[inner] == b[inner])
-    assert same >= 0.995, same
+    assert np.mean(a[inner] == b[inner]) >= 0.998
+    assert np.mean((a == 2)[inner] == (b == 2)[inner]) >= 0.998
 
 
 def test_resume_redoes_only_missing_work(tmp_path, small_tile):
