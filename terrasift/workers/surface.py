@@ -1,10 +1,10 @@
 """A ground surface through points: linear on a Delaunay TIN, nearest outside it.
 
-Point location uses ``TriangleLocator``, which buckets triangles on a grid and
-tests each query against its bucket's triangles, all vectorised and with no
-per-simplex LAPACK calls (scipy's ``Delaunay.transform`` makes one per simplex,
-which under a threaded BLAS on a busy machine took over 100 s for a 150 k point
-TIN; ``with_transform`` fills it in numpy where ``find_simplex`` is still used).
+Point location is scipy's ``find_simplex`` walking from its last hit, fed
+queries in a serpentine spatial order, so each walk is a step or two. Its
+barycentric transforms come from ``with_transform``: scipy builds them with one
+LAPACK call per simplex, which under a threaded BLAS on a busy machine took
+over 100 s for a 150 k point TIN.
 
 Coordinates are shifted to a local origin before triangulating, because
 projected coordinates (5e6 m) cost Qhull precision.
@@ -44,84 +44,14 @@ def with_transform(tri: Delaunay) -> Delaunay:
     return tri
 
 
-class TriangleLocator:
-    """Finds which triangle of a triangulation holds each query point.
-
-    Triangles are registered in every bucket of a regular grid that their
-    bounding box touches; a query is tested against the triangles of its bucket.
-    Bucket size is about the mean triangle size, so a bucket holds a handful.
-    """
-
-    def __init__(self, points: NDArray[np.float64], simplices: NDArray[np.int64]):
-        self.points = points
-        self.simplices = simplices
-        tri = points[simplices]  # (m, 3, 2)
-        lo = tri.min(axis=1)
-        hi = tri.max(axis=1)
-        self.origin = points.min(axis=0)
-        extent = np.maximum(points.max(axis=0) - self.origin, 1e-9)
-        m = max(simplices.shape[0], 1)
-        self.size = float(np.sqrt(extent[0] * extent[1] / m) * 1.5) or 1.0
-        self.nx = int(extent[0] / self.size) + 1
-        self.ny = int(extent[1] / self.size) + 1
-        b0 = np.floor((lo - self.origin) / self.size).astype(np.int64)
-        b1 = np.floor((hi - self.origin) / self.size).astype(np.int64)
-        b0 = np.clip(b0, 0, [self.nx - 1, self.ny - 1])
-        b1 = np.clip(b1, 0, [self.nx - 1, self.ny - 1])
-        wx = b1[:, 0] - b0[:, 0] + 1
-        wy = b1[:, 1] - b0[:, 1] + 1
-        counts = wx * wy
-        tri_id = np.repeat(np.arange(simplices.shape[0]), counts)
-        # position of each pair within its triangle's bbox, unrolled row-major
-        first = np.repeat(np.cumsum(counts) - counts, counts)
-        k = np.arange(tri_id.size) - first
-        bx = b0[tri_id, 0] + k % wx[tri_id]
-        by = b0[tri_id, 1] + k // wx[tri_id]
-        bucket = by * self.nx + bx
-        order = np.argsort(bucket, kind="stable")
-        self.tri_of_pair = tri_id[order]
-        self.bucket_start = np.searchsorted(bucket[order], np.arange(self.nx * self.ny + 1))
-        # Barycentric transform per triangle: [l0, l1] = T @ (q - v2)
-        v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
-        a = np.stack([v0 - v2, v1 - v2], axis=-1)  # (m, 2, 2), columns are edges
-        det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-        det = np.where(np.abs(det) < 1e-18, np.nan, det)
-        self.inv = np.stack(
-            [np.stack([a[:, 1, 1], -a[:, 0, 1]], -1), np.stack([-a[:, 1, 0], a[:, 0, 0]], -1)], -2
-        ) / det[:, None, None]
-        self.v2 = v2
-
-    def locate(self, q: NDArray[np.float64], eps: float = 1e-9) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """Triangle index (-1 outside) and barycentric weights (n, 3) of each query."""
-        n = q.shape[0]
-        found = np.full(n, -1, dtype=np.int64)
-        bary = np.zeros((n, 3))
-        b = np.floor((q - self.origin) / self.size).astype(np.int64)
-        ok = (b[:, 0] >= 0) & (b[:, 0] < self.nx) & (b[:, 1] >= 0) & (b[:, 1] < self.ny)
-        cand = np.flatnonzero(ok)
-        bucket = b[cand, 1] * self.nx + b[cand, 0]
-        start = self.bucket_start[bucket]
-        stop = self.bucket_start[bucket + 1]
-        k = 0
-        while cand.size:
-            live = start + k < stop
-            cand, bucket, start, stop = cand[live], bucket[live], start[live], stop[live]
-            if not cand.size:
-                break
-            t = self.tri_of_pair[start + k]
-            d = q[cand] - self.v2[t]
-            l01 = np.einsum("nij,nj->ni", self.inv[t], d)
-            l2 = 1.0 - l01.sum(axis=1)
-            hit = (l01[:, 0] >= -eps) & (l01[:, 1] >= -eps) & (l2 >= -eps)
-            hit &= np.isfinite(l2)
-            idx = cand[hit]
-            found[idx] = t[hit]
-            bary[idx, :2] = l01[hit]
-            bary[idx, 2] = l2[hit]
-            miss = ~hit
-            cand, bucket, start, stop = cand[miss], bucket[miss], start[miss], stop[miss]
-            k += 1
-        return found, bary
+def spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Serpentine row order of ``cell``-sized bins: consecutive points are close,
+    which is what makes ``Delaunay.find_simplex`` (a walk from its last hit) fast."""
+    ix = np.floor((xy[:, 0] - xy[:, 0].min()) / cell).astype(np.int64)
+    iy = np.floor((xy[:, 1] - xy[:, 1].min()) / cell).astype(np.int64)
+    nx = int(ix.max()) + 1
+    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
+    return np.argsort(iy * nx + ix)
 
 
 class TinSurface:
@@ -135,11 +65,9 @@ class TinSurface:
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
         self.tri: Delaunay | None = None
-        self.locator: TriangleLocator | None = None
         if xyz.shape[0] >= 3:
             try:
-                self.tri = Delaunay(self.xy)
-                self.locator = TriangleLocator(self.xy, self.tri.simplices)
+                self.tri = with_transform(Delaunay(self.xy))
             except QhullError:  # all points collinear or coincident
                 self.tri = None
         self._kd: cKDTree | None = None
@@ -148,10 +76,19 @@ class TinSurface:
         q = np.column_stack([np.ravel(x), np.ravel(y)]) - self.origin
         out = np.empty(q.shape[0])
         inside = np.zeros(q.shape[0], dtype=bool)
-        if self.locator is not None and self.tri is not None:
-            simplex, bary = self.locator.locate(q)
-            inside = simplex >= 0
-            out[inside] = np.einsum("ni,ni->n", bary[inside], self.z[self.tri.simplices[simplex[inside]]])
+        if self.tri is not None and q.shape[0]:
+            # Walk in a spatial order: ~10x faster than bucketed point-in-triangle
+            # tests, and the walk never wanders across the TIN between queries.
+            order = spatial_order(q, 8.0)
+            qs = q[order]
+            simplex = self.tri.find_simplex(qs)
+            hit = simplex >= 0
+            t = self.tri.transform[simplex[hit]]
+            l01 = np.einsum("nij,nj->ni", t[:, :2], qs[hit] - t[:, 2])
+            bary = np.column_stack([l01, 1.0 - l01.sum(axis=1)])
+            idx = order[hit]
+            out[idx] = np.einsum("ni,ni->n", bary, self.z[self.tri.simplices[simplex[hit]]])
+            inside[idx] = True
         if not inside.all():
             if self._kd is None:
                 self._kd = cKDTree(self.xy)

@@ -1,0 +1,24 @@
+"""The TIN surface: exact on planes inside the hull, nearest vertex outside."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terrasift.workers.surface import TinSurface
+
+
+def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
+    rng = np.random.default_rng(8)
+    xy = rng.uniform(0, 200, (20_000, 2)) + [5e5, 5.4e6]
+    plane = lambda x, y: 0.3 * (x - 5e5) - 0.1 * (y - 5.4e6) + 7.0  # noqa: E731
+    # hull corners, so every query in [1, 199]² lies inside the TIN
+    corners = np.array([[0, 0], [200, 0], [0, 200], [200, 200]]) + [5e5, 5.4e6]
+    xy = np.vstack([xy, corners])
+    surface = TinSurface(np.column_stack([xy, plane(xy[:, 0], xy[:, 1])]))
+    q = rng.uniform(1, 199, (50_000, 2)) + [5e5, 5.4e6]
+    assert np.abs(surface(q[:, 0], q[:, 1]) - plane(q[:, 0], q[:, 1])).max() < 1e-6
+    gx, gy = np.meshgrid(np.arange(1, 199, 0.5) + 5e5, np.arange(1, 199, 0.5) + 5.4e6)
+    assert np.abs(surface(gx, gy) - plane(gx, gy)).max() < 1e-6
+    assert surface(gx, gy).shape == gx.shape
+    # outside the hull: the nearest vertex's height
+    assert np.isclose(surface(np.array([5e5 + 210.0]), np.array([5.4e6 + 205.0]))[0], plane(5e5 + 200, 5.4e6 + 200))
