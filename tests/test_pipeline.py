@@ -219,7 +219,7 @@ def test_banded_slope_and_categories_equal_whole_dtm(tmp_path, small_tile, monke
     job, _ = _run(tmp_path, small_tile, {**BLOCK, "features": "none"})
     for name in ("slope.tif", "categories.tif"):
         pipeline.output_path(job, name).unlink()
-    monkeypatch.setattr(outputs, "BAND_ROWS", 24)  # many bands over the 320-row DTM
+    monkeypatch.setattr(outputs, "BAND_CELLS", 24 * 324)  # bands of 24 rows over the 324 × 324 DTM
     outputs.write_terrain(str(job))
     params = pipeline.load_json(job / "job.json")["params"]
     with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:

@@ -22,7 +22,7 @@ import pyproj
 from terrasift.errors import ProcessingError
 from terrasift.tiling.blocks import BlockGrid
 from terrasift.params import stage_params
-from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, job_transform
+from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, bounded_raster_cache, job_transform
 
 MEDIA_TYPES = {
     ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
@@ -46,7 +46,11 @@ def _block_files(job_dir: Path) -> list[Path]:
 
 def write_rasters(job_dir: str) -> list[str]:
     """Task: mosaic every block's raster windows into the job's COGs (DTM, DSM, CHM, coverage)."""
-    job = Path(job_dir)
+    with bounded_raster_cache():
+        return _write_rasters(Path(job_dir))
+
+
+def _write_rasters(job: Path) -> list[str]:
     wanted = [f"{n}.tif" for n in FLOAT_RASTERS] + ["coverage.tif"]
     out = job / "outputs"
     if all((out / w).exists() for w in wanted):
@@ -94,7 +98,7 @@ def write_rasters(job_dir: str) -> list[str]:
     return wanted
 
 
-BAND_ROWS = 512  # DTM rows per band for slope and categories (a multiple of any tile's cells)
+BAND_CELLS = 1 << 19  # DTM cells per band for slope and categories: memory follows this, not the job
 
 
 def write_terrain(job_dir: str) -> list[str]:
@@ -105,6 +109,11 @@ def write_terrain(job_dir: str) -> list[str]:
     are found on the whole job's category grid (one byte per 2 m tile per
     band), so an object crossing block or tile borders comes out once.
     """
+    with bounded_raster_cache():
+        return _write_terrain(Path(job_dir))
+
+
+def _write_terrain(job: Path) -> list[str]:
     import rasterio
     from rasterio.windows import Window
 
@@ -112,7 +121,6 @@ def write_terrain(job_dir: str) -> list[str]:
     from terrasift.workers import features as feat
     from terrasift.workers import terrain
 
-    job = Path(job_dir)
     out = job / "outputs"
     plan = _load(job, "plan.json")
     params = _load(job, "job.json")["params"]
@@ -125,7 +133,7 @@ def write_terrain(job_dir: str) -> list[str]:
         transform, height, width = ds.transform, ds.height, ds.width
         res = abs(transform.a)
         k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
-        band = max(k, BAND_ROWS // k * k)
+        band = max(k, BAND_CELLS // width // k * k)  # whole category tiles
         margin = tparams.median_size // 2 + 2
 
         def read(r0: int, r1: int) -> NDArray:

@@ -20,6 +20,14 @@ from rio_cogeo.cogeo import cog_translate
 from rio_cogeo.profiles import cog_profiles
 
 FLOAT_NODATA = -9999.0
+RASTER_CACHE_MB = 64
+
+
+def bounded_raster_cache() -> rasterio.Env:
+    """GDAL's block cache capped at ``RASTER_CACHE_MB``: by default it may take
+    5 % of the machine's memory, and a mosaic's dirty blocks fill it, so a
+    task's memory would grow with the job's area."""
+    return rasterio.Env(GDAL_CACHEMAX=RASTER_CACHE_MB)
 
 
 class RasterMosaic:
