@@ -23,6 +23,7 @@ from terrasift.params import stage_params
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers import dem
 from terrasift.workers.bins import Grid
+from terrasift.workers.ground import lowpoints, rotation
 from terrasift.workers.registry import get_stage
 
 UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
@@ -100,10 +101,12 @@ def classify_block(
 
     # Ground, rotated on steep blocks.
     check_cancel()
-    is_ground_sub, stats["steep"] = _ground(sub, params, origins, timer)
+    is_ground_sub, low_sub, stats["steep"] = _ground(sub, params, origins, timer)
     is_ground = np.zeros(n, dtype=bool)
     is_ground[act] = is_ground_sub
     labels[is_ground] = GROUND
+    labels[act[low_sub]] = NOISE
+    stats["low_points"] = int(np.count_nonzero(low_sub[core[act]]))
 
     # Vegetation bins on the core window, and vegetation classes for the points in them.
     check_cancel()
@@ -130,7 +133,7 @@ def classify_block(
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
             in_veg = (flat >= 0) & (veg.bin_class[np.maximum(flat, 0)] >= vegetation.BUSH)
-            pick = in_veg & ~is_ground_sub
+            pick = in_veg & ~is_ground_sub & ~low_sub
             hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
             labels[act[pick]] = vegetation.height_classes(hag)
     stats["vegetation"] = veg.counts
@@ -212,20 +215,29 @@ def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[s
 
 def _ground(
     xyz: NDArray, params: Mapping[str, Any], origins: list | None, timer: _Timer
-) -> tuple[NDArray[np.bool_], dict[str, Any]]:
-    """Ground labels, with the steepness test and rotated classification of DESIGN §5.3."""
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
+    """Ground labels and isolated low points (taken out of the ground), with the
+    steepness test and rotated classification of DESIGN §5.3."""
     stage = get_stage(f"ground.{params['ground']}")
     kwargs = {"sensor_origin": np.asarray(origins[0], float)} if origins else {}
     steep_info: dict[str, Any] = {}
+    none = np.zeros(xyz.shape[0], dtype=bool)
     if xyz.shape[0] < 3:
-        return np.zeros(xyz.shape[0], dtype=bool), steep_info
+        return none, none, steep_info
     gparams = stage_params(params, stage.id, params.get("ground.preset", "default"))
+    lparams = stage_params(params, "ground.lowpoints")
+
+    def without_low(is_ground: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        with timer("low_points"):
+            low = lowpoints.isolated_low_points(xyz, is_ground, lparams)
+        return is_ground & ~low, low
+
     with timer("ground"):
         is_ground = np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool)
+    is_ground, low = without_low(is_ground)
     mode = params.get("rotation", "auto")
     if mode == "off":
-        return is_ground, steep_info
-    from terrasift.workers.ground import rotation
+        return is_ground, low, steep_info
 
     # The test runs on the block's ground points: on the raw cloud, building
     # walls would make most urban blocks "steep".
@@ -233,7 +245,7 @@ def _ground(
         test = rotation.steepness(xyz[is_ground], stage_params(params, "ground.steep"))
     steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
     if not (test.steep or mode == "always"):
-        return is_ground, steep_info
+        return is_ground, low, steep_info
     rparams = stage_params(params, "ground.rotation")
     cparams = stage_params(params, stage.id, rparams.ground_preset)
     seeded = None
@@ -252,7 +264,8 @@ def _ground(
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
-    return np.asarray(result.is_ground, dtype=bool), steep_info
+    is_ground, low = without_low(np.asarray(result.is_ground, dtype=bool))
+    return is_ground, low, steep_info
 
 
 def _block_area(grid: BlockGrid) -> float:

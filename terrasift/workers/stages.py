@@ -9,3 +9,4 @@ import terrasift.workers.terrain  # noqa: F401
 import terrasift.workers.ground.nist  # noqa: F401
 import terrasift.workers.ground.ptd  # noqa: F401
 import terrasift.workers.ground.rotation  # noqa: F401
+import terrasift.workers.ground.lowpoints  # noqa: F401

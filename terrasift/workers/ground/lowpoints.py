@@ -1,0 +1,114 @@
+"""Isolated low points among the ground: multipath and other returns under the terrain.
+
+A ground filter grown from cell minima takes a return a few metres under the
+terrain as ground (it is the lowest point around, and a TIN through it still
+meets the distance tests of its neighbours), and each one digs a pit into the
+DTM. Real terrain, even a ditch or the foot of a wall, is a surface: a ground
+point has other ground points at about its own height around it. So a ground
+point is an isolated low point when, of the other ground points around it
+(at least ``min_points`` of them, else the data is too sparse to judge), fewer
+than ``support`` lie below it or less than ``depth`` above it: the terrain
+around it is all metres higher. ASPRS class 7 (low point, noise).
+
+Vectorised on a grid of ``radius`` cells: the ground points are sorted once by
+(cell, height), and each candidate counts its 3 x 3 neighbourhood's points in
+a height band with two binary searches per cell. Only the lowest ground point
+of each ``candidate_cell`` is a candidate (the others stand on it), repeated
+on the cells that lost their lowest point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+
+from terrasift.workers.bins import Grid, lowest_per_bin
+from terrasift.workers.registry import StageParams, register
+
+
+class LowPointParams(StageParams):
+    """Parameters of the isolated-low-point test on ground points."""
+
+    depth: float = Field(1.0, gt=0.0, le=100.0)
+    """Metres: the height band above a point in which its support must lie."""
+    radius: float = Field(2.0, gt=0.0, le=50.0)
+    """Metres: horizontal reach of the neighbourhood (a square of 3 x 3 cells of this size)."""
+    support: int = Field(2, ge=0, le=1000)
+    """Fewer other ground points than this below or within ``depth`` above a
+    point make it isolated (a pair of outliers is caught, a cluster of three
+    is kept). 0: off."""
+    min_points: int = Field(8, ge=1, le=10_000)
+    """Other ground points the neighbourhood needs before a point is judged:
+    sparse data (ISPRS samp52/61, under 0.5 ground points per m²) cannot tell
+    a hollow from a lone return."""
+    candidate_cell: float = Field(1.0, gt=0.0, le=50.0)
+    """Metres: only the lowest ground point per cell of this size is tested per round."""
+    rounds: int = Field(3, ge=1, le=20)
+    """Rounds: a cell whose lowest point was dropped tests its next-lowest."""
+
+
+@register("ground.lowpoints", LowPointParams, "isolated low points among the ground (class 7)")
+def isolated_low_points(
+    xyz: NDArray[np.float64], is_ground: NDArray[np.bool_], params: LowPointParams
+) -> NDArray[np.bool_]:
+    """Mask of the ``is_ground`` points of ``xyz`` that are isolated low points."""
+    out = np.zeros(xyz.shape[0], dtype=bool)
+    g = np.flatnonzero(is_ground)
+    if params.support == 0 or g.size < params.support + 2:
+        return out
+    pts = xyz[g]
+    lo = pts.min(axis=0)
+    local = pts - lo
+    grid = Grid.covering(local[:, 0], local[:, 1], params.radius)
+    cell = grid.index(local[:, 0], local[:, 1])
+    # One sorted key: cell-major, then height (span > every height difference).
+    span = float(np.ptp(local[:, 2])) + 4.0 * params.depth + 1.0
+    key = cell * span + local[:, 2]
+    sorted_key = np.sort(key)
+    cgrid = Grid.covering(local[:, 0], local[:, 1], params.candidate_cell)
+    ccell = cgrid.index(local[:, 0], local[:, 1])
+    alive = np.ones(g.size, dtype=bool)
+    todo = np.ones(cgrid.size, dtype=bool)
+    for _ in range(params.rounds):
+        low = lowest_per_bin(np.where(alive & todo[ccell], ccell, -1), local[:, 2], cgrid.size)
+        cand = low[low >= 0]
+        if cand.size == 0:
+            break
+        below, level, above = _neighbourhood_counts(local[cand], cell[cand], grid, sorted_key, span, params.depth)
+        # The point itself sits in its own band; points already dropped still
+        # count (they are few, and lie below the surface anyway).
+        others = below + level + above - 1
+        lone = (others >= params.min_points) & (below + level - 1 < params.support)
+        if not lone.any():
+            break
+        hit = cand[lone]
+        alive[hit] = False
+        todo[:] = False
+        todo[ccell[hit]] = True
+    out[g[~alive]] = True
+    return out
+
+
+def _neighbourhood_counts(
+    q: NDArray[np.float64], qcell: NDArray[np.int64], grid: Grid, sorted_key: NDArray, span: float, depth: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Points of the 3 x 3 cells around each query below z, in [z, z + depth], and above."""
+    iy, ix = np.divmod(qcell, grid.nx)
+    below = np.zeros(q.shape[0], dtype=np.int64)
+    level = np.zeros(q.shape[0], dtype=np.int64)
+    above = np.zeros(q.shape[0], dtype=np.int64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            jx, jy = ix + dx, iy + dy
+            ok = (jx >= 0) & (jx < grid.nx) & (jy >= 0) & (jy < grid.ny)
+            base = (jy * grid.nx + jx)[ok] * span
+            z = q[ok, 2]
+            start = np.searchsorted(sorted_key, base, side="left")
+            a = np.searchsorted(sorted_key, base + z, side="left")
+            b = np.searchsorted(sorted_key, base + z + depth, side="right")
+            c = np.searchsorted(sorted_key, base + span, side="left")
+            below[ok] += a - start
+            level[ok] += b - a
+            above[ok] += c - b
+    return below, level, above
