@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import Delaunay
 
-from terrasift.workers.surface import TinSurface
+from terrasift.workers.surface import TinSurface, triangulate
 
 
 def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
@@ -22,3 +23,23 @@ def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
     assert surface(gx, gy).shape == gx.shape
     # outside the hull: the nearest vertex's height
     assert np.isclose(surface(np.array([5e5 + 210.0]), np.array([5.4e6 + 205.0]))[0], plane(5e5 + 200, 5.4e6 + 200))
+
+
+def test_triangulate_gives_delaunay_triangles_numbered_as_the_input():
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 200, (5000, 2))
+    xy = xy[np.argsort(xy[:, 0])]  # cloud order: sorted by x
+    tri, simplices = triangulate(xy)
+    reference = Delaunay(xy)
+    assert {tuple(t) for t in np.sort(simplices, axis=1)} == {tuple(t) for t in np.sort(reference.simplices, axis=1)}
+    # find_simplex answers rows of ``simplices``: each query lies in its triangle
+    q = rng.uniform(10, 190, (2000, 2))
+    s = tri.find_simplex(q)
+    assert (s >= 0).all()
+    a, b, c = (xy[simplices[s, k]] for k in range(3))
+
+    def cross(u, v):
+        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+    sides = np.column_stack([cross(b - a, q - a), cross(c - b, q - b), cross(a - c, q - c)])
+    assert ((sides >= -1e-9).all(axis=1) | (sides <= 1e-9).all(axis=1)).all()

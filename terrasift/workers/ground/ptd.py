@@ -29,7 +29,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from terrasift.workers.bins import ANCHOR, Grid, lowest_per_bin
 from terrasift.workers.registry import StageParams, register
-from terrasift.workers.surface import with_transform
+from terrasift.workers.surface import triangulate
 
 
 class PtdParams(StageParams):
@@ -336,9 +336,8 @@ class _Tin:
 
     def __init__(self, verts: NDArray[np.float64]):
         # find_simplex walks from the last hit: cheap on spatially ordered
-        # queries; with_transform spares scipy's per-simplex LAPACK calls.
-        self.tri = with_transform(Delaunay(verts[:, :2]))
-        self.simplices = self.tri.simplices
+        # queries; triangulate builds the barycentric transforms in numpy.
+        self.tri, self.simplices = triangulate(verts[:, :2])
         self.verts = verts
         p = verts[self.simplices]
         normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
