@@ -156,6 +156,39 @@ def cost() -> None:
         f"auto steep block {len(steep_scene)} pts {t_steep:.2f} s CPU (steep={info['steep']}); "
         f"per-point cost ratio {ratio:.1f}x (medians of 3)"
     )
+    # The whole block task (ground, low points, vegetation, DTM/DSM, classes).
+    b_flat, s_flat = block_cpu(flat.xyz)
+    b_steep, s_steep = block_cpu(steep_scene.xyz)
+    ratio = (b_steep / len(steep_scene)) / (b_flat / len(flat))
+    print(
+        f"block task: flat {b_flat:.2f} s CPU (steep={s_flat}), steep {b_steep:.2f} s CPU (steep={s_steep}); "
+        f"per-point cost ratio {ratio:.1f}x (medians of 3)"
+    )
+
+
+def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
+    """CPU seconds (median of 3) of the block task on ``xyz`` as one block with
+    default parameters, and whether it was found steep."""
+    from terrasift.pipeline import validate_params
+    from terrasift.tiling.blocks import SHARD_DTYPE, BlockGrid
+    from terrasift.workers.block import classify_block
+
+    pts = np.zeros(xyz.shape[0], dtype=SHARD_DTYPE)
+    pts["x"], pts["y"], pts["z"] = xyz.T
+    pts["index"] = np.arange(xyz.shape[0])
+    pts["core"] = 1
+    pts["return_number"] = pts["number_of_returns"] = 1
+    mins, maxs = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    span = float(np.max(maxs - mins)) + 2.0
+    grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=0.0)
+    params = validate_params({})
+    times, steep = [], False
+    for _ in range(3):
+        t0 = time.process_time()
+        result = classify_block(pts, grid, 0, 0, params)
+        times.append(time.process_time() - t0)
+        steep = bool(result.stats["steep"].get("steep"))
+    return float(np.median(times)), steep
 
 
 def isprs() -> None:
