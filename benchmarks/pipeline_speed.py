@@ -16,10 +16,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from terrasift.workers.executors import single_threaded_blas  # noqa: E402
+
+single_threaded_blas()  # in-process stages run as in a worker: one BLAS thread
+
+import numpy as np  # noqa: E402
 
 from terrasift.synthetic.terrain import make_scene, write_las  # noqa: E402
 

@@ -21,10 +21,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from terrasift.workers.executors import single_threaded_blas  # noqa: E402
+
+single_threaded_blas()  # in-process stages run as in a worker: one BLAS thread
+
+import numpy as np  # noqa: E402
 
 from terrasift.workers.ground import ptd  # noqa: E402
 
