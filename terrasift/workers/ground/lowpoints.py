@@ -66,6 +66,7 @@ def isolated_low_points(
     span = float(np.ptp(local[:, 2])) + 4.0 * params.depth + 1.0
     key = cell * span + local[:, 2]
     sorted_key = np.sort(key)
+    cell_start = np.searchsorted(sorted_key, np.arange(grid.size + 1) * span)
     cgrid = Grid.covering(local[:, 0], local[:, 1], params.candidate_cell)
     ccell = cgrid.index(local[:, 0], local[:, 1])
     alive = np.ones(g.size, dtype=bool)
@@ -75,7 +76,7 @@ def isolated_low_points(
         cand = low[low >= 0]
         if cand.size == 0:
             break
-        below, level, above = _neighbourhood_counts(local[cand], cell[cand], grid, sorted_key, span, params.depth)
+        below, level, above = _neighbourhood_counts(local[cand], cell[cand], grid, sorted_key, cell_start, span, params.depth)
         # The point itself sits in its own band; points already dropped still
         # count (they are few, and lie below the surface anyway).
         others = below + level + above - 1
@@ -91,9 +92,16 @@ def isolated_low_points(
 
 
 def _neighbourhood_counts(
-    q: NDArray[np.float64], qcell: NDArray[np.int64], grid: Grid, sorted_key: NDArray, span: float, depth: float
+    q: NDArray[np.float64],
+    qcell: NDArray[np.int64],
+    grid: Grid,
+    sorted_key: NDArray,
+    cell_start: NDArray[np.int64],
+    span: float,
+    depth: float,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Points of the 3 x 3 cells around each query below z, in [z, z + depth], and above."""
+    """Points of the 3 x 3 cells around each query below z, in [z, z + depth], and
+    above; ``cell_start[c]`` is where cell ``c`` begins in ``sorted_key``."""
     iy, ix = np.divmod(qcell, grid.nx)
     below = np.zeros(q.shape[0], dtype=np.int64)
     level = np.zeros(q.shape[0], dtype=np.int64)
@@ -102,12 +110,12 @@ def _neighbourhood_counts(
         for dx in (-1, 0, 1):
             jx, jy = ix + dx, iy + dy
             ok = (jx >= 0) & (jx < grid.nx) & (jy >= 0) & (jy < grid.ny)
-            base = (jy * grid.nx + jx)[ok] * span
+            j = (jy * grid.nx + jx)[ok]
+            base = j * span
             z = q[ok, 2]
-            start = np.searchsorted(sorted_key, base, side="left")
+            start, c = cell_start[j], cell_start[j + 1]
             a = np.searchsorted(sorted_key, base + z, side="left")
             b = np.searchsorted(sorted_key, base + z + depth, side="right")
-            c = np.searchsorted(sorted_key, base + span, side="left")
             below[ok] += a - start
             level[ok] += b - a
             above[ok] += c - b
