@@ -56,6 +56,25 @@ def test_low_outliers_do_not_seed(scene):
     assert ground_score(truth, pred).type1 < base.type1 + 0.02
 
 
+def test_shallow_returns_under_the_terrain_do_not_drag_the_tin_down():
+    # Returns 0.5-1.5 m under the ground pass the distance test; in the TIN each
+    # would tilt its facets down and the true ground around it would fail.
+    s = make_scene(size=120, density=8, n_buildings=0, tree_density=0, bush_density=0, outlier_rate=0, seed=4)
+    rng = np.random.default_rng(3)
+    x0, y0, x1, y1 = s.bounds
+    k = 60
+    ox, oy = rng.uniform(x0 + 5, x1 - 5, k), rng.uniform(y0 + 5, y1 - 5, k)
+    xyz = np.vstack([s.xyz, np.column_stack([ox, oy, s.surface(ox, oy) - rng.uniform(0.5, 1.5, k)])])
+    truth = np.r_[s.is_ground, np.zeros(k, bool)]
+    score = ground_score(truth[:-k], classify_ground(xyz, PtdParams())[:-k])
+    assert score.type1 < 0.002, score  # 0.5 % with pit_depth=None
+    # a real hollow (a 2 m wide, 0.6 m deep pit sampled densely) stays ground
+    hollow = np.hypot(s.xyz[:, 0] - (x0 + 60), s.xyz[:, 1] - (y0 + 60)) < 1.0
+    pitted = s.xyz.copy()
+    pitted[hollow, 2] -= 0.6
+    assert classify_ground(pitted, PtdParams())[hollow].mean() > 0.9
+
+
 def test_translation_invariant(scene):
     a = classify_ground(scene.xyz, PtdParams())
     # a shift by whole multiples of the 240 m anchor keeps every seed cell

@@ -51,6 +51,14 @@ def test_stage_overrides_reach_the_stage_model():
     assert p["sensor_origin"] == [[10.0, 20.0, 1.5], [11.0, 21.0, 1.5]]
 
 
+def test_none_switches_optional_stage_fields_off_and_only_those():
+    p = validate_params(parse_cli_params(["ground.ptd.pit_depth=none", "ground.ptd.island_step=NULL"]))
+    ptd = stage_params(p, "ground.ptd")
+    assert ptd.pit_depth is None and ptd.island_step is None
+    with pytest.raises(ParameterError, match="tail_fraction"):
+        stage_params(validate_params({"ground.ptd.tail_fraction": "none"}), "ground.ptd")
+
+
 def test_cli_pairs():
     assert parse_cli_params(["resolution=1.0", "ground.preset = conservative"]) == {
         "resolution": "1.0",

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, get_args
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -36,6 +36,12 @@ class StageParams(BaseModel):
             known = ", ".join(["default", *cls.presets])
             raise ParameterError(f"unknown preset {name!r} (known: {known})")
         values.update(overrides)
+        # "none"/"null" from the command line or a form switch an optional field off.
+        for key, value in values.items():
+            field = cls.model_fields.get(key)
+            if isinstance(value, str) and value.lower() in ("none", "null") and field is not None:
+                if type(None) in get_args(field.annotation):
+                    values[key] = None
         try:
             return cls(**values)
         except ValidationError as exc:

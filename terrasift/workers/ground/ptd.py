@@ -8,7 +8,9 @@ below ``iteration_distance`` and its angles to the facet's vertices are below
 ``iteration_angle``; facets steeper than ``terrain_angle`` take no points. Each
 round re-triangulates and accepts at most one point per facet (the one with the
 smallest angle), so a facet's estimate never jumps by more than one point; it
-stops when a round adds nothing. Parts of the TIN that stand above the rest
+stops when a round adds nothing. A vertex standing alone below all its
+neighbours (a return under the terrain) leaves the TIN before the next round.
+Parts of the TIN that stand above the rest
 behind steps all round (roofs wider than a seed cell) are then dropped, and
 one final pass labels every other point against the TIN.
 
@@ -78,6 +80,14 @@ class PtdParams(StageParams):
     Low, because the TIN is not densified next to walls: a roof meets the ground
     by edges of 5-12 m at 25-35°, while terrain vertices 1.5-3 m apart rarely
     differ by ``island_step``."""
+    pit_depth: float | None = Field(0.3, gt=0.0, le=100.0)
+    """Metres: a TIN vertex at least this far below every one of its TIN
+    neighbours is a low outlier (a return under the terrain that a round took)
+    and leaves the TIN before the next triangulation; left in, it tilts its
+    facets down and the true ground around it fails the angle test (on the
+    synthetic tile a few hundred such returns cost 2.4 % of the ground). A
+    ditch or a valley floor has neighbours at its own height along it, and a
+    real hollow's points are still judged by the final pass. None: off."""
 
     presets = {
         "conservative": {
@@ -463,6 +473,14 @@ def _densify(
         first = np.r_[True, s[o][1:] != s[o][:-1]]
         chosen = o[first]
         new = pending[chosen]
+        if params.pit_depth is not None:
+            # Low outliers of this TIN leave before the next triangulation.
+            pits = _pits(tin, nf, params.pit_depth)
+            if pits.any():
+                ground[vid[:nv][pits]] = False
+                kept = np.flatnonzero(~pits)
+                verts[: kept.size], vid[: kept.size] = verts[kept], vid[kept]
+                nv = kept.size
         ground[new] = True
         verts[nv : nv + new.size] = local[new]
         vid[nv : nv + new.size] = new
@@ -477,8 +495,13 @@ def _densify(
             except QhullError:
                 return
             break
-    if tin is not None and params.island_step is not None:
-        drop = _islands(tin, nf, params.island_step, params.island_slope)
+    # Low outliers and raised islands leave the final TIN before the final pass.
+    if tin is not None and (params.island_step is not None or params.pit_depth is not None):
+        drop = np.zeros(nv, dtype=bool)
+        if params.pit_depth is not None:
+            drop |= _pits(tin, nf, params.pit_depth)
+        if params.island_step is not None:
+            drop |= _islands(tin, nf, params.island_step, params.island_slope)
         if drop.any():
             ground[vid[:nv][drop]] = False
             verts = verts[:nv][~drop]
@@ -494,6 +517,22 @@ def _densify(
             rest = rest[_spatial_order(local[rest, :2], 8.0)]
             _, ok, _ = _judge(tin, local[rest], params, scores=False)
             ground[rest[ok]] = True
+
+
+def _pits(tin: _Tin, nf: int, depth: float) -> NDArray[np.bool_]:
+    """TIN vertices (not of the frame) at least ``depth`` below every TIN
+    neighbour that is not a frame vertex."""
+    nv = tin.verts.shape[0]
+    simp = tin.simplices
+    a = np.concatenate([simp[:, 0], simp[:, 1], simp[:, 2], simp[:, 1], simp[:, 2], simp[:, 0]])
+    b = np.concatenate([simp[:, 1], simp[:, 2], simp[:, 0], simp[:, 0], simp[:, 1], simp[:, 2]])
+    real = b >= nf
+    lowest_neighbour = np.full(nv, np.inf)
+    np.minimum.at(lowest_neighbour, a[real], tin.verts[b[real], 2])
+    pit = tin.verts[:, 2] + depth <= lowest_neighbour
+    pit &= np.isfinite(lowest_neighbour)
+    pit[:nf] = False
+    return pit
 
 
 def _islands(tin: _Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]:
