@@ -75,6 +75,15 @@ def test_shallow_returns_under_the_terrain_do_not_drag_the_tin_down():
     assert classify_ground(pitted, PtdParams())[hollow].mean() > 0.9
 
 
+def test_dense_cloud_with_returns_under_the_terrain():
+    # At 20 pts/m² the outliers under the terrain neighbour each other in the
+    # TIN; as candidates they cost 13 % of the ground (low_candidates=False).
+    s = make_scene(100, 20.0, seed=5)
+    score = ground_score(s.is_ground, classify_ground(s.xyz, PtdParams()))
+    assert score.type1 < 0.005, score
+    assert score.kappa > 0.95, score
+
+
 def test_translation_invariant(scene):
     a = classify_ground(scene.xyz, PtdParams())
     # a shift by whole multiples of the 240 m anchor keeps every seed cell
