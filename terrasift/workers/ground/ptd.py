@@ -2,18 +2,18 @@
 filter of the rotation seed, after Axelsson 2000).
 
 Seeds are the lowest point of every ``max_building_size`` cell, with isolated
-low outliers removed (and candidates that stand alone under the cloud give
-way to the next lowest point of their cell). A TIN through the seeds is then densified in rounds: a
-point is accepted when its perpendicular distance to the facet it falls in is
-below ``iteration_distance`` and its angles to the facet's vertices are below
-``iteration_angle``; facets steeper than ``terrain_angle`` take no points. Each
-round re-triangulates and accepts at most one point per facet (the one with the
-smallest angle), so a facet's estimate never jumps by more than one point; it
-stops when a round adds nothing. A vertex standing alone below all its
+low outliers removed (candidates that stand alone under the cloud give way to
+the next lowest point of their cell). A TIN through the seeds is then densified
+in rounds: a point is accepted when its perpendicular distance to the facet it
+falls in is below ``iteration_distance`` and its angles to the facet's vertices
+are below ``iteration_angle``; facets steeper than ``terrain_angle`` take no
+points. Each round re-triangulates and accepts at most one point per facet (the
+one with the smallest angle), so a facet's estimate never jumps by more than
+one point; it stops when a round adds nothing. A vertex standing below all its
 neighbours (a return under the terrain) leaves the TIN before the next round.
-Parts of the TIN that stand above the rest
-behind steps all round (roofs wider than a seed cell) are then dropped, and
-one final pass labels every other point against the TIN.
+Parts of the TIN that stand above the rest behind steps all round (roofs wider
+than a seed cell) are then dropped, and one final pass labels every other
+point against the TIN.
 
 Speed: the rounds only ever see the lowest point of each ``min_spacing``
 cell (the TIN holds no more vertices than that anyway), so a round judges one
