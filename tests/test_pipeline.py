@@ -128,6 +128,26 @@ def test_block_seams_do_not_change_labels(tmp_path, small_tile, small_scene):
     assert np.mean((a == 2)[inner] == (b == 2)[inner]) >= 0.998
 
 
+def test_dtm_nodata_does_not_depend_on_blocks(tmp_path):
+    """A lake (no returns) across block edges in a sparse scan: 80 m blocks and
+    one block leave the same DTM cells empty (each block used to size its data
+    reach from its own point count, so a half-empty block reached further)."""
+    from terrasift.synthetic.terrain import Scene, make_scene, write_las
+
+    s = make_scene(size=160, density=1.0, seed=4)
+    x0, y0, _, _ = s.bounds
+    dry = np.hypot(s.xyz[:, 0] - (x0 + 70), s.xyz[:, 1] - (y0 + 85)) >= 25
+    scene = Scene(s.xyz[dry], s.truth[dry], s.return_number[dry], s.number_of_returns[dry], s.surface, s.bounds)
+    tile = write_las(scene, tmp_path / "lake.laz")
+    masks = []
+    for size in (80, 400):
+        job, _ = _run(tmp_path, tile, {"block_size": size, "features": "none"}, f"b{size}")
+        with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+            masks.append(ds.read_masks(1) == 0)
+    assert masks[0].sum() > 1000  # the lake is there
+    assert np.array_equal(masks[0], masks[1])
+
+
 def test_resume_redoes_only_missing_work(tmp_path, small_tile):
     job, names = _run(tmp_path, small_tile, BLOCK)
     before = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}

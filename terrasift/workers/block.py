@@ -156,7 +156,10 @@ def classify_block(
     # Elevation models on the core window.
     check_cancel()
     with timer("dtm"):
-        reach = dem.default_reach(sub.shape[0], _block_area(grid), grid.resolution)
+        # From the job's density, like the supports above: a block's own count
+        # over its nominal area makes a half-empty edge block reach further
+        # into a lake than its neighbour, and their nodata edges disagree.
+        reach = dem.default_reach(float(params.get("_density", 1.0)), grid.resolution)
         valid = dem.data_reach_mask(sub, window, reach)
         dtm = dem.sample_window(surface, window)
         dtm[~valid] = np.nan
@@ -266,11 +269,6 @@ def _ground(
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
     is_ground, low = without_low(np.asarray(result.is_ground, dtype=bool))
     return is_ground, low, steep_info
-
-
-def _block_area(grid: BlockGrid) -> float:
-    side = grid.block_size + 2 * grid.buffer
-    return side * side
 
 
 # ---------------------------------------------------------------- task wrapper

@@ -142,7 +142,8 @@ def _max_sorted(out: NDArray, flat: NDArray, values: NDArray) -> None:
     out[fs[starts]] = np.maximum.reduceat(values[order], starts)
 
 
-def default_reach(n_points: int, area: float, resolution: float) -> float:
-    """How far a cell may be from data and still get a value: a few point spacings."""
-    spacing = np.sqrt(area / max(n_points, 1))
+def default_reach(density: float, resolution: float) -> float:
+    """How far a cell may be from data and still get a value: a few point
+    spacings at ``density`` points per m²."""
+    spacing = np.sqrt(1.0 / max(density, 1e-9))
     return float(max(2.0 * resolution, 3.0 * spacing, 1.0))
