@@ -97,6 +97,8 @@ def test_report_and_stac_item(finished_job, small_scene):
     report = json.loads(pipeline.output_path(job, "report.json").read_text())
     assert report["points"] == len(small_scene)
     assert sum(report["counts_per_class"].values()) == len(small_scene)
+    # no sensor origin, so no mixed measurements: class 7 is the isolated low points
+    assert report["low_points"] == report["counts_per_class"].get("7", 0) > 0
     assert report["parameters"]["block_size"] == 80
     assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]
     # the job's roughness gauge covers exactly the bins of its blocks

@@ -309,6 +309,7 @@ def write_report_and_item(
             if mixed
             else "not run: no sensor_origin given"
         ),
+        "low_points": sum(s.get("low_points", 0) for s in block_stats),
         "parameters": dict(params),
         "timings_seconds": {
             "job": dict(timings),
