@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
+from numpy.typing import NDArray
+from scipy.spatial import Delaunay, cKDTree
 
 from terrasift.errors import ParameterError
 from terrasift.metrics import ground_score
@@ -15,7 +16,9 @@ from terrasift.synthetic.terrain import Surface, make_scene
 from terrasift.workers.bins import Grid
 from terrasift.workers.ground import nist
 from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
+from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
+from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.tin import Tin, screen
 from terrasift.workers.registry import get_stage
 
@@ -159,3 +162,35 @@ def test_isprs_samp31_kappa():
 def test_collinear_block_does_not_raise():
     xyz = np.column_stack([np.linspace(0, 10, 50) + 5e5, np.full(50, 5.4e6), np.zeros(50)])
     assert nist.classify_ground(xyz, nist.NistParams()).shape == (50,)
+
+
+def _grid_nodes(size: float, step: float, seed: int) -> NDArray:
+    rng = np.random.default_rng(seed)
+    g = np.arange(0.0, size, step)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(0, 0.8 * step, (g.size**2, 2))
+    return xy
+
+
+def test_growth_climbs_a_ridge_but_not_a_roof():
+    xy = _grid_nodes(120, 2.0, 11)
+    # A ridge 10 m high with 30° flanks along y, and a 6 m roof on flat ground.
+    ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
+    roof = (np.abs(xy[:, 0] - 95.0) < 10) & (np.abs(xy[:, 1] - 60.0) < 10)
+    z = ridge + 6.0 * roof
+    xyz = np.column_stack([xy, z])
+    seed = (z < 3.0) & ~roof  # a surface that cut the ridge at 3 m and never saw the roof
+    ground = grow_ground(xyz, seed, tol=0.3, bend_deg=7.0, max_rise=3.0)
+    assert ground[~roof].all()
+    assert not ground[roof].any()
+
+
+def test_raised_segments_drop_a_roof_and_keep_a_steep_hill():
+    xy = _grid_nodes(120, 2.0, 12)
+    r = np.hypot(xy[:, 0] - 40.0, xy[:, 1] - 60.0)
+    hill = np.clip(12.0 - np.tan(np.radians(40)) * r, 0.0, None)  # a 40° cone
+    roof = (np.abs(xy[:, 0] - 95.0) < 10) & (np.abs(xy[:, 1] - 60.0) < 10)
+    tower = (np.abs(xy[:, 0] - 97.0) < 3) & (np.abs(xy[:, 1] - 60.0) < 3)
+    z = hill + 5.0 * roof + 8.0 * tower
+    xyz = np.column_stack([xy, z])
+    drop = raised_segments(xyz, Delaunay(xy), 2.0, 10.0)
+    assert np.array_equal(drop, roof)

@@ -17,9 +17,12 @@ Four procedures, combined by the schedule of the paper's §6.1:
 Default recipe (§6.1): mask → bin (cell_1) → mesh/screen → mow (mow_tol_1)
 → screen the mowed points → mask them → bin (cell_2) → mesh/screen → mow the
 original points (mow_tol_2) → bin (cell_3) → mesh/screen, then ``repeats``
-more rounds of mow → bin (cell_3) → mesh/screen. Final labels: ground is every
-point from ``ground_tol_below`` under to ``ground_tol`` over the last surface,
-both widened by ``ground_slope`` × the local TIN slope (as SMRF does).
+more rounds of mow → bin (cell_3) → mesh/screen. Then two steps of our own:
+raised segments of that TIN (roofs wider than every pass's bins) are dropped
+(``raised.py``), and the surface is grown back onto terrain the coarse passes
+cut off — ridges, embankments, hilltops (``growth.py``). Final labels: ground
+is every point from ``ground_tol_below`` under to ``ground_tol`` over the last
+surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does).
 
 Where this departs from the paper, and why (measured on ISPRS and synthetic
 scenes): screening tolerances grow with a pass's bin size; with plane bins,
@@ -61,9 +64,19 @@ from numpy.typing import NDArray
 from pydantic import Field
 from scipy.spatial import QhullError
 
-from terrasift.workers.bins import BinStats, Grid, PlaneStats, anchored_origin, bin_statistics, plane_fit_statistics
+from terrasift.workers.bins import (
+    BinStats,
+    Grid,
+    PlaneStats,
+    anchored_origin,
+    bin_statistics,
+    lowest_per_bin,
+    plane_fit_statistics,
+)
 from terrasift.workers.ground.concentric import ConcentricGrid
+from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
+from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.tin import Tin, screen
 from terrasift.workers.registry import StageParams, register
 
@@ -120,6 +133,18 @@ class NistParams(StageParams):
     """Final labels: ground down to this depth below the final surface."""
     ground_slope: float = Field(1.0, ge=0, le=10)
     """Extra tolerance per unit of local TIN slope (rise/run), for steep terrain."""
+    raised_step: float = Field(2.0, ge=0, le=100)
+    """Drop segments of the final TIN that stand above the rest behind steps this high (0: off; ``raised.py``)."""
+    raised_slope: float = Field(10.0, gt=0, lt=90)
+    """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step."""
+    grow: bool = True
+    """Grow the final surface onto terrain the coarse passes cut off (``growth.py``)."""
+    grow_tol: float = Field(0.3, gt=0, le=10)
+    """Growth: a node joins when a ground neighbour's slope predicts its height within this…"""
+    grow_bend: float = Field(7.0, ge=0, le=45)
+    """…plus tan(this many degrees) × their distance: how fast the slope may bend."""
+    grow_rise: float = Field(3.0, gt=0, le=100)
+    """Growth never climbs an edge rising more than this (metres)."""
     ring_step_deg: float = Field(3.0, gt=0.1, le=45)
     """Concentric grid: angular step of the final pass (earlier passes scale it up)."""
     ring_inner: float = Field(2.0, gt=0, le=100)
@@ -361,14 +386,52 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     for _ in range(params.repeats):
         mowed_pts = local[_mow(tin3, local, params.mow_tol_2, _cell_of(g3), params)]
         tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
-    surf, slope = tin3.height_and_slope(local[:, :2] - tin3.origin, slope=params.ground_slope > 0)
-    h = local[:, 2] - surf
+    if params.raised_step > 0:
+        tin3 = _without_raised(tin3, params)
+    if params.grow:
+        tin3 = _grown(local, tin3, g3, params, centre)
+    ground = np.empty(n, dtype=bool)
+    ground[order] = _label(tin3, local, params)
+    return ground
+
+
+def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:
+    """Points from ``ground_tol_below`` under to ``ground_tol`` over ``tin``, widened with slope."""
+    surf, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.ground_slope > 0)
+    h = xyz[:, 2] - surf
     tol_up: NDArray | float = params.ground_tol
     tol_down: NDArray | float = params.ground_tol_below
     if slope is not None:
         slope = _capped(slope, params)
         tol_up = tol_up + params.ground_slope * slope
         tol_down = tol_down + params.ground_slope * slope
-    ground = np.empty(n, dtype=bool)
-    ground[order] = (h <= tol_up) & (h >= -tol_down)
-    return ground
+    return (h <= tol_up) & (h >= -tol_down)
+
+
+def _without_raised(tin: Tin, params: NistParams) -> Tin:
+    """``tin`` without its raised segments (roofs that filled the bins of every pass)."""
+    drop = raised_segments(np.column_stack([tin.xy, tin.z]), tin.tri, params.raised_step, params.raised_slope)
+    if not drop.any() or np.count_nonzero(~drop) < 3:
+        return tin
+    keep = np.column_stack([tin.xy[~drop] + tin.origin, tin.z[~drop]])
+    try:
+        return Tin(keep, origin=tin.origin)
+    except QhullError:
+        return tin
+
+
+def _grown(
+    local: NDArray[np.float64], tin: Tin, grid: Grid | ConcentricGrid, params: NistParams, centre: NDArray
+) -> Tin:
+    """The surface through the lowest point of every final bin that ``tin``
+    labels ground or that growth reaches from there (``growth.py``)."""
+    low = lowest_per_bin(grid.index(local[:, 0], local[:, 1]), local[:, 2], grid.size)
+    nodes = local[low[low >= 0]]
+    seed = _label(tin, nodes, params)
+    ground = grow_ground(nodes, seed, tol=params.grow_tol, bend_deg=params.grow_bend, max_rise=params.grow_rise)
+    if np.count_nonzero(ground) < 3:
+        return tin
+    try:
+        return Tin(nodes[ground], origin=centre)
+    except QhullError:
+        return tin

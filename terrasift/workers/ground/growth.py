@@ -1,0 +1,91 @@
+"""Ground growth: recover terrain that coarse bins and mowing cut off.
+
+Every pass of the NIST schedule meshes the lowest point of bins and mows what
+stands above that mesh. A ridge, an embankment or a hilltop narrower than a
+bin of the early passes loses its top there: the mesh spans it from foot to
+foot, the top is mowed, and no later pass sees those points again (on the
+ISPRS samples nearly all ground lost is above the final surface).
+
+Growth puts them back by continuing the ground surface from its edge: nodes
+are the lowest points of small bins, meshed once (Delaunay); nodes the
+surface already labels ground are the seeds. In rounds, a node joins when a
+ground neighbour, continued along its own slope (a least-squares plane
+through its ground neighbours), predicts the node's height within ``tol`` +
+tan(``bend``) × distance. The surface can thus follow a slope that bends
+gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
+and a ground neighbour's slope is only ever taken from ground.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import Delaunay, QhullError
+
+
+def grow_ground(
+    xyz: NDArray[np.float64],
+    seed: NDArray[np.bool_],
+    *,
+    tol: float,
+    bend_deg: float,
+    max_rise: float,
+    max_rounds: int = 200,
+) -> NDArray[np.bool_]:
+    """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
+
+    ``max_rise`` bounds the rise of one edge (metres), whatever the slope.
+    """
+    n = xyz.shape[0]
+    ground = seed.copy()
+    if n < 4 or not seed.any() or seed.all():
+        return ground
+    try:
+        tri = Delaunay(xyz[:, :2])
+    except QhullError:
+        return ground
+    indptr, nbr = tri.vertex_neighbor_vertices
+    own = np.repeat(np.arange(n), np.diff(indptr))
+    du = xyz[nbr, 0] - xyz[own, 0]
+    dv = xyz[nbr, 1] - xyz[own, 1]
+    dz = xyz[nbr, 2] - xyz[own, 2]
+    dist = np.hypot(du, dv)
+    limit = tol + np.tan(np.radians(bend_deg)) * dist
+    # Edges that may ever carry growth: not a rise steeper than max_rise.
+    usable = dz <= max_rise
+    own, nbr, du, dv, dz, limit = own[usable], nbr[usable], du[usable], dv[usable], dz[usable], limit[usable]
+    for _ in range(max_rounds):
+        gx, gy = _ground_slopes(ground, own, nbr, du, dv, dz, n)
+        cand = ground[own] & ~ground[nbr]
+        err = dz[cand] - gx[own[cand]] * du[cand] - gy[own[cand]] * dv[cand]
+        new = nbr[cand][np.abs(err) <= limit[cand]]
+        if new.size == 0:
+            break
+        ground[new] = True
+    return ground
+
+
+def _ground_slopes(
+    ground: NDArray[np.bool_],
+    own: NDArray[np.int64],
+    nbr: NDArray[np.int64],
+    du: NDArray[np.float64],
+    dv: NDArray[np.float64],
+    dz: NDArray[np.float64],
+    n: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gradient of the plane through each ground node that best fits its ground
+    neighbours (least squares on the height differences); 0 where underdetermined."""
+    both = ground[own] & ground[nbr]
+    o, u, v, w = own[both], du[both], dv[both], dz[both]
+
+    def s(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.bincount(o, weights=x, minlength=n)
+
+    suu, svv, suv, suz, svz = s(u * u), s(v * v), s(u * v), s(u * w), s(v * w)
+    det = suu * svv - suv * suv
+    ok = det > 1e-6 * (suu + svv) ** 2
+    safe = np.where(ok, det, 1.0)
+    gx = np.where(ok, (suz * svv - svz * suv) / safe, 0.0)
+    gy = np.where(ok, (svz * suu - suz * suv) / safe, 0.0)
+    return gx, gy
