@@ -163,11 +163,15 @@ def run_job(
     from terrasift.tiling import outputs
 
     # Finishing tasks: one classified point cloud per tile, and (all products)
-    # the rasters, then slope/categories/features from the mosaicked DTM.
+    # the rasters, then slope/categories/features from the mosaicked DTM. The
+    # list is in order of priority: the DTM first, since the terrain tasks
+    # wait on it, then the long tasks, so the workers finish together.
     finish: list[Task] = [Task(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
     if products == "all":
-        finish.insert(0, Task(outputs.write_rasters, (str(job_dir),)))
-        finish.append(Task(outputs.write_terrain, (str(job_dir),), after=(0,)))
+        dtm = Task(outputs.write_raster, (str(job_dir), "dtm"))
+        terrain = [Task(fn, (str(job_dir),), after=(0,)) for fn in (outputs.write_categories, outputs.write_slope)]
+        others = [Task(outputs.write_raster, (str(job_dir), n)) for n in outputs.RASTERS if n != "dtm"]
+        finish = [dtm, *finish, *terrain, *others]
 
     # Progress counts tasks: shards, blocks, finishing tasks, the report.
     shard_root = job_dir / "shards"
@@ -205,7 +209,7 @@ def run_job(
 
     t = time.perf_counter()
     (job_dir / "outputs").mkdir(exist_ok=True)
-    _run_mixed_tasks(executor, job_dir, finish, tick)
+    _run_mixed_tasks(executor, job_dir, finish, tick, in_flight=executor.workers)
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     timings = {
@@ -260,11 +264,19 @@ def _run_tasks(
 
 
 def _run_mixed_tasks(
-    executor: Executor, job_dir: Path, tasks: list[Task], on_done: Callable[[Any], None]
+    executor: Executor,
+    job_dir: Path,
+    tasks: list[Task],
+    on_done: Callable[[Any], None],
+    *,
+    in_flight: int | None = None,
 ) -> list[Any]:
     """Submit every task as soon as the tasks it comes after are done; wait for
     all and return their results in list order.
 
+    With ``in_flight``, at most that many tasks are submitted at a time and a
+    free slot goes to the first ready task in list order: the list is a
+    priority order (a pool runs what it was given first-come, first-served).
     The first failure cancels the rest and is raised; so is a dismissal seen
     between waits (running tasks see the marker themselves).
     """
@@ -272,9 +284,12 @@ def _run_mixed_tasks(
     futures: dict[int, Future] = {}
     position: dict[int, int] = {}  # id(future) -> task position
     waiting = set(range(len(tasks)))
+    limit = in_flight or len(tasks)
 
     def submit_ready() -> None:
         for i in sorted(waiting):
+            if len(futures) - len(results) >= limit:
+                return
             if all(j in results for j in tasks[i].after):
                 futures[i] = executor.submit(tasks[i].fn, *tasks[i].args)
                 position[id(futures[i])] = i

@@ -44,87 +44,131 @@ def _block_files(job_dir: Path) -> list[Path]:
     return sorted((job_dir / "blocks").glob("*.npz"), key=lambda p: p.name)
 
 
-def write_rasters(job_dir: str) -> list[str]:
-    """Task: mosaic every block's raster windows into the job's COGs (DTM, DSM, CHM, coverage)."""
+RASTERS = (*FLOAT_RASTERS, "coverage")
+
+
+def write_raster(job_dir: str, name: str) -> str:
+    """Task: mosaic every block's window of raster ``name`` (one of ``RASTERS``) into its COG.
+
+    One task per raster, so a job's workers write them side by side and the
+    terrain tasks start as soon as the DTM is out.
+    """
     with bounded_raster_cache():
-        return _write_rasters(Path(job_dir))
+        return _write_raster(Path(job_dir), name)
 
 
-def _write_rasters(job: Path) -> list[str]:
-    wanted = [f"{n}.tif" for n in FLOAT_RASTERS] + ["coverage.tif"]
-    out = job / "outputs"
-    if all((out / w).exists() for w in wanted):
-        return wanted
+def _write_raster(job: Path, name: str) -> str:
+    if name not in RASTERS:
+        raise ValueError(f"unknown raster {name!r}")
+    target = job / "outputs" / f"{name}.tif"
+    if target.exists():
+        return target.name
     plan = _load(job, "plan.json")
-    params = _load(job, "job.json")["params"]
     grid = BlockGrid(**plan["grid"])
-    transform = job_transform(grid.x0, grid.y_top, grid.resolution)
     work = job / "work"
     work.mkdir(exist_ok=True)
-    mosaics = {
-        n: RasterMosaic(work / f"{n}.tif", width=grid.width, height=grid.height, transform=transform, crs=plan["crs_wkt"])
-        for n in FLOAT_RASTERS
-    }
-    cell = float(stage_params(params, "vegetation").cell)
-    f = int(round(cell / grid.resolution))  # DTM cells per coverage cell (the grid is aligned to it)
-    coverage = RasterMosaic(
-        work / "coverage.tif",
-        width=grid.width // f,
-        height=grid.height // f,
-        transform=job_transform(grid.x0, grid.y_top, cell),
-        crs=plan["crs_wkt"],
-        dtype="uint8",
-        nodata=COVERAGE_NODATA,
-    )
-    for m in [*mosaics.values(), coverage]:
-        m.fill_nodata()
+    f = 1
+    if name == "coverage":
+        params = _load(job, "job.json")["params"]
+        cell = float(stage_params(params, "vegetation").cell)
+        f = int(round(cell / grid.resolution))  # DTM cells per coverage cell (the grid is aligned to it)
+        mosaic = RasterMosaic(
+            work / target.name,
+            width=grid.width // f,
+            height=grid.height // f,
+            transform=job_transform(grid.x0, grid.y_top, cell),
+            crs=plan["crs_wkt"],
+            dtype="uint8",
+            nodata=COVERAGE_NODATA,
+        )
+    else:
+        transform = job_transform(grid.x0, grid.y_top, grid.resolution)
+        mosaic = RasterMosaic(work / target.name, width=grid.width, height=grid.height, transform=transform, crs=plan["crs_wkt"])
+    mosaic.fill_nodata()
     for path in _block_files(job):
         with np.load(path) as data:
             row_off, col_off, rows, cols = (int(v) for v in data["window"])
             if rows <= 0 or cols <= 0:
                 continue
-            dtm = data["raster_dtm"]
-            dsm = data["raster_dsm"]
-            arrays = {"dtm": dtm, "dsm": dsm, "chm": np.clip(dsm - dtm, 0, None)}
-            for n, m in mosaics.items():
-                m.write(row_off, col_off, arrays[n])
-            cov = data["raster_coverage"]
-            # cells outside the data reach are nodata, like the DTM's
-            reach = ~np.isnan(dtm[:: f, :: f][: cov.shape[0], : cov.shape[1]])
-            coverage.write(row_off // f, col_off // f, np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8))
-    for n, m in mosaics.items():
-        m.close_as_cog(out / f"{n}.tif")
-    coverage.close_as_cog(out / "coverage.tif", resampling="mode")
-    return wanted
+            if name == "coverage":
+                cov = data["raster_coverage"]
+                # cells outside the data reach are nodata, like the DTM's
+                reach = ~np.isnan(data["raster_dtm"][::f, ::f][: cov.shape[0], : cov.shape[1]])
+                mosaic.write(row_off // f, col_off // f, np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8))
+            elif name == "chm":
+                mosaic.write(row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None))
+            else:
+                mosaic.write(row_off, col_off, data[f"raster_{name}"])
+    mosaic.close_as_cog(target, resampling="mode" if name == "coverage" else "average")
+    return target.name
 
 
 BAND_CELLS = 1 << 19  # DTM cells per band for slope and categories: memory follows this, not the job
 
 
 def write_terrain(job_dir: str) -> list[str]:
-    """Task: slope, categories and terrain objects from the job's mosaicked DTM.
+    """Slope, categories and terrain objects from the job's mosaicked DTM (both terrain tasks)."""
+    return [write_slope(job_dir), *write_categories(job_dir)]
 
-    Slope and categories are local, so they run over bands of DTM rows (with
-    a margin for the slope's smoothing) and memory follows the band. Objects
-    are found on the whole job's category grid (one byte per 2 m tile per
-    band), so an object crossing block or tile borders comes out once.
+
+def write_slope(job_dir: str) -> str:
+    """Task: the slope raster from the job's mosaicked DTM.
+
+    Slope is local, so it runs over bands of DTM rows (with a margin for its
+    smoothing) and memory follows the band, not the job.
+    """
+    import rasterio
+
+    from terrasift.workers import terrain
+
+    job = Path(job_dir)
+    out = job / "outputs"
+    if (out / "slope.tif").exists():
+        return "slope.tif"
+    plan = _load(job, "plan.json")
+    tparams = stage_params(_load(job, "job.json")["params"], "terrain")
+    work = job / "work"
+    work.mkdir(exist_ok=True)
+    with bounded_raster_cache(), rasterio.open(out / "dtm.tif") as ds:
+        height, width, res = ds.height, ds.width, abs(ds.transform.a)
+        band = max(1, BAND_CELLS // width)
+        margin = tparams.median_size // 2 + 2
+        m = RasterMosaic(work / "slope.tif", width=width, height=height, transform=ds.transform, crs=plan["crs_wkt"])
+        for r in range(0, height, band):
+            lo, hi = max(0, r - margin), min(height, r + band + margin)
+            slope = terrain.slope_degrees(_read_rows(ds, lo, hi), res, tparams.median_size, tparams.smooth)
+            m.write(r, 0, slope[r - lo : r - lo + min(band, height - r)])
+        m.close_as_cog(out / "slope.tif")
+    return "slope.tif"
+
+
+def _read_rows(ds: Any, r0: int, r1: int) -> NDArray:
+    from rasterio.windows import Window
+
+    return ds.read(1, window=Window(0, r0, ds.width, r1 - r0), masked=True).filled(np.nan).astype(np.float64)
+
+
+def write_categories(job_dir: str) -> list[str]:
+    """Task: categories and terrain objects from the job's mosaicked DTM.
+
+    Categories are local, so they are computed over bands of whole category
+    tiles and memory follows the band. Objects are found on the whole job's
+    category grid (one byte per 2 m tile per band), so an object crossing
+    block or tile borders comes out once.
     """
     with bounded_raster_cache():
-        return _write_terrain(Path(job_dir))
+        return _write_categories(Path(job_dir))
 
 
-def _write_terrain(job: Path) -> list[str]:
+def _write_categories(job: Path) -> list[str]:
     import rasterio
-    from rasterio.windows import Window
 
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
-    from terrasift.workers import terrain
 
     out = job / "outputs"
     plan = _load(job, "plan.json")
     params = _load(job, "job.json")["params"]
-    tparams = stage_params(params, "terrain")
     cparams = stage_params(params, "categories")
     names = []
     work = job / "work"
@@ -134,21 +178,7 @@ def _write_terrain(job: Path) -> list[str]:
         res = abs(transform.a)
         k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
         band = max(k, BAND_CELLS // width // k * k)  # whole category tiles
-        margin = tparams.median_size // 2 + 2
-
-        def read(r0: int, r1: int) -> NDArray:
-            return ds.read(1, window=Window(0, r0, width, r1 - r0), masked=True).filled(np.nan).astype(np.float64)
-
-        if not (out / "slope.tif").exists():
-            m = RasterMosaic(work / "slope.tif", width=width, height=height, transform=transform, crs=plan["crs_wkt"])
-            for r in range(0, height, band):
-                lo, hi = max(0, r - margin), min(height, r + band + margin)
-                slope = terrain.slope_degrees(read(lo, hi), res, tparams.median_size, tparams.smooth)
-                m.write(r, 0, slope[r - lo : r - lo + min(band, height - r)])
-            m.close_as_cog(out / "slope.tif")
-        names.append("slope.tif")
-
-        parts = [cat.compute_categories(read(r, min(height, r + band)), res, cparams) for r in range(0, height, band)]
+        parts = [cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams) for r in range(0, height, band)]
     cats = cat.Categories(
         *(np.concatenate([getattr(p, f) for p in parts]) for f in ("inclination", "orientation", "state", "height10")),
         cells_per_tile=parts[0].cells_per_tile,
