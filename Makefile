@@ -24,6 +24,18 @@ bench: $(STAMP)
 bench-ground: $(STAMP)
 	$(PY) benchmarks/ground_accuracy.py
 
+bench-features: $(STAMP)
+	$(PY) benchmarks/features_accuracy.py
+
+bench-mixed: $(STAMP)
+	$(PY) benchmarks/mixed_accuracy.py
+
+bench-vegetation: $(STAMP)
+	$(PY) benchmarks/vegetation_accuracy.py
+
+bench-rotation: $(STAMP)
+	$(PY) benchmarks/rotation_accuracy.py
+
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py
 
