@@ -1,18 +1,20 @@
-"""A ground surface through points: linear on a Delaunay TIN, nearest outside it.
+"""Delaunay TINs through points: ``triangulate`` (Qhull, with the simplices and
+point location a ground filter needs) and ``TinSurface`` (a ground surface:
+linear on a TIN, nearest vertex outside it).
 
-Point location is scipy's ``find_simplex`` walking from its last hit, fed
-queries in a serpentine spatial order, so each walk is a step or two. Its
-barycentric transforms come from ``with_transform``: scipy builds them with one
-LAPACK call per simplex, which under a threaded BLAS on a busy machine took
-over 100 s for a 150 k point TIN.
+Point location is a walk from the last hit, fed queries in a serpentine spatial
+order, so each walk is a step or two. Qhull's barycentric transforms come from
+``with_transform``: scipy builds them with one LAPACK call per simplex, which
+under a threaded BLAS on a busy machine took over 100 s for a 150 k point TIN.
 
 Coordinates are shifted to a local origin before triangulating, because
-projected coordinates (5e6 m) cost Qhull precision.
+projected coordinates (5e6 m) cost precision.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import startinpy
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
@@ -81,7 +83,14 @@ def triangulate(xy: NDArray[np.float64]) -> tuple[Delaunay, NDArray[np.int64]]:
 
 
 class TinSurface:
-    """z(x, y) linearly interpolated on the TIN of ``xyz``; nearest vertex outside the hull."""
+    """z(x, y) linearly interpolated on the TIN of ``xyz``; nearest vertex outside the hull.
+
+    Built with startin's incremental Delaunay (vertices fed in serpentine cell
+    order, so each insertion walks a step or two) and sampled with its TIN
+    interpolation: on a block's 1 m ground vertices this is ~2x faster than a
+    Qhull triangulation plus ``find_simplex``, for the same triangles and the
+    same heights. Points closer than 1 mm in x, y keep the lowest.
+    """
 
     def __init__(self, xyz: NDArray[np.float64]):
         xyz = np.asarray(xyz, dtype=np.float64)
@@ -90,34 +99,27 @@ class TinSurface:
         self.origin = xyz[:, :2].mean(axis=0)
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
-        self.tri: Delaunay | None = None
+        self._dt: startinpy.DT | None = None
         if xyz.shape[0] >= 3:
-            try:
-                self.tri, self.simplices = triangulate(self.xy)
-            except QhullError:  # all points collinear or coincident
-                self.tri = None
+            local = np.column_stack([self.xy, self.z])
+            cell = float(np.sqrt(4.0 * max(float(np.prod(np.ptp(self.xy, axis=0))), 1e-6) / xyz.shape[0]))
+            dt = startinpy.DT()
+            dt.duplicates_handling = "Lowest"
+            dt.insert(local[spatial_order(self.xy, max(cell, 1e-3))], insertionstrategy="AsIs")
+            self._dt = dt
         self._kd: cKDTree | None = None
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         q = np.column_stack([np.ravel(x), np.ravel(y)]) - self.origin
-        out = np.empty(q.shape[0])
-        inside = np.zeros(q.shape[0], dtype=bool)
-        if self.tri is not None and q.shape[0]:
-            # Walk in a spatial order: ~10x faster than bucketed point-in-triangle
-            # tests, and the walk never wanders across the TIN between queries.
+        out = np.full(q.shape[0], np.nan)
+        if self._dt is not None and q.shape[0]:
+            # Queries in a spatial order: each walk starts from the last hit.
             order = spatial_order(q, 8.0)
-            qs = q[order]
-            simplex = self.tri.find_simplex(qs)
-            hit = simplex >= 0
-            t = self.tri.transform[simplex[hit]]
-            l01 = np.einsum("nij,nj->ni", t[:, :2], qs[hit] - t[:, 2])
-            bary = np.column_stack([l01, 1.0 - l01.sum(axis=1)])
-            idx = order[hit]
-            out[idx] = np.einsum("ni,ni->n", bary, self.z[self.simplices[simplex[hit]]])
-            inside[idx] = True
-        if not inside.all():
+            out[order] = self._dt.interpolate({"method": "TIN"}, q[order])
+        outside = np.isnan(out)
+        if outside.any():
             if self._kd is None:
                 self._kd = cKDTree(self.xy)
-            _, nearest = self._kd.query(q[~inside])
-            out[~inside] = self.z[nearest]
+            _, nearest = self._kd.query(q[outside])
+            out[outside] = self.z[nearest]
         return out.reshape(np.shape(x))
