@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import startinpy
 from numpy.typing import NDArray
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import Delaunay, cKDTree
 
 
 def with_transform(tri: Delaunay) -> Delaunay:
