@@ -85,6 +85,8 @@ def test_canonical_order_is_the_lexsort_order():
     xyz = np.round(rng.uniform([5e5, 5.4e6, 100], [5e5 + 240, 5.4e6 + 240, 180], (20_000, 3)), 2)
     xyz[100:200] = xyz[:100]
     xyz[300:400, 0] = xyz[0, 0]
+    xyz[500:530] = xyz[499]  # a run of 31 equal points, split by others below
+    xyz[rng.permutation(20_000)[:50]] = xyz[499]
     for pts in (xyz, xyz + rng.uniform(0, 1e-4, xyz.shape)):  # on and off the millimetre lattice
         x, y, z = pts.T.copy()
         assert np.array_equal(canonical_order(x, y, z), np.lexsort((z, y, x)))

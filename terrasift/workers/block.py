@@ -75,9 +75,10 @@ def classify_block(
     timer = _Timer()
     # A canonical order, so labels do not depend on how the points were split
     # into files or shards (stages break ties by position in the array).
-    points = points[canonical_order(points["x"], points["y"], points["z"])]
-    xyz = np.column_stack([points["x"], points["y"], points["z"]])
-    core = points["core"].astype(bool)
+    # Fields are gathered one by one: a gather of the packed records is ~5x slower.
+    order = canonical_order(points["x"], points["y"], points["z"])
+    xyz = np.column_stack([points["x"][order], points["y"][order], points["z"][order]])
+    core = points["core"][order].astype(bool)
     n = xyz.shape[0]
     labels = np.full(n, UNCLASSIFIED, np.uint8)
     stats: dict[str, Any] = {"points_core": int(core.sum()), "points_total": n}
@@ -88,7 +89,7 @@ def classify_block(
     if origins:
         check_cancel()
         with timer("mixed"):
-            mixed = _mark_mixed(xyz, points["scan_id"], origins, params)
+            mixed = _mark_mixed(xyz, points["scan_id"][order], origins, params)
         labels[mixed.marked] = NOISE
         active &= ~mixed.marked
         stats["mixed"] = {
@@ -171,8 +172,8 @@ def classify_block(
     stats["counts"] = {str(c): int(v) for c, v in enumerate(counts) if v}
     stats["timings"] = timer.times
     return BlockResult(
-        tile=points["tile"][core],
-        index=points["index"][core],
+        tile=points["tile"][order[core]],
+        index=points["index"][order[core]],
         classes=labels[core],
         window=(row_off, col_off, rows, cols),
         rasters={"dtm": dtm, "dsm": dsm, "coverage": veg.raster()},
@@ -185,8 +186,8 @@ def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
     order of ``np.lexsort((z, y, x))``.
 
     When every coordinate lies on a 1 mm lattice (LAS scales of a millimetre
-    or coarser), the three are packed into one int64 key whose stable sort is
-    ~3x faster than the three-key lexsort; otherwise the lexsort runs.
+    or coarser), the three are packed into one int64 key whose sort is ~10x
+    faster than the three-key lexsort; otherwise the lexsort runs.
     """
     if x.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
@@ -197,7 +198,16 @@ def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
     if not on_lattice or sum(bits) > 63:
         return np.lexsort((z, y, x))
     key = (q[0] << (bits[1] + bits[2])) | (q[1] << bits[2]) | q[2]
-    return np.argsort(key, kind="stable")
+    # An unstable sort is ~4x faster than a stable one; equal keys (duplicate
+    # points, rare) are then put back in input order run by run.
+    order = np.argsort(key)
+    ks = key[order]
+    tie = np.flatnonzero(ks[1:] == ks[:-1])
+    if tie.size:
+        pos = np.union1d(tie, tie + 1)
+        run = np.cumsum(np.r_[True, ks[pos[1:]] != ks[pos[:-1]]] | np.r_[True, pos[1:] != pos[:-1] + 1])
+        order[pos] = order[pos][np.lexsort((order[pos], run))]
+    return order
 
 
 def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[str, Any]) -> Any:
