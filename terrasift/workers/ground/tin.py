@@ -22,6 +22,7 @@ from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
 _GUESS_K = 0.5
+_CHUNK = 1 << 16
 
 
 class Tin:
@@ -90,12 +91,26 @@ class Tin:
         """Triangle and barycentric coordinates of local points ``q``.
 
         Points outside the hull get the hull triangle where their walk left
-        the mesh and a triangle index of -(t + 1).
+        the mesh and a triangle index of -(t + 1). Queries walk in chunks of
+        ``_CHUNK`` so that every round's temporaries stay in cache (callers
+        pass spatially ordered points, so a chunk also touches few triangles).
         """
         n = q.shape[0]
         trans = self._transform()
-        nbr = self.tri.neighbors
         t = self._start_triangles(q)
+        bary = np.empty((n, 3))
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            t[a:b], bary[a:b] = self._walk(q[a:b], t[a:b], trans)
+        return t, bary
+
+    def _walk(
+        self, q: NDArray[np.float64], t: NDArray[np.int64], trans: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Directed walk of all queries ``q`` from start triangles ``t`` (see ``locate``)."""
+        n = q.shape[0]
+        nbr = self.tri.neighbors
+        t = t.copy()
         bary = np.zeros((n, 3))
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
@@ -111,10 +126,12 @@ class Tin:
             b[:, 0] = tr[:, 0] * dx + tr[:, 1] * dy
             b[:, 1] = tr[:, 2] * dx + tr[:, 3] * dy
             b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
-            np.nan_to_num(b, copy=False, nan=-1.0)  # degenerate sliver: step on
+            # A degenerate sliver gives NaN in all three: argmin picks edge 0
+            # and the query steps on, as with NaN read as -1.
             j = np.argmin(b, axis=1)
             done = b[np.arange(tt.size), j] >= -1e-10
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
+                np.nan_to_num(b, copy=False, nan=-1.0)
                 j = np.argmax((b < -1e-10) * rng.random(b.shape), axis=1)
             bary[active[done]] = b[done]
             move = np.flatnonzero(~done)
