@@ -201,13 +201,14 @@ def select_reject(
     Mask points block bins; without ``mask_xy`` they are computed from ``xyz``
     when ``params.mask`` is on (pass an empty array to skip masking).
     """
-    stats = bin_statistics(xyz, grid)
+    flat = grid.index(xyz[:, 0], xyz[:, 1])
+    stats = bin_statistics(xyz, grid, flat)
     if mask_xy is None:
         mask_xy = _mask(xyz, params, point_spacing(xyz[:, :2])) if params.mask else np.zeros((0, 2))
     rms, lowest = stats.rms, stats.lowest
     plane = None
     if params.bin_fit == "plane":
-        plane = plane_fit_statistics(xyz, grid)
+        plane = plane_fit_statistics(xyz, grid, flat)
         fitted = np.isfinite(plane.rms)
         rms = np.where(fitted, plane.rms, rms)
         lowest = np.where(fitted, plane.lowest, lowest)
