@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy import sparse
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
@@ -40,9 +39,65 @@ class Tin:
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
 
+    @classmethod
+    def _from_mesh(cls, xy: NDArray[np.float64], z: NDArray[np.float64], origin: NDArray[np.float64], mesh: Mesh) -> Tin:
+        tin = cls.__new__(cls)
+        tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
+        tin._slopes = tin._trans = tin._guess = None
+        return tin
+
     @property
     def n_vertices(self) -> int:
         return self.xy.shape[0]
+
+    def without(self, drop: NDArray[np.bool_]) -> Tin:
+        """The Delaunay TIN of the vertices not in ``drop`` (same origin, vertices in order).
+
+        Only the holes left by the dropped vertices are re-triangulated: the
+        triangles of the new TIN inside a hole have the hole's rim vertices as
+        corners and are Delaunay among them, so one Qhull call over all rims
+        gives them (those whose centroid falls in a hole), while every other
+        triangle stays. A few thousand screened vertices thus cost a small
+        triangulation instead of a full one. Falls back to a full rebuild when
+        the rims are most of the TIN or the merge does not check out as a
+        triangulation (near-cocircular rims solved another way by Qhull).
+        Raises ValueError / QhullError as the constructor does.
+        """
+        keepv = ~drop
+        nk = int(np.count_nonzero(keepv))
+        if nk == self.n_vertices:
+            return self
+        full = np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]])
+        if nk < 3:
+            raise ValueError("a TIN needs at least three points")
+        s = np.asarray(self.tri.simplices)
+        hole = drop[s].any(axis=1)
+        rim_s = s[hole]
+        rim = np.unique(rim_s[keepv[rim_s]])
+        if rim.size < 3 or rim.size > 0.3 * nk:
+            return Tin(full, origin=self.origin)
+        try:
+            sub = Delaunay(self.xy[rim])
+        except QhullError:
+            return Tin(full, origin=self.origin)
+        ss = rim[sub.simplices]
+        # Centroids walk from a hole triangle at one of their corners: a step or two.
+        hole_ids = np.flatnonzero(hole)
+        start = np.zeros(self.n_vertices, dtype=np.int64)
+        start[rim_s.ravel()] = np.repeat(hole_ids, 3)
+        t, _ = self._walk(self.xy[ss].mean(axis=1), start[ss[:, 0]], self._transform())
+        fill = ss[(t >= 0) & hole[np.maximum(t, 0)]]
+        new_id = np.cumsum(keepv) - 1
+        merged = new_id[np.concatenate([s[~hole], fill])]
+        mesh = Mesh.checked(merged, nk)
+        if mesh is None:
+            return Tin(full, origin=self.origin)
+        if not drop[np.unique(self.tri.convex_hull)].any():
+            # Same hull: the fill must cover the holes' area exactly.
+            a_hole, a_fill = _area(self.xy, s[hole]).sum(), _area(self.xy, fill).sum()
+            if abs(a_fill - a_hole) > 1e-9 * max(a_hole, 1.0):
+                return Tin(full, origin=self.origin)
+        return Tin._from_mesh(self.xy[keepv], self.z[keepv], self.origin, mesh)
 
     def neighbours(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """CSR adjacency (indptr, indices) of TIN vertices."""
@@ -196,6 +251,71 @@ class Tin:
         return self._slopes
 
 
+def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Unsigned area of the triangles ``s``."""
+    a = xy[s[:, 1]] - xy[s[:, 0]]
+    b = xy[s[:, 2]] - xy[s[:, 0]]
+    return 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
+class Mesh:
+    """Triangles of a TIN with the topology ``Tin`` reads from a scipy ``Delaunay``:
+    ``simplices``, ``neighbors`` (opposite each corner, -1 on the hull),
+    ``vertex_neighbor_vertices`` and ``convex_hull`` (edges)."""
+
+    def __init__(self, simplices: NDArray, neighbors: NDArray, n: int):
+        self.simplices = simplices
+        self.neighbors = neighbors
+        self._n = n
+        self._vnv: tuple[NDArray, NDArray] | None = None
+
+    @classmethod
+    def checked(cls, simplices: NDArray[np.int64], n: int) -> Mesh | None:
+        """Mesh of ``simplices`` over ``n`` vertices, None unless it is a triangulated
+        disc using every vertex (each edge in one or two triangles, Euler's count)."""
+        m = simplices.shape[0]
+        a = simplices[:, [1, 2, 0]].ravel()
+        b = simplices[:, [2, 0, 1]].ravel()
+        key = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        same = ks[1:] == ks[:-1]
+        if (same[1:] & same[:-1]).any():
+            return None  # an edge in three triangles: overlap
+        i, j = order[:-1][same], order[1:][same]
+        nb = np.full(3 * m, -1, dtype=np.int64)
+        nb[i] = j // 3
+        nb[j] = i // 3
+        n_boundary = 3 * m - 2 * i.size
+        if m != 2 * n - 2 - n_boundary or np.unique(simplices).size != n:
+            return None
+        return cls(simplices.astype(np.int32), nb.reshape(m, 3).astype(np.int32), n)
+
+    @property
+    def convex_hull(self) -> NDArray[np.int32]:
+        t, j = np.nonzero(self.neighbors < 0)
+        s = self.simplices
+        return np.column_stack([s[t, (j + 1) % 3], s[t, (j + 2) % 3]])
+
+    @property
+    def vertex_neighbor_vertices(self) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        if self._vnv is None:
+            s = self.simplices
+            a = s[:, [1, 2, 0]].ravel()
+            b = s[:, [2, 0, 1]].ravel()
+            nb = self.neighbors.ravel()
+            tri_id = np.repeat(np.arange(s.shape[0]), 3)
+            once = (nb < 0) | (tri_id < nb)  # each undirected edge once
+            a, b = a[once], b[once]
+            own = np.concatenate([a, b])
+            oth = np.concatenate([b, a])
+            order = np.argsort(own, kind="stable")
+            indptr = np.zeros(self._n + 1, dtype=np.int32)
+            np.cumsum(np.bincount(own, minlength=self._n), out=indptr[1:])
+            self._vnv = (indptr, oth[order].astype(np.int32))
+        return self._vnv
+
+
 def neighbour_order_stats(
     indptr: NDArray[np.int64], values: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -246,9 +366,9 @@ def screen(
     the plane of the vertex's bin is tilted by the outlier itself.
     ``low_tol <= 0`` skips that test.
 
-    Rounds after the first re-triangulate only a patch: the vertices whose
-    neighbourhood a deletion changed, found through the deleted vertices
-    (a peeled roof joins the ground on both sides) plus three rings around.
+    Rounds after the first only re-triangulate the holes the deletions
+    leave (``Tin.without``) and judge again only the vertices around them,
+    the only ones whose neighbours changed.
     """
     n = xyz.shape[0]
     if n < 4:
@@ -258,58 +378,30 @@ def screen(
         tin = Tin(xyz, origin=origin)
     except QhullError:
         return np.arange(n), None
-    indptr, indices = tin.neighbours()
-    graph = sparse.csr_matrix((np.ones(indices.size, dtype=np.int32), indices, indptr), shape=(n, n))
-
-    def spread(v: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return (graph @ v.astype(np.int32)) > 0
-
-    alive = np.ones(n, dtype=bool)
-    test = np.arange(n)  # vertices to judge, global ids
-    sub_ids = np.arange(n)  # global id of each vertex of the current (sub) TIN
-    sub = tin
-    sub_ptr, sub_idx = indptr, indices
     hull = np.zeros(n, dtype=bool)
     hull[np.unique(tin.tri.convex_hull)] = True
+    ids = np.arange(n)  # global id of each vertex of the current TIN
+    test = np.arange(n)  # vertices of the current TIN to judge
     for _ in range(max_rounds):
-        bad_local = _judge(sub, sub_ptr, sub_idx, sub_ids, test, xyz, screen_tol, low_tol, slopes)
+        ptr, idx = tin.neighbours()
+        bad = _judge(tin, ptr, idx, ids, test, xyz, screen_tol, low_tol, slopes)
         if slopes is None:
-            bad_local &= ~hull[sub_ids]
-        bad = sub_ids[bad_local]
-        if bad.size == 0:
+            bad &= ~hull[ids]
+        if not bad.any():
             break
-        alive[bad] = False
-        # Deleted vertices connected to this round's deletions, then three rings.
-        reach = np.zeros(n, dtype=bool)
-        reach[bad] = True
-        while True:
-            grown = reach | (spread(reach) & ~alive)
-            if grown.sum() == reach.sum():
-                break
-            reach = grown
-        affected = spread(reach) & alive
-        patch = affected.copy()
-        for _ in range(3):
-            patch |= spread(patch)
-        patch &= alive
-        sub_ids = np.flatnonzero(patch)
-        if sub_ids.size < 4:
-            break
+        if ids.size - np.count_nonzero(bad) < 4:
+            return ids[~bad], None
+        owner = np.repeat(np.arange(ids.size), np.diff(ptr))
+        near = np.zeros(ids.size, dtype=bool)
+        near[idx[bad[owner]]] = True
         try:
-            sub = Tin(xyz[sub_ids], origin=origin)
+            tin = tin.without(bad)
         except QhullError:
-            break
-        sub_ptr, sub_idx = sub.neighbours()
-        test = np.flatnonzero(affected[sub_ids])
-    keep = np.flatnonzero(alive)
-    if keep.size == n:
-        return keep, tin
-    if keep.size < 4:
-        return keep, None
-    try:
-        return keep, Tin(xyz[keep], origin=origin)
-    except QhullError:
-        return keep, None
+            return ids[~bad], None
+        keep = ~bad
+        ids = ids[keep]
+        test = np.flatnonzero(near[keep])
+    return ids, tin
 
 
 def _judge(
@@ -323,27 +415,41 @@ def _judge(
     low_tol: float,
     slopes: NDArray[np.float64] | None,
 ) -> NDArray[np.bool_]:
-    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True)."""
-    owner = np.repeat(np.arange(ids.size), np.diff(indptr))
-    votes = tin.z[indices]
+    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True).
+
+    Neighbour votes are gathered for the ``test`` vertices only: after the
+    first round they are the few around the last deletions.
+    """
+    deg = np.diff(indptr)
+    if test.size == ids.size:
+        ptr, nbr, owner = indptr, indices, np.repeat(np.arange(ids.size), deg)
+    else:
+        dt = deg[test]
+        ptr = np.zeros(test.size + 1, dtype=np.int64)
+        np.cumsum(dt, out=ptr[1:])
+        nbr = indices[np.repeat(indptr[test] - ptr[:-1], dt) + np.arange(ptr[-1])]
+        owner = np.repeat(test, dt)
+    votes = tin.z[nbr]
     pit_votes = votes
     if slopes is not None:
         sl = slopes[ids]
-        d = tin.xy[owner] - tin.xy[indices]
+        d = tin.xy[owner] - tin.xy[nbr]
         # Trapezoid rule: the mean of both ends' slopes is exact on any
         # quadratic surface, so curved hills are not taken for objects.
-        gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
-        gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
+        gx = 0.5 * (sl[nbr, 0] + sl[owner, 0])
+        gy = 0.5 * (sl[nbr, 1] + sl[owner, 1])
         votes = votes + gx * d[:, 0] + gy * d[:, 1]
-        pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
-    med, _ = neighbour_order_stats(indptr, votes)
+        pit_votes = pit_votes + sl[nbr, 0] * d[:, 0] + sl[nbr, 1] * d[:, 1]
+    med, _ = neighbour_order_stats(ptr, votes)
     # Pits are judged on the neighbours' own planes only: the plane of the
     # vertex's bin, tilted by the outlier itself, would vouch for it.
-    _, second = neighbour_order_stats(indptr, pit_votes)
+    _, second = neighbour_order_stats(ptr, pit_votes)
+    if test.size == ids.size:
+        med, second = med[test], second[test]
     bad = np.zeros(ids.size, dtype=bool)
     with np.errstate(invalid="ignore"):
-        b = tin.z[test] - med[test] > screen_tol
+        b = tin.z[test] - med > screen_tol
         if low_tol > 0:
-            b |= second[test] - tin.z[test] > low_tol
+            b |= second - tin.z[test] > low_tol
     bad[test] = b
     return bad
