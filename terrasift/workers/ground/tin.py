@@ -215,19 +215,53 @@ class Tin:
     def height_and_slope(
         self, q: NDArray[np.float64], slope: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both."""
-        t, bary = self.locate(q)
-        inside = t >= 0
-        ti = np.where(inside, t, -t - 1)
-        corners = self.tri.simplices[ti]
-        zc = self.z[corners]
-        out = np.einsum("ni,ni->n", bary, zc)
-        if not inside.all():
-            # Outside the hull: height of the nearest corner of the exit triangle.
-            o = np.flatnonzero(~inside)
-            d2 = ((self.xy[corners[o]] - q[o, None, :]) ** 2).sum(axis=2)
-            out[o] = zc[o, np.argmin(d2, axis=1)]
-        return out, (self.facet_slopes()[ti] if slope else None)
+        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both.
+
+        Walk and interpolation go chunk by chunk, so the gathers of corners
+        and heights hit cache.
+        """
+        n = q.shape[0]
+        trans = self._transform()
+        simp = self.tri.simplices
+        slopes = self.facet_slopes() if slope else None
+        out = np.empty(n)
+        sl = np.empty(n) if slope else None
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            qc = q[a:b]
+            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            inside = t >= 0
+            ti = np.where(inside, t, -t - 1)
+            corners = simp[ti]
+            zc = self.z[corners]
+            h = np.einsum("ni,ni->n", bary, zc)
+            if not inside.all():
+                # Outside the hull: height of the nearest corner of the exit triangle.
+                o = np.flatnonzero(~inside)
+                d2 = ((self.xy[corners[o]] - qc[o, None, :]) ** 2).sum(axis=2)
+                h[o] = zc[o, np.argmin(d2, axis=1)]
+            out[a:b] = h
+            if sl is not None:
+                sl[a:b] = slopes[ti]
+        return out, sl
+
+    def linear(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Triangle (the exit triangle outside the hull) and height of its plane at
+        local points ``q``: linear extrapolation beyond the hull. Chunked like
+        ``height_and_slope``."""
+        n = q.shape[0]
+        trans = self._transform()
+        simp = self.tri.simplices
+        tri = np.empty(n, dtype=np.int64)
+        out = np.empty(n)
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            qc = q[a:b]
+            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            ti = np.where(t >= 0, t, -t - 1)
+            tri[a:b] = ti
+            out[a:b] = np.einsum("ni,ni->n", bary, self.z[simp[ti]])
+        return tri, out
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
