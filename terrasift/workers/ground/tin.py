@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
+from scipy import ndimage, sparse
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
@@ -87,9 +87,7 @@ class Tin:
         start[rim_s.ravel()] = np.repeat(hole_ids, 3)
         t, _ = self._walk(self.xy[ss].mean(axis=1), start[ss[:, 0]], self._transform())
         fill = ss[(t >= 0) & hole[np.maximum(t, 0)]]
-        new_id = np.cumsum(keepv) - 1
-        merged = new_id[np.concatenate([s[~hole], fill])]
-        mesh = Mesh.checked(merged, nk)
+        mesh = Mesh.patched(s, np.asarray(self.tri.neighbors), hole, fill, keepv)
         if mesh is None:
             return Tin(full, origin=self.origin)
         if not drop[np.unique(self.tri.convex_hull)].any():
@@ -304,26 +302,55 @@ class Mesh:
         self._vnv: tuple[NDArray, NDArray] | None = None
 
     @classmethod
-    def checked(cls, simplices: NDArray[np.int64], n: int) -> Mesh | None:
-        """Mesh of ``simplices`` over ``n`` vertices, None unless it is a triangulated
-        disc using every vertex (each edge in one or two triangles, Euler's count)."""
-        m = simplices.shape[0]
-        a = simplices[:, [1, 2, 0]].ravel()
-        b = simplices[:, [2, 0, 1]].ravel()
-        key = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
+    def patched(
+        cls,
+        simplices: NDArray,
+        neighbors: NDArray,
+        hole: NDArray[np.bool_],
+        fill: NDArray,
+        keepv: NDArray[np.bool_],
+    ) -> Mesh | None:
+        """The mesh with the ``hole`` triangles replaced by ``fill`` (old vertex ids)
+        and vertices renumbered to those in ``keepv``, or None unless the result is
+        a triangulated disc using every kept vertex (each edge in one or two
+        triangles, Euler's count).
+
+        Only the edges around the holes are matched (one sort over them); the
+        other triangles keep their neighbours, renumbered.
+        """
+        kt = np.flatnonzero(~hole)
+        mk, f = kt.size, fill.shape[0]
+        tid = np.full(simplices.shape[0], -1, dtype=np.int64)
+        tid[kt] = np.arange(mk)
+        nb_old = neighbors[kt].astype(np.int64)
+        safe = np.maximum(nb_old, 0)
+        border = (nb_old >= 0) & hole[safe]
+        nb = np.concatenate([np.where(nb_old >= 0, tid[safe], -1).ravel(), np.full(3 * f, -1, dtype=np.int64)])
+        bk, bj = np.nonzero(border)
+        sk = simplices[kt[bk]]
+        ea = np.concatenate([sk[np.arange(bk.size), (bj + 1) % 3], fill[:, [1, 2, 0]].ravel()])
+        eb = np.concatenate([sk[np.arange(bk.size), (bj + 2) % 3], fill[:, [2, 0, 1]].ravel()])
+        slot = np.concatenate([3 * bk + bj, 3 * mk + np.arange(3 * f)])
+        n_old = keepv.size
+        key = np.minimum(ea, eb).astype(np.int64) * n_old + np.maximum(ea, eb)
         order = np.argsort(key, kind="stable")
         ks = key[order]
         same = ks[1:] == ks[:-1]
         if (same[1:] & same[:-1]).any():
             return None  # an edge in three triangles: overlap
-        i, j = order[:-1][same], order[1:][same]
-        nb = np.full(3 * m, -1, dtype=np.int64)
+        i, j = slot[order[:-1][same]], slot[order[1:][same]]
+        if ((i < 3 * mk) & (j < 3 * mk)).any():
+            return None
         nb[i] = j // 3
         nb[j] = i // 3
-        n_boundary = 3 * m - 2 * i.size
-        if m != 2 * n - 2 - n_boundary or np.unique(simplices).size != n:
+        new_id = np.cumsum(keepv) - 1
+        merged = new_id[np.concatenate([simplices[kt], fill])]
+        n, m = int(new_id[-1]) + 1, mk + f
+        if m != 2 * n - 2 - int(np.count_nonzero(nb < 0)):
             return None
-        return cls(simplices.astype(np.int32), nb.reshape(m, 3).astype(np.int32), n)
+        if np.count_nonzero(np.bincount(merged.ravel(), minlength=n)) != n:
+            return None
+        return cls(merged.astype(np.int32), nb.reshape(m, 3).astype(np.int32), n)
 
     @property
     def convex_hull(self) -> NDArray[np.int32]:
@@ -341,12 +368,12 @@ class Mesh:
             tri_id = np.repeat(np.arange(s.shape[0]), 3)
             once = (nb < 0) | (tri_id < nb)  # each undirected edge once
             a, b = a[once], b[once]
-            own = np.concatenate([a, b])
-            oth = np.concatenate([b, a])
-            order = np.argsort(own, kind="stable")
-            indptr = np.zeros(self._n + 1, dtype=np.int32)
-            np.cumsum(np.bincount(own, minlength=self._n), out=indptr[1:])
-            self._vnv = (indptr, oth[order].astype(np.int32))
+            # CSR by a counting sort (sparse's coo -> csr), no comparison sort.
+            g = sparse.coo_matrix(
+                (np.ones(2 * a.size, dtype=np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
+                shape=(self._n, self._n),
+            ).tocsr()
+            self._vnv = (g.indptr.astype(np.int32), g.indices.astype(np.int32))
         return self._vnv
 
 
