@@ -49,11 +49,20 @@ class Grid:
         return self.nx * self.ny
 
     def index(self, x: NDArray, y: NDArray) -> NDArray[np.int64]:
-        """Flat bin index of each point, -1 for points outside the grid."""
-        ix = np.floor((x - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((y - self.y0) / self.cell).astype(np.int64)
-        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny)
-        return np.where(inside, iy * self.nx + ix, -1)
+        """Flat bin index of each point, -1 for points outside the grid.
+
+        Truncation equals the floor on the non-negative offsets that can be
+        inside, so no separate floor pass over millions of points is needed.
+        """
+        fx = (np.asarray(x, dtype=np.float64) - self.x0) / self.cell
+        fy = (np.asarray(y, dtype=np.float64) - self.y0) / self.cell
+        ix = fx.astype(np.int64)
+        iy = fy.astype(np.int64)
+        inside = (fx >= 0) & (ix < self.nx) & (fy >= 0) & (iy < self.ny)
+        iy *= self.nx
+        iy += ix
+        iy[~inside] = -1
+        return iy
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Flat arrays of bin-centre x and y, in flat-index order."""
@@ -205,16 +214,18 @@ def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.
     c = (a00 * sz + a01 * suz + a02 * svz) * inv
     sx = (a01 * sz + a11 * suz + a12 * svz) * inv
     sy = (a02 * sz + a12 * suz + a22 * svz) * inv
-    resid = z - (c[f] + sx[f] * u + sy[f] * v)
-    finite = np.isfinite(resid)
+    # Residuals about zero planes in bins without a fit keep every residual
+    # finite (no masking passes over the points); those bins get NaN / -1 below.
+    c0, sx0, sy0 = (np.where(ok, a, 0.0) for a in (c, sx, sy))
+    resid = z - c0[f]
+    resid -= sx0[f] * u
+    resid -= sy0[f] * v
     with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt(np.bincount(f, weights=np.where(finite, resid, 0.0) ** 2, minlength=size) / n)
+        rms = np.sqrt(np.bincount(f, weights=resid * resid, minlength=size) / n)
     rms[~ok] = np.nan
-    # Lowest residual per fitted bin (bins not fitted have only non-finite residuals).
-    fr = np.flatnonzero(finite)
     rmin = np.full(size, np.inf)
-    np.minimum.at(rmin, f[fr], resid[fr])
-    lowest = _lowest_given_min(f[fr], resid[fr], rmin, fr if ids is None else ids[fr])
+    np.minimum.at(rmin, f, resid)
+    lowest = _lowest_given_min(f, resid, rmin, ids)
     lowest[~ok] = -1
     return PlaneStats(grid, n, c, sx, sy, rms, lowest)
 
