@@ -49,11 +49,20 @@ class Grid:
         return self.nx * self.ny
 
     def index(self, x: NDArray, y: NDArray) -> NDArray[np.int64]:
-        """Flat bin index of each point, -1 for points outside the grid."""
-        ix = np.floor((x - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((y - self.y0) / self.cell).astype(np.int64)
-        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny)
-        return np.where(inside, iy * self.nx + ix, -1)
+        """Flat bin index of each point, -1 for points outside the grid.
+
+        Truncation equals the floor on the non-negative offsets that can be
+        inside, so no separate floor pass over millions of points is needed.
+        """
+        fx = (np.asarray(x, dtype=np.float64) - self.x0) / self.cell
+        fy = (np.asarray(y, dtype=np.float64) - self.y0) / self.cell
+        ix = fx.astype(np.int64)
+        iy = fy.astype(np.int64)
+        inside = (fx >= 0) & (ix < self.nx) & (fy >= 0) & (iy < self.ny)
+        iy *= self.nx
+        iy += ix
+        iy[~inside] = -1
+        return iy
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Flat arrays of bin-centre x and y, in flat-index order."""
@@ -90,19 +99,32 @@ def lowest_per_bin(flat: NDArray[np.int64], z: NDArray, size: int) -> NDArray[np
     f, zv = flat[valid], z[valid]
     zmin = np.full(size, np.inf)
     np.minimum.at(zmin, f, zv)
-    hit = zv == zmin[f]
+    return _lowest_given_min(f, zv, zmin, valid)
+
+
+def _lowest_given_min(
+    f: NDArray[np.int64], z: NDArray, zmin: NDArray, ids: NDArray[np.int64] | None
+) -> NDArray[np.int64]:
+    """Smallest index among the points of each bin whose ``z`` equals the bin's ``zmin``.
+
+    ``f`` holds valid bins only; ``ids`` maps its rows to point indices (None: identity).
+    """
+    hit = np.flatnonzero(z == zmin[f])
     big = np.iinfo(np.int64).max
-    out = np.full(size, big, dtype=np.int64)
-    np.minimum.at(out, f[hit], valid[hit])
+    out = np.full(zmin.size, big, dtype=np.int64)
+    np.minimum.at(out, f[hit], hit if ids is None else ids[hit])
     out[out == big] = -1
     return out
 
 
-def bin_statistics(xyz: NDArray[np.float64], grid: Grid) -> BinStats:
-    """Count, min, max, mean, RMS and lowest point of every bin of ``grid``."""
-    flat = grid.index(xyz[:, 0], xyz[:, 1])
-    keep = flat >= 0
-    f, z = flat[keep], xyz[keep, 2]
+def bin_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> BinStats:
+    """Count, min, max, mean, RMS and lowest point of every bin of ``grid``.
+
+    ``flat`` is ``grid.index`` of the points when the caller has it already.
+    """
+    if flat is None:
+        flat = grid.index(xyz[:, 0], xyz[:, 1])
+    f, z, ids = _valid(flat, xyz[:, 2])
     size = grid.size
     n = np.bincount(f, minlength=size)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -114,11 +136,20 @@ def bin_statistics(xyz: NDArray[np.float64], grid: Grid) -> BinStats:
     np.minimum.at(zmin, f, z)
     zmax = np.full(size, -np.inf)
     np.maximum.at(zmax, f, z)
+    lowest = _lowest_given_min(f, z, zmin, ids)  # before the NaNs go in
     empty = n == 0
     zmin[empty] = np.nan
     zmax[empty] = np.nan
-    lowest = lowest_per_bin(flat, xyz[:, 2], size)
     return BinStats(grid, n, zmin, zmax, zmean, rms, lowest)
+
+
+def _valid(flat: NDArray[np.int64], z: NDArray) -> tuple[NDArray[np.int64], NDArray, NDArray[np.int64] | None]:
+    """Bins, values and point indices of the points inside the grid (no copies when all are)."""
+    inside = flat >= 0
+    if inside.all():
+        return flat, z, None
+    ids = np.flatnonzero(inside)
+    return flat[ids], z[ids], ids
 
 
 @dataclass(frozen=True)
@@ -139,47 +170,62 @@ class PlaneStats:
     lowest: NDArray[np.int64]  # index of the point with the most negative residual
 
 
-def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid) -> PlaneStats:
-    """Fit a least-squares plane in every bin at once via bincount'ed normal equations."""
-    flat = grid.index(xyz[:, 0], xyz[:, 1])
-    keep = np.flatnonzero(flat >= 0)
-    f = flat[keep]
+def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> PlaneStats:
+    """Fit a least-squares plane in every bin at once via bincount'ed normal equations.
+
+    The 3 × 3 systems are solved in closed form (cofactors), vectorised over
+    bins: a batched LAPACK solve costs more than all the sums. ``flat`` is
+    ``grid.index`` of the points when the caller has it already.
+    """
+    if flat is None:
+        flat = grid.index(xyz[:, 0], xyz[:, 1])
+    f, _, ids = _valid(flat, xyz[:, 2])
     size = grid.size
     cx, cy = grid.centers()
-    u = xyz[keep, 0] - cx[f]
-    v = xyz[keep, 1] - cy[f]
-    z = xyz[keep, 2]
+    if ids is None:
+        u = xyz[:, 0] - cx[f]
+        v = xyz[:, 1] - cy[f]
+        z = xyz[:, 2]
+    else:
+        u = xyz[ids, 0] - cx[f]
+        v = xyz[ids, 1] - cy[f]
+        z = xyz[ids, 2]
 
     def s(w: NDArray | None) -> NDArray:
         return np.bincount(f, weights=w, minlength=size).astype(np.float64)
 
     n = np.bincount(f, minlength=size)
+    nf = n.astype(np.float64)
     su, sv, sz = s(u), s(v), s(z)
     suu, svv, suv = s(u * u), s(v * v), s(u * v)
     suz, svz = s(u * z), s(v * z)
     # Solve [[n, su, sv], [su, suu, suv], [sv, suv, svv]] @ [c, sx, sy] = [sz, suz, svz]
-    a = np.stack(
-        [
-            np.stack([n.astype(float), su, sv], -1),
-            np.stack([su, suu, suv], -1),
-            np.stack([sv, suv, svv], -1),
-        ],
-        -2,
-    )
-    b = np.stack([sz, suz, svz], -1)
-    det = np.linalg.det(a)
-    ok = (n >= 3) & (np.abs(det) > 1e-9 * np.maximum(1.0, n.astype(float)) * grid.cell**4)
-    coef = np.full((size, 3), np.nan)
-    if ok.any():
-        coef[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-    c, sx, sy = coef[:, 0], coef[:, 1], coef[:, 2]
-    resid = z - (c[f] + sx[f] * u + sy[f] * v)
+    # with the (symmetric) adjugate.
+    a00 = suu * svv - suv * suv
+    a01 = sv * suv - su * svv
+    a02 = su * suv - suu * sv
+    a11 = nf * svv - sv * sv
+    a12 = su * sv - nf * suv
+    a22 = nf * suu - su * su
+    det = nf * a00 + su * a01 + sv * a02
+    ok = (n >= 3) & (np.abs(det) > 1e-9 * np.maximum(1.0, nf) * grid.cell**4)
     with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt(np.bincount(f, weights=np.nan_to_num(resid) ** 2, minlength=size) / n)
+        inv = np.where(ok, 1.0 / det, np.nan)
+    c = (a00 * sz + a01 * suz + a02 * svz) * inv
+    sx = (a01 * sz + a11 * suz + a12 * svz) * inv
+    sy = (a02 * sz + a12 * suz + a22 * svz) * inv
+    # Residuals about zero planes in bins without a fit keep every residual
+    # finite (no masking passes over the points); those bins get NaN / -1 below.
+    c0, sx0, sy0 = (np.where(ok, a, 0.0) for a in (c, sx, sy))
+    resid = z - c0[f]
+    resid -= sx0[f] * u
+    resid -= sy0[f] * v
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rms = np.sqrt(np.bincount(f, weights=resid * resid, minlength=size) / n)
     rms[~ok] = np.nan
-    resid_full = np.full(xyz.shape[0], np.inf)
-    resid_full[keep] = np.where(np.isfinite(resid), resid, np.inf)
-    flat_ok = np.where((flat >= 0) & np.isfinite(resid_full), flat, -1)
-    lowest = lowest_per_bin(flat_ok, resid_full, size)
+    rmin = np.full(size, np.inf)
+    np.minimum.at(rmin, f, resid)
+    lowest = _lowest_given_min(f, resid, rmin, ids)
     lowest[~ok] = -1
     return PlaneStats(grid, n, c, sx, sy, rms, lowest)
+

@@ -31,20 +31,24 @@ def grow_ground(
     bend_deg: float,
     max_rise: float,
     max_rounds: int = 200,
+    adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
     ``max_rise`` bounds the rise of one edge (metres), whatever the slope.
+    ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
+    nodes when the caller has triangulated them already.
     """
     n = xyz.shape[0]
     ground = seed.copy()
     if n < 4 or not seed.any() or seed.all():
         return ground
-    try:
-        tri = Delaunay(xyz[:, :2])
-    except QhullError:
-        return ground
-    indptr, nbr = tri.vertex_neighbor_vertices
+    if adjacency is None:
+        try:
+            adjacency = Delaunay(xyz[:, :2]).vertex_neighbor_vertices
+        except QhullError:
+            return ground
+    indptr, nbr = adjacency
     own = np.repeat(np.arange(n), np.diff(indptr))
     du = xyz[nbr, 0] - xyz[own, 0]
     dv = xyz[nbr, 1] - xyz[own, 1]

@@ -75,9 +75,7 @@ def partial_tin(
         rest = np.flatnonzero(~inserted)
         if rest.size == 0:
             return tin, verts
-        t, bary = tin.locate(xy[rest])
-        ti = np.where(t >= 0, t, -t - 1)
-        surf = np.einsum("ni,ni->n", bary, tin.z[tin.tri.simplices[ti]])
+        ti, surf = tin.linear(xy[rest])
         score = np.abs(xyz[rest, 2] - surf)
         if rule == "area":
             score = score * _areas(tin)[ti]

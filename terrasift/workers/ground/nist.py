@@ -201,13 +201,14 @@ def select_reject(
     Mask points block bins; without ``mask_xy`` they are computed from ``xyz``
     when ``params.mask`` is on (pass an empty array to skip masking).
     """
-    stats = bin_statistics(xyz, grid)
+    flat = grid.index(xyz[:, 0], xyz[:, 1])
+    stats = bin_statistics(xyz, grid, flat)
     if mask_xy is None:
         mask_xy = _mask(xyz, params, point_spacing(xyz[:, :2])) if params.mask else np.zeros((0, 2))
     rms, lowest = stats.rms, stats.lowest
     plane = None
     if params.bin_fit == "plane":
-        plane = plane_fit_statistics(xyz, grid)
+        plane = plane_fit_statistics(xyz, grid, flat)
         fitted = np.isfinite(plane.rms)
         rms = np.where(fitted, plane.rms, rms)
         lowest = np.where(fitted, plane.lowest, lowest)
@@ -413,10 +414,9 @@ def _without_raised(tin: Tin, params: NistParams) -> Tin:
     drop = raised_segments(np.column_stack([tin.xy, tin.z]), tin.tri, params.raised_step, params.raised_slope)
     if not drop.any() or np.count_nonzero(~drop) < 3:
         return tin
-    keep = np.column_stack([tin.xy[~drop] + tin.origin, tin.z[~drop]])
     try:
-        return Tin(keep, origin=tin.origin)
-    except QhullError:
+        return tin.without(drop)
+    except (QhullError, ValueError):
         return tin
 
 
@@ -428,10 +428,25 @@ def _grown(
     low = lowest_per_bin(grid.index(local[:, 0], local[:, 1]), local[:, 2], grid.size)
     nodes = local[low[low >= 0]]
     seed = _label(tin, nodes, params)
-    ground = grow_ground(nodes, seed, tol=params.grow_tol, bend_deg=params.grow_bend, max_rise=params.grow_rise)
+    # One triangulation of the nodes serves growth (neighbours) and, with the
+    # nodes left out re-triangulated, the grown surface.
+    full = None
+    if nodes.shape[0] >= 4 and seed.any() and not seed.all():
+        try:
+            full = Tin(nodes, origin=centre)
+        except QhullError:
+            full = None
+    ground = grow_ground(
+        nodes,
+        seed,
+        tol=params.grow_tol,
+        bend_deg=params.grow_bend,
+        max_rise=params.grow_rise,
+        adjacency=None if full is None else full.neighbours(),
+    )
     if np.count_nonzero(ground) < 3:
         return tin
     try:
-        return Tin(nodes[ground], origin=centre)
-    except QhullError:
+        return Tin(nodes[ground], origin=centre) if full is None else full.without(~ground)
+    except (QhullError, ValueError):
         return tin

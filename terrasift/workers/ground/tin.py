@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
-from scipy import sparse
+from scipy import ndimage, sparse
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
 _GUESS_K = 0.5
+_CHUNK = 1 << 16
 
 
 class Tin:
@@ -39,9 +39,63 @@ class Tin:
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
 
+    @classmethod
+    def _from_mesh(cls, xy: NDArray[np.float64], z: NDArray[np.float64], origin: NDArray[np.float64], mesh: Mesh) -> Tin:
+        tin = cls.__new__(cls)
+        tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
+        tin._slopes = tin._trans = tin._guess = None
+        return tin
+
     @property
     def n_vertices(self) -> int:
         return self.xy.shape[0]
+
+    def without(self, drop: NDArray[np.bool_]) -> Tin:
+        """The Delaunay TIN of the vertices not in ``drop`` (same origin, vertices in order).
+
+        Only the holes left by the dropped vertices are re-triangulated: the
+        triangles of the new TIN inside a hole have the hole's rim vertices as
+        corners and are Delaunay among them, so one Qhull call over all rims
+        gives them (those whose centroid falls in a hole), while every other
+        triangle stays. A few thousand screened vertices thus cost a small
+        triangulation instead of a full one. Falls back to a full rebuild when
+        the rims are most of the TIN or the merge does not check out as a
+        triangulation (near-cocircular rims solved another way by Qhull).
+        Raises ValueError / QhullError as the constructor does.
+        """
+        keepv = ~drop
+        nk = int(np.count_nonzero(keepv))
+        if nk == self.n_vertices:
+            return self
+        full = np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]])
+        if nk < 3:
+            raise ValueError("a TIN needs at least three points")
+        s = np.asarray(self.tri.simplices)
+        hole = drop[s].any(axis=1)
+        rim_s = s[hole]
+        rim = np.unique(rim_s[keepv[rim_s]])
+        if rim.size < 3 or rim.size > 0.3 * nk:
+            return Tin(full, origin=self.origin)
+        try:
+            sub = Delaunay(self.xy[rim])
+        except QhullError:
+            return Tin(full, origin=self.origin)
+        ss = rim[sub.simplices]
+        # Centroids walk from a hole triangle at one of their corners: a step or two.
+        hole_ids = np.flatnonzero(hole)
+        start = np.zeros(self.n_vertices, dtype=np.int64)
+        start[rim_s.ravel()] = np.repeat(hole_ids, 3)
+        t, _ = self._walk(self.xy[ss].mean(axis=1), start[ss[:, 0]], self._transform())
+        fill = ss[(t >= 0) & hole[np.maximum(t, 0)]]
+        mesh = Mesh.patched(s, np.asarray(self.tri.neighbors), hole, fill, keepv)
+        if mesh is None:
+            return Tin(full, origin=self.origin)
+        if not drop[np.unique(self.tri.convex_hull)].any():
+            # Same hull: the fill must cover the holes' area exactly.
+            a_hole, a_fill = _area(self.xy, s[hole]).sum(), _area(self.xy, fill).sum()
+            if abs(a_fill - a_hole) > 1e-9 * max(a_hole, 1.0):
+                return Tin(full, origin=self.origin)
+        return Tin._from_mesh(self.xy[keepv], self.z[keepv], self.origin, mesh)
 
     def neighbours(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """CSR adjacency (indptr, indices) of TIN vertices."""
@@ -90,12 +144,26 @@ class Tin:
         """Triangle and barycentric coordinates of local points ``q``.
 
         Points outside the hull get the hull triangle where their walk left
-        the mesh and a triangle index of -(t + 1).
+        the mesh and a triangle index of -(t + 1). Queries walk in chunks of
+        ``_CHUNK`` so that every round's temporaries stay in cache (callers
+        pass spatially ordered points, so a chunk also touches few triangles).
         """
         n = q.shape[0]
         trans = self._transform()
-        nbr = self.tri.neighbors
         t = self._start_triangles(q)
+        bary = np.empty((n, 3))
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            t[a:b], bary[a:b] = self._walk(q[a:b], t[a:b], trans)
+        return t, bary
+
+    def _walk(
+        self, q: NDArray[np.float64], t: NDArray[np.int64], trans: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Directed walk of all queries ``q`` from start triangles ``t`` (see ``locate``)."""
+        n = q.shape[0]
+        nbr = self.tri.neighbors
+        t = t.copy()
         bary = np.zeros((n, 3))
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
@@ -111,10 +179,12 @@ class Tin:
             b[:, 0] = tr[:, 0] * dx + tr[:, 1] * dy
             b[:, 1] = tr[:, 2] * dx + tr[:, 3] * dy
             b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
-            np.nan_to_num(b, copy=False, nan=-1.0)  # degenerate sliver: step on
+            # A degenerate sliver gives NaN in all three: argmin picks edge 0
+            # and the query steps on, as with NaN read as -1.
             j = np.argmin(b, axis=1)
             done = b[np.arange(tt.size), j] >= -1e-10
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
+                np.nan_to_num(b, copy=False, nan=-1.0)
                 j = np.argmax((b < -1e-10) * rng.random(b.shape), axis=1)
             bary[active[done]] = b[done]
             move = np.flatnonzero(~done)
@@ -143,19 +213,53 @@ class Tin:
     def height_and_slope(
         self, q: NDArray[np.float64], slope: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both."""
-        t, bary = self.locate(q)
-        inside = t >= 0
-        ti = np.where(inside, t, -t - 1)
-        corners = self.tri.simplices[ti]
-        zc = self.z[corners]
-        out = np.einsum("ni,ni->n", bary, zc)
-        if not inside.all():
-            # Outside the hull: height of the nearest corner of the exit triangle.
-            o = np.flatnonzero(~inside)
-            d2 = ((self.xy[corners[o]] - q[o, None, :]) ** 2).sum(axis=2)
-            out[o] = zc[o, np.argmin(d2, axis=1)]
-        return out, (self.facet_slopes()[ti] if slope else None)
+        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both.
+
+        Walk and interpolation go chunk by chunk, so the gathers of corners
+        and heights hit cache.
+        """
+        n = q.shape[0]
+        trans = self._transform()
+        simp = self.tri.simplices
+        slopes = self.facet_slopes() if slope else None
+        out = np.empty(n)
+        sl = np.empty(n) if slope else None
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            qc = q[a:b]
+            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            inside = t >= 0
+            ti = np.where(inside, t, -t - 1)
+            corners = simp[ti]
+            zc = self.z[corners]
+            h = np.einsum("ni,ni->n", bary, zc)
+            if not inside.all():
+                # Outside the hull: height of the nearest corner of the exit triangle.
+                o = np.flatnonzero(~inside)
+                d2 = ((self.xy[corners[o]] - qc[o, None, :]) ** 2).sum(axis=2)
+                h[o] = zc[o, np.argmin(d2, axis=1)]
+            out[a:b] = h
+            if sl is not None:
+                sl[a:b] = slopes[ti]
+        return out, sl
+
+    def linear(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Triangle (the exit triangle outside the hull) and height of its plane at
+        local points ``q``: linear extrapolation beyond the hull. Chunked like
+        ``height_and_slope``."""
+        n = q.shape[0]
+        trans = self._transform()
+        simp = self.tri.simplices
+        tri = np.empty(n, dtype=np.int64)
+        out = np.empty(n)
+        for a in range(0, n, _CHUNK):
+            b = min(a + _CHUNK, n)
+            qc = q[a:b]
+            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            ti = np.where(t >= 0, t, -t - 1)
+            tri[a:b] = ti
+            out[a:b] = np.einsum("ni,ni->n", bary, self.z[simp[ti]])
+        return tri, out
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
@@ -177,6 +281,100 @@ class Tin:
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
         self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
         return self._slopes
+
+
+def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Unsigned area of the triangles ``s``."""
+    a = xy[s[:, 1]] - xy[s[:, 0]]
+    b = xy[s[:, 2]] - xy[s[:, 0]]
+    return 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
+class Mesh:
+    """Triangles of a TIN with the topology ``Tin`` reads from a scipy ``Delaunay``:
+    ``simplices``, ``neighbors`` (opposite each corner, -1 on the hull),
+    ``vertex_neighbor_vertices`` and ``convex_hull`` (edges)."""
+
+    def __init__(self, simplices: NDArray, neighbors: NDArray, n: int):
+        self.simplices = simplices
+        self.neighbors = neighbors
+        self._n = n
+        self._vnv: tuple[NDArray, NDArray] | None = None
+
+    @classmethod
+    def patched(
+        cls,
+        simplices: NDArray,
+        neighbors: NDArray,
+        hole: NDArray[np.bool_],
+        fill: NDArray,
+        keepv: NDArray[np.bool_],
+    ) -> Mesh | None:
+        """The mesh with the ``hole`` triangles replaced by ``fill`` (old vertex ids)
+        and vertices renumbered to those in ``keepv``, or None unless the result is
+        a triangulated disc using every kept vertex (each edge in one or two
+        triangles, Euler's count).
+
+        Only the edges around the holes are matched (one sort over them); the
+        other triangles keep their neighbours, renumbered.
+        """
+        kt = np.flatnonzero(~hole)
+        mk, f = kt.size, fill.shape[0]
+        tid = np.full(simplices.shape[0], -1, dtype=np.int64)
+        tid[kt] = np.arange(mk)
+        nb_old = neighbors[kt].astype(np.int64)
+        safe = np.maximum(nb_old, 0)
+        border = (nb_old >= 0) & hole[safe]
+        nb = np.concatenate([np.where(nb_old >= 0, tid[safe], -1).ravel(), np.full(3 * f, -1, dtype=np.int64)])
+        bk, bj = np.nonzero(border)
+        sk = simplices[kt[bk]]
+        ea = np.concatenate([sk[np.arange(bk.size), (bj + 1) % 3], fill[:, [1, 2, 0]].ravel()])
+        eb = np.concatenate([sk[np.arange(bk.size), (bj + 2) % 3], fill[:, [2, 0, 1]].ravel()])
+        slot = np.concatenate([3 * bk + bj, 3 * mk + np.arange(3 * f)])
+        n_old = keepv.size
+        key = np.minimum(ea, eb).astype(np.int64) * n_old + np.maximum(ea, eb)
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        same = ks[1:] == ks[:-1]
+        if (same[1:] & same[:-1]).any():
+            return None  # an edge in three triangles: overlap
+        i, j = slot[order[:-1][same]], slot[order[1:][same]]
+        if ((i < 3 * mk) & (j < 3 * mk)).any():
+            return None
+        nb[i] = j // 3
+        nb[j] = i // 3
+        new_id = np.cumsum(keepv) - 1
+        merged = new_id[np.concatenate([simplices[kt], fill])]
+        n, m = int(new_id[-1]) + 1, mk + f
+        if m != 2 * n - 2 - int(np.count_nonzero(nb < 0)):
+            return None
+        if np.count_nonzero(np.bincount(merged.ravel(), minlength=n)) != n:
+            return None
+        return cls(merged.astype(np.int32), nb.reshape(m, 3).astype(np.int32), n)
+
+    @property
+    def convex_hull(self) -> NDArray[np.int32]:
+        t, j = np.nonzero(self.neighbors < 0)
+        s = self.simplices
+        return np.column_stack([s[t, (j + 1) % 3], s[t, (j + 2) % 3]])
+
+    @property
+    def vertex_neighbor_vertices(self) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        if self._vnv is None:
+            s = self.simplices
+            a = s[:, [1, 2, 0]].ravel()
+            b = s[:, [2, 0, 1]].ravel()
+            nb = self.neighbors.ravel()
+            tri_id = np.repeat(np.arange(s.shape[0]), 3)
+            once = (nb < 0) | (tri_id < nb)  # each undirected edge once
+            a, b = a[once], b[once]
+            # CSR by a counting sort (sparse's coo -> csr), no comparison sort.
+            g = sparse.coo_matrix(
+                (np.ones(2 * a.size, dtype=np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
+                shape=(self._n, self._n),
+            ).tocsr()
+            self._vnv = (g.indptr.astype(np.int32), g.indices.astype(np.int32))
+        return self._vnv
 
 
 def neighbour_order_stats(
@@ -229,9 +427,9 @@ def screen(
     the plane of the vertex's bin is tilted by the outlier itself.
     ``low_tol <= 0`` skips that test.
 
-    Rounds after the first re-triangulate only a patch: the vertices whose
-    neighbourhood a deletion changed, found through the deleted vertices
-    (a peeled roof joins the ground on both sides) plus three rings around.
+    Rounds after the first only re-triangulate the holes the deletions
+    leave (``Tin.without``) and judge again only the vertices around them,
+    the only ones whose neighbours changed.
     """
     n = xyz.shape[0]
     if n < 4:
@@ -241,58 +439,30 @@ def screen(
         tin = Tin(xyz, origin=origin)
     except QhullError:
         return np.arange(n), None
-    indptr, indices = tin.neighbours()
-    graph = sparse.csr_matrix((np.ones(indices.size, dtype=np.int32), indices, indptr), shape=(n, n))
-
-    def spread(v: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return (graph @ v.astype(np.int32)) > 0
-
-    alive = np.ones(n, dtype=bool)
-    test = np.arange(n)  # vertices to judge, global ids
-    sub_ids = np.arange(n)  # global id of each vertex of the current (sub) TIN
-    sub = tin
-    sub_ptr, sub_idx = indptr, indices
     hull = np.zeros(n, dtype=bool)
     hull[np.unique(tin.tri.convex_hull)] = True
+    ids = np.arange(n)  # global id of each vertex of the current TIN
+    test = np.arange(n)  # vertices of the current TIN to judge
     for _ in range(max_rounds):
-        bad_local = _judge(sub, sub_ptr, sub_idx, sub_ids, test, xyz, screen_tol, low_tol, slopes)
+        ptr, idx = tin.neighbours()
+        bad = _judge(tin, ptr, idx, ids, test, xyz, screen_tol, low_tol, slopes)
         if slopes is None:
-            bad_local &= ~hull[sub_ids]
-        bad = sub_ids[bad_local]
-        if bad.size == 0:
+            bad &= ~hull[ids]
+        if not bad.any():
             break
-        alive[bad] = False
-        # Deleted vertices connected to this round's deletions, then three rings.
-        reach = np.zeros(n, dtype=bool)
-        reach[bad] = True
-        while True:
-            grown = reach | (spread(reach) & ~alive)
-            if grown.sum() == reach.sum():
-                break
-            reach = grown
-        affected = spread(reach) & alive
-        patch = affected.copy()
-        for _ in range(3):
-            patch |= spread(patch)
-        patch &= alive
-        sub_ids = np.flatnonzero(patch)
-        if sub_ids.size < 4:
-            break
+        if ids.size - np.count_nonzero(bad) < 4:
+            return ids[~bad], None
+        owner = np.repeat(np.arange(ids.size), np.diff(ptr))
+        near = np.zeros(ids.size, dtype=bool)
+        near[idx[bad[owner]]] = True
         try:
-            sub = Tin(xyz[sub_ids], origin=origin)
+            tin = tin.without(bad)
         except QhullError:
-            break
-        sub_ptr, sub_idx = sub.neighbours()
-        test = np.flatnonzero(affected[sub_ids])
-    keep = np.flatnonzero(alive)
-    if keep.size == n:
-        return keep, tin
-    if keep.size < 4:
-        return keep, None
-    try:
-        return keep, Tin(xyz[keep], origin=origin)
-    except QhullError:
-        return keep, None
+            return ids[~bad], None
+        keep = ~bad
+        ids = ids[keep]
+        test = np.flatnonzero(near[keep])
+    return ids, tin
 
 
 def _judge(
@@ -306,27 +476,41 @@ def _judge(
     low_tol: float,
     slopes: NDArray[np.float64] | None,
 ) -> NDArray[np.bool_]:
-    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True)."""
-    owner = np.repeat(np.arange(ids.size), np.diff(indptr))
-    votes = tin.z[indices]
+    """Screening verdict for every vertex of ``tin`` (only ``test`` can be True).
+
+    Neighbour votes are gathered for the ``test`` vertices only: after the
+    first round they are the few around the last deletions.
+    """
+    deg = np.diff(indptr)
+    if test.size == ids.size:
+        ptr, nbr, owner = indptr, indices, np.repeat(np.arange(ids.size), deg)
+    else:
+        dt = deg[test]
+        ptr = np.zeros(test.size + 1, dtype=np.int64)
+        np.cumsum(dt, out=ptr[1:])
+        nbr = indices[np.repeat(indptr[test] - ptr[:-1], dt) + np.arange(ptr[-1])]
+        owner = np.repeat(test, dt)
+    votes = tin.z[nbr]
     pit_votes = votes
     if slopes is not None:
         sl = slopes[ids]
-        d = tin.xy[owner] - tin.xy[indices]
+        d = tin.xy[owner] - tin.xy[nbr]
         # Trapezoid rule: the mean of both ends' slopes is exact on any
         # quadratic surface, so curved hills are not taken for objects.
-        gx = 0.5 * (sl[indices, 0] + sl[owner, 0])
-        gy = 0.5 * (sl[indices, 1] + sl[owner, 1])
+        gx = 0.5 * (sl[nbr, 0] + sl[owner, 0])
+        gy = 0.5 * (sl[nbr, 1] + sl[owner, 1])
         votes = votes + gx * d[:, 0] + gy * d[:, 1]
-        pit_votes = pit_votes + sl[indices, 0] * d[:, 0] + sl[indices, 1] * d[:, 1]
-    med, _ = neighbour_order_stats(indptr, votes)
+        pit_votes = pit_votes + sl[nbr, 0] * d[:, 0] + sl[nbr, 1] * d[:, 1]
+    med, _ = neighbour_order_stats(ptr, votes)
     # Pits are judged on the neighbours' own planes only: the plane of the
     # vertex's bin, tilted by the outlier itself, would vouch for it.
-    _, second = neighbour_order_stats(indptr, pit_votes)
+    _, second = neighbour_order_stats(ptr, pit_votes)
+    if test.size == ids.size:
+        med, second = med[test], second[test]
     bad = np.zeros(ids.size, dtype=bool)
     with np.errstate(invalid="ignore"):
-        b = tin.z[test] - med[test] > screen_tol
+        b = tin.z[test] - med > screen_tol
         if low_tol > 0:
-            b |= second[test] - tin.z[test] > low_tol
+            b |= second - tin.z[test] > low_tol
     bad[test] = b
     return bad
