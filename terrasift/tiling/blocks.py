@@ -131,24 +131,30 @@ def assign_blocks(grid: BlockGrid, x: NDArray, y: NDArray) -> tuple[NDArray[np.i
     """(point index, flat block id, is-core) for every block each point goes to.
 
     A point goes to its core block and to each neighbour (8-connected) whose
-    core is within ``buffer`` of it.
+    core is within ``buffer`` of it. Every point is in its core block; only the
+    points within ``buffer`` of their core's edge are tested for neighbours.
     """
     ix, iy = grid.block_of(x, y)
     fx = x - (grid.x0 + ix * grid.block_size)
     fy = y - (grid.y0 + iy * grid.block_size)
-    b = grid.buffer
-    out_p, out_b, out_core = [], [], []
+    b, far = grid.buffer, grid.block_size - grid.buffer
+    out_p = [np.arange(x.size)]
+    out_b = [iy * grid.nx + ix]
+    edge = np.flatnonzero((fx < b) | (fx >= far) | (fy < b) | (fy >= far))
+    ex, ey, fx, fy = ix[edge], iy[edge], fx[edge], fy[edge]
     for dx in (-1, 0, 1):
-        mx = np.ones(x.size, bool) if dx == 0 else (fx < b if dx < 0 else fx >= grid.block_size - b)
-        mx &= (ix + dx >= 0) & (ix + dx < grid.nx)
+        mx = np.ones(edge.size, bool) if dx == 0 else (fx < b if dx < 0 else fx >= far)
+        mx &= (ex + dx >= 0) & (ex + dx < grid.nx)
         for dy in (-1, 0, 1):
-            my = np.ones(x.size, bool) if dy == 0 else (fy < b if dy < 0 else fy >= grid.block_size - b)
-            m = mx & my & (iy + dy >= 0) & (iy + dy < grid.ny)
-            idx = np.flatnonzero(m)
-            out_p.append(idx)
-            out_b.append((iy[idx] + dy) * grid.nx + (ix[idx] + dx))
-            out_core.append(np.full(idx.size, dx == 0 and dy == 0))
-    return np.concatenate(out_p), np.concatenate(out_b), np.concatenate(out_core)
+            if dx == 0 and dy == 0:
+                continue
+            my = np.ones(edge.size, bool) if dy == 0 else (fy < b if dy < 0 else fy >= far)
+            m = np.flatnonzero(mx & my & (ey + dy >= 0) & (ey + dy < grid.ny))
+            out_p.append(edge[m])
+            out_b.append((ey[m] + dy) * grid.nx + (ex[m] + dx))
+    core = np.zeros(sum(a.size for a in out_p), dtype=bool)
+    core[: x.size] = True
+    return np.concatenate(out_p), np.concatenate(out_b), core
 
 
 def shard_tile(
@@ -175,7 +181,10 @@ def shard_tile(
     for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop):
         x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
         p, bid, core = assign_blocks(grid, x, y)
-        order = np.argsort(bid, kind="stable")
+        # Stable, so a block's points keep file order; on 16-bit ids numpy
+        # sorts by radix (~6x faster than the merge sort of wider ints).
+        key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
+        order = np.argsort(key, kind="stable")
         p, bid, core = p[order], bid[order], core[order]
         rec = np.empty(p.size, SHARD_DTYPE)
         rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
