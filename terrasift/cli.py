@@ -100,8 +100,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def process(inputs: list[Path], out: Path, raw_params: dict, *, progress: bool = True, products: str = "all") -> list[str]:
     """Run the pipeline on ``inputs`` into folder ``out``; return the output names."""
+    from terrasift.workers.executors import make_executor, single_threaded_blas
+
+    single_threaded_blas()  # before numpy loads: forked workers inherit its BLAS set-up
     from terrasift import pipeline
-    from terrasift.workers.executors import make_executor
 
     params = pipeline.validate_params(raw_params)
     pipeline.inspect_inputs(list(inputs), params)

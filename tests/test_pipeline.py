@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 
 import laspy
 import numpy as np
@@ -180,7 +182,7 @@ def _labels(job) -> np.ndarray:
 
 
 def test_process_pool_gives_the_same_labels(tmp_path, small_tile, finished_job):
-    executor = LocalExecutor(2)
+    executor = LocalExecutor(2, start_method="spawn")
     try:
         job, _ = _run(tmp_path, small_tile, BLOCK, executor=executor)
     finally:
@@ -259,3 +261,42 @@ def test_banded_slope_and_categories_equal_whole_dtm(tmp_path, small_tile, monke
         np.testing.assert_allclose(ds.read(1, masked=True).filled(np.nan), whole_slope, atol=1e-4, equal_nan=True)
     with rasterio.open(pipeline.output_path(job, "categories.tif")) as ds:
         assert np.array_equal(ds.read(), whole_cats)
+
+
+def test_pool_forks_only_a_single_threaded_process():
+    """Forking a process with other threads can deadlock a child on a held lock."""
+    import threading
+
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        executor = LocalExecutor(1)
+        executor.shutdown()
+    finally:
+        stop.set()
+        other.join()
+    assert executor.start_method == "spawn"
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="workers are forked on Linux only")
+def test_forked_pool_of_the_command_line_gives_the_same_labels(tmp_path, small_tile, finished_job):
+    """A fresh single-threaded process forks its workers; the labels do not change."""
+    code = (
+        "import sys\n"
+        "from terrasift import cli\n"
+        "from terrasift.workers import executors\n"
+        "init = executors.LocalExecutor.__init__\n"
+        "def traced(self, *a, **k):\n"
+        "    init(self, *a, **k)\n"
+        "    print('start method', self.start_method, file=sys.stderr)\n"
+        "executors.LocalExecutor.__init__ = traced\n"
+        "sys.exit(cli.main(sys.argv[1:]))\n"
+    )
+    args = ["classify", str(small_tile), str(tmp_path / "out.laz"), "--quiet"]
+    args += [f"--param={k}={v}" for k, v in {**BLOCK, "workers": 2}.items()]
+    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "start method fork" in out.stderr
+    labels = np.asarray(laspy.read(tmp_path / "out.laz").classification)
+    assert np.array_equal(_labels(finished_job[0]), labels)
