@@ -19,6 +19,7 @@ from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import Tin, screen
 from terrasift.workers.registry import get_stage
 
@@ -194,3 +195,25 @@ def test_raised_segments_drop_a_roof_and_keep_a_steep_hill():
     xyz = np.column_stack([xy, z])
     drop = raised_segments(xyz, Delaunay(xy), 2.0, 10.0)
     assert np.array_equal(drop, roof)
+
+
+def test_supported_points_take_a_cut_crest_but_not_a_bush_or_a_pit():
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(0, 60, (6000, 2))
+    # A sharp ridge along y (45° flanks, crest at 8 m); a labelling that took
+    # its flanks up to 6 m and a scatter of the points above.
+    z = np.clip(8.0 - np.abs(xy[:, 0] - 20.0), 0.0, None)
+    bush = np.hypot(xy[:, 0] - 45.0, xy[:, 1] - 30.0) < 3.0
+    z = z + 1.5 * bush
+    pit = np.zeros(xy.shape[0], dtype=bool)
+    pit[:5] = True
+    xy[:5] = [[45.0, 10.0], [50.0, 15.0], [40.0, 50.0], [55.0, 45.0], [48.0, 5.0]]
+    z[:5] = -3.0
+    xyz = np.column_stack([xy, z])
+    crest = ~bush & ~pit & (z >= 6.0)
+    ground = ((z < 6.0) & ~bush & ~pit) | (crest & (rng.random(z.size) < 0.3))
+    out = supported_points(xyz, ground, radius=1.5, eligible=z >= 0.0, rounds=4)
+    assert out[crest].mean() > 0.65  # from 0.3 (measured 0.73; the very top has no ground above it)
+    assert not out[bush].any()
+    assert not out[pit].any()
+    assert np.array_equal(supported_points(xyz, ground, radius=1.5, k=0), ground)

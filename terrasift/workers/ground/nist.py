@@ -22,7 +22,9 @@ raised segments of that TIN (roofs wider than every pass's bins) are dropped
 (``raised.py``), and the surface is grown back onto terrain the coarse passes
 cut off — ridges, embankments, hilltops (``growth.py``). Final labels: ground
 is every point from ``ground_tol_below`` under to ``ground_tol`` over the last
-surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does).
+surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does),
+and every point above that band with two of its nearest ground points at or
+above its own height (``support.py``: crests the TIN still cuts).
 
 Where this departs from the paper, and why (measured on ISPRS and synthetic
 scenes): screening tolerances grow with a pass's bin size; with plane bins,
@@ -77,6 +79,7 @@ from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
 from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import Tin, screen
 from terrasift.workers.registry import StageParams, register
 
@@ -145,6 +148,16 @@ class NistParams(StageParams):
     """…plus tan(this many degrees) × their distance: how fast the slope may bend."""
     grow_rise: float = Field(3.0, gt=0, le=100)
     """Growth never climbs an edge rising more than this (metres)."""
+    support_k: int = Field(8, ge=0, le=64)
+    """Supported points (``support.py``): a point joins the ground when at least two of its
+    ``support_k`` nearest ground points stand as high or higher (0: off)."""
+    support_radius: float = Field(3.0, gt=0, le=20)
+    """…counting only ground points within this many mean point spacings."""
+    support_tol: float = Field(0.0, ge=0, le=2)
+    """…and allowing the point to stand this many metres above the second highest of them."""
+    support_rounds: int = Field(2, ge=1, le=10)
+    """…repeated this many times, so supported points support others. Defaults measured on
+    the ISPRS samples: 8 nearest within 3 spacings, second highest, no tolerance."""
     ring_step_deg: float = Field(3.0, gt=0.1, le=45)
     """Concentric grid: angular step of the final pass (earlier passes scale it up)."""
     ring_inner: float = Field(2.0, gt=0, le=100)
@@ -391,13 +404,30 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
         tin3 = _without_raised(tin3, params)
     if params.grow:
         tin3 = _grown(local, tin3, g3, params, centre)
+    labels, above = _band(tin3, local, params)
+    if params.support_k > 0:
+        # Only points above the band may join: those below it are low outliers.
+        labels = supported_points(
+            local,
+            labels,
+            eligible=above,
+            radius=params.support_radius * spacing,
+            k=params.support_k,
+            tol=params.support_tol,
+            rounds=params.support_rounds,
+        )
     ground = np.empty(n, dtype=bool)
-    ground[order] = _label(tin3, local, params)
+    ground[order] = labels
     return ground
 
 
 def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:
     """Points from ``ground_tol_below`` under to ``ground_tol`` over ``tin``, widened with slope."""
+    return _band(tin, xyz, params)[0]
+
+
+def _band(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Points in the ground band of ``tin`` (see ``_label``), and points above it."""
     surf, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.ground_slope > 0)
     h = xyz[:, 2] - surf
     tol_up: NDArray | float = params.ground_tol
@@ -406,7 +436,8 @@ def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np
         slope = _capped(slope, params)
         tol_up = tol_up + params.ground_slope * slope
         tol_down = tol_down + params.ground_slope * slope
-    return (h <= tol_up) & (h >= -tol_down)
+    above = h > tol_up
+    return ~above & (h >= -tol_down), above
 
 
 def _without_raised(tin: Tin, params: NistParams) -> Tin:
