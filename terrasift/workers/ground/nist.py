@@ -87,6 +87,7 @@ from terrasift.workers.registry import StageParams, register
 ACCEPTED, EMPTY, OCCUPANCY, RMS, MASK = 0, 1, 2, 3, 4
 
 _AUTO_CELLS = ((10.0, 6.0), (4.0, 3.0), (1.5, 1.5))  # (× spacing, floor in m) per pass
+_GROW_TOL_PER_CELL = 0.12  # auto growth tolerance per metre of final cell (ISPRS samples)
 
 
 class NistParams(StageParams):
@@ -145,9 +146,10 @@ class NistParams(StageParams):
     """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step."""
     grow: bool = True
     """Grow the final surface onto terrain the coarse passes cut off (``growth.py``)."""
-    grow_tol: float = Field(0.3, gt=0, le=10)
-    """Growth: a node joins when a ground neighbour's slope predicts its height within this…"""
-    grow_bend: float = Field(7.0, ge=0, le=45)
+    grow_tol: float = Field(0.0, ge=0, le=10)
+    """Growth: a node joins when a ground neighbour's slope predicts its height within this…
+    (0: 0.12 × the final cell size, 0.18 m at 1 pt/m², 0.41 m at 0.17 pts/m²)"""
+    grow_bend: float = Field(6.0, ge=0, le=45)
     """…plus tan(this many degrees) × their distance: how fast the slope may bend."""
     grow_rise: float = Field(3.0, gt=0, le=100)
     """Growth never climbs an edge rising more than this (metres)."""
@@ -477,7 +479,9 @@ def _grown(
     ground = grow_ground(
         nodes,
         seed,
-        tol=params.grow_tol,
+        # Nodes further apart differ more on rough terrain; closer ones can be
+        # held to less, which keeps growth off low objects in dense data.
+        tol=params.grow_tol or _GROW_TOL_PER_CELL * _cell_of(grid),
         bend_deg=params.grow_bend,
         max_rise=params.grow_rise,
         adjacency=None if full is None else full.neighbours(),
