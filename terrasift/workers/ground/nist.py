@@ -140,8 +140,9 @@ class NistParams(StageParams):
     """Final labels: ground down to this depth below the final surface."""
     ground_slope: float = Field(1.0, ge=0, le=10)
     """Extra tolerance per unit of local TIN slope (rise/run), for steep terrain."""
-    raised_step: float = Field(2.0, ge=0, le=100)
-    """Drop segments of the final TIN that stand above the rest behind steps this high (0: off; ``raised.py``)."""
+    raised_step: float = Field(0.5, ge=0, le=100)
+    """Drop segments of the final TIN that stand above the rest behind steps this high (0: off; ``raised.py``).
+    0.5 m: roofs 1–5 m high whose border the TIN climbs in smaller steps go too (2 m left them on ISPRS samp11/12)."""
     raised_slope: float = Field(10.0, gt=0, lt=90)
     """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step."""
     grow: bool = True
