@@ -152,6 +152,9 @@ class NistParams(StageParams):
     (0: 0.12 × the final cell size, 0.18 m at 1 pt/m², 0.41 m at 0.17 pts/m²)"""
     grow_bend: float = Field(6.0, ge=0, le=45)
     """…plus tan(this many degrees) × their distance: how fast the slope may bend."""
+    grow_down: float = Field(2.0, ge=1, le=10)
+    """Growth: a node lower than predicted may miss by this many times the tolerance (objects
+    stand above terrain, so going down climbs onto nothing; 2 carries growth over crests)."""
     grow_rise: float = Field(3.0, gt=0, le=100)
     """Growth never climbs an edge rising more than this (metres)."""
     support_k: int = Field(8, ge=0, le=64)
@@ -477,12 +480,14 @@ def _grown(
             full = Tin(nodes, origin=centre)
         except QhullError:
             full = None
+    # Nodes further apart differ more on rough terrain; closer ones can be
+    # held to less, which keeps growth off low objects in dense data.
+    tol = params.grow_tol or _GROW_TOL_PER_CELL * _cell_of(grid)
     ground = grow_ground(
         nodes,
         seed,
-        # Nodes further apart differ more on rough terrain; closer ones can be
-        # held to less, which keeps growth off low objects in dense data.
-        tol=params.grow_tol or _GROW_TOL_PER_CELL * _cell_of(grid),
+        tol=tol,
+        tol_below=params.grow_down * tol,
         bend_deg=params.grow_bend,
         max_rise=params.grow_rise,
         adjacency=None if full is None else full.neighbours(),
