@@ -21,8 +21,9 @@ more rounds of mow → bin (cell_3) → mesh/screen. Then two steps of our own:
 raised segments of that TIN (roofs wider than every pass's bins) are dropped
 (``raised.py``), and the surface is grown back onto terrain the coarse passes
 cut off — ridges, embankments, hilltops (``growth.py``). Final labels: ground
-is every point from ``ground_tol_below`` under to ``ground_tol`` (at least
-``ground_tol_cell`` × cell_3) over the last surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does),
+is every point from ``ground_tol_below`` under to ``ground_tol`` over the last
+surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does)
+and on sparse data in proportion to cell_3 (``ground_tol_cell``),
 and every point above that band with two of its nearest ground points at or
 above its own height (``support.py``: crests the TIN still cuts).
 
@@ -134,8 +135,8 @@ class NistParams(StageParams):
     ground_tol: float = Field(0.3, gt=0, le=10)
     """Final labels: ground within this height of the final surface."""
     ground_tol_cell: float = Field(0.15, ge=0, le=1)
-    """Final labels: ``ground_tol`` is at least this × the final cell size (sparse data;
-    0.15 measured on the ISPRS samples at 0.17 pts/m², where cells are 3.5 m)."""
+    """Final labels: ``ground_tol`` is at least this × the final cell size, and ``ground_tol_below``
+    grows in proportion (sparse data; 0.15 measured on ISPRS samples at 0.17 pts/m², 3.5 m cells)."""
     ground_tol_below: float = Field(0.5, gt=0, le=10)
     """Final labels: ground down to this depth below the final surface."""
     ground_slope: float = Field(1.0, ge=0, le=10)
@@ -412,9 +413,11 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     if params.raised_step > 0:
         tin3 = _without_raised(tin3, params)
     # The final TIN departs further from rough terrain between vertices that
-    # are further apart: on sparse data the label tolerance grows with the cell.
-    tol = max(params.ground_tol, params.ground_tol_cell * _cell_of(g3))
-    params = params.model_copy(update={"ground_tol": tol})
+    # are further apart: on sparse data the label tolerances grow with the cell.
+    widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
+    params = params.model_copy(
+        update={"ground_tol": widen * params.ground_tol, "ground_tol_below": widen * params.ground_tol_below}
+    )
     if params.grow:
         tin3 = _grown(local, tin3, g3, params, centre)
     labels, above = _band(tin3, local, params)
