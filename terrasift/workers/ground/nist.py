@@ -151,7 +151,7 @@ class NistParams(StageParams):
     grow_tol: float = Field(0.0, ge=0, le=10)
     """Growth: a node joins when a ground neighbour's slope predicts its height within this…
     (0: 0.12 × the final cell size, 0.18 m at 1 pt/m², 0.41 m at 0.17 pts/m²)"""
-    grow_bend: float = Field(6.0, ge=0, le=45)
+    grow_bend: float = Field(5.0, ge=0, le=45)
     """…plus tan(this many degrees) × their distance: how fast the slope may bend."""
     grow_down: float = Field(2.0, ge=1, le=10)
     """Growth: a node lower than predicted may miss by this many times the tolerance (objects
