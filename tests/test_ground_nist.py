@@ -19,6 +19,7 @@ from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import Tin, screen
 from terrasift.workers.registry import get_stage
 
@@ -156,7 +157,7 @@ def test_isprs_samp31_kappa():
     las = laspy.read(str(DATA / "isprs" / "samp31.laz"))
     xyz = np.column_stack([las.x, las.y, las.z])
     s = ground_score(np.asarray(las.classification) == 2, nist.classify_ground(xyz, nist.NistParams()))
-    assert s.kappa > 0.88, s  # measured 91.3 %; PDAL SMRF defaults reach 93.2 %
+    assert s.kappa > 0.88, s  # measured 95.0 %; PDAL SMRF defaults reach 93.2 %
 
 
 def test_collinear_block_does_not_raise():
@@ -194,3 +195,37 @@ def test_raised_segments_drop_a_roof_and_keep_a_steep_hill():
     xyz = np.column_stack([xy, z])
     drop = raised_segments(xyz, Delaunay(xy), 2.0, 10.0)
     assert np.array_equal(drop, roof)
+
+
+def test_supported_points_take_a_cut_crest_but_not_a_bush_or_a_pit():
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(0, 60, (6000, 2))
+    # A sharp ridge along y (45° flanks, crest at 8 m); a labelling that took
+    # its flanks up to 6 m and a scatter of the points above.
+    z = np.clip(8.0 - np.abs(xy[:, 0] - 20.0), 0.0, None)
+    bush = np.hypot(xy[:, 0] - 45.0, xy[:, 1] - 30.0) < 3.0
+    z = z + 1.5 * bush
+    pit = np.zeros(xy.shape[0], dtype=bool)
+    pit[:5] = True
+    xy[:5] = [[45.0, 10.0], [50.0, 15.0], [40.0, 50.0], [55.0, 45.0], [48.0, 5.0]]
+    z[:5] = -3.0
+    xyz = np.column_stack([xy, z])
+    crest = ~bush & ~pit & (z >= 6.0)
+    ground = ((z < 6.0) & ~bush & ~pit) | (crest & (rng.random(z.size) < 0.3))
+    out = supported_points(xyz, ground, radius=1.5, eligible=z >= 0.0, rounds=4)
+    assert out[crest].mean() > 0.65  # from 0.3 (measured 0.73; the very top has no ground above it)
+    assert not out[bush].any()
+    assert not out[pit].any()
+    assert np.array_equal(supported_points(xyz, ground, radius=1.5, k=0), ground)
+
+
+def test_growth_goes_down_further_than_up():
+    xy = _grid_nodes(60, 2.0, 14)
+    # Flat ground; a 0.4 m terrace down to the east, a 0.4 m platform up to the west.
+    z = np.where(xy[:, 0] > 40.0, -0.4, 0.0) + np.where(xy[:, 0] < 20.0, 0.4, 0.0)
+    xyz = np.column_stack([xy, z])
+    seed = (xy[:, 0] > 25.0) & (xy[:, 0] < 35.0)
+    same = grow_ground(xyz, seed, tol=0.2, bend_deg=0.0, max_rise=3.0)
+    down = grow_ground(xyz, seed, tol=0.2, bend_deg=0.0, max_rise=3.0, tol_below=0.5)
+    assert not same[xy[:, 0] > 41.0].any() and not same[xy[:, 0] < 19.0].any()
+    assert down[xy[:, 0] > 41.0].all() and not down[xy[:, 0] < 19.0].any()

@@ -11,7 +11,8 @@ are the lowest points of small bins, meshed once (Delaunay); nodes the
 surface already labels ground are the seeds. In rounds, a node joins when a
 ground neighbour, continued along its own slope (a least-squares plane
 through its ground neighbours), predicts the node's height within ``tol`` +
-tan(``bend``) × distance. The surface can thus follow a slope that bends
+tan(``bend``) × distance (``tol_below`` in place of ``tol`` for a node lower
+than predicted: objects stand above terrain, so going down leads onto none). The surface can thus follow a slope that bends
 gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
 and a ground neighbour's slope is only ever taken from ground.
 """
@@ -30,12 +31,14 @@ def grow_ground(
     tol: float,
     bend_deg: float,
     max_rise: float,
+    tol_below: float | None = None,
     max_rounds: int = 200,
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
     ``max_rise`` bounds the rise of one edge (metres), whatever the slope.
+    ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted.
     ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
     nodes when the caller has triangulated them already.
     """
@@ -54,15 +57,18 @@ def grow_ground(
     dv = xyz[nbr, 1] - xyz[own, 1]
     dz = xyz[nbr, 2] - xyz[own, 2]
     dist = np.hypot(du, dv)
-    limit = tol + np.tan(np.radians(bend_deg)) * dist
+    bend = np.tan(np.radians(bend_deg)) * dist
+    limit = tol + bend
+    limit_below = limit if tol_below is None else tol_below + bend
     # Edges that may ever carry growth: not a rise steeper than max_rise.
     usable = dz <= max_rise
-    own, nbr, du, dv, dz, limit = own[usable], nbr[usable], du[usable], dv[usable], dz[usable], limit[usable]
+    own, nbr, du, dv, dz = own[usable], nbr[usable], du[usable], dv[usable], dz[usable]
+    limit, limit_below = limit[usable], limit_below[usable]
     for _ in range(max_rounds):
         gx, gy = _ground_slopes(ground, own, nbr, du, dv, dz, n)
         cand = ground[own] & ~ground[nbr]
         err = dz[cand] - gx[own[cand]] * du[cand] - gy[own[cand]] * dv[cand]
-        new = nbr[cand][np.abs(err) <= limit[cand]]
+        new = nbr[cand][(err <= limit[cand]) & (err >= -limit_below[cand])]
         if new.size == 0:
             break
         ground[new] = True
