@@ -107,7 +107,9 @@ class Tin:
     def _start_triangles(self, q: NDArray[np.float64]) -> NDArray[np.int64]:
         if self._guess is None:
             simp = self.tri.simplices
-            cen = self.xy[simp].mean(axis=1)
+            x, y = self.xy[:, 0], self.xy[:, 1]
+            s0, s1, s2 = simp[:, 0], simp[:, 1], simp[:, 2]
+            cen = np.column_stack([(x[s0] + x[s1] + x[s2]) / 3.0, (y[s0] + y[s1] + y[s2]) / 3.0])
             lo = self.xy.min(axis=0)
             hi = self.xy.max(axis=0)
             area = max(float(np.prod(hi - lo)), 1e-12)
