@@ -58,10 +58,14 @@ class Grid:
         fy = (np.asarray(y, dtype=np.float64) - self.y0) / self.cell
         ix = fx.astype(np.int64)
         iy = fy.astype(np.int64)
-        inside = (fx >= 0) & (ix < self.nx) & (fy >= 0) & (iy < self.ny)
+        if ix.size and fx.min() >= 0 and fy.min() >= 0 and ix.max() < self.nx and iy.max() < self.ny:
+            inside = None  # the usual case, settled by four reductions
+        else:
+            inside = (fx >= 0) & (ix < self.nx) & (fy >= 0) & (iy < self.ny)
         iy *= self.nx
         iy += ix
-        iy[~inside] = -1
+        if inside is not None:
+            iy[~inside] = -1
         return iy
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

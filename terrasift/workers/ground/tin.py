@@ -22,6 +22,7 @@ from scipy.spatial import Delaunay, QhullError
 _MAX_WALK = 128
 _GUESS_K = 0.5
 _CHUNK = 1 << 16
+_SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
 
 
 class Tin:
@@ -38,12 +39,13 @@ class Tin:
         self._slopes: NDArray[np.float64] | None = None
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
+        self._zt: NDArray[np.float64] | None = None
 
     @classmethod
     def _from_mesh(cls, xy: NDArray[np.float64], z: NDArray[np.float64], origin: NDArray[np.float64], mesh: Mesh) -> Tin:
         tin = cls.__new__(cls)
         tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
-        tin._slopes = tin._trans = tin._guess = None
+        tin._slopes = tin._trans = tin._guess = tin._zt = None
         return tin
 
     @property
@@ -85,7 +87,7 @@ class Tin:
         hole_ids = np.flatnonzero(hole)
         start = np.zeros(self.n_vertices, dtype=np.int64)
         start[rim_s.ravel()] = np.repeat(hole_ids, 3)
-        t, _ = self._walk(self.xy[ss].mean(axis=1), start[ss[:, 0]], self._transform())
+        t = self._walk(self.xy[ss].mean(axis=1), start[ss[:, 0]], self._transform())[0]
         fill = ss[(t >= 0) & hole[np.maximum(t, 0)]]
         mesh = Mesh.patched(s, np.asarray(self.tri.neighbors), hole, fill, keepv)
         if mesh is None:
@@ -105,7 +107,9 @@ class Tin:
     def _start_triangles(self, q: NDArray[np.float64]) -> NDArray[np.int64]:
         if self._guess is None:
             simp = self.tri.simplices
-            cen = self.xy[simp].mean(axis=1)
+            x, y = self.xy[:, 0], self.xy[:, 1]
+            s0, s1, s2 = simp[:, 0], simp[:, 1], simp[:, 2]
+            cen = np.column_stack([(x[s0] + x[s1] + x[s2]) / 3.0, (y[s0] + y[s1] + y[s2]) / 3.0])
             lo = self.xy.min(axis=0)
             hi = self.xy.max(axis=0)
             area = max(float(np.prod(hi - lo)), 1e-12)
@@ -120,11 +124,14 @@ class Tin:
             if empty.any():
                 idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
                 raster = raster[idx[0], idx[1]]
+            raster = raster.ravel()
             self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster)
         x0, y0, h, nx, ny, raster = self._guess
         ix = np.clip(((q[:, 0] - x0) / h).astype(np.int64), 0, nx - 1)
         iy = np.clip(((q[:, 1] - y0) / h).astype(np.int64), 0, ny - 1)
-        return raster[iy, ix]
+        iy *= nx
+        iy += ix
+        return raster[iy]
 
     def _transform(self) -> NDArray[np.float64]:
         # Barycentric transform per triangle, computed vectorised (scipy's
@@ -154,52 +161,73 @@ class Tin:
         bary = np.empty((n, 3))
         for a in range(0, n, _CHUNK):
             b = min(a + _CHUNK, n)
-            t[a:b], bary[a:b] = self._walk(q[a:b], t[a:b], trans)
+            t[a:b], b0, b1 = self._walk(q[a:b], t[a:b], trans)
+            bary[a:b, 0], bary[a:b, 1], bary[a:b, 2] = b0, b1, 1.0 - b0 - b1
         return t, bary
 
     def _walk(
         self, q: NDArray[np.float64], t: NDArray[np.int64], trans: NDArray[np.float64]
-    ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """Directed walk of all queries ``q`` from start triangles ``t`` (see ``locate``)."""
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Directed walk of all queries ``q`` from start triangles ``t`` (see ``locate``).
+
+        Returns the triangles and the first two barycentric coordinates (the
+        third is 1 - b0 - b1). The first round runs on whole arrays; later
+        rounds only on the queries still walking.
+        """
         n = q.shape[0]
-        nbr = self.tri.neighbors
+        nbr = np.ravel(self.tri.neighbors)
         t = t.copy()
-        bary = np.zeros((n, 3))
+        b0 = np.empty(n)
+        b1 = np.empty(n)
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
         rng = np.random.default_rng(0)
         for rnd in range(_MAX_WALK):
             if active.size == 0:
                 break
-            tt = t[active]
+            first = rnd == 0
+            tt = t if first else t[active]
             tr = trans[tt]  # one gather of the six transform numbers per query
-            dx = qx[active] - tr[:, 4]
-            dy = qy[active] - tr[:, 5]
-            b = np.empty((tt.size, 3))
-            b[:, 0] = tr[:, 0] * dx + tr[:, 1] * dy
-            b[:, 1] = tr[:, 2] * dx + tr[:, 3] * dy
-            b[:, 2] = 1.0 - b[:, 0] - b[:, 1]
-            # A degenerate sliver gives NaN in all three: argmin picks edge 0
-            # and the query steps on, as with NaN read as -1.
-            j = np.argmin(b, axis=1)
-            done = b[np.arange(tt.size), j] >= -1e-10
+            dx = (qx if first else qx[active]) - tr[:, 4]
+            dy = (qy if first else qy[active]) - tr[:, 5]
+            c0 = tr[:, 0] * dx + tr[:, 1] * dy
+            c1 = tr[:, 2] * dx + tr[:, 3] * dy
+            c2 = 1.0 - c0 - c1
+            # Every query keeps the coordinates of its latest triangle: the
+            # one it stops in, or the hull triangle it leaves the mesh from.
+            if first:
+                b0[:], b1[:] = c0, c1
+            else:
+                b0[active], b1[active] = c0, c1
+            # A degenerate sliver gives NaN in all three: never done, and the
+            # query steps on across edge 0.
+            move = np.flatnonzero(~(np.minimum(np.minimum(c0, c1), c2) >= -1e-10))
+            if move.size == 0:
+                break
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
-                np.nan_to_num(b, copy=False, nan=-1.0)
-                j = np.argmax((b < -1e-10) * rng.random(b.shape), axis=1)
-            bary[active[done]] = b[done]
-            move = np.flatnonzero(~done)
-            nxt = nbr[tt[move], j[move]]
-            am = active[move]
+                bb = np.nan_to_num(np.column_stack([c0, c1, c2]), nan=-1.0)
+                j = np.argmax((bb < -1e-10) * rng.random(bb.shape), axis=1)[move]
+            else:
+                m0, m1, m2 = c0[move], c1[move], c2[move]
+                # Exit across the most negative coordinate (the first on ties).
+                j = np.where((m0 <= m1) & (m0 <= m2), 0, np.where(m1 <= m2, 1, 2))
+                j[np.isnan(m2)] = 0
+            ta = tt[move]
+            nxt = nbr[3 * ta + j]
+            am = move if first else active[move]
             out = nxt < 0
-            t[am[out]] = -(tt[move[out]] + 1)
-            bary[am[out]] = b[move[out]]
-            t[am[~out]] = nxt[~out]
-            active = am[~out]
-        if active.size:
-            # Still walking after _MAX_WALK rounds (never seen outside degenerate
-            # input): treat as outside, i.e. nearest corner of the current triangle.
-            t[active] = -(t[active] + 1)
-        return t, bary
+            if out.any():
+                t[am[out]] = -(ta[out] + 1)
+                stay = ~out
+                am, nxt = am[stay], nxt[stay]
+            t[am] = nxt
+            active = am
+        else:
+            if active.size:
+                # Still walking after _MAX_WALK rounds (never seen outside degenerate
+                # input): treat as outside, i.e. nearest corner of the current triangle.
+                t[active] = -(t[active] + 1)
+        return t, b0, b1
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Surface height at absolute ``x, y``."""
@@ -215,28 +243,27 @@ class Tin:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Surface height and facet slope (rise over run) at local points ``q``, one walk for both.
 
-        Walk and interpolation go chunk by chunk, so the gathers of corners
-        and heights hit cache.
+        Walk and interpolation go chunk by chunk, so the gathers of corner
+        heights hit cache.
         """
         n = q.shape[0]
         trans = self._transform()
-        simp = self.tri.simplices
+        zt = self._corner_z()
         slopes = self.facet_slopes() if slope else None
         out = np.empty(n)
         sl = np.empty(n) if slope else None
         for a in range(0, n, _CHUNK):
             b = min(a + _CHUNK, n)
             qc = q[a:b]
-            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            t, b0, b1 = self._walk(qc, self._start_triangles(qc), trans)
             inside = t >= 0
-            ti = np.where(inside, t, -t - 1)
-            corners = simp[ti]
-            zc = self.z[corners]
-            h = np.einsum("ni,ni->n", bary, zc)
+            ti = t if inside.all() else np.where(inside, t, -t - 1)
+            zc = zt[ti]
+            h = _interpolate(b0, b1, zc)
             if not inside.all():
                 # Outside the hull: height of the nearest corner of the exit triangle.
                 o = np.flatnonzero(~inside)
-                d2 = ((self.xy[corners[o]] - qc[o, None, :]) ** 2).sum(axis=2)
+                d2 = ((self.xy[self.tri.simplices[ti[o]]] - qc[o, None, :]) ** 2).sum(axis=2)
                 h[o] = zc[o, np.argmin(d2, axis=1)]
             out[a:b] = h
             if sl is not None:
@@ -249,17 +276,24 @@ class Tin:
         ``height_and_slope``."""
         n = q.shape[0]
         trans = self._transform()
-        simp = self.tri.simplices
+        zt = self._corner_z()
         tri = np.empty(n, dtype=np.int64)
         out = np.empty(n)
         for a in range(0, n, _CHUNK):
             b = min(a + _CHUNK, n)
             qc = q[a:b]
-            t, bary = self._walk(qc, self._start_triangles(qc), trans)
+            t, b0, b1 = self._walk(qc, self._start_triangles(qc), trans)
             ti = np.where(t >= 0, t, -t - 1)
             tri[a:b] = ti
-            out[a:b] = np.einsum("ni,ni->n", bary, self.z[simp[ti]])
+            out[a:b] = _interpolate(b0, b1, zt[ti])
         return tri, out
+
+    def _corner_z(self) -> NDArray[np.float64]:
+        # Heights of the three corners of every triangle: one gather per query
+        # instead of corner ids, then heights.
+        if self._zt is None:
+            self._zt = self.z[self.tri.simplices]
+        return self._zt
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
@@ -281,6 +315,15 @@ class Tin:
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
         self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
         return self._slopes
+
+
+def _interpolate(b0: NDArray[np.float64], b1: NDArray[np.float64], zc: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Barycentric interpolation of corner heights ``zc`` (n, 3), summed as
+    numpy's ``einsum`` does, so heights match it to the bit."""
+    h = b0 * zc[:, 0]
+    h += (1.0 - b0 - b1) * zc[:, 2]
+    h += b1 * zc[:, 1]
+    return h
 
 
 def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -382,16 +425,24 @@ def neighbour_order_stats(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Median and second-lowest of the per-edge ``values`` of every vertex (CSR order).
 
-    Vertices without neighbours get NaN. The ragged lists are handled at once
-    by sorting (vertex, value) pairs.
+    Vertices without neighbours get NaN. The ragged lists are padded with NaN
+    (sorted last, as NaN values are) into rows of the largest degree and sorted
+    row by row: short rows sort far faster than one global sort of (vertex,
+    value) pairs, which is kept for the rare TIN with a vertex of huge degree.
     """
     nv = indptr.size - 1
     deg = np.diff(indptr)
-    owner = np.repeat(np.arange(nv), deg)
-    order = np.lexsort((values, owner))
-    zs = values[order]
-    start = indptr[:-1]
     has = deg > 0
+    width = int(deg.max()) if nv else 0
+    if width <= _SORT_WIDTH:
+        col = np.arange(values.size) - np.repeat(indptr[:-1], deg)
+        rows = np.full((nv, max(width, 1)), np.nan)
+        rows[np.repeat(np.arange(nv), deg), col] = values
+        rows.sort(axis=1)
+        zs, start = rows.ravel(), np.arange(nv) * rows.shape[1]
+    else:
+        owner = np.repeat(np.arange(nv), deg)
+        zs, start = values[np.lexsort((values, owner))], indptr[:-1]
     med = np.full(nv, np.nan)
     lo = start[has] + (deg[has] - 1) // 2
     hi = start[has] + deg[has] // 2
