@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import pyproj
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -133,6 +133,23 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     from terrasift.workers.features import resolve_filters
 
     resolve_filters(job.features, job.filters)  # unknown names and bad filter text fail now
+    return out
+
+
+def effective_stage_params(params: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """The full parameter set of every stage of a job (defaults, preset, overrides), for the report.
+
+    Of the ground methods only the job's own appears, with its preset; zeros
+    that mean "automatic" stay zero (the stage resolves them per block).
+    """
+    methods = set(get_args(JobParams.model_fields["ground"].annotation))
+    chosen = f"ground.{params['ground']}"
+    out: dict[str, dict[str, Any]] = {}
+    for stage in stages():
+        if stage.id.startswith("ground.") and stage.id[len("ground.") :] in methods and stage.id != chosen:
+            continue
+        preset = params.get("ground.preset", "default") if stage.id == chosen else "default"
+        out[stage.id] = stage_params(params, stage.id, preset).model_dump(mode="json")
     return out
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from terrasift.errors import FilterSyntaxError, ParameterError
-from terrasift.params import grid_alignment, parse_cli_params, stage_params, validate_params
+from terrasift.params import effective_stage_params, grid_alignment, parse_cli_params, stage_params, validate_params
 
 
 def test_defaults_are_filled_and_json_ready():
@@ -66,3 +66,16 @@ def test_cli_pairs():
     }
     with pytest.raises(ParameterError, match="not key=value"):
         parse_cli_params(["resolution"])
+
+
+def test_effective_stage_params_lists_the_jobs_ground_method_with_preset_and_overrides():
+    params = validate_params({"ground": "nist", "ground.preset": "conservative", "ground.nist.mow_tol_2": 0.25})
+    stages_out = effective_stage_params(params)
+    assert "ground.nist" in stages_out and "ground.ptd" not in stages_out
+    nist = stages_out["ground.nist"]
+    assert nist["mow_tol_2"] == 0.25  # the override wins over the preset
+    assert nist["ground_tol"] == 0.2  # from the conservative preset
+    assert nist["cell_3"] == stage_params(params, "ground.nist").cell_3  # untouched defaults are listed too
+    assert {"vegetation", "terrain", "ground.lowpoints"} <= set(stages_out)
+    default = effective_stage_params(validate_params({}))
+    assert "ground.ptd" in default and "ground.nist" not in default

@@ -15,6 +15,7 @@ from rio_cogeo.cogeo import cog_validate
 
 from terrasift import pipeline
 from terrasift.errors import JobCancelled
+from terrasift.params import stage_params
 from terrasift.workers.executors import InlineExecutor, LocalExecutor
 
 BLOCK = {"block_size": 80, "buffer": 15}
@@ -102,6 +103,8 @@ def test_report_and_stac_item(finished_job, small_scene):
     # no sensor origin, so no mixed measurements: class 7 is the isolated low points
     assert report["low_points"] == report["counts_per_class"].get("7", 0) > 0
     assert report["parameters"]["block_size"] == 80
+    method = f"ground.{report['parameters']['ground']}"
+    assert report["stage_parameters"][method] == stage_params(report["parameters"], method).model_dump(mode="json")
     assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]
     # the job's roughness gauge covers exactly the bins of its blocks
     per_block = report["roughness_per_block"]

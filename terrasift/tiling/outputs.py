@@ -299,6 +299,7 @@ def write_report_and_item(
         for k, v in s.get("timings", {}).items():
             stage_times[k] = stage_times.get(k, 0.0) + v
     points = sum(int(t["point_count"]) for t in plan["tiles"])
+    from terrasift.params import effective_stage_params
     from terrasift.workers import terrain, vegetation
 
     bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
@@ -341,6 +342,7 @@ def write_report_and_item(
         ),
         "low_points": sum(s.get("low_points", 0) for s in block_stats),
         "parameters": dict(params),
+        "stage_parameters": effective_stage_params(params),
         "timings_seconds": {
             "job": dict(timings),
             "stages_summed_over_blocks": stage_times,
