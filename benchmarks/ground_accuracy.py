@@ -54,10 +54,10 @@ def _row(name: str, s, seconds: float, note: str = "") -> str:
 HEADER = f"{'data':<22} {'points':>8} {'typeI%':>7} {'typeII%':>7} {'total%':>7} {'kappa%':>7} {'kpts/s':>8}  (CPU time, one process)"
 
 
-def _run(stage, xyz, **over):
+def _run(stage, xyz, sensor_origin=None, **over):
     params = stage.params.preset("default", **over)
     t, c = time.perf_counter(), time.process_time()
-    g = stage.run(xyz, params)
+    g = stage.run(xyz, params) if sensor_origin is None else stage.run(xyz, params, sensor_origin=sensor_origin)
     _run.wall = time.perf_counter() - t
     return g, time.process_time() - c  # CPU seconds: the machine may be shared
 
@@ -108,6 +108,15 @@ def synthetic(stage) -> None:
         sc = make_scene(200, dens, seed=5)
         g, sec = _run(stage, sc.xyz)
         print(_row(f"make_scene {dens:g} pts/m²", ground_score(sc.is_ground, g), sec))
+    if "ring_step_deg" not in stage.params.model_fields:
+        return
+    # Ground-based scans: density ∝ 1/range²; the sensor origin picks the concentric grid.
+    for near in (100.0, 400.0):
+        sc, origin = slopes.ground_based(near_density=near)
+        g, sec = _run(stage, sc.xyz, sensor_origin=origin)
+        print(_row(f"scan {near:g}/m² near", ground_score(sc.is_ground, g), sec, "concentric grid (sensor origin)"))
+        g, sec = _run(stage, sc.xyz, grid="regular")
+        print(_row("  grid=regular", ground_score(sc.is_ground, g), sec))
 
 
 def speed(stage) -> None:
