@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, Literal, get_args
+from typing import Annotated, Any, Literal, get_args
 
 import pyproj
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -19,6 +19,7 @@ from terrasift.errors import ParameterError
 from terrasift.workers.registry import get_stage, stages
 
 DEFAULT_GROUND = "ptd"
+DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
 
 
 class JobParams(BaseModel):
@@ -43,7 +44,11 @@ class JobParams(BaseModel):
         None, description="user feature filters: name -> filter text in the filter language"
     )
     block_size: float = Field(200.0, ge=20.0, le=5000.0, description="block edge in metres")
-    buffer: float = Field(20.0, ge=0.0, le=500.0, description="halo around each block in metres")
+    buffer: Annotated[float, Field(ge=0.0, le=500.0)] | Literal["auto"] = Field(
+        "auto",
+        description=f"halo around each block in metres; auto: {DEFAULT_BUFFER:g} m or what the ground "
+        "method needs at the tiles' density, below half the block size",
+    )
     resolution: float = Field(0.5, ge=0.05, le=100.0, description="DTM/DSM cell size in metres")
     crs: str | None = Field(None, description="CRS of the tiles when missing or wrong, e.g. EPSG:32632")
     workers: int | None = Field(None, ge=1, le=256, description="worker processes for `process`")
@@ -66,6 +71,16 @@ class JobParams(BaseModel):
             return [tuple(v)]
         return v
 
+    @field_validator("buffer", mode="before")
+    @classmethod
+    def _buffer_metres_or_auto(cls, v: Any) -> Any:
+        if isinstance(v, str) and v.strip().lower() == "auto":
+            return "auto"
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"buffer must be metres or 'auto', not {v!r}") from None
+
     @field_validator("crs")
     @classmethod
     def _known_crs(cls, v: str | None) -> str | None:
@@ -87,7 +102,7 @@ class JobParams(BaseModel):
 
     @model_validator(mode="after")
     def _buffer_fits(self) -> JobParams:
-        if self.buffer >= self.block_size / 2:
+        if self.buffer != "auto" and self.buffer >= self.block_size / 2:
             raise ValueError(f"buffer ({self.buffer}) must be less than half the block size ({self.block_size})")
         if self.resolution > self.block_size / 2:
             raise ValueError("resolution must be at most half the block size")
@@ -110,7 +125,8 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
         job = JobParams.model_validate(fixed)
     except ValidationError as exc:
         err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"]) or "params"
+        # Union members show up in the location as tags such as "constrained-float".
+        loc = ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p)) or "params"
         raise ParameterError(f"parameter {loc}: {err['msg']}") from None
     out = job.model_dump(by_alias=True, mode="json")
     overrides = _stage_overrides(rest)
@@ -151,6 +167,29 @@ def effective_stage_params(params: Mapping[str, Any]) -> dict[str, dict[str, Any
         preset = params.get("ground.preset", "default") if stage.id == chosen else "default"
         out[stage.id] = stage_params(params, stage.id, preset).model_dump(mode="json")
     return out
+
+
+def resolve_buffer(params: Mapping[str, Any], density: float) -> tuple[float, str | None]:
+    """The job's halo in metres, and a warning when ``auto`` had to be cut short.
+
+    ``auto`` is the larger of DEFAULT_BUFFER and the halo the ground method
+    asks for at ``density`` (sparse data needs wider bins, so wider halos, for
+    blocks to label their cores as one run over the tile would), kept below
+    half the block size.
+    """
+    if params["buffer"] != "auto":
+        return float(params["buffer"]), None
+    method = f"ground.{params['ground']}"
+    need = stage_params(params, method, params.get("ground.preset", "default")).halo(density)
+    res = float(params["resolution"])
+    want = max(DEFAULT_BUFFER, math.ceil(need / res) * res)
+    cap = (math.ceil(float(params["block_size"]) / 2 / res) - 1) * res
+    if want <= cap:
+        return want, None
+    return cap, (
+        f"buffer: {method} needs {want:.0f} m of halo at {density:.2g} points/m², cut to {cap:g} m by "
+        f"block_size {params['block_size']:g}; a larger block_size labels block edges more reliably"
+    )
 
 
 def grid_alignment(params: Mapping[str, Any]) -> float:

@@ -24,7 +24,7 @@ import numpy as np
 import pyproj
 
 from terrasift.errors import InputError, JobCancelled
-from terrasift.params import grid_alignment, validate_params
+from terrasift.params import grid_alignment, resolve_buffer, validate_params
 from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
 from terrasift.tiling.lasfile import TileInfo, read_tile_info
 from terrasift.workers.block import run_block
@@ -232,13 +232,15 @@ def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
     mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
     maxs = (max(i.maxs[0] for i in infos), max(i.maxs[1] for i in infos))
-    grid = BlockGrid.over(
-        mins, maxs, params["resolution"], params["block_size"], params["buffer"], grid_alignment(params)
-    )
     area = sum(max(i.area, 1.0) for i in infos)
+    density = sum(i.point_count for i in infos) / area
+    buffer, warning = resolve_buffer(params, density)
+    if warning:
+        warnings.append(warning)
+    grid = BlockGrid.over(mins, maxs, params["resolution"], params["block_size"], buffer, grid_alignment(params))
     plan = {
         "tiles": [dict(i.__dict__) for i in infos],
-        "density": sum(i.point_count for i in infos) / area,
+        "density": density,
         "crs_wkt": crs_wkt,
         "crs": _crs_label(crs_wkt),
         "grid": grid.to_dict(),

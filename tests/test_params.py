@@ -5,7 +5,15 @@ from __future__ import annotations
 import pytest
 
 from terrasift.errors import FilterSyntaxError, ParameterError
-from terrasift.params import effective_stage_params, grid_alignment, parse_cli_params, stage_params, validate_params
+from terrasift.params import (
+    DEFAULT_BUFFER,
+    effective_stage_params,
+    grid_alignment,
+    parse_cli_params,
+    resolve_buffer,
+    stage_params,
+    validate_params,
+)
 
 
 def test_defaults_are_filled_and_json_ready():
@@ -22,6 +30,8 @@ def test_defaults_are_filled_and_json_ready():
         ({"resolution": -1}, "parameter resolution"),
         ({"block_size": 5}, "parameter block_size"),
         ({"buffer": 60, "block_size": 100}, "buffer"),
+        ({"buffer": "wide"}, "parameter buffer: .*metres or 'auto'"),
+        ({"buffer": -1}, "parameter buffer: Input should be greater"),
         ({"ground": "smrf"}, "parameter ground"),
         ({"rotation": "sometimes"}, "parameter rotation"),
         ({"crs": "EPSG:999999"}, "unknown CRS"),
@@ -79,3 +89,18 @@ def test_effective_stage_params_lists_the_jobs_ground_method_with_preset_and_ove
     assert {"vegetation", "terrain", "ground.lowpoints"} <= set(stages_out)
     default = effective_stage_params(validate_params({}))
     assert "ground.ptd" in default and "ground.nist" not in default
+
+
+def test_auto_buffer_widens_for_nist_on_sparse_data_only():
+    nist = validate_params({"ground": "nist"})
+    assert nist["buffer"] == "auto"
+    dense, sparse = resolve_buffer(nist, 8.0), resolve_buffer(nist, 0.16)
+    assert dense == (DEFAULT_BUFFER, None)
+    # 0.16 pts/m²: 2.5 m spacing, 25 m first-pass bins, 2.5 of them
+    assert sparse[0] == pytest.approx(62.5, abs=0.5) and sparse[1] is None
+    assert resolve_buffer(validate_params({"ground": "ptd"}), 0.16) == (DEFAULT_BUFFER, None)
+    # cut below half the block size, with a warning that says so
+    cut, warning = resolve_buffer(validate_params({"ground": "nist", "block_size": 60}), 0.16)
+    assert cut < 30 and "block_size" in warning
+    # a buffer in metres is taken as given
+    assert resolve_buffer(validate_params({"ground": "nist", "buffer": 7}), 0.16) == (7.0, None)

@@ -103,6 +103,7 @@ def test_report_and_stac_item(finished_job, small_scene):
     # no sensor origin, so no mixed measurements: class 7 is the isolated low points
     assert report["low_points"] == report["counts_per_class"].get("7", 0) > 0
     assert report["parameters"]["block_size"] == 80
+    assert report["block_buffer"] == report["parameters"]["buffer"] == 15
     method = f"ground.{report['parameters']['ground']}"
     assert report["stage_parameters"][method] == stage_params(report["parameters"], method).model_dump(mode="json")
     assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]

@@ -316,6 +316,7 @@ def write_report_and_item(
         "tiles": [Path(t["path"]).name for t in plan["tiles"]],
         "crs": plan["crs"],
         "blocks": len(block_stats),
+        "block_buffer": plan["grid"]["buffer"],  # metres; resolved when the buffer parameter is auto
         "counts_per_class": dict(sorted(counts.items(), key=lambda kv: int(kv[0]))),
         "vegetation": {
             "tree_coverage": tree_cov,

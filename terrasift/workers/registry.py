@@ -47,6 +47,12 @@ class StageParams(BaseModel):
         except ValidationError as exc:
             raise ParameterError(_describe(exc)) from None
 
+    def halo(self, density: float) -> float:
+        """Metres of data around a block's core this stage needs to decide the
+        core's points like a run over the whole tile would, at ``density``
+        points per m² (0: no more than the job's default buffer)."""
+        return 0.0
+
 
 @dataclass(frozen=True)
 class Stage:

@@ -178,6 +178,13 @@ class NistParams(StageParams):
         "aggressive": {"screen_tol": 2.0, "mow_tol_2": 0.5, "ground_tol": 0.5, "z_tol": 5.0},
     }
 
+    def halo(self, density: float) -> float:
+        """Two and a half first-pass cells: a core point's coarse bin and the
+        bins whose candidates screen it and mesh over it lie within that."""
+        spacing = 1.0 / np.sqrt(max(density, 1e-9))
+        factor, floor = _AUTO_CELLS[0]
+        return 2.5 * (self.cell_1 or max(factor * spacing, floor))
+
 
 @dataclass(frozen=True)
 class SelectReject:
