@@ -151,8 +151,9 @@ class NistParams(StageParams):
     """A segment that is the upper side of at least this share of its steps is raised too, when
     it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut
     into a slope is the lower side only along its uphill wall; 1: only wholly raised segments)."""
-    raised_lift: float = Field(2.0, ge=0, le=100)
-    """…metres: about a storey; terrace treads between walls sit near that plane (ISPRS samp11)."""
+    raised_lift: float = Field(1.5, ge=0, le=100)
+    """…metres. Terrace treads and benches between walls sit near that plane; a roof stands
+    higher, though less than its walls, as the hill behind it lifts the plane (2.1 m on ISPRS samp11)."""
     grow: bool = True
     """Grow the final surface onto terrain the coarse passes cut off (``growth.py``)."""
     grow_tol: float = Field(0.0, ge=0, le=10)
