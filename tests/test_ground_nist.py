@@ -197,6 +197,31 @@ def test_raised_segments_drop_a_roof_and_keep_a_steep_hill():
     assert np.array_equal(drop, roof)
 
 
+def test_raised_segments_drop_a_roof_cut_into_a_slope_but_not_a_bench():
+    # A 45° hillside (z = y) on a 2 m grid of odd coordinates, so every node
+    # misses an integer level by 1 m or more; two diamonds (squares turned 45°
+    # to the slope), both stepped off the hill all round.
+    rng = np.random.default_rng(15)
+    g = np.arange(1.0, 100.0, 2.0)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(-0.1, 0.1, (g.size**2, 2))
+    z = xy[:, 1].copy()
+    # A bench cut into the slope at the hill's height at its centre: cut above,
+    # fill below; the lower side of as many steps as it is the upper side of.
+    bench = np.abs(xy[:, 0] - 25.0) + np.abs(xy[:, 1] - 50.0) < 14.0
+    # A flat roof 8 m above the hill at its centre: the hill rises above it
+    # only round its uphill corner.
+    roof = np.abs(xy[:, 0] - 75.0) + np.abs(xy[:, 1] - 50.0) < 14.0
+    z[bench], z[roof] = 50.0, 58.0
+    xyz = np.column_stack([xy, z])
+    tri = Delaunay(xy)
+    assert not raised_segments(xyz, tri, 0.5, 10.0).any()  # the roof is not wholly raised
+    drop = raised_segments(xyz, tri, 0.5, 10.0, up_share=0.7, min_lift=2.0)
+    assert np.array_equal(drop, roof)
+    assert not raised_segments(xyz, tri, 0.5, 10.0, up_share=0.5, min_lift=0.0)[bench].any()
+    # It stands ~8 m above the plane through the feet of its steps.
+    assert not raised_segments(xyz, tri, 0.5, 10.0, up_share=0.7, min_lift=10.0).any()
+
+
 def test_supported_points_take_a_cut_crest_but_not_a_bush_or_a_pit():
     rng = np.random.default_rng(13)
     xy = rng.uniform(0, 60, (6000, 2))
@@ -229,3 +254,12 @@ def test_growth_goes_down_further_than_up():
     down = grow_ground(xyz, seed, tol=0.2, bend_deg=0.0, max_rise=3.0, tol_below=0.5)
     assert not same[xy[:, 0] > 41.0].any() and not same[xy[:, 0] < 19.0].any()
     assert down[xy[:, 0] > 41.0].all() and not down[xy[:, 0] < 19.0].any()
+
+
+def test_growth_keeps_off_barred_nodes():
+    xy = _grid_nodes(60, 2.0, 16)
+    xyz = np.column_stack([xy, np.zeros(xy.shape[0])])  # flat: growth would take everything
+    seed = xy[:, 0] < 10.0
+    barred = (np.abs(xy[:, 0] - 40.0) < 6.0) & (np.abs(xy[:, 1] - 30.0) < 6.0)
+    ground = grow_ground(xyz, seed, tol=0.2, bend_deg=5.0, max_rise=3.0, barred=barred)
+    assert np.array_equal(ground, ~barred)

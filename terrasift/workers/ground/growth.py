@@ -34,13 +34,15 @@ def grow_ground(
     tol_below: float | None = None,
     max_rounds: int = 200,
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
+    barred: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
     ``max_rise`` bounds the rise of one edge (metres), whatever the slope.
     ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted.
     ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
-    nodes when the caller has triangulated them already.
+    nodes when the caller has triangulated them already. ``barred`` nodes are
+    never grown onto (objects judged already, such as raised roofs).
     """
     n = xyz.shape[0]
     ground = seed.copy()
@@ -62,6 +64,8 @@ def grow_ground(
     limit_below = limit if tol_below is None else tol_below + bend
     # Edges that may ever carry growth: not a rise steeper than max_rise.
     usable = dz <= max_rise
+    if barred is not None:
+        usable &= ~barred[nbr]
     own, nbr, du, dv, dz = own[usable], nbr[usable], du[usable], dv[usable], dz[usable]
     limit, limit_below = limit[usable], limit_below[usable]
     for _ in range(max_rounds):

@@ -18,9 +18,10 @@ Default recipe (§6.1): mask → bin (cell_1) → mesh/screen → mow (mow_tol_1
 → screen the mowed points → mask them → bin (cell_2) → mesh/screen → mow the
 original points (mow_tol_2) → bin (cell_3) → mesh/screen, then ``repeats``
 more rounds of mow → bin (cell_3) → mesh/screen. Then two steps of our own:
-raised segments of that TIN (roofs wider than every pass's bins) are dropped
-(``raised.py``), and the surface is grown back onto terrain the coarse passes
-cut off — ridges, embankments, hilltops (``growth.py``). Final labels: ground
+raised segments of that TIN (roofs wider than every pass's bins, also those
+cut into a slope) are dropped (``raised.py``), and the surface is grown back
+onto terrain the coarse passes cut off — ridges, embankments, hilltops — but
+not onto the dropped roofs (``growth.py``). Final labels: ground
 is every point from ``ground_tol_below`` under to ``ground_tol`` over the last
 surface, both widened by ``ground_slope`` × the local TIN slope (as SMRF does)
 and on sparse data in proportion to cell_3 (``ground_tol_cell``),
@@ -65,7 +66,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
-from scipy.spatial import QhullError
+from scipy.spatial import QhullError, cKDTree
 
 from terrasift.workers.bins import (
     BinStats,
@@ -146,6 +147,13 @@ class NistParams(StageParams):
     0.5 m: roofs 1–5 m high whose border the TIN climbs in smaller steps go too (2 m left them on ISPRS samp11/12)."""
     raised_slope: float = Field(10.0, gt=0, lt=90)
     """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step."""
+    raised_share: float = Field(0.7, ge=0.5, le=1)
+    """A segment that is the upper side of at least this share of its steps is raised too, when
+    it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut
+    into a slope is the lower side only along its uphill wall; 1: only wholly raised segments)."""
+    raised_lift: float = Field(1.5, ge=0, le=100)
+    """…metres. Terrace treads and benches between walls sit near that plane; a roof stands
+    higher, though less than its walls, as the hill behind it lifts the plane (2.1 m on ISPRS samp11)."""
     grow: bool = True
     """Grow the final surface onto terrain the coarse passes cut off (``growth.py``)."""
     grow_tol: float = Field(0.0, ge=0, le=10)
@@ -417,8 +425,9 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     for _ in range(params.repeats):
         mowed_pts = local[_mow(tin3, local, params.mow_tol_2, _cell_of(g3), params)]
         tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
+    raised = None
     if params.raised_step > 0:
-        tin3 = _without_raised(tin3, params)
+        tin3, raised = _without_raised(tin3, params)
     # The final TIN departs further from rough terrain between vertices that
     # are further apart: on sparse data the label tolerances grow with the cell.
     widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
@@ -426,7 +435,7 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
         update={"ground_tol": widen * params.ground_tol, "ground_tol_below": widen * params.ground_tol_below}
     )
     if params.grow:
-        tin3 = _grown(local, tin3, g3, params, centre)
+        tin3 = _grown(local, tin3, g3, params, centre, raised)
     labels, above = _band(tin3, local, params)
     if params.support_k > 0:
         # Only points above the band may join: those below it are low outliers.
@@ -463,25 +472,50 @@ def _band(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> tuple[NDArr
     return ~above & (h >= -tol_down), above
 
 
-def _without_raised(tin: Tin, params: NistParams) -> Tin:
-    """``tin`` without its raised segments (roofs that filled the bins of every pass)."""
-    drop = raised_segments(np.column_stack([tin.xy, tin.z]), tin.tri, params.raised_step, params.raised_slope)
+def _without_raised(
+    tin: Tin, params: NistParams
+) -> tuple[Tin, tuple[NDArray[np.float64], NDArray[np.bool_]] | None]:
+    """``tin`` without its raised segments (roofs that filled the bins of every pass),
+    and, when some were dropped, the local (x, y) of all of ``tin``'s vertices with
+    the dropped ones flagged (their nearest-vertex regions are the raised ground plans)."""
+    drop = raised_segments(
+        np.column_stack([tin.xy, tin.z]),
+        tin.tri,
+        params.raised_step,
+        params.raised_slope,
+        up_share=params.raised_share,
+        min_lift=params.raised_lift,
+    )
     if not drop.any() or np.count_nonzero(~drop) < 3:
-        return tin
+        return tin, None
     try:
-        return tin.without(drop)
+        return tin.without(drop), (tin.xy + tin.origin, drop)
     except (QhullError, ValueError):
-        return tin
+        return tin, None
 
 
 def _grown(
-    local: NDArray[np.float64], tin: Tin, grid: Grid | ConcentricGrid, params: NistParams, centre: NDArray
+    local: NDArray[np.float64],
+    tin: Tin,
+    grid: Grid | ConcentricGrid,
+    params: NistParams,
+    centre: NDArray,
+    raised: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None,
 ) -> Tin:
     """The surface through the lowest point of every final bin that ``tin``
-    labels ground or that growth reaches from there (``growth.py``)."""
+    labels ground or that growth reaches from there (``growth.py``).
+
+    ``raised`` (vertex x, y and dropped flags from ``_without_raised``): nodes
+    nearest a dropped vertex are barred, so growth does not walk back onto a
+    raised roof where it meets the terrain at grade (a roof cut into a slope).
+    """
     low = lowest_per_bin(grid.index(local[:, 0], local[:, 1]), local[:, 2], grid.size)
     nodes = local[low[low >= 0]]
     seed = _label(tin, nodes, params)
+    barred = None
+    if raised is not None:
+        _, j = cKDTree(raised[0]).query(nodes[:, :2])
+        barred = raised[1][j] & ~seed
     # One triangulation of the nodes serves growth (neighbours) and, with the
     # nodes left out re-triangulated, the grown surface.
     full = None
@@ -501,6 +535,7 @@ def _grown(
         bend_deg=params.grow_bend,
         max_rise=params.grow_rise,
         adjacency=None if full is None else full.neighbours(),
+        barred=barred,
     )
     if np.count_nonzero(ground) < 3:
         return tin

@@ -9,6 +9,14 @@ one. So the TIN is cut into segments along step edges, and a segment that is
 only ever the upper side of its steps is dropped as a whole. Segments on the
 block's hull are kept (what lies beyond is unknown), and so is the largest.
 Repeated, so a roof under a raised part (a tower) goes too.
+
+On a slope a roof is not the upper side everywhere: where the hill rises
+behind it, the terrain stands above its uphill wall. So a segment that is the
+upper side of at least ``up_share`` of its steps is dropped too when it stands
+on average ``min_lift`` or more above the least-squares plane through the feet
+of its steps (the vertices beyond them). A terrace tread between a wall above
+and a wall below, or a bench of a cut slope, sits near that plane and is the
+lower side about as often as the upper.
 """
 
 from __future__ import annotations
@@ -34,9 +42,14 @@ def raised_segments(
     step: float,
     step_slope_deg: float,
     *,
+    up_share: float = 1.0,
+    min_lift: float = 0.0,
     rounds: int = 4,
 ) -> NDArray[np.bool_]:
-    """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc."""
+    """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
+
+    ``up_share`` 1 keeps to wholly raised segments (``min_lift`` is then unused).
+    """
     n = xyz.shape[0]
     e = tin_edges(tri)
     dz = xyz[e[:, 1], 2] - xyz[e[:, 0], 2]
@@ -51,18 +64,56 @@ def raised_segments(
     fixed[np.argmax(size)] = True
     st = e[is_step]
     up = dz[is_step] > 0
-    lo = np.where(up, st[:, 0], st[:, 1])
-    hi = np.where(up, st[:, 1], st[:, 0])
-    lo, hi = seg[lo], seg[hi]
+    lo_v = np.where(up, st[:, 0], st[:, 1])
+    hi_v = np.where(up, st[:, 1], st[:, 0])
+    lo, hi = seg[lo_v], seg[hi_v]
     cross = lo != hi
-    lo, hi = lo[cross], hi[cross]
+    lo, hi, lo_v, hi_v = lo[cross], hi[cross], lo_v[cross], hi_v[cross]
     gone = np.zeros(n_seg, dtype=bool)
     for _ in range(rounds):
         live = ~gone[lo] & ~gone[hi]
-        under = np.zeros(n_seg, dtype=bool)
-        under[lo[live]] = True  # something stands on this segment
-        raised = ~fixed & ~gone & ~under
+        n_up = np.bincount(hi[live], minlength=n_seg)
+        n_down = np.bincount(lo[live], minlength=n_seg)
+        # Share of its steps a segment is the upper side of (1 with none left).
+        share = np.where(n_down > 0, n_up / np.maximum(n_up + n_down, 1), 1.0)
+        raised = ~fixed & ~gone & (share >= up_share)
+        partly = raised & (share < 1.0)
+        if partly.any():
+            # The foot of each step seen from its segment: the lower end seen
+            # from the upper segment and the upper end from the lower one.
+            s = np.concatenate([hi[live], lo[live]])
+            foot = np.concatenate([lo_v[live], hi_v[live]])
+            raised &= ~partly | (_lift(xyz, seg, n_seg, s, foot) >= min_lift)
         if not raised.any():
             break
         gone |= raised
     return gone[seg]
+
+
+def _lift(
+    xyz: NDArray[np.float64], seg: NDArray[np.int64], n_seg: int, s: NDArray[np.int64], foot: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Mean height of each segment's vertices above the least-squares plane through
+    the feet of its steps (pairs ``s``: segment, ``foot``: vertex beyond a step);
+    a level plane where the feet do not span one."""
+    n = xyz.shape[0]
+    key = np.unique(s.astype(np.int64) * n + foot)  # each foot once per segment
+    ss, vv = key // n, key % n
+    size = np.maximum(np.bincount(seg, minlength=n_seg), 1)
+    cx = np.bincount(seg, xyz[:, 0], n_seg) / size
+    cy = np.bincount(seg, xyz[:, 1], n_seg) / size
+    u, v, z = xyz[vv, 0] - cx[ss], xyz[vv, 1] - cy[ss], xyz[vv, 2]
+
+    def b(a: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.bincount(ss, a, n_seg)
+
+    cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
+    m = np.stack([np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)], -2)
+    r = np.stack([b(z), b(u * z), b(v * z)], -1)
+    coef = np.zeros((n_seg, 3))
+    coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
+    ok = (cnt >= 3) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
+    if ok.any():
+        coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
+    plane = coef[seg, 0] + coef[seg, 1] * (xyz[:, 0] - cx[seg]) + coef[seg, 2] * (xyz[:, 1] - cy[seg])
+    return np.bincount(seg, xyz[:, 2] - plane, n_seg) / size
