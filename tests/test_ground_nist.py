@@ -13,7 +13,7 @@ from terrasift.errors import ParameterError
 from terrasift.metrics import ground_score
 from terrasift.synthetic import slopes
 from terrasift.synthetic.terrain import Surface, make_scene
-from terrasift.workers.bins import Grid
+from terrasift.workers.bins import Grid, cell_order
 from terrasift.workers.ground import nist
 from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
 from terrasift.workers.ground.growth import grow_ground
@@ -274,3 +274,10 @@ def test_growth_goes_down_further_than_up():
     assert not same[xy[:, 0] > 41.0].any() and not same[xy[:, 0] < 19.0].any()
     assert down[xy[:, 0] > 41.0].all() and not down[xy[:, 0] < 19.0].any()
 
+
+def test_cell_order_is_the_stable_sort_of_cell_keys():
+    rng = np.random.default_rng(9)
+    for span in (50.0, 900.0, 3000.0):  # one and two radix passes
+        xy = rng.uniform(-span, span, (20000, 2)).round(1)
+        key = np.floor(xy[:, 1] / 4.0).astype(np.int64) * 10**6 + np.floor(xy[:, 0] / 4.0).astype(np.int64)
+        assert np.array_equal(cell_order(xy[:, 0], xy[:, 1], 4.0), np.argsort(key, kind="stable"))

@@ -73,6 +73,7 @@ from terrasift.workers.bins import (
     PlaneStats,
     anchored_origin,
     bin_statistics,
+    cell_order,
     lowest_per_bin,
     plane_fit_statistics,
 )
@@ -373,11 +374,7 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     shift = anchored_origin(xyz)
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
-    order = np.argsort(
-        np.floor((xyz[:, 1] - shift[1]) / 8.0).astype(np.int64) * 1_000_000
-        + np.floor((xyz[:, 0] - shift[0]) / 8.0).astype(np.int64),
-        kind="stable",
-    )
+    order = cell_order(xyz[:, 0] - shift[0], xyz[:, 1] - shift[1], 8.0)
     local = np.column_stack([xyz[order, :2] - shift, xyz[order, 2]])
     origin = None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
     spacing = point_spacing(local[:, :2])
