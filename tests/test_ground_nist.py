@@ -82,6 +82,7 @@ def test_delaunay_keeps_the_first_of_coincident_points_and_rejects_collinear():
     assert _triangle_set(as_xy) == _triangle_set(Delaunay(xy).simplices)
     ptr, _ = mesh.vertex_neighbor_vertices
     assert (np.diff(ptr)[70 + copied] == 0).all()
+    assert np.array_equal(delaunay(pts, coincident=True).simplices, s)  # sorted out first: same mesh
     line = np.column_stack([np.arange(10.0), 2.0 * np.arange(10.0)])
     with pytest.raises(QhullError):
         delaunay(line)

@@ -69,7 +69,9 @@ def partial_tin(
     inserted[start] = True
     while True:
         verts = np.flatnonzero(inserted)
-        tin = Tin(xyz[verts], origin=origin)
+        # Pools of extremes hold coincident points (the lowest and highest of a
+        # cell at one position, as with several returns of one pulse).
+        tin = Tin(xyz[verts], origin=origin, coincident=True)
         if verts.size >= target:
             return tin, verts
         rest = np.flatnonzero(~inserted)

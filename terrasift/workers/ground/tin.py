@@ -30,7 +30,7 @@ _SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
 
-def delaunay(xy: NDArray[np.float64]) -> Mesh | Delaunay:
+def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Delaunay:
     """Delaunay triangulation of the 2-D points ``xy``, as a ``Mesh`` or a scipy ``Delaunay``.
 
     startinpy (incremental insertion, robust predicates) builds it 3-4 times
@@ -39,11 +39,13 @@ def delaunay(xy: NDArray[np.float64]) -> Mesh | Delaunay:
     the first is a vertex (Qhull keeps an arbitrary one); the others are in no
     triangle. Points closer than ``_SNAP`` but not equal, collinear input, or a
     result that does not check out as a triangulation are left to Qhull, which
-    raises QhullError on collinear points as before.
+    raises QhullError on collinear points as before. ``coincident``: the caller
+    expects coincident points, so they are sorted out before triangulating
+    rather than after a first attempt.
     """
     n = xy.shape[0]
     if n >= 3:
-        s = _startin(xy)
+        s = None if coincident else _startin(xy)
         if s is not None:
             mesh = Mesh.from_simplices(s, n, n)
         else:
@@ -78,14 +80,17 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
 class Tin:
     """Delaunay TIN through ``xyz``, linear inside the hull, nearest corner outside it."""
 
-    def __init__(self, xyz: NDArray[np.float64], origin: NDArray[np.float64] | None = None):
+    def __init__(
+        self, xyz: NDArray[np.float64], origin: NDArray[np.float64] | None = None, *, coincident: bool = False
+    ):
+        """``coincident``: points may share a position (see ``delaunay``)."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.shape[0] < 3:
             raise ValueError("a TIN needs at least three points")
         self.origin = xyz[:, :2].mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
-        self.tri = delaunay(self.xy)  # QhullError (collinear input) propagates to the caller
+        self.tri = delaunay(self.xy, coincident=coincident)  # QhullError (collinear input) propagates to the caller
         self._slopes: NDArray[np.float64] | None = None
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
