@@ -282,3 +282,13 @@ def test_cell_order_is_the_stable_sort_of_cell_keys():
         xy = rng.uniform(-span, span, (20000, 2)).round(1)
         key = np.floor(xy[:, 1] / 4.0).astype(np.int64) * 10**6 + np.floor(xy[:, 0] / 4.0).astype(np.int64)
         assert np.array_equal(cell_order(xy[:, 0], xy[:, 1], 4.0), np.argsort(key, kind="stable"))
+
+
+def test_nanmedian_first_axis_matches_numpy():
+    rng = np.random.default_rng(10)
+    a = rng.normal(0, 5, (9, 4000))
+    a[rng.random(a.shape) < 0.4] = np.nan
+    a[:, :50] = np.nan  # all-NaN columns
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
+        ref = np.nanmedian(a, axis=0)
+    assert np.array_equal(nist._nanmedian_first_axis(a), ref, equal_nan=True)

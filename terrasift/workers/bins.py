@@ -21,7 +21,9 @@ ANCHOR = 240.0
 
 def anchored_origin(xy: NDArray[np.float64], anchor: float = ANCHOR) -> NDArray[np.float64]:
     """The multiple of ``anchor`` at or below the smallest x and y of ``xy``."""
-    return np.floor(np.asarray(xy, dtype=np.float64)[:, :2].min(axis=0) / anchor) * anchor
+    xy = np.asarray(xy, dtype=np.float64)
+    # Column by column: a reduction over axis 0 of (n, 2) rows is several times slower.
+    return np.floor(np.array([xy[:, 0].min(), xy[:, 1].min()]) / anchor) * anchor
 
 
 def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
