@@ -20,7 +20,7 @@ from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
-from terrasift.workers.ground.tin import Mesh, Tin, delaunay, screen
+from terrasift.workers.ground.tin import Mesh, Tin, _transforms, delaunay, screen
 from terrasift.workers.registry import get_stage
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -292,3 +292,16 @@ def test_nanmedian_first_axis_matches_numpy():
     with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
         ref = np.nanmedian(a, axis=0)
     assert np.array_equal(nist._nanmedian_first_axis(a), ref, equal_nan=True)
+
+
+def test_vertex_deletion_carries_transforms_and_equals_a_fresh_tin():
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(0, 100, (4000, 2)), rng.normal(0, 1, 4000)])
+    tin = Tin(pts)
+    drop = np.zeros(4000, dtype=bool)
+    drop[rng.choice(4000, 60, replace=False)] = True
+    cut = tin.without(drop)
+    fresh = Tin(pts[~drop], origin=tin.origin)
+    assert _triangle_set(cut.tri.simplices) == _triangle_set(fresh.tri.simplices)
+    assert _neighbour_sets(cut.tri) == _neighbour_sets(fresh.tri)
+    assert np.array_equal(cut._transform(), _transforms(cut.xy, cut.tri.simplices), equal_nan=True)

@@ -124,7 +124,6 @@ class Tin:
         nk = int(np.count_nonzero(keepv))
         if nk == self.n_vertices:
             return self
-        full = np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]])
         if nk < 3:
             raise ValueError("a TIN needs at least three points")
         s = np.asarray(self.tri.simplices)
@@ -132,11 +131,11 @@ class Tin:
         rim_s = s[hole]
         rim = np.unique(rim_s[keepv[rim_s]])
         if rim.size < 3 or rim.size > 0.3 * nk:
-            return Tin(full, origin=self.origin)
+            return self._rebuilt(keepv)
         try:
             sub = delaunay(self.xy[rim])
         except QhullError:
-            return Tin(full, origin=self.origin)
+            return self._rebuilt(keepv)
         ss = rim[sub.simplices]
         # Centroids walk from a hole triangle at one of their corners: a step or two.
         hole_ids = np.flatnonzero(hole)
@@ -146,13 +145,20 @@ class Tin:
         fill = ss[(t >= 0) & hole[np.maximum(t, 0)]]
         mesh = Mesh.patched(s, np.asarray(self.tri.neighbors), hole, fill, keepv)
         if mesh is None:
-            return Tin(full, origin=self.origin)
+            return self._rebuilt(keepv)
         if not drop[np.unique(self.tri.convex_hull)].any():
             # Same hull: the fill must cover the holes' area exactly.
             a_hole, a_fill = _area(self.xy, s[hole]).sum(), _area(self.xy, fill).sum()
             if abs(a_fill - a_hole) > 1e-9 * max(a_hole, 1.0):
-                return Tin(full, origin=self.origin)
-        return Tin._from_mesh(self.xy[keepv], self.z[keepv], self.origin, mesh)
+                return self._rebuilt(keepv)
+        tin = Tin._from_mesh(self.xy[keepv], self.z[keepv], self.origin, mesh)
+        # The kept triangles come first, corners in order: their transforms carry over.
+        tin._trans = np.concatenate([self._transform()[~hole], _transforms(self.xy, fill)])
+        return tin
+
+    def _rebuilt(self, keepv: NDArray[np.bool_]) -> Tin:
+        """A fresh TIN of the vertices in ``keepv`` (the fallback of ``without``)."""
+        return Tin(np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]]), origin=self.origin)
 
     def neighbours(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """CSR adjacency (indptr, indices) of TIN vertices."""
@@ -189,17 +195,8 @@ class Tin:
         return raster[iy]
 
     def _transform(self) -> NDArray[np.float64]:
-        # Barycentric transform per triangle, computed vectorised (scipy's
-        # ``Delaunay.transform`` loops in Python-speed LAPACK calls).
         if self._trans is None:
-            s = self.tri.simplices
-            p0, p1, p2 = self.xy[s[:, 0]], self.xy[s[:, 1]], self.xy[s[:, 2]]
-            a, b = p0 - p2, p1 - p2
-            det = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inv = 1.0 / det
-            inv[~np.isfinite(inv)] = np.nan
-            self._trans = np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
+            self._trans = _transforms(self.xy, self.tri.simplices)
         return self._trans
 
     def locate(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -372,6 +369,18 @@ class Tin:
         return self._slopes
 
 
+def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
+    """Barycentric transform of each triangle ``s`` (rows of six numbers), vectorised:
+    scipy's ``Delaunay.transform`` loops in Python-speed LAPACK calls."""
+    p0, p1, p2 = xy[s[:, 0]], xy[s[:, 1]], xy[s[:, 2]]
+    a, b = p0 - p2, p1 - p2
+    det = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+    inv[~np.isfinite(inv)] = np.nan
+    return np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
+
+
 def _interpolate(b0: NDArray[np.float64], b1: NDArray[np.float64], zc: NDArray[np.float64]) -> NDArray[np.float64]:
     """Barycentric interpolation of corner heights ``zc`` (n, 3), summed as
     numpy's ``einsum`` does, so heights match it to the bit."""
@@ -440,12 +449,12 @@ class Mesh:
         """
         kt = np.flatnonzero(~hole)
         mk, f = kt.size, fill.shape[0]
-        tid = np.full(simplices.shape[0], -1, dtype=np.int64)
+        # One extra entry at the end answers the hull's -1 neighbours in one gather.
+        tid = np.full(simplices.shape[0] + 1, -1, dtype=np.int32)
         tid[kt] = np.arange(mk)
-        nb_old = neighbors[kt].astype(np.int64)
-        safe = np.maximum(nb_old, 0)
-        border = (nb_old >= 0) & hole[safe]
-        nb = np.concatenate([np.where(nb_old >= 0, tid[safe], -1).ravel(), np.full(3 * f, -1, dtype=np.int64)])
+        nb_old = neighbors[kt]
+        border = np.append(hole, False)[nb_old]
+        nb = np.concatenate([tid[nb_old].ravel(), np.full(3 * f, -1, dtype=np.int32)])
         bk, bj = np.nonzero(border)
         sk = simplices[kt[bk]]
         ea = np.concatenate([sk[np.arange(bk.size), (bj + 1) % 3], fill[:, [1, 2, 0]].ravel()])
@@ -463,14 +472,14 @@ class Mesh:
             return None
         nb[i] = j // 3
         nb[j] = i // 3
-        new_id = np.cumsum(keepv) - 1
+        new_id = np.cumsum(keepv, dtype=np.int32) - 1
         merged = new_id[np.concatenate([simplices[kt], fill])]
         n, m = int(new_id[-1]) + 1, mk + f
         if m != 2 * n - 2 - int(np.count_nonzero(nb < 0)):
             return None
         if np.count_nonzero(np.bincount(merged.ravel(), minlength=n)) != n:
             return None
-        return cls(merged.astype(np.int32), nb.reshape(m, 3).astype(np.int32), n)
+        return cls(merged, nb.reshape(m, 3), n)
 
     @property
     def convex_hull(self) -> NDArray[np.int32]:
