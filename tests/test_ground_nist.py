@@ -7,20 +7,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.typing import NDArray
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from terrasift.errors import ParameterError
 from terrasift.metrics import ground_score
 from terrasift.synthetic import slopes
 from terrasift.synthetic.terrain import Surface, make_scene
-from terrasift.workers.bins import Grid
+from terrasift.workers.bins import Grid, cell_order
 from terrasift.workers.ground import nist
 from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
-from terrasift.workers.ground.tin import Tin, screen
+from terrasift.workers.ground.tin import Mesh, Tin, _transforms, delaunay, screen
 from terrasift.workers.registry import get_stage
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -32,15 +32,60 @@ def test_tin_matches_linear_interpolation_and_locates_like_qhull():
     tin = Tin(pts)
     q = rng.uniform(-5, 105, (5000, 2)) + [5e5, 5.4e6] - tin.origin
     t, _ = tin.locate(q)
-    ref = tin.tri.find_simplex(q)
+    qhull = Delaunay(tin.xy)
+    ref = qhull.find_simplex(q)
     assert np.array_equal(ref >= 0, t >= 0)
-    assert np.array_equal(ref[ref >= 0], t[ref >= 0])
+    inside = ref >= 0
+    same = np.sort(tin.tri.simplices[t[inside]], axis=1) == np.sort(qhull.simplices[ref[inside]], axis=1)
+    assert same.all()
     # A plane is reproduced exactly inside the hull.
     plane = Tin(np.column_stack([pts[:, :2], 2.0 + 0.3 * (pts[:, 0] - 5e5) - 0.1 * (pts[:, 1] - 5.4e6)]))
     inside = ref >= 0
     z = plane.at_local(q[inside])
     xy = q[inside] + plane.origin
     assert np.allclose(z, 2.0 + 0.3 * (xy[:, 0] - 5e5) - 0.1 * (xy[:, 1] - 5.4e6), atol=1e-6)
+
+
+def _triangle_set(simplices: NDArray) -> set[tuple[int, ...]]:
+    return {tuple(t) for t in np.sort(np.asarray(simplices), axis=1).tolist()}
+
+
+def _neighbour_sets(tri) -> dict[tuple[int, ...], set[tuple[int, ...]]]:
+    s = np.sort(np.asarray(tri.simplices), axis=1)
+    nb = np.asarray(tri.neighbors)
+    return {tuple(s[i]): {tuple(s[j]) for j in nb[i] if j >= 0} for i in range(s.shape[0])}
+
+
+def test_delaunay_equals_qhull_with_neighbours_and_hull():
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-50, 50, (3000, 2))
+    mesh, qhull = delaunay(xy), Delaunay(xy)
+    assert isinstance(mesh, Mesh)
+    assert _triangle_set(mesh.simplices) == _triangle_set(qhull.simplices)
+    assert _neighbour_sets(mesh) == _neighbour_sets(qhull)
+    assert _triangle_set(mesh.convex_hull) == _triangle_set(qhull.convex_hull)
+    ptr, idx = mesh.vertex_neighbor_vertices
+    qptr, qidx = qhull.vertex_neighbor_vertices
+    for v in range(0, 3000, 97):
+        assert set(idx[ptr[v] : ptr[v + 1]]) == set(qidx[qptr[v] : qptr[v + 1]])
+
+
+def test_delaunay_keeps_the_first_of_coincident_points_and_rejects_collinear():
+    rng = np.random.default_rng(8)
+    xy = rng.uniform(0, 10, (500, 2))
+    copied = np.r_[np.arange(50), np.arange(100, 120)]
+    pts = np.concatenate([xy[copied], xy])  # copies first: they are the vertices
+    mesh = delaunay(pts)
+    s = np.asarray(mesh.simplices)
+    assert not np.isin(s, 70 + copied).any()  # later points at a taken position are in no triangle
+    as_xy = np.r_[copied, np.arange(500)][s]  # row of ``xy`` of each corner
+    assert _triangle_set(as_xy) == _triangle_set(Delaunay(xy).simplices)
+    ptr, _ = mesh.vertex_neighbor_vertices
+    assert (np.diff(ptr)[70 + copied] == 0).all()
+    assert np.array_equal(delaunay(pts, coincident=True).simplices, s)  # sorted out first: same mesh
+    line = np.column_stack([np.arange(10.0), 2.0 * np.arange(10.0)])
+    with pytest.raises(QhullError):
+        delaunay(line)
 
 
 def test_screen_removes_spikes_and_pits_but_keeps_a_slope():
@@ -263,3 +308,34 @@ def test_growth_keeps_off_barred_nodes():
     barred = (np.abs(xy[:, 0] - 40.0) < 6.0) & (np.abs(xy[:, 1] - 30.0) < 6.0)
     ground = grow_ground(xyz, seed, tol=0.2, bend_deg=5.0, max_rise=3.0, barred=barred)
     assert np.array_equal(ground, ~barred)
+
+
+def test_cell_order_is_the_stable_sort_of_cell_keys():
+    rng = np.random.default_rng(9)
+    for span in (50.0, 900.0, 3000.0):  # one and two radix passes
+        xy = rng.uniform(-span, span, (20000, 2)).round(1)
+        key = np.floor(xy[:, 1] / 4.0).astype(np.int64) * 10**6 + np.floor(xy[:, 0] / 4.0).astype(np.int64)
+        assert np.array_equal(cell_order(xy[:, 0], xy[:, 1], 4.0), np.argsort(key, kind="stable"))
+
+
+def test_nanmedian_first_axis_matches_numpy():
+    rng = np.random.default_rng(10)
+    a = rng.normal(0, 5, (9, 4000))
+    a[rng.random(a.shape) < 0.4] = np.nan
+    a[:, :50] = np.nan  # all-NaN columns
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
+        ref = np.nanmedian(a, axis=0)
+    assert np.array_equal(nist._nanmedian_first_axis(a), ref, equal_nan=True)
+
+
+def test_vertex_deletion_carries_transforms_and_equals_a_fresh_tin():
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(0, 100, (4000, 2)), rng.normal(0, 1, 4000)])
+    tin = Tin(pts)
+    drop = np.zeros(4000, dtype=bool)
+    drop[rng.choice(4000, 60, replace=False)] = True
+    cut = tin.without(drop)
+    fresh = Tin(pts[~drop], origin=tin.origin)
+    assert _triangle_set(cut.tri.simplices) == _triangle_set(fresh.tri.simplices)
+    assert _neighbour_sets(cut.tri) == _neighbour_sets(fresh.tri)
+    assert np.array_equal(cut._transform(), _transforms(cut.xy, cut.tri.simplices), equal_nan=True)

@@ -21,7 +21,31 @@ ANCHOR = 240.0
 
 def anchored_origin(xy: NDArray[np.float64], anchor: float = ANCHOR) -> NDArray[np.float64]:
     """The multiple of ``anchor`` at or below the smallest x and y of ``xy``."""
-    return np.floor(np.asarray(xy, dtype=np.float64)[:, :2].min(axis=0) / anchor) * anchor
+    xy = np.asarray(xy, dtype=np.float64)
+    # Column by column: a reduction over axis 0 of (n, 2) rows is several times slower.
+    return np.floor(np.array([xy[:, 0].min(), xy[:, 1].min()]) / anchor) * anchor
+
+
+def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Stable permutation putting points in row-major order of the ``cell``-sized
+    squares of a grid through the origin.
+
+    The cell key is sorted by numpy's radix sort on 16-bit digits (one pass
+    when there are fewer than 65536 cells, two up to 2**32): several times
+    faster than a comparison sort of millions of 64-bit keys, same permutation.
+    """
+    ix = np.floor(x / cell).astype(np.int64)
+    iy = np.floor(y / cell).astype(np.int64)
+    if ix.size:
+        ix -= ix.min()
+        iy -= iy.min()
+    key = iy * (int(ix.max()) + 1) + ix if ix.size else ix
+    if key.size == 0 or int(key.max()) >= 1 << 32:
+        return np.argsort(key, kind="stable")
+    order = np.argsort((key & 0xFFFF).astype(np.uint16), kind="stable")
+    if int(key.max()) >= 1 << 16:
+        order = order[np.argsort((key[order] >> 16).astype(np.uint16), kind="stable")]
+    return order
 
 
 @dataclass(frozen=True)

@@ -62,14 +62,16 @@ def partial_tin(
     origin = xyz[:, :2].mean(axis=0)
     xy = xyz[:, :2] - origin
     # Start from the points nearest the corners of the bounding box.
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
-    start = np.unique([int(np.argmin(((xy - c) ** 2).sum(axis=1))) for c in corners])
+    x, y = xy[:, 0], xy[:, 1]
+    corners = [(x.min(), y.min()), (x.max(), y.min()), (x.max(), y.max()), (x.min(), y.max())]
+    start = np.unique([int(np.argmin((x - cx) ** 2 + (y - cy) ** 2)) for cx, cy in corners])
     inserted = np.zeros(n, dtype=bool)
     inserted[start] = True
     while True:
         verts = np.flatnonzero(inserted)
-        tin = Tin(xyz[verts], origin=origin)
+        # Pools of extremes hold coincident points (the lowest and highest of a
+        # cell at one position, as with several returns of one pulse).
+        tin = Tin(xyz[verts], origin=origin, coincident=True)
         if verts.size >= target:
             return tin, verts
         rest = np.flatnonzero(~inserted)

@@ -61,7 +61,6 @@ Example::
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -76,6 +75,7 @@ from terrasift.workers.bins import (
     PlaneStats,
     anchored_origin,
     bin_statistics,
+    cell_order,
     lowest_per_bin,
     plane_fit_statistics,
 )
@@ -219,7 +219,7 @@ def point_spacing(xy: NDArray[np.float64]) -> float:
     n = xy.shape[0]
     if n < 2:
         return 1.0
-    span = np.ptp(xy, axis=0)
+    span = np.array([np.ptp(xy[:, 0]), np.ptp(xy[:, 1])])  # per column: fast on (n, 2) rows
     area = max(float(span[0] * span[1]), 1e-6)
     for _ in range(2):  # refine: the second pass sizes cells from the first density
         c = max(np.sqrt(4.0 * area / n), 1e-3)
@@ -291,10 +291,19 @@ def _screen_points(xyz: NDArray[np.float64], params: NistParams, spacing: float)
     padded = np.pad(filled, 1, constant_values=np.nan)
     for k, (dy, dx) in enumerate(np.ndindex(3, 3)):
         stack[k, 1:-1, 1:-1] = padded[dy : dy + g.ny, dx : dx + g.nx]
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(stack[:, 1:-1, 1:-1], axis=0).ravel()
+    med = _nanmedian_first_axis(stack[:, 1:-1, 1:-1].reshape(9, -1))
     return np.flatnonzero(~(xyz[:, 2] - med[flat] > params.screen_tol))
+
+
+def _nanmedian_first_axis(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``np.nanmedian(a, axis=0)`` (NaN where a column is all NaN) by one sort
+    along the axis, NaN sorting last: several times faster than nanmedian's masked arrays."""
+    s = np.sort(a, axis=0)
+    cnt = np.count_nonzero(~np.isnan(s), axis=0)
+    cols = np.arange(s.shape[1])
+    lo = s[np.maximum(cnt - 1, 0) // 2, cols]
+    hi = s[np.minimum(cnt // 2, s.shape[0] - 1), cols]
+    return np.where(cnt % 2 == 1, lo, (lo + hi) / 2)
 
 
 def _grids(
@@ -390,11 +399,7 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     shift = anchored_origin(xyz)
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
-    order = np.argsort(
-        np.floor((xyz[:, 1] - shift[1]) / 8.0).astype(np.int64) * 1_000_000
-        + np.floor((xyz[:, 0] - shift[0]) / 8.0).astype(np.int64),
-        kind="stable",
-    )
+    order = cell_order(xyz[:, 0] - shift[0], xyz[:, 1] - shift[1], 8.0)
     local = np.column_stack([xyz[order, :2] - shift, xyz[order, 2]])
     origin = None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
     spacing = point_spacing(local[:, :2])
