@@ -15,6 +15,14 @@ tan(``bend``) × distance (``tol_below`` in place of ``tol`` for a node lower
 than predicted: objects stand above terrain, so going down leads onto none). The surface can thus follow a slope that bends
 gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
 and a ground neighbour's slope is only ever taken from ground.
+
+Growth still steps onto single objects beside slopes (a bush, a car, the
+edge of a hedge or a roof), where a ground neighbour's slope happens to
+predict their height. Such a node ends up standing above every ground
+neighbour: a peak of the grown surface one node wide. Terrain at the
+spacing of the nodes seldom has one (a crest has neighbours along it at
+its own height), so a grown node more than ``peak`` above all its ground
+neighbours is dropped, repeatedly, until none is left; seeds stay.
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ def grow_ground(
     max_rounds: int = 200,
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
     barred: NDArray[np.bool_] | None = None,
+    peak: float | None = None,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
@@ -42,7 +51,9 @@ def grow_ground(
     ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted.
     ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
     nodes when the caller has triangulated them already. ``barred`` nodes are
-    never grown onto (objects judged already, such as raised roofs).
+    never grown onto (objects judged already, such as raised roofs). With
+    ``peak`` (metres), grown nodes that stand more than that above all their
+    ground neighbours are dropped (see the module doc).
     """
     n = xyz.shape[0]
     ground = seed.copy()
@@ -62,6 +73,7 @@ def grow_ground(
     bend = np.tan(np.radians(bend_deg)) * dist
     limit = tol + bend
     limit_below = limit if tol_below is None else tol_below + bend
+    all_edges = (own, nbr, dz)
     # Edges that may ever carry growth: not a rise steeper than max_rise.
     usable = dz <= max_rise
     if barred is not None:
@@ -76,7 +88,31 @@ def grow_ground(
         if new.size == 0:
             break
         ground[new] = True
+    if peak is not None:
+        ground = _without_peaks(ground, seed, *all_edges, margin=peak)
     return ground
+
+
+def _without_peaks(
+    ground: NDArray[np.bool_],
+    seed: NDArray[np.bool_],
+    own: NDArray[np.int64],
+    nbr: NDArray[np.int64],
+    dz: NDArray[np.float64],
+    *,
+    margin: float,
+) -> NDArray[np.bool_]:
+    """``ground`` without grown nodes standing more than ``margin`` above all their
+    ground neighbours (edges ``own`` → ``nbr`` rising ``dz``), until none does."""
+    ground = ground.copy()
+    while True:
+        both = ground[own] & ground[nbr]
+        held = np.zeros(ground.size, dtype=bool)
+        held[own[both & (dz >= -margin)]] = True
+        drop = ground & ~seed & ~held
+        if not drop.any():
+            return ground
+        ground &= ~drop
 
 
 def _ground_slopes(
