@@ -16,19 +16,23 @@ than predicted: objects stand above terrain, so going down leads onto none). The
 gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
 and a ground neighbour's slope is only ever taken from ground.
 
-Growth still steps onto single objects beside slopes (a bush, a car, the
-edge of a hedge or a roof), where a ground neighbour's slope happens to
-predict their height. Such a node ends up standing above every ground
-neighbour: a peak of the grown surface one node wide. Terrain at the
-spacing of the nodes seldom has one (a crest has neighbours along it at
-its own height), so a grown node more than ``peak`` above all its ground
-neighbours is dropped, repeatedly, until none is left; seeds stay.
+Growth still steps onto small objects beside slopes (a bush, a car, a
+shed, the edge of a hedge or a roof), where a ground neighbour's slope
+happens to predict their height. Such nodes end up standing above all the
+ground around them: a peak of the grown surface, or a small level group of
+nodes. Terrain at the spacing of the nodes seldom has one (a crest has
+neighbours along it at its own height), so a group of grown nodes that are
+level with each other (within ``peak``), no more than ``peak_nodes`` of
+them, standing more than ``peak`` above all its other ground neighbours is
+dropped, repeatedly, until none is left; seeds stay.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
 
@@ -44,6 +48,7 @@ def grow_ground(
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
     barred: NDArray[np.bool_] | None = None,
     peak: float | None = None,
+    peak_nodes: int = 1,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
@@ -53,7 +58,8 @@ def grow_ground(
     nodes when the caller has triangulated them already. ``barred`` nodes are
     never grown onto (objects judged already, such as raised roofs). With
     ``peak`` (metres), grown nodes that stand more than that above all their
-    ground neighbours are dropped (see the module doc).
+    ground neighbours are dropped, and so are level groups of up to
+    ``peak_nodes`` grown nodes that do (see the module doc).
     """
     n = xyz.shape[0]
     ground = seed.copy()
@@ -89,7 +95,7 @@ def grow_ground(
             break
         ground[new] = True
     if peak is not None:
-        ground = _without_peaks(ground, seed, *all_edges, margin=peak)
+        ground = _without_peaks(ground, seed, *all_edges, margin=peak, max_nodes=peak_nodes)
     return ground
 
 
@@ -101,15 +107,26 @@ def _without_peaks(
     dz: NDArray[np.float64],
     *,
     margin: float,
+    max_nodes: int = 1,
 ) -> NDArray[np.bool_]:
-    """``ground`` without grown nodes standing more than ``margin`` above all their
-    ground neighbours (edges ``own`` → ``nbr`` rising ``dz``), until none does."""
+    """``ground`` without level groups of at most ``max_nodes`` grown nodes that stand
+    more than ``margin`` above all their other ground neighbours (edges ``own`` →
+    ``nbr`` rising ``dz``), until none does."""
+    n = ground.size
     ground = ground.copy()
     while True:
-        both = ground[own] & ground[nbr]
-        held = np.zeros(ground.size, dtype=bool)
-        held[own[both & (dz >= -margin)]] = True
-        drop = ground & ~seed & ~held
+        grown = ground & ~seed
+        # Groups: grown nodes joined by edges level within the margin.
+        level = grown[own] & grown[nbr] & (np.abs(dz) <= margin)
+        _, group = connected_components(
+            coo_matrix((np.ones(np.count_nonzero(level)), (own[level], nbr[level])), shape=(n, n)), directed=False
+        )
+        # A group is held by a ground neighbour outside it that is not lower by more than the margin.
+        holds = ground[own] & ground[nbr] & (dz >= -margin) & ((group[own] != group[nbr]) | ~grown[nbr])
+        held = np.zeros(n, dtype=bool)
+        held[group[own[holds]]] = True
+        small = np.bincount(group, minlength=n) <= max_nodes
+        drop = grown & ~held[group] & small[group]
         if not drop.any():
             return ground
         ground &= ~drop
