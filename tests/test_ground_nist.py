@@ -339,3 +339,53 @@ def test_vertex_deletion_carries_transforms_and_equals_a_fresh_tin():
     assert _triangle_set(cut.tri.simplices) == _triangle_set(fresh.tri.simplices)
     assert _neighbour_sets(cut.tri) == _neighbour_sets(fresh.tri)
     assert np.array_equal(cut._transform(), _transforms(cut.xy, cut.tri.simplices), equal_nan=True)
+
+
+def test_growth_drops_peaks_it_stepped_onto_but_keeps_a_crest():
+    xy = _grid_nodes(80, 2.0, 17)
+    # A 30° slope up to x = 40, flat beyond; on the flat, bushes as tall as the
+    # slope continued: growth from the slope predicts them within tolerance.
+    z = np.tan(np.radians(30)) * np.minimum(xy[:, 0], 40.0)
+    foot = (xy[:, 0] > 41.0) & (xy[:, 0] < 43.0)
+    bush = foot & (np.arange(xy.shape[0]) % 3 == 0)
+    z[bush] = np.tan(np.radians(30)) * xy[bush, 0]
+    xyz = np.column_stack([xy, z])
+    seed = xy[:, 0] < 20.0
+    kw = {"tol": 0.3, "bend_deg": 5.0, "max_rise": 3.0}
+    plain = grow_ground(xyz, seed, **kw)
+    assert plain[bush].any()  # the rule has something to do
+    ground = grow_ground(xyz, seed, peak=0.3, **kw)
+    assert not ground[bush].any()
+    assert ground[~bush].all()
+
+
+def test_growth_peak_rule_keeps_a_cut_ridge():
+    xy = _grid_nodes(120, 2.0, 11)
+    ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
+    hill = np.clip(6.0 - 0.01 * ((xy[:, 0] - 90.0) ** 2 + (xy[:, 1] - 60.0) ** 2), 0.0, None)  # rounded
+    xyz = np.column_stack([xy, ridge + hill])
+    seed = xyz[:, 2] < 3.0
+    ground = grow_ground(xyz, seed, tol=0.3, bend_deg=7.0, max_rise=3.0, peak=0.3, peak_nodes=6)
+    # A knife-edge crest loses the odd node or short group where the jitter
+    # leaves it above all its neighbours (5 of 3600 here; support.py takes
+    # their points back); the rounded hilltop, wider than 6 nodes, stays.
+    assert ground[xyz[:, 2] < 9.5].all()
+    assert np.count_nonzero(~ground) <= 6
+
+
+def test_growth_drops_small_level_groups_standing_above_the_ground():
+    xy = _grid_nodes(80, 2.0, 17)
+    # The slope of the test above; on the flat, a shed roof level with the
+    # slope's top plus 1.2 m (three nodes here), grown onto from the slope.
+    top = np.tan(np.radians(30)) * 40.0
+    z = np.tan(np.radians(30)) * np.minimum(xy[:, 0], 40.0)
+    shed = (xy[:, 0] > 40.5) & (xy[:, 0] < 44.5) & (np.abs(xy[:, 1] - 40.0) < 2.0)
+    z[shed] = top + 1.2
+    xyz = np.column_stack([xy, z])
+    seed = xy[:, 0] < 20.0
+    kw = {"tol": 0.3, "bend_deg": 5.0, "max_rise": 3.0, "tol_below": 0.6}
+    assert grow_ground(xyz, seed, **kw)[shed].sum() >= 2  # grown onto, more than one node
+    assert grow_ground(xyz, seed, peak=0.3, **kw)[shed].any()  # single peaks only: it stays
+    ground = grow_ground(xyz, seed, peak=0.3, peak_nodes=6, **kw)
+    assert not ground[shed].any()
+    assert ground[~shed].all()

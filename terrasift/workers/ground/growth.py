@@ -15,12 +15,24 @@ tan(``bend``) × distance (``tol_below`` in place of ``tol`` for a node lower
 than predicted: objects stand above terrain, so going down leads onto none). The surface can thus follow a slope that bends
 gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
 and a ground neighbour's slope is only ever taken from ground.
+
+Growth still steps onto small objects beside slopes (a bush, a car, a
+shed, the edge of a hedge or a roof), where a ground neighbour's slope
+happens to predict their height. Such nodes end up standing above all the
+ground around them: a peak of the grown surface, or a small level group of
+nodes. Terrain at the spacing of the nodes seldom has one (a crest has
+neighbours along it at its own height), so a group of grown nodes that are
+level with each other (within ``peak``), no more than ``peak_nodes`` of
+them, standing more than ``peak`` above all its other ground neighbours is
+dropped, repeatedly, until none is left; seeds stay.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
 
@@ -35,6 +47,8 @@ def grow_ground(
     max_rounds: int = 200,
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
     barred: NDArray[np.bool_] | None = None,
+    peak: float | None = None,
+    peak_nodes: int = 1,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
@@ -42,7 +56,10 @@ def grow_ground(
     ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted.
     ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
     nodes when the caller has triangulated them already. ``barred`` nodes are
-    never grown onto (objects judged already, such as raised roofs).
+    never grown onto (objects judged already, such as raised roofs). With
+    ``peak`` (metres), grown nodes that stand more than that above all their
+    ground neighbours are dropped, and so are level groups of up to
+    ``peak_nodes`` grown nodes that do (see the module doc).
     """
     n = xyz.shape[0]
     ground = seed.copy()
@@ -62,6 +79,7 @@ def grow_ground(
     bend = np.tan(np.radians(bend_deg)) * dist
     limit = tol + bend
     limit_below = limit if tol_below is None else tol_below + bend
+    all_edges = (own, nbr, dz)
     # Edges that may ever carry growth: not a rise steeper than max_rise.
     usable = dz <= max_rise
     if barred is not None:
@@ -76,7 +94,42 @@ def grow_ground(
         if new.size == 0:
             break
         ground[new] = True
+    if peak is not None:
+        ground = _without_peaks(ground, seed, *all_edges, margin=peak, max_nodes=peak_nodes)
     return ground
+
+
+def _without_peaks(
+    ground: NDArray[np.bool_],
+    seed: NDArray[np.bool_],
+    own: NDArray[np.int64],
+    nbr: NDArray[np.int64],
+    dz: NDArray[np.float64],
+    *,
+    margin: float,
+    max_nodes: int = 1,
+) -> NDArray[np.bool_]:
+    """``ground`` without level groups of at most ``max_nodes`` grown nodes that stand
+    more than ``margin`` above all their other ground neighbours (edges ``own`` →
+    ``nbr`` rising ``dz``), until none does."""
+    n = ground.size
+    ground = ground.copy()
+    while True:
+        grown = ground & ~seed
+        # Groups: grown nodes joined by edges level within the margin.
+        level = grown[own] & grown[nbr] & (np.abs(dz) <= margin)
+        _, group = connected_components(
+            coo_matrix((np.ones(np.count_nonzero(level)), (own[level], nbr[level])), shape=(n, n)), directed=False
+        )
+        # A group is held by a ground neighbour outside it that is not lower by more than the margin.
+        holds = ground[own] & ground[nbr] & (dz >= -margin) & ((group[own] != group[nbr]) | ~grown[nbr])
+        held = np.zeros(n, dtype=bool)
+        held[group[own[holds]]] = True
+        small = np.bincount(group, minlength=n) <= max_nodes
+        drop = grown & ~held[group] & small[group]
+        if not drop.any():
+            return ground
+        ground &= ~drop
 
 
 def _ground_slopes(
