@@ -12,9 +12,10 @@ surface already labels ground are the seeds. In rounds, a node joins when a
 ground neighbour, continued along its own slope (a least-squares plane
 through its ground neighbours), predicts the node's height within ``tol`` +
 tan(``bend``) × distance (``tol_below`` in place of ``tol`` for a node lower
-than predicted: objects stand above terrain, so going down leads onto none). The surface can thus follow a slope that bends
-gradually onto a hill, but not jump onto a roof (a wall is a bend of ~90°),
-and a ground neighbour's slope is only ever taken from ground.
+than predicted: objects stand above terrain, so going down leads onto none).
+The surface can thus follow a slope that bends gradually onto a hill, but
+not jump onto a roof (a wall is a bend of ~90°), and a ground neighbour's
+slope is only ever taken from ground.
 
 Growth still steps onto small objects beside slopes (a bush, a car, a
 shed, the edge of a hedge or a roof), where a ground neighbour's slope
