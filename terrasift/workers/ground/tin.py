@@ -188,8 +188,10 @@ class Tin:
             raster = raster.ravel()
             self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster)
         x0, y0, h, nx, ny, raster = self._guess
-        ix = np.clip(((q[:, 0] - x0) / h).astype(np.int64), 0, nx - 1)
-        iy = np.clip(((q[:, 1] - y0) / h).astype(np.int64), 0, ny - 1)
+        ix = ((q[:, 0] - x0) / h).astype(np.int64)
+        iy = ((q[:, 1] - y0) / h).astype(np.int64)
+        np.clip(ix, 0, nx - 1, out=ix)
+        np.clip(iy, 0, ny - 1, out=iy)
         iy *= nx
         iy += ix
         return raster[iy]
@@ -233,7 +235,7 @@ class Tin:
         b1 = np.empty(n)
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
-        rng = np.random.default_rng(0)
+        rng = None
         for rnd in range(_MAX_WALK):
             if active.size == 0:
                 break
@@ -242,9 +244,13 @@ class Tin:
             tr = trans[tt]  # one gather of the six transform numbers per query
             dx = (qx if first else qx[active]) - tr[:, 4]
             dy = (qy if first else qy[active]) - tr[:, 5]
-            c0 = tr[:, 0] * dx + tr[:, 1] * dy
-            c1 = tr[:, 2] * dx + tr[:, 3] * dy
-            c2 = 1.0 - c0 - c1
+            # In place, same sums: c0 = t0 dx + t1 dy, c1 = t2 dx + t3 dy, c2 = 1 - c0 - c1.
+            c0 = tr[:, 0] * dx
+            c0 += tr[:, 1] * dy
+            c1 = tr[:, 2] * dx
+            c1 += tr[:, 3] * dy
+            c2 = np.subtract(1.0, c0, out=dx)
+            c2 -= c1
             # Every query keeps the coordinates of its latest triangle: the
             # one it stops in, or the hull triangle it leaves the mesh from.
             if first:
@@ -253,10 +259,12 @@ class Tin:
                 b0[active], b1[active] = c0, c1
             # A degenerate sliver gives NaN in all three: never done, and the
             # query steps on across edge 0.
-            move = np.flatnonzero(~(np.minimum(np.minimum(c0, c1), c2) >= -1e-10))
+            low = np.minimum(c0, c1, out=dy)
+            move = np.flatnonzero(~(np.minimum(low, c2, out=low) >= -1e-10))
             if move.size == 0:
                 break
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
+                rng = np.random.default_rng(0) if rng is None else rng
                 bb = np.nan_to_num(np.column_stack([c0, c1, c2]), nan=-1.0)
                 j = np.argmax((bb < -1e-10) * rng.random(bb.shape), axis=1)[move]
             else:
