@@ -20,7 +20,7 @@ from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
-from terrasift.workers.ground.tin import Mesh, Tin, _transforms, delaunay, screen
+from terrasift.workers.ground.tin import Mesh, Tin, _transforms, delaunay, hilbert_key, screen
 from terrasift.workers.registry import get_stage
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -339,3 +339,13 @@ def test_vertex_deletion_carries_transforms_and_equals_a_fresh_tin():
     assert _triangle_set(cut.tri.simplices) == _triangle_set(fresh.tri.simplices)
     assert _neighbour_sets(cut.tri) == _neighbour_sets(fresh.tri)
     assert np.array_equal(cut._transform(), _transforms(cut.xy, cut.tri.simplices), equal_nan=True)
+
+
+def test_hilbert_key_walks_a_grid_one_step_at_a_time():
+    rng = np.random.default_rng(12)
+    g = np.arange(64.0)
+    xy = np.column_stack([np.tile(g, 64), np.repeat(g, 64)])[rng.permutation(4096)]
+    key = hilbert_key(xy)
+    assert np.array_equal(np.sort(key), np.arange(4096))
+    path = xy[np.argsort(key)]
+    assert (np.abs(np.diff(path, axis=0)).sum(axis=1) == 1).all()

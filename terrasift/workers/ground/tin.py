@@ -64,9 +64,12 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
     """startinpy's triangles (counter-clockwise, 0-based) over ``xy``, or None
     when it merged points or found no triangle."""
     n = xy.shape[0]
+    # Insertion in Hilbert order: each point's walk starts next to it (in the
+    # order of a scan or of a random pool it would cross the mesh).
+    order = np.argsort(hilbert_key(xy), kind="stable").astype(np.int32)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
-    dt.insert(np.column_stack([xy, np.zeros(n)]), insertionstrategy="BBox")
+    dt.insert(np.column_stack([xy[order], np.zeros(n)]), insertionstrategy="BBox")
     if dt.number_of_vertices() != n:
         return None
     s = np.asarray(dt.triangles)
@@ -74,7 +77,33 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
         return None
     s = s.astype(np.int32)
     s -= 1  # vertex 0 is startinpy's infinite vertex
-    return s
+    return order[s]
+
+
+def hilbert_key(xy: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Position of each point of ``xy`` along a Hilbert curve over its bounding
+    square, on a grid of about one point per cell: sorting by it keeps
+    neighbours in the plane near each other in the sequence."""
+    n = xy.shape[0]
+    bits = int(min(16, max(1, np.ceil(np.log2(max(n, 2)) / 2))))
+    side = 1 << bits
+    lo = np.array([xy[:, 0].min(), xy[:, 1].min()])
+    span = max(float(max(xy[:, 0].max() - lo[0], xy[:, 1].max() - lo[1])), 1e-300)
+    x = np.clip(((xy[:, 0] - lo[0]) * (side / span)).astype(np.int64), 0, side - 1)
+    y = np.clip(((xy[:, 1] - lo[1]) * (side / span)).astype(np.int64), 0, side - 1)
+    d = np.zeros(n, dtype=np.int64)
+    s = side >> 1
+    while s:  # one pass per bit, from the top quadrant down
+        rx = (x & s) > 0
+        ry = (y & s) > 0
+        d += s * s * ((3 * rx) ^ ry)
+        flip = ~ry  # rotate the quadrant so the curve enters and leaves it right
+        back = flip & rx
+        x = np.where(back, side - 1 - x, x)
+        y = np.where(back, side - 1 - y, y)
+        x, y = np.where(flip, y, x), np.where(flip, x, y)
+        s >>= 1
+    return d
 
 
 class Tin:
