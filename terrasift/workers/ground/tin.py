@@ -25,7 +25,8 @@ from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
 _GUESS_K = 0.5
-_CHUNK = 1 << 16
+_CHUNK = 1 << 15  # queries per walk batch: its temporaries stay in cache
+_MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
 _SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
@@ -264,15 +265,15 @@ class Tin:
         b1 = np.empty(n)
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
-        rng = None
         for rnd in range(_MAX_WALK):
             if active.size == 0:
                 break
             first = rnd == 0
             tt = t if first else t[active]
             tr = trans[tt]  # one gather of the six transform numbers per query
-            dx = (qx if first else qx[active]) - tr[:, 4]
-            dy = (qy if first else qy[active]) - tr[:, 5]
+            ax, ay = (qx, qy) if first else (qx[active], qy[active])
+            dx = ax - tr[:, 4]
+            dy = ay - tr[:, 5]
             # In place, same sums: c0 = t0 dx + t1 dy, c1 = t2 dx + t3 dy, c2 = 1 - c0 - c1.
             c0 = tr[:, 0] * dx
             c0 += tr[:, 1] * dy
@@ -293,9 +294,8 @@ class Tin:
             if move.size == 0:
                 break
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
-                rng = np.random.default_rng(0) if rng is None else rng
                 bb = np.nan_to_num(np.column_stack([c0, c1, c2]), nan=-1.0)
-                j = np.argmax((bb < -1e-10) * rng.random(bb.shape), axis=1)[move]
+                j = np.argmax((bb < -1e-10) * _scramble(ax, ay, rnd), axis=1)[move]
             else:
                 m0, m1, m2 = c0[move], c1[move], c2[move]
                 # Exit across the most negative coordinate (the first on ties).
@@ -404,6 +404,16 @@ class Tin:
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
         self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
         return self._slopes
+
+
+def _scramble(x: NDArray[np.float64], y: NDArray[np.float64], rnd: int) -> NDArray[np.uint64]:
+    """Three pseudo-random integers per point, a hash of its coordinates and
+    the walk round: a cycling walk's exit edge depends on the query alone, not
+    on the batch it walks in."""
+    h = np.ascontiguousarray(x).view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    h ^= np.ascontiguousarray(y).view(np.uint64) + np.uint64(rnd)
+    h ^= h >> np.uint64(31)
+    return (h[:, None] * _MIX) >> np.uint64(11)
 
 
 def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
