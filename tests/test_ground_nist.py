@@ -375,3 +375,13 @@ def test_walks_do_not_depend_on_the_batch_they_run_in(monkeypatch):
     x, y = q[:50, 0], q[:50, 1]
     assert np.array_equal(_scramble(x, y, 70)[10:20], _scramble(x[10:20], y[10:20], 70))
     assert not np.array_equal(_scramble(x, y, 70), _scramble(x, y, 71))
+
+
+def test_scattered_points_are_inserted_in_hilbert_order_and_coherent_ones_as_given():
+    rng = np.random.default_rng(14)
+    xy = rng.uniform(0, 100, (5000, 2))
+    rows = xy[np.lexsort((xy[:, 0], np.floor(xy[:, 1] / 5.0)))]  # cell order, as ground.nist passes
+    assert tin_module._insertion_order(rows) is None
+    order = tin_module._insertion_order(xy)
+    assert np.array_equal(order, np.argsort(hilbert_key(xy), kind="stable"))
+    assert _triangle_set(delaunay(xy).simplices) == _triangle_set(Delaunay(xy).simplices)

@@ -65,12 +65,10 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
     """startinpy's triangles (counter-clockwise, 0-based) over ``xy``, or None
     when it merged points or found no triangle."""
     n = xy.shape[0]
-    # Insertion in Hilbert order: each point's walk starts next to it (in the
-    # order of a scan or of a random pool it would cross the mesh).
-    order = np.argsort(hilbert_key(xy), kind="stable").astype(np.int32)
+    order = _insertion_order(xy)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
-    dt.insert(np.column_stack([xy[order], np.zeros(n)]), insertionstrategy="BBox")
+    dt.insert(np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox")
     if dt.number_of_vertices() != n:
         return None
     s = np.asarray(dt.triangles)
@@ -78,7 +76,27 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
         return None
     s = s.astype(np.int32)
     s -= 1  # vertex 0 is startinpy's infinite vertex
-    return order[s]
+    return s if order is None else order[s]
+
+
+def _insertion_order(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
+    """Hilbert order for scattered points, None for points already in a
+    spatially coherent order (consecutive points a few spacings apart on
+    average, as in grid or cell order).
+
+    startinpy's walk to each new point starts at the previous one: in file
+    order a point pool of 150 k triangulates 9 times slower than sorted, while
+    on coherent input the sort costs more than it saves.
+    """
+    n = xy.shape[0]
+    if n < 64:
+        return None
+    x, y = xy[:, 0], xy[:, 1]
+    jump = float(np.abs(np.diff(x)).mean() + np.abs(np.diff(y)).mean())
+    area = float((x.max() - x.min()) * (y.max() - y.min()))
+    if jump < 8.0 * np.sqrt(area / n):
+        return None
+    return np.argsort(hilbert_key(xy), kind="stable").astype(np.int32)
 
 
 def hilbert_key(xy: NDArray[np.float64]) -> NDArray[np.int64]:
