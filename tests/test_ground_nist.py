@@ -15,12 +15,21 @@ from terrasift.synthetic import slopes
 from terrasift.synthetic.terrain import Surface, make_scene
 from terrasift.workers.bins import Grid, cell_order
 from terrasift.workers.ground import nist
+from terrasift.workers.ground import tin as tin_module
 from terrasift.workers.ground.concentric import ConcentricGrid, ring_ratio
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
-from terrasift.workers.ground.tin import Mesh, Tin, _transforms, delaunay, screen
+from terrasift.workers.ground.tin import (
+    Mesh,
+    Tin,
+    _scramble,
+    _transforms,
+    delaunay,
+    hilbert_key,
+    screen,
+)
 from terrasift.workers.registry import get_stage
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -389,3 +398,40 @@ def test_growth_drops_small_level_groups_standing_above_the_ground():
     ground = grow_ground(xyz, seed, peak=0.3, peak_nodes=6, **kw)
     assert not ground[shed].any()
     assert ground[~shed].all()
+
+
+def test_hilbert_key_walks_a_grid_one_step_at_a_time():
+    rng = np.random.default_rng(12)
+    g = np.arange(64.0)
+    xy = np.column_stack([np.tile(g, 64), np.repeat(g, 64)])[rng.permutation(4096)]
+    key = hilbert_key(xy)
+    assert np.array_equal(np.sort(key), np.arange(4096))
+    path = xy[np.argsort(key)]
+    assert (np.abs(np.diff(path, axis=0)).sum(axis=1) == 1).all()
+
+
+def test_walks_do_not_depend_on_the_batch_they_run_in(monkeypatch):
+    rng = np.random.default_rng(13)
+    tin = Tin(np.column_stack([rng.uniform(0, 50, (3000, 2)), rng.normal(0, 1, 3000)]))
+    q = rng.uniform(-10, 60, (20000, 2)) - tin.origin
+    t, bary = tin.locate(q)
+    h, sl = tin.height_and_slope(q)
+    monkeypatch.setattr(tin_module, "_CHUNK", 777)
+    t2, bary2 = tin.locate(q)
+    h2, sl2 = tin.height_and_slope(q)
+    assert np.array_equal(t, t2) and np.array_equal(bary, bary2)
+    assert np.array_equal(h, h2) and np.array_equal(sl, sl2)
+    # The exit edge of a cycling walk is a function of the query and the round alone.
+    x, y = q[:50, 0], q[:50, 1]
+    assert np.array_equal(_scramble(x, y, 70)[10:20], _scramble(x[10:20], y[10:20], 70))
+    assert not np.array_equal(_scramble(x, y, 70), _scramble(x, y, 71))
+
+
+def test_scattered_points_are_inserted_in_hilbert_order_and_coherent_ones_as_given():
+    rng = np.random.default_rng(14)
+    xy = rng.uniform(0, 100, (5000, 2))
+    rows = xy[np.lexsort((xy[:, 0], np.floor(xy[:, 1] / 5.0)))]  # cell order, as ground.nist passes
+    assert tin_module._insertion_order(rows) is None
+    order = tin_module._insertion_order(xy)
+    assert np.array_equal(order, np.argsort(hilbert_key(xy), kind="stable"))
+    assert _triangle_set(delaunay(xy).simplices) == _triangle_set(Delaunay(xy).simplices)

@@ -25,7 +25,8 @@ from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
 _GUESS_K = 0.5
-_CHUNK = 1 << 16
+_CHUNK = 1 << 15  # queries per walk batch: its temporaries stay in cache
+_MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
 _SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
@@ -64,9 +65,10 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
     """startinpy's triangles (counter-clockwise, 0-based) over ``xy``, or None
     when it merged points or found no triangle."""
     n = xy.shape[0]
+    order = _insertion_order(xy)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
-    dt.insert(np.column_stack([xy, np.zeros(n)]), insertionstrategy="BBox")
+    dt.insert(np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox")
     if dt.number_of_vertices() != n:
         return None
     s = np.asarray(dt.triangles)
@@ -74,7 +76,53 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
         return None
     s = s.astype(np.int32)
     s -= 1  # vertex 0 is startinpy's infinite vertex
-    return s
+    return s if order is None else order[s]
+
+
+def _insertion_order(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
+    """Hilbert order for scattered points, None for points already in a
+    spatially coherent order (consecutive points a few spacings apart on
+    average, as in grid or cell order).
+
+    startinpy's walk to each new point starts at the previous one: in file
+    order a point pool of 150 k triangulates 9 times slower than sorted, while
+    on coherent input the sort costs more than it saves.
+    """
+    n = xy.shape[0]
+    if n < 64:
+        return None
+    x, y = xy[:, 0], xy[:, 1]
+    jump = float(np.abs(np.diff(x)).mean() + np.abs(np.diff(y)).mean())
+    area = float((x.max() - x.min()) * (y.max() - y.min()))
+    if jump < 8.0 * np.sqrt(area / n):
+        return None
+    return np.argsort(hilbert_key(xy), kind="stable").astype(np.int32)
+
+
+def hilbert_key(xy: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Position of each point of ``xy`` along a Hilbert curve over its bounding
+    square, on a grid of about one point per cell: sorting by it keeps
+    neighbours in the plane near each other in the sequence."""
+    n = xy.shape[0]
+    bits = int(min(16, max(1, np.ceil(np.log2(max(n, 2)) / 2))))
+    side = 1 << bits
+    lo = np.array([xy[:, 0].min(), xy[:, 1].min()])
+    span = max(float(max(xy[:, 0].max() - lo[0], xy[:, 1].max() - lo[1])), 1e-300)
+    x = np.clip(((xy[:, 0] - lo[0]) * (side / span)).astype(np.int64), 0, side - 1)
+    y = np.clip(((xy[:, 1] - lo[1]) * (side / span)).astype(np.int64), 0, side - 1)
+    d = np.zeros(n, dtype=np.int64)
+    s = side >> 1
+    while s:  # one pass per bit, from the top quadrant down
+        rx = (x & s) > 0
+        ry = (y & s) > 0
+        d += s * s * ((3 * rx) ^ ry)
+        flip = ~ry  # rotate the quadrant so the curve enters and leaves it right
+        back = flip & rx
+        x = np.where(back, side - 1 - x, x)
+        y = np.where(back, side - 1 - y, y)
+        x, y = np.where(flip, y, x), np.where(flip, x, y)
+        s >>= 1
+    return d
 
 
 class Tin:
@@ -188,8 +236,10 @@ class Tin:
             raster = raster.ravel()
             self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster)
         x0, y0, h, nx, ny, raster = self._guess
-        ix = np.clip(((q[:, 0] - x0) / h).astype(np.int64), 0, nx - 1)
-        iy = np.clip(((q[:, 1] - y0) / h).astype(np.int64), 0, ny - 1)
+        ix = ((q[:, 0] - x0) / h).astype(np.int64)
+        iy = ((q[:, 1] - y0) / h).astype(np.int64)
+        np.clip(ix, 0, nx - 1, out=ix)
+        np.clip(iy, 0, ny - 1, out=iy)
         iy *= nx
         iy += ix
         return raster[iy]
@@ -233,18 +283,22 @@ class Tin:
         b1 = np.empty(n)
         active = np.arange(n)
         qx, qy = q[:, 0], q[:, 1]
-        rng = np.random.default_rng(0)
         for rnd in range(_MAX_WALK):
             if active.size == 0:
                 break
             first = rnd == 0
             tt = t if first else t[active]
             tr = trans[tt]  # one gather of the six transform numbers per query
-            dx = (qx if first else qx[active]) - tr[:, 4]
-            dy = (qy if first else qy[active]) - tr[:, 5]
-            c0 = tr[:, 0] * dx + tr[:, 1] * dy
-            c1 = tr[:, 2] * dx + tr[:, 3] * dy
-            c2 = 1.0 - c0 - c1
+            ax, ay = (qx, qy) if first else (qx[active], qy[active])
+            dx = ax - tr[:, 4]
+            dy = ay - tr[:, 5]
+            # In place, same sums: c0 = t0 dx + t1 dy, c1 = t2 dx + t3 dy, c2 = 1 - c0 - c1.
+            c0 = tr[:, 0] * dx
+            c0 += tr[:, 1] * dy
+            c1 = tr[:, 2] * dx
+            c1 += tr[:, 3] * dy
+            c2 = np.subtract(1.0, c0, out=dx)
+            c2 -= c1
             # Every query keeps the coordinates of its latest triangle: the
             # one it stops in, or the hull triangle it leaves the mesh from.
             if first:
@@ -253,12 +307,13 @@ class Tin:
                 b0[active], b1[active] = c0, c1
             # A degenerate sliver gives NaN in all three: never done, and the
             # query steps on across edge 0.
-            move = np.flatnonzero(~(np.minimum(np.minimum(c0, c1), c2) >= -1e-10))
+            low = np.minimum(c0, c1, out=dy)
+            move = np.flatnonzero(~(np.minimum(low, c2, out=low) >= -1e-10))
             if move.size == 0:
                 break
             if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
                 bb = np.nan_to_num(np.column_stack([c0, c1, c2]), nan=-1.0)
-                j = np.argmax((bb < -1e-10) * rng.random(bb.shape), axis=1)[move]
+                j = np.argmax((bb < -1e-10) * _scramble(ax, ay, rnd), axis=1)[move]
             else:
                 m0, m1, m2 = c0[move], c1[move], c2[move]
                 # Exit across the most negative coordinate (the first on ties).
@@ -367,6 +422,16 @@ class Tin:
             gy = (dz2 * a[:, 0] - dz1 * b[:, 0]) / det
         self._slopes = np.nan_to_num(np.hypot(gx, gy), nan=0.0, posinf=0.0)
         return self._slopes
+
+
+def _scramble(x: NDArray[np.float64], y: NDArray[np.float64], rnd: int) -> NDArray[np.uint64]:
+    """Three pseudo-random integers per point, a hash of its coordinates and
+    the walk round: a cycling walk's exit edge depends on the query alone, not
+    on the batch it walks in."""
+    h = np.ascontiguousarray(x).view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    h ^= np.ascontiguousarray(y).view(np.uint64) + np.uint64(rnd)
+    h ^= h >> np.uint64(31)
+    return (h[:, None] * _MIX) >> np.uint64(11)
 
 
 def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
