@@ -32,8 +32,8 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from terrasift.workers.bins import ANCHOR, Grid, lowest_per_bin
 from terrasift.workers.ground.lowpoints import LowPointParams, isolated_low_points
+from terrasift.workers.ground.tin import Tin
 from terrasift.workers.registry import StageParams, register
-from terrasift.workers.surface import triangulate
 
 
 class PtdParams(StageParams):
@@ -362,9 +362,10 @@ class _Tin:
     """The current TIN: triangulation, point location and per-facet planes."""
 
     def __init__(self, verts: NDArray[np.float64]):
-        # find_simplex walks from the last hit: cheap on spatially ordered
-        # queries; triangulate builds the barycentric transforms in numpy.
-        self.tri, self.simplices = triangulate(verts[:, :2])
+        # startinpy's triangulation (Qhull for degenerate input) and a
+        # vectorised walk to locate points: the TIN of ``tin.py``.
+        self.mesh = Tin(verts, origin=np.zeros(2))
+        self.simplices = np.asarray(self.mesh.tri.simplices, dtype=np.int64)
         self.verts = verts
         p = verts[self.simplices]
         normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
@@ -377,7 +378,8 @@ class _Tin:
 
     def locate(self, xy: NDArray[np.float64]) -> NDArray[np.int64]:
         """Facet of each point, -1 outside; fastest when consecutive points are close."""
-        return self.tri.find_simplex(xy)
+        t, _ = self.mesh.locate(np.asarray(xy, dtype=np.float64))
+        return np.where(t >= 0, t, -1)
 
     def distance(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
         """Perpendicular distance of each point to the plane of its facet ``s``."""
