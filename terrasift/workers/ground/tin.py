@@ -2,11 +2,11 @@
 
 ``scipy.spatial.Delaunay.find_simplex`` costs a few microseconds per query
 point, which is the whole throughput budget of the ground stage. ``Tin``
-locates points instead with a vectorised directed walk: a coarse raster of
-triangle ids gives every query a starting triangle within about one triangle
-of it, and each round moves all unfinished queries one step across the edge
-facing them. Walks on a Delaunay triangulation terminate; a handful of rounds
-settle nearly every query.
+locates points instead with a directed walk, compiled with numba: a coarse
+raster of triangle ids gives every query a starting triangle within about
+one triangle of it, and the walk steps across the edge facing the query
+until it is inside. Walks on a Delaunay triangulation terminate; callers
+pass points in cell order, so consecutive queries touch the same triangles.
 
 Triangulations come from startinpy's incremental insertion (``delaunay``),
 several times faster than Qhull on the hundreds of thousands of vertices of a
@@ -17,6 +17,7 @@ coordinates of 5e6 m).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import startinpy
 from numpy.typing import NDArray
@@ -25,7 +26,6 @@ from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
 _GUESS_K = 0.5
-_CHUNK = 1 << 15  # queries per walk batch: its temporaries stay in cache
 _MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
 _SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
@@ -213,7 +213,10 @@ class Tin:
         indptr, indices = self.tri.vertex_neighbor_vertices
         return indptr.astype(np.int64), indices.astype(np.int64)
 
-    def _start_triangles(self, q: NDArray[np.float64]) -> NDArray[np.int64]:
+    def _start_raster(self) -> tuple[float, float, float, int, int, NDArray[np.int64]]:
+        """A coarse raster of triangle ids over the TIN (each cell: the triangle
+        whose centroid falls in it, or the nearest such), built once: a query's
+        walk starts from its cell's triangle, about one triangle away."""
         if self._guess is None:
             simp = self.tri.simplices
             x, y = self.xy[:, 0], self.xy[:, 1]
@@ -233,16 +236,12 @@ class Tin:
             if empty.any():
                 idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
                 raster = raster[idx[0], idx[1]]
-            raster = raster.ravel()
-            self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster)
-        x0, y0, h, nx, ny, raster = self._guess
-        ix = ((q[:, 0] - x0) / h).astype(np.int64)
-        iy = ((q[:, 1] - y0) / h).astype(np.int64)
-        np.clip(ix, 0, nx - 1, out=ix)
-        np.clip(iy, 0, ny - 1, out=iy)
-        iy *= nx
-        iy += ix
-        return raster[iy]
+            self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster.ravel())
+        return self._guess
+
+    def _nbr(self) -> NDArray:
+        """Neighbour triangle opposite each corner, flat (3 per triangle, -1 on the hull)."""
+        return np.ravel(self.tri.neighbors)
 
     def _transform(self) -> NDArray[np.float64]:
         if self._trans is None:
@@ -253,88 +252,42 @@ class Tin:
         """Triangle and barycentric coordinates of local points ``q``.
 
         Points outside the hull get the hull triangle where their walk left
-        the mesh and a triangle index of -(t + 1). Queries walk in chunks of
-        ``_CHUNK`` so that every round's temporaries stay in cache (callers
-        pass spatially ordered points, so a chunk also touches few triangles).
+        the mesh and a triangle index of -(t + 1).
         """
-        n = q.shape[0]
-        trans = self._transform()
-        t = self._start_triangles(q)
-        bary = np.empty((n, 3))
-        for a in range(0, n, _CHUNK):
-            b = min(a + _CHUNK, n)
-            t[a:b], b0, b1 = self._walk(q[a:b], t[a:b], trans)
-            bary[a:b, 0], bary[a:b, 1], bary[a:b, 2] = b0, b1, 1.0 - b0 - b1
-        return t, bary
+        t, b0, b1, _ = self._surface(q, _LOCATE)
+        return t, np.column_stack([b0, b1, 1.0 - b0 - b1])
 
     def _walk(
         self, q: NDArray[np.float64], t: NDArray[np.int64], trans: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-        """Directed walk of all queries ``q`` from start triangles ``t`` (see ``locate``).
+        """Directed walk of every query ``q`` from its start triangle ``t``: the
+        triangles (as ``locate``) and the first two barycentric coordinates."""
+        q = np.ascontiguousarray(q, dtype=np.float64)
+        t = np.array(t, dtype=np.int64)
+        b0 = np.empty(q.shape[0])
+        b1 = np.empty(q.shape[0])
+        _walk_kernel(q, q.view(np.uint64), t, trans, self._nbr(), b0, b1)
+        return t, b0, b1
 
-        Returns the triangles and the first two barycentric coordinates (the
-        third is 1 - b0 - b1). The first round runs on whole arrays; later
-        rounds only on the queries still walking.
-        """
+    def _surface(
+        self, q: NDArray[np.float64], mode: int
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """One compiled pass over the queries ``q``: start triangle, walk and
+        (unless ``mode`` is ``_LOCATE``) height. Returns triangles, the first
+        two barycentric coordinates and heights (see ``_surface_kernel``)."""
+        q = np.ascontiguousarray(q, dtype=np.float64)
         n = q.shape[0]
-        nbr = np.ravel(self.tri.neighbors)
-        t = t.copy()
+        x0, y0, h, nx, ny, raster = self._start_raster()
+        t = np.empty(n, dtype=np.int64)
         b0 = np.empty(n)
         b1 = np.empty(n)
-        active = np.arange(n)
-        qx, qy = q[:, 0], q[:, 1]
-        for rnd in range(_MAX_WALK):
-            if active.size == 0:
-                break
-            first = rnd == 0
-            tt = t if first else t[active]
-            tr = trans[tt]  # one gather of the six transform numbers per query
-            ax, ay = (qx, qy) if first else (qx[active], qy[active])
-            dx = ax - tr[:, 4]
-            dy = ay - tr[:, 5]
-            # In place, same sums: c0 = t0 dx + t1 dy, c1 = t2 dx + t3 dy, c2 = 1 - c0 - c1.
-            c0 = tr[:, 0] * dx
-            c0 += tr[:, 1] * dy
-            c1 = tr[:, 2] * dx
-            c1 += tr[:, 3] * dy
-            c2 = np.subtract(1.0, c0, out=dx)
-            c2 -= c1
-            # Every query keeps the coordinates of its latest triangle: the
-            # one it stops in, or the hull triangle it leaves the mesh from.
-            if first:
-                b0[:], b1[:] = c0, c1
-            else:
-                b0[active], b1[active] = c0, c1
-            # A degenerate sliver gives NaN in all three: never done, and the
-            # query steps on across edge 0.
-            low = np.minimum(c0, c1, out=dy)
-            move = np.flatnonzero(~(np.minimum(low, c2, out=low) >= -1e-10))
-            if move.size == 0:
-                break
-            if rnd >= _MAX_WALK // 2:  # rare cycling walks (round-off near edges): randomise the exit edge
-                bb = np.nan_to_num(np.column_stack([c0, c1, c2]), nan=-1.0)
-                j = np.argmax((bb < -1e-10) * _scramble(ax, ay, rnd), axis=1)[move]
-            else:
-                m0, m1, m2 = c0[move], c1[move], c2[move]
-                # Exit across the most negative coordinate (the first on ties).
-                j = np.where((m0 <= m1) & (m0 <= m2), 0, np.where(m1 <= m2, 1, 2))
-                j[np.isnan(m2)] = 0
-            ta = tt[move]
-            nxt = nbr[3 * ta + j]
-            am = move if first else active[move]
-            out = nxt < 0
-            if out.any():
-                t[am[out]] = -(ta[out] + 1)
-                stay = ~out
-                am, nxt = am[stay], nxt[stay]
-            t[am] = nxt
-            active = am
-        else:
-            if active.size:
-                # Still walking after _MAX_WALK rounds (never seen outside degenerate
-                # input): treat as outside, i.e. nearest corner of the current triangle.
-                t[active] = -(t[active] + 1)
-        return t, b0, b1
+        z = np.empty(n if mode != _LOCATE else 0)
+        zt = self._corner_z() if mode != _LOCATE else np.empty((0, 3))
+        _surface_kernel(
+            q, q.view(np.uint64), x0, y0, h, nx, ny, raster, self._transform(), self._nbr(),
+            zt, self.xy, self.tri.simplices, mode, t, b0, b1, z,
+        )  # fmt: skip
+        return t, b0, b1, z
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Surface height at absolute ``x, y``."""
@@ -348,52 +301,18 @@ class Tin:
     def height_and_slope(
         self, q: NDArray[np.float64], slope: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Surface height and facet slope (rise over run) at local points ``q``, one walk for both.
-
-        Walk and interpolation go chunk by chunk, so the gathers of corner
-        heights hit cache.
-        """
-        n = q.shape[0]
-        trans = self._transform()
-        zt = self._corner_z()
-        slopes = self.facet_slopes() if slope else None
-        out = np.empty(n)
-        sl = np.empty(n) if slope else None
-        for a in range(0, n, _CHUNK):
-            b = min(a + _CHUNK, n)
-            qc = q[a:b]
-            t, b0, b1 = self._walk(qc, self._start_triangles(qc), trans)
-            inside = t >= 0
-            ti = t if inside.all() else np.where(inside, t, -t - 1)
-            zc = zt[ti]
-            h = _interpolate(b0, b1, zc)
-            if not inside.all():
-                # Outside the hull: height of the nearest corner of the exit triangle.
-                o = np.flatnonzero(~inside)
-                d2 = ((self.xy[self.tri.simplices[ti[o]]] - qc[o, None, :]) ** 2).sum(axis=2)
-                h[o] = zc[o, np.argmin(d2, axis=1)]
-            out[a:b] = h
-            if sl is not None:
-                sl[a:b] = slopes[ti]
-        return out, sl
+        """Surface height (the nearest corner of the exit triangle outside the
+        hull) and facet slope (rise over run) at local points ``q``, one walk for both."""
+        t, _, _, h = self._surface(q, _NEAREST)
+        if not slope:
+            return h, None
+        return h, self.facet_slopes()[np.where(t >= 0, t, -t - 1)]
 
     def linear(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Triangle (the exit triangle outside the hull) and height of its plane at
-        local points ``q``: linear extrapolation beyond the hull. Chunked like
-        ``height_and_slope``."""
-        n = q.shape[0]
-        trans = self._transform()
-        zt = self._corner_z()
-        tri = np.empty(n, dtype=np.int64)
-        out = np.empty(n)
-        for a in range(0, n, _CHUNK):
-            b = min(a + _CHUNK, n)
-            qc = q[a:b]
-            t, b0, b1 = self._walk(qc, self._start_triangles(qc), trans)
-            ti = np.where(t >= 0, t, -t - 1)
-            tri[a:b] = ti
-            out[a:b] = _interpolate(b0, b1, zt[ti])
-        return tri, out
+        local points ``q``: linear extrapolation beyond the hull."""
+        t, _, _, h = self._surface(q, _EXTRAPOLATE)
+        return np.where(t >= 0, t, -t - 1), h
 
     def _corner_z(self) -> NDArray[np.float64]:
         # Heights of the three corners of every triangle: one gather per query
@@ -424,14 +343,130 @@ class Tin:
         return self._slopes
 
 
-def _scramble(x: NDArray[np.float64], y: NDArray[np.float64], rnd: int) -> NDArray[np.uint64]:
-    """Three pseudo-random integers per point, a hash of its coordinates and
-    the walk round: a cycling walk's exit edge depends on the query alone, not
-    on the batch it walks in."""
-    h = np.ascontiguousarray(x).view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-    h ^= np.ascontiguousarray(y).view(np.uint64) + np.uint64(rnd)
-    h ^= h >> np.uint64(31)
-    return (h[:, None] * _MIX) >> np.uint64(11)
+_U31 = np.uint64(31)
+_U11 = np.uint64(11)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+_LOCATE, _NEAREST, _EXTRAPOLATE = 0, 1, 2  # modes of _surface_kernel
+
+
+@numba.njit(cache=True, inline="always")
+def _walk_one(
+    qx: float, qy: float, qb: NDArray[np.uint64], tt: int, trans: NDArray[np.float64], nbr: NDArray
+) -> tuple[int, float, float]:
+    """Walk one query from triangle ``tt`` across the edge facing it until it
+    is inside a triangle (returned) or leaves the hull (-(exit triangle + 1)),
+    with its first two coordinates in the last triangle.
+
+    The exit edge is the most negative coordinate (the first on ties; edge 0
+    for a degenerate sliver, whose coordinates are NaN). After half of
+    ``_MAX_WALK`` steps, a walk that still goes on is cycling on round-off near
+    an edge: its exit edge becomes a pseudo-random negative one, a hash of
+    the query (bits ``qb``) and the step, so it depends on the query alone.
+    """
+    c0 = c1 = np.nan
+    for step in range(_MAX_WALK):
+        dx = qx - trans[tt, 4]
+        dy = qy - trans[tt, 5]
+        c0 = trans[tt, 0] * dx + trans[tt, 1] * dy
+        c1 = trans[tt, 2] * dx + trans[tt, 3] * dy
+        c2 = 1.0 - c0 - c1
+        if c0 >= -1e-10 and c1 >= -1e-10 and c2 >= -1e-10:
+            return tt, c0, c1
+        if step >= _MAX_WALK // 2:
+            h = qb[0] * _GOLDEN
+            h ^= qb[1] + np.uint64(step)
+            h ^= h >> _U31
+            j = 0
+            best = np.uint64(0)
+            for k, c in enumerate((c0, c1, c2)):
+                if c < -1e-10 or np.isnan(c):
+                    v = (h * _MIX[k]) >> _U11
+                    if v > best:
+                        best = v
+                        j = k
+        elif np.isnan(c2):
+            j = 0
+        elif c0 <= c1 and c0 <= c2:
+            j = 0
+        elif c1 <= c2:
+            j = 1
+        else:
+            j = 2
+        nxt = nbr[3 * tt + j]
+        if nxt < 0:
+            return -(tt + 1), c0, c1
+        tt = nxt
+    return -(tt + 1), c0, c1  # still walking (never seen outside degenerate input): outside
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk_kernel(
+    q: NDArray[np.float64],
+    qbits: NDArray[np.uint64],
+    t: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+) -> None:
+    """``_walk_one`` for every query from its start triangle ``t[i]``, in place."""
+    for i in range(q.shape[0]):
+        t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], qbits[i], t[i], trans, nbr)
+
+
+@numba.njit(cache=True, nogil=True)
+def _surface_kernel(
+    q: NDArray[np.float64],
+    qbits: NDArray[np.uint64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    raster: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    zt: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    simplices: NDArray,
+    mode: int,
+    t: NDArray[np.int64],
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+    z: NDArray[np.float64],
+) -> None:
+    """Locate every query (start triangle from the raster, then ``_walk_one``)
+    and, by ``mode``, interpolate the corner heights ``zt``: outside the hull
+    either the height of the nearest corner of the exit triangle
+    (``_NEAREST``) or the plane of that triangle (``_EXTRAPOLATE``)."""
+    for i in range(q.shape[0]):
+        qx = q[i, 0]
+        qy = q[i, 1]
+        ix = min(max(int((qx - x0) / cell), 0), nx - 1)
+        iy = min(max(int((qy - y0) / cell), 0), ny - 1)
+        tt, c0, c1 = _walk_one(qx, qy, qbits[i], raster[iy * nx + ix], trans, nbr)
+        t[i] = tt
+        b0[i] = c0
+        b1[i] = c1
+        if mode == _LOCATE:
+            continue
+        if tt < 0 and mode == _NEAREST:
+            ti = -tt - 1
+            best = np.inf
+            for k in range(3):
+                v = simplices[ti, k]
+                ddx = xy[v, 0] - qx
+                ddy = xy[v, 1] - qy
+                d2 = ddx * ddx + ddy * ddy
+                if d2 < best:
+                    best = d2
+                    z[i] = zt[ti, k]
+            continue
+        ti = tt if tt >= 0 else -tt - 1
+        # Summed as _interpolate does, so heights match it to the bit.
+        z[i] = c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
 
 
 def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
