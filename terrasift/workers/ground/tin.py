@@ -27,7 +27,7 @@ from scipy.spatial import Delaunay, QhullError
 _MAX_WALK = 128
 _GUESS_K = 0.5
 _MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
-_SORT_WIDTH = 64  # widest neighbour list sorted in padded rows
+_SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's sort)
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
 
@@ -254,7 +254,7 @@ class Tin:
         Points outside the hull get the hull triangle where their walk left
         the mesh and a triangle index of -(t + 1).
         """
-        t, b0, b1, _ = self._surface(q, _LOCATE)
+        t, b0, b1 = self._located(q, _LOCATE)
         return t, np.column_stack([b0, b1, 1.0 - b0 - b1])
 
     def _walk(
@@ -269,25 +269,28 @@ class Tin:
         _walk_kernel(q, q.view(np.uint64), t, trans, self._nbr(), b0, b1)
         return t, b0, b1
 
-    def _surface(
-        self, q: NDArray[np.float64], mode: int
-    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """One compiled pass over the queries ``q``: start triangle, walk and
-        (unless ``mode`` is ``_LOCATE``) height. Returns triangles, the first
-        two barycentric coordinates and heights (see ``_surface_kernel``)."""
+    def _located(self, q: NDArray[np.float64], mode: int, want_slope: bool = False) -> tuple[NDArray, ...]:
+        """One compiled pass over the local points ``q`` (see ``_surface_kernel``):
+        triangles and the first two barycentric coordinates (``_LOCATE``), or
+        heights, facet slopes (if ``want_slope``) and exit triangles (``_EXTRAPOLATE``)."""
         q = np.ascontiguousarray(q, dtype=np.float64)
         n = q.shape[0]
         x0, y0, h, nx, ny, raster = self._start_raster()
-        t = np.empty(n, dtype=np.int64)
-        b0 = np.empty(n)
-        b1 = np.empty(n)
-        z = np.empty(n if mode != _LOCATE else 0)
-        zt = self._corner_z() if mode != _LOCATE else np.empty((0, 3))
+        locate = mode == _LOCATE
+        t = np.empty(n if mode != _NEAREST else 0, dtype=np.int64)
+        b0 = np.empty(n if locate else 0)
+        b1 = np.empty(n if locate else 0)
+        z = np.empty(0 if locate else n)
+        slopes = self.facet_slopes() if want_slope else np.empty(0)
+        sl = np.empty(n if want_slope else 0)
+        zt = np.empty((0, 3)) if locate else self._corner_z()
         _surface_kernel(
             q, q.view(np.uint64), x0, y0, h, nx, ny, raster, self._transform(), self._nbr(),
-            zt, self.xy, self.tri.simplices, mode, t, b0, b1, z,
+            zt, self.xy, self.tri.simplices, slopes, mode, t, b0, b1, z, sl,
         )  # fmt: skip
-        return t, b0, b1, z
+        if locate:
+            return t, b0, b1
+        return t, z, sl
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Surface height at absolute ``x, y``."""
@@ -303,16 +306,14 @@ class Tin:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Surface height (the nearest corner of the exit triangle outside the
         hull) and facet slope (rise over run) at local points ``q``, one walk for both."""
-        t, _, _, h = self._surface(q, _NEAREST)
-        if not slope:
-            return h, None
-        return h, self.facet_slopes()[np.where(t >= 0, t, -t - 1)]
+        _, h, sl = self._located(q, _NEAREST, slope)
+        return h, sl if slope else None
 
     def linear(self, q: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Triangle (the exit triangle outside the hull) and height of its plane at
         local points ``q``: linear extrapolation beyond the hull."""
-        t, _, _, h = self._surface(q, _EXTRAPOLATE)
-        return np.where(t >= 0, t, -t - 1), h
+        t, h, _ = self._located(q, _EXTRAPOLATE)
+        return t, h
 
     def _corner_z(self) -> NDArray[np.float64]:
         # Heights of the three corners of every triangle: one gather per query
@@ -431,29 +432,40 @@ def _surface_kernel(
     zt: NDArray[np.float64],
     xy: NDArray[np.float64],
     simplices: NDArray,
+    slopes: NDArray[np.float64],
     mode: int,
     t: NDArray[np.int64],
     b0: NDArray[np.float64],
     b1: NDArray[np.float64],
     z: NDArray[np.float64],
+    sl: NDArray[np.float64],
 ) -> None:
-    """Locate every query (start triangle from the raster, then ``_walk_one``)
-    and, by ``mode``, interpolate the corner heights ``zt``: outside the hull
-    either the height of the nearest corner of the exit triangle
-    (``_NEAREST``) or the plane of that triangle (``_EXTRAPOLATE``)."""
+    """Locate every query (start triangle from the raster, then ``_walk_one``).
+
+    ``_LOCATE``: ``t`` gets the triangle (-(exit triangle + 1) outside the
+    hull) and ``b0, b1`` the coordinates. Otherwise ``z`` gets the height of
+    the corner heights ``zt`` interpolated; outside the hull the height of the
+    nearest corner of the exit triangle (``_NEAREST``) or of its plane
+    (``_EXTRAPOLATE``, ``t`` = exit triangle). ``sl``, when sized, gets the
+    facet's ``slopes``.
+    """
     for i in range(q.shape[0]):
         qx = q[i, 0]
         qy = q[i, 1]
         ix = min(max(int((qx - x0) / cell), 0), nx - 1)
         iy = min(max(int((qy - y0) / cell), 0), ny - 1)
         tt, c0, c1 = _walk_one(qx, qy, qbits[i], raster[iy * nx + ix], trans, nbr)
-        t[i] = tt
-        b0[i] = c0
-        b1[i] = c1
         if mode == _LOCATE:
+            t[i] = tt
+            b0[i] = c0
+            b1[i] = c1
             continue
-        if tt < 0 and mode == _NEAREST:
-            ti = -tt - 1
+        ti = tt if tt >= 0 else -tt - 1
+        if sl.size:
+            sl[i] = slopes[ti]
+        if mode == _EXTRAPOLATE:
+            t[i] = ti
+        elif tt < 0:
             best = np.inf
             for k in range(3):
                 v = simplices[ti, k]
@@ -464,8 +476,7 @@ def _surface_kernel(
                     best = d2
                     z[i] = zt[ti, k]
             continue
-        ti = tt if tt >= 0 else -tt - 1
-        # Summed as _interpolate does, so heights match it to the bit.
+        # Summed as numpy's einsum sums b · zt: b0·z0, then b2·z2, then b1·z1.
         z[i] = c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
 
 
@@ -479,15 +490,6 @@ def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
         inv = 1.0 / det
     inv[~np.isfinite(inv)] = np.nan
     return np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
-
-
-def _interpolate(b0: NDArray[np.float64], b1: NDArray[np.float64], zc: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Barycentric interpolation of corner heights ``zc`` (n, 3), summed as
-    numpy's ``einsum`` does, so heights match it to the bit."""
-    h = b0 * zc[:, 0]
-    h += (1.0 - b0 - b1) * zc[:, 2]
-    h += b1 * zc[:, 1]
-    return h
 
 
 def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -590,52 +592,52 @@ class Mesh:
     @property
     def vertex_neighbor_vertices(self) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         if self._vnv is None:
-            s = self.simplices
-            a = s[:, [1, 2, 0]].ravel()
-            b = s[:, [2, 0, 1]].ravel()
-            nb = self.neighbors.ravel()
-            tri_id = np.repeat(np.arange(s.shape[0]), 3)
-            once = (nb < 0) | (tri_id < nb)  # each undirected edge once
-            a, b = a[once], b[once]
-            # CSR by a counting sort (sparse's coo -> csr), no comparison sort.
-            g = sparse.coo_matrix(
-                (np.ones(2 * a.size, dtype=np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
-                shape=(self._n, self._n),
-            ).tocsr()
-            self._vnv = (g.indptr.astype(np.int32), g.indices.astype(np.int32))
+            self._vnv = _adjacency(np.asarray(self.simplices), np.asarray(self.neighbors), self._n)
         return self._vnv
 
 
-def neighbour_order_stats(
-    indptr: NDArray[np.int64], values: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Median and second-lowest of the per-edge ``values`` of every vertex (CSR order).
+@numba.njit(cache=True, nogil=True)
+def _adjacency(simplices: NDArray, neighbors: NDArray, n: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """CSR adjacency (indptr, indices) of the vertices of a mesh, each row in
+    ascending order, as scipy's ``vertex_neighbor_vertices``: every undirected
+    edge taken once (from the lower triangle id, or the hull), counted, then
+    placed."""
+    m = simplices.shape[0]
+    deg = np.zeros(n + 1, dtype=np.int32)
+    for t in range(m):
+        for j in range(3):
+            nb = neighbors[t, j]
+            if nb < 0 or t < nb:
+                deg[simplices[t, (j + 1) % 3] + 1] += 1
+                deg[simplices[t, (j + 2) % 3] + 1] += 1
+    indptr = np.cumsum(deg).astype(np.int32)
+    fill = indptr[:-1].copy()
+    indices = np.empty(indptr[n], dtype=np.int32)
+    for t in range(m):
+        for j in range(3):
+            nb = neighbors[t, j]
+            if nb < 0 or t < nb:
+                a = simplices[t, (j + 1) % 3]
+                b = simplices[t, (j + 2) % 3]
+                indices[fill[a]] = b
+                fill[a] += 1
+                indices[fill[b]] = a
+                fill[b] += 1
+    for v in range(n):
+        _insertion_sort(indices[indptr[v] : indptr[v + 1]])
+    return indptr, indices
 
-    Vertices without neighbours get NaN. The ragged lists are padded with NaN
-    (sorted last, as NaN values are) into rows of the largest degree and sorted
-    row by row: short rows sort far faster than one global sort of (vertex,
-    value) pairs, which is kept for the rare TIN with a vertex of huge degree.
-    """
-    nv = indptr.size - 1
-    deg = np.diff(indptr)
-    has = deg > 0
-    width = int(deg.max()) if nv else 0
-    if width <= _SORT_WIDTH:
-        col = np.arange(values.size) - np.repeat(indptr[:-1], deg)
-        rows = np.full((nv, max(width, 1)), np.nan)
-        rows[np.repeat(np.arange(nv), deg), col] = values
-        rows.sort(axis=1)
-        zs, start = rows.ravel(), np.arange(nv) * rows.shape[1]
-    else:
-        owner = np.repeat(np.arange(nv), deg)
-        zs, start = values[np.lexsort((values, owner))], indptr[:-1]
-    med = np.full(nv, np.nan)
-    lo = start[has] + (deg[has] - 1) // 2
-    hi = start[has] + deg[has] // 2
-    med[has] = 0.5 * (zs[lo] + zs[hi])
-    second = np.full(nv, np.nan)
-    second[has] = zs[start[has] + np.minimum(1, deg[has] - 1)]
-    return med, second
+
+@numba.njit(cache=True, inline="always")
+def _insertion_sort(a: NDArray) -> None:
+    """Sort the short array ``a`` in place (a vertex's neighbours: about six)."""
+    for i in range(1, a.size):
+        v = a[i]
+        k = i - 1
+        while k >= 0 and a[k] > v:
+            a[k + 1] = a[k]
+            k -= 1
+        a[k + 1] = v
 
 
 def screen(
@@ -718,36 +720,65 @@ def _judge(
     Neighbour votes are gathered for the ``test`` vertices only: after the
     first round they are the few around the last deletions.
     """
-    deg = np.diff(indptr)
-    if test.size == ids.size:
-        ptr, nbr, owner = indptr, indices, np.repeat(np.arange(ids.size), deg)
-    else:
-        dt = deg[test]
-        ptr = np.zeros(test.size + 1, dtype=np.int64)
-        np.cumsum(dt, out=ptr[1:])
-        nbr = indices[np.repeat(indptr[test] - ptr[:-1], dt) + np.arange(ptr[-1])]
-        owner = np.repeat(test, dt)
-    votes = tin.z[nbr]
-    pit_votes = votes
-    if slopes is not None:
-        sl = slopes[ids]
-        d = tin.xy[owner] - tin.xy[nbr]
-        # Trapezoid rule: the mean of both ends' slopes is exact on any
-        # quadratic surface, so curved hills are not taken for objects.
-        gx = 0.5 * (sl[nbr, 0] + sl[owner, 0])
-        gy = 0.5 * (sl[nbr, 1] + sl[owner, 1])
-        votes = votes + gx * d[:, 0] + gy * d[:, 1]
-        pit_votes = pit_votes + sl[nbr, 0] * d[:, 0] + sl[nbr, 1] * d[:, 1]
-    med, _ = neighbour_order_stats(ptr, votes)
-    # Pits are judged on the neighbours' own planes only: the plane of the
-    # vertex's bin, tilted by the outlier itself, would vouch for it.
-    _, second = neighbour_order_stats(ptr, pit_votes)
-    if test.size == ids.size:
-        med, second = med[test], second[test]
     bad = np.zeros(ids.size, dtype=bool)
-    with np.errstate(invalid="ignore"):
-        b = tin.z[test] - med > screen_tol
-        if low_tol > 0:
-            b |= second - tin.z[test] > low_tol
-    bad[test] = b
+    sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes[ids], dtype=np.float64)
+    _judge_kernel(indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, bad)
     return bad
+
+
+@numba.njit(cache=True, nogil=True)
+def _judge_kernel(
+    indptr: NDArray,
+    indices: NDArray,
+    test: NDArray[np.int64],
+    z: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    sl: NDArray[np.float64],
+    screen_tol: float,
+    low_tol: float,
+    bad: NDArray[np.bool_],
+) -> None:
+    """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
+    median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
+    the second lowest of their pit votes (see ``screen``).
+
+    With slopes ``sl`` (one row per vertex; none: zero rows), a neighbour u
+    votes z_u + g·(v - u) with g the mean of both ends' slopes (the
+    trapezoid rule: exact on any quadratic surface, so curved hills are not
+    taken for objects), and its pit vote uses u's own slope alone: the plane
+    of v's bin, tilted by an outlier at v, would vouch for it.
+    """
+    with_slopes = sl.shape[0] > 0
+    width = 0
+    for v in test:
+        width = max(width, indptr[v + 1] - indptr[v])
+    votes = np.empty(width)
+    pits = np.empty(width)
+    for v in test:
+        a = indptr[v]
+        deg = indptr[v + 1] - a
+        if deg == 0:
+            continue
+        for k in range(deg):
+            u = indices[a + k]
+            zu = z[u]
+            if with_slopes:
+                d0 = xy[v, 0] - xy[u, 0]
+                d1 = xy[v, 1] - xy[u, 1]
+                votes[k] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
+                pits[k] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
+            else:
+                votes[k] = zu
+                pits[k] = zu
+        vs = votes[:deg]
+        ps = pits[:deg]
+        if deg <= _SORT_WIDTH:
+            _insertion_sort(vs)
+            _insertion_sort(ps)
+        else:
+            vs.sort()
+            ps.sort()
+        med = 0.5 * (vs[(deg - 1) // 2] + vs[deg // 2])
+        second = ps[min(1, deg - 1)]
+        zv = z[v]
+        bad[v] = zv - med > screen_tol or (low_tol > 0 and second - zv > low_tol)
