@@ -21,7 +21,7 @@ import numba
 import numpy as np
 import startinpy
 from numpy.typing import NDArray
-from scipy import ndimage, sparse
+from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError
 
 _MAX_WALK = 128
@@ -492,6 +492,56 @@ def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
     return np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
 
 
+@numba.njit(cache=True, nogil=True)
+def _edge_neighbours(simplices: NDArray, n: int) -> tuple[NDArray[np.int32], int, int]:
+    """Neighbour triangle opposite each corner of ``simplices`` (-1 on the hull),
+    the number of hull edges and the number of vertices in a triangle.
+
+    Directed edges are bucketed by their start vertex (a counting sort); the
+    edge opposite corner j runs from corner j + 1 to corner j + 2, and its
+    neighbour holds the reversed edge. A directed edge found twice gives a
+    hull count of -1.
+    """
+    m = simplices.shape[0]
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    for t in range(m):
+        for j in range(3):
+            ptr[simplices[t, (j + 1) % 3] + 1] += 1
+    for v in range(n):
+        ptr[v + 1] += ptr[v]
+    fill = ptr[:-1].copy()
+    to = np.empty(3 * m, dtype=np.int64)
+    edge = np.empty(3 * m, dtype=np.int64)
+    for t in range(m):
+        for j in range(3):
+            a = simplices[t, (j + 1) % 3]
+            k = fill[a]
+            to[k] = simplices[t, (j + 2) % 3]
+            edge[k] = 3 * t + j
+            fill[a] += 1
+    nb = np.full((m, 3), -1, dtype=np.int32)
+    vertices = 0
+    for v in range(n):
+        if ptr[v + 1] > ptr[v]:
+            vertices += 1
+        for i in range(ptr[v], ptr[v + 1]):
+            for k in range(i + 1, ptr[v + 1]):
+                if to[i] == to[k]:
+                    return nb, -1, vertices
+    hull = 0
+    for t in range(m):
+        for j in range(3):
+            a = simplices[t, (j + 1) % 3]
+            b = simplices[t, (j + 2) % 3]
+            for k in range(ptr[b], ptr[b + 1]):
+                if to[k] == a:
+                    nb[t, j] = edge[k] // 3
+                    break
+            else:
+                hull += 1
+    return nb, hull, vertices
+
+
 def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
     """Unsigned area of the triangles ``s``."""
     a = xy[s[:, 1]] - xy[s[:, 0]]
@@ -515,22 +565,14 @@ class Mesh:
         """The mesh of counter-clockwise triangles ``simplices`` over ``n`` vertices,
         or None unless it is a triangulated disc using ``used`` of them.
 
-        Neighbours by one sparse lookup: the triangle across edge (a, b) is the one
-        holding the reversed edge (b, a); a CSR matrix of edge ids over (from, to)
-        vertices finds them all (a counting sort and short row scans, no comparison sort).
+        The triangle across edge (a, b) is the one holding the reversed edge
+        (b, a), found among the few edges leaving b (``_edge_neighbours``).
         """
         m = simplices.shape[0]
-        a = simplices[:, [1, 2, 0]].ravel()  # edge opposite corner j runs from corner j+1 to j+2
-        b = simplices[:, [2, 0, 1]].ravel()
-        edge = sparse.csr_matrix((np.arange(1, 3 * m + 1, dtype=np.int64), (a, b)), shape=(n, n))
-        if edge.nnz != 3 * m:
-            return None  # a directed edge twice: overlap or mixed orientation
-        across = np.asarray(edge[b, a]).ravel()
-        nb = (across - 1) // 3
-        hull = int(np.count_nonzero(across == 0))
-        if m != 2 * used - 2 - hull or np.count_nonzero(np.bincount(a, minlength=n)) != used:
-            return None
-        return cls(simplices, nb.reshape(m, 3).astype(np.int32), n)
+        nb, hull, vertices = _edge_neighbours(np.ascontiguousarray(simplices), n)
+        if hull < 0 or m != 2 * used - 2 - hull or vertices != used:
+            return None  # hull < 0: a directed edge twice (overlap or mixed orientation)
+        return cls(simplices, nb, n)
 
     @classmethod
     def patched(
