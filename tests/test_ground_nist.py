@@ -22,6 +22,9 @@ from terrasift.workers.ground.masking import mask_points, partial_tin
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import (
+    ABOVE,
+    BELOW,
+    IN_BAND,
     Mesh,
     Tin,
     _transforms,
@@ -433,3 +436,21 @@ def test_scattered_points_are_inserted_in_hilbert_order_and_coherent_ones_as_giv
     order = tin_module._insertion_order(xy)
     assert np.array_equal(order, np.argsort(hilbert_key(xy), kind="stable"))
     assert _triangle_set(delaunay(xy).simplices) == _triangle_set(Delaunay(xy).simplices)
+
+
+def test_band_codes_agree_with_heights_and_slopes():
+    rng = np.random.default_rng(21)
+    xy = rng.uniform(0, 40, (2000, 2))
+    tin = Tin(np.column_stack([xy, 0.3 * xy[:, 0] + rng.normal(0, 0.5, 2000)]))
+    pts = np.column_stack([rng.uniform(-5, 45, (30000, 2)), rng.uniform(-3, 15, 30000)])
+    h, slope = tin.height_and_slope(pts[:, :2] - tin.origin)
+    r = pts[:, 2] - h
+    for up, down, gain, cap in [(0.5, 1.0, 0.0, np.inf), (0.3, 0.2, 0.8, 0.6), (0.4, np.inf, 2.0, 1.0)]:
+        allow = gain * np.minimum(slope, cap)
+        code = tin.band(pts, up, down, gain, cap)
+        above = r > up + allow
+        inside = ~above & (r >= -(down + allow))
+        assert np.array_equal(code == ABOVE, above)
+        assert np.array_equal(code == IN_BAND, inside)
+        assert np.array_equal(code == BELOW, ~above & ~inside)
+        assert above.any() and inside.any()

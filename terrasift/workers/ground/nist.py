@@ -84,7 +84,7 @@ from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
-from terrasift.workers.ground.tin import Tin, screen
+from terrasift.workers.ground.tin import ABOVE, IN_BAND, Tin, screen
 from terrasift.workers.registry import StageParams, register
 
 #: why a bin was not accepted
@@ -132,7 +132,9 @@ class NistParams(StageParams):
     mow_slope: float = Field(0.5, ge=0, le=10)
     """Mowing tolerance grows by this × local surface slope × the pass's bin size."""
     slope_cap: float = Field(1.0, ge=0, le=10)
-    """Slope allowances (mowing, labels) use min(facet slope, slope_cap)."""
+    """Slope allowances (mowing, labels) use min(facet slope, slope_cap): facets
+    steeper than that span walls or crown edges, not terrain, and an uncapped
+    allowance there lets mowing keep roofs and the surface climb."""
     repeats: int = Field(1, ge=0, le=10)
     """Extra mow (mow_tol_2) → bin (cell_3) → mesh/screen rounds against the last surface."""
     ground_tol: float = Field(0.3, gt=0, le=10)
@@ -358,12 +360,6 @@ class _TooSparse(Exception):
     """Fewer than three ground candidates: no surface can be meshed."""
 
 
-def _capped(slope: NDArray[np.float64], params: NistParams) -> NDArray[np.float64]:
-    # Facets steeper than slope_cap span walls or crown edges, not terrain:
-    # an uncapped allowance there lets mowing keep roofs and the surface climb.
-    return np.minimum(slope, params.slope_cap)
-
-
 def _cell_of(g: Grid | ConcentricGrid) -> float:
     return float(np.median(g.cell)) if isinstance(g, ConcentricGrid) else g.cell
 
@@ -373,12 +369,11 @@ def _mow(tin: Tin, xyz: NDArray[np.float64], tol: float, cell: float, params: Ni
 
     The tolerance is ``tol`` plus ``mow_slope`` × facet slope × bin size: a
     TIN through vertices one bin apart cuts convex slope breaks by up to the
-    slope change times half the spacing, and steep facets flag where that happens.
+    slope change times half the spacing, and steep facets flag where that happens
+    (slope capped at ``slope_cap``).
     """
-    h, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.mow_slope > 0)
-    h = xyz[:, 2] - h
-    limit = tol if slope is None else tol + params.mow_slope * cell * _capped(slope, params)
-    return np.flatnonzero(h <= limit)
+    code = tin.band(xyz, tol, np.inf, params.mow_slope * cell, params.slope_cap)
+    return np.flatnonzero(code == IN_BAND)
 
 
 @register("ground.nist", NistParams, "NIST select/reject, TIN masking, meshing, screening, mowing")
@@ -477,16 +472,8 @@ def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np
 
 def _band(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Points in the ground band of ``tin`` (see ``_label``), and points above it."""
-    surf, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.ground_slope > 0)
-    h = xyz[:, 2] - surf
-    tol_up: NDArray | float = params.ground_tol
-    tol_down: NDArray | float = params.ground_tol_below
-    if slope is not None:
-        slope = _capped(slope, params)
-        tol_up = tol_up + params.ground_slope * slope
-        tol_down = tol_down + params.ground_slope * slope
-    above = h > tol_up
-    return ~above & (h >= -tol_down), above
+    code = tin.band(xyz, params.ground_tol, params.ground_tol_below, params.ground_slope, params.slope_cap)
+    return code == IN_BAND, code == ABOVE
 
 
 def _without_raised(

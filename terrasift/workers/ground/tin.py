@@ -266,16 +266,19 @@ class Tin:
         t = np.array(t, dtype=np.int64)
         b0 = np.empty(q.shape[0])
         b1 = np.empty(q.shape[0])
-        _walk_kernel(q, q.view(np.uint64), t, trans, self._nbr(), b0, b1)
+        _walk_kernel(q, t, trans, self._nbr(), b0, b1)
         return t, b0, b1
+
+    def _mesh_args(self) -> tuple:
+        """The arrays every compiled location pass reads."""
+        x0, y0, h, nx, ny, raster = self._start_raster()
+        return x0, y0, h, nx, ny, raster, self._transform(), self._nbr()
 
     def _located(self, q: NDArray[np.float64], mode: int, want_slope: bool = False) -> tuple[NDArray, ...]:
         """One compiled pass over the local points ``q`` (see ``_surface_kernel``):
         triangles and the first two barycentric coordinates (``_LOCATE``), or
-        heights, facet slopes (if ``want_slope``) and exit triangles (``_EXTRAPOLATE``)."""
-        q = np.ascontiguousarray(q, dtype=np.float64)
+        triangles, heights and facet slopes (if ``want_slope``)."""
         n = q.shape[0]
-        x0, y0, h, nx, ny, raster = self._start_raster()
         locate = mode == _LOCATE
         t = np.empty(n if mode != _NEAREST else 0, dtype=np.int64)
         b0 = np.empty(n if locate else 0)
@@ -285,12 +288,29 @@ class Tin:
         sl = np.empty(n if want_slope else 0)
         zt = np.empty((0, 3)) if locate else self._corner_z()
         _surface_kernel(
-            q, q.view(np.uint64), x0, y0, h, nx, ny, raster, self._transform(), self._nbr(),
+            np.asarray(q, dtype=np.float64), 0.0, 0.0, *self._mesh_args(),
             zt, self.xy, self.tri.simplices, slopes, mode, t, b0, b1, z, sl,
         )  # fmt: skip
         if locate:
             return t, b0, b1
         return t, z, sl
+
+    def band(
+        self, xyz: NDArray[np.float64], up: float, down: float, gain: float = 0.0, cap: float = np.inf
+    ) -> NDArray[np.int8]:
+        """Where each point of ``xyz`` (absolute coordinates) lies against the surface:
+        ``ABOVE`` more than ``up`` over it, ``IN_BAND`` down to ``down`` under it,
+        else ``BELOW``; both tolerances grow by ``gain`` × facet slope (capped at
+        ``cap``) when ``gain`` > 0. Heights as ``height_and_slope``; one compiled
+        pass, no per-point arrays but the codes."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        code = np.empty(xyz.shape[0], dtype=np.int8)
+        slopes = self.facet_slopes() if gain > 0 else np.empty(0)
+        _band_kernel(
+            xyz, float(self.origin[0]), float(self.origin[1]), *self._mesh_args(),
+            self._corner_z(), self.xy, self.tri.simplices, slopes, up, down, gain, cap, code,
+        )  # fmt: skip
+        return code
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """Surface height at absolute ``x, y``."""
@@ -347,15 +367,19 @@ class Tin:
 _U31 = np.uint64(31)
 _U11 = np.uint64(11)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-
-
 _LOCATE, _NEAREST, _EXTRAPOLATE = 0, 1, 2  # modes of _surface_kernel
+IN_BAND, ABOVE, BELOW = 0, 1, 2  # codes of Tin.band
 
 
 @numba.njit(cache=True, inline="always")
-def _walk_one(
-    qx: float, qy: float, qb: NDArray[np.uint64], tt: int, trans: NDArray[np.float64], nbr: NDArray
-) -> tuple[int, float, float]:
+def _bits(v: float) -> np.uint64:
+    b = np.empty(1)
+    b[0] = v
+    return b.view(np.uint64)[0]
+
+
+@numba.njit(cache=True, inline="always")
+def _walk_one(qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: NDArray) -> tuple[int, float, float]:
     """Walk one query from triangle ``tt`` across the edge facing it until it
     is inside a triangle (returned) or leaves the hull (-(exit triangle + 1)),
     with its first two coordinates in the last triangle.
@@ -364,7 +388,7 @@ def _walk_one(
     for a degenerate sliver, whose coordinates are NaN). After half of
     ``_MAX_WALK`` steps, a walk that still goes on is cycling on round-off near
     an edge: its exit edge becomes a pseudo-random negative one, a hash of
-    the query (bits ``qb``) and the step, so it depends on the query alone.
+    the query's coordinates and the step, so it depends on the query alone.
     """
     c0 = c1 = np.nan
     for step in range(_MAX_WALK):
@@ -376,8 +400,8 @@ def _walk_one(
         if c0 >= -1e-10 and c1 >= -1e-10 and c2 >= -1e-10:
             return tt, c0, c1
         if step >= _MAX_WALK // 2:
-            h = qb[0] * _GOLDEN
-            h ^= qb[1] + np.uint64(step)
+            h = _bits(qx) * _GOLDEN
+            h ^= _bits(qy) + np.uint64(step)
             h ^= h >> _U31
             j = 0
             best = np.uint64(0)
@@ -402,10 +426,41 @@ def _walk_one(
     return -(tt + 1), c0, c1  # still walking (never seen outside degenerate input): outside
 
 
+@numba.njit(cache=True, inline="always")
+def _start(qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny: int, raster: NDArray) -> int:
+    """The start triangle of a query: its cell of the raster of ``Tin._start_raster``."""
+    ix = min(max(int((qx - x0) / cell), 0), nx - 1)
+    iy = min(max(int((qy - y0) / cell), 0), ny - 1)
+    return raster[iy * nx + ix]
+
+
+@numba.njit(cache=True, inline="always")
+def _height(
+    tt: int, c0: float, c1: float, qx: float, qy: float, zt: NDArray, xy: NDArray, simplices: NDArray, nearest: bool
+) -> float:
+    """Height at a located query: the corner heights ``zt`` of its triangle
+    interpolated, or outside the hull (``tt`` < 0) with ``nearest`` the height
+    of the exit triangle's nearest corner, else its plane's."""
+    ti = tt if tt >= 0 else -tt - 1
+    if tt < 0 and nearest:
+        best = np.inf
+        z = np.nan
+        for k in range(3):
+            v = simplices[ti, k]
+            dx = xy[v, 0] - qx
+            dy = xy[v, 1] - qy
+            d2 = dx * dx + dy * dy
+            if d2 < best:
+                best = d2
+                z = zt[ti, k]
+        return z
+    # Summed as numpy's einsum sums b · zt: b0·z0, then b2·z2, then b1·z1.
+    return c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
+
+
 @numba.njit(cache=True, nogil=True)
 def _walk_kernel(
     q: NDArray[np.float64],
-    qbits: NDArray[np.uint64],
     t: NDArray[np.int64],
     trans: NDArray[np.float64],
     nbr: NDArray,
@@ -414,13 +469,14 @@ def _walk_kernel(
 ) -> None:
     """``_walk_one`` for every query from its start triangle ``t[i]``, in place."""
     for i in range(q.shape[0]):
-        t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], qbits[i], t[i], trans, nbr)
+        t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], t[i], trans, nbr)
 
 
 @numba.njit(cache=True, nogil=True)
 def _surface_kernel(
-    q: NDArray[np.float64],
-    qbits: NDArray[np.uint64],
+    pts: NDArray[np.float64],
+    ox: float,
+    oy: float,
     x0: float,
     y0: float,
     cell: float,
@@ -440,44 +496,69 @@ def _surface_kernel(
     z: NDArray[np.float64],
     sl: NDArray[np.float64],
 ) -> None:
-    """Locate every query (start triangle from the raster, then ``_walk_one``).
+    """Locate every query ``pts[i, :2] - (ox, oy)``.
 
     ``_LOCATE``: ``t`` gets the triangle (-(exit triangle + 1) outside the
-    hull) and ``b0, b1`` the coordinates. Otherwise ``z`` gets the height of
-    the corner heights ``zt`` interpolated; outside the hull the height of the
-    nearest corner of the exit triangle (``_NEAREST``) or of its plane
-    (``_EXTRAPOLATE``, ``t`` = exit triangle). ``sl``, when sized, gets the
-    facet's ``slopes``.
+    hull) and ``b0, b1`` the coordinates. Otherwise ``z`` gets the height
+    (``_height``; ``_NEAREST`` or ``_EXTRAPOLATE`` outside the hull, where
+    ``_EXTRAPOLATE`` also gives ``t`` = exit triangle), and ``sl``, when
+    sized, the facet's ``slopes``.
     """
-    for i in range(q.shape[0]):
-        qx = q[i, 0]
-        qy = q[i, 1]
-        ix = min(max(int((qx - x0) / cell), 0), nx - 1)
-        iy = min(max(int((qy - y0) / cell), 0), ny - 1)
-        tt, c0, c1 = _walk_one(qx, qy, qbits[i], raster[iy * nx + ix], trans, nbr)
+    for i in range(pts.shape[0]):
+        qx = pts[i, 0] - ox
+        qy = pts[i, 1] - oy
+        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
         if mode == _LOCATE:
             t[i] = tt
             b0[i] = c0
             b1[i] = c1
             continue
         ti = tt if tt >= 0 else -tt - 1
-        if sl.size:
-            sl[i] = slopes[ti]
         if mode == _EXTRAPOLATE:
             t[i] = ti
-        elif tt < 0:
-            best = np.inf
-            for k in range(3):
-                v = simplices[ti, k]
-                ddx = xy[v, 0] - qx
-                ddy = xy[v, 1] - qy
-                d2 = ddx * ddx + ddy * ddy
-                if d2 < best:
-                    best = d2
-                    z[i] = zt[ti, k]
-            continue
-        # Summed as numpy's einsum sums b · zt: b0·z0, then b2·z2, then b1·z1.
-        z[i] = c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
+        if sl.size:
+            sl[i] = slopes[ti]
+        z[i] = _height(tt, c0, c1, qx, qy, zt, xy, simplices, mode == _NEAREST)
+
+
+@numba.njit(cache=True, nogil=True)
+def _band_kernel(
+    pts: NDArray[np.float64],
+    ox: float,
+    oy: float,
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    raster: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    zt: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    simplices: NDArray,
+    slopes: NDArray[np.float64],
+    up: float,
+    down: float,
+    gain: float,
+    cap: float,
+    code: NDArray[np.int8],
+) -> None:
+    """``code[i]`` of point ``pts[i]`` against the surface (see ``Tin.band``)."""
+    for i in range(pts.shape[0]):
+        qx = pts[i, 0] - ox
+        qy = pts[i, 1] - oy
+        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
+        r = pts[i, 2] - _height(tt, c0, c1, qx, qy, zt, xy, simplices, True)
+        allow = 0.0
+        if gain > 0:
+            allow = gain * min(slopes[tt if tt >= 0 else -tt - 1], cap)
+        if r > up + allow:
+            code[i] = ABOVE
+        elif r >= -(down + allow):
+            code[i] = IN_BAND
+        else:
+            code[i] = BELOW  # or no height (NaN)
 
 
 def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
