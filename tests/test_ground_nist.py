@@ -435,3 +435,21 @@ def test_scattered_points_are_inserted_in_hilbert_order_and_coherent_ones_as_giv
     order = tin_module._insertion_order(xy)
     assert np.array_equal(order, np.argsort(hilbert_key(xy), kind="stable"))
     assert _triangle_set(delaunay(xy).simplices) == _triangle_set(Delaunay(xy).simplices)
+
+
+def test_point_file_screening_has_its_own_tolerance():
+    # Pass 2 screens the mowed points against the lowest points of the cells
+    # around them, with ``screen_points_tol``, not the TIN's ``screen_tol``.
+    g = np.arange(0.0, 20.0, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    xyz = np.column_stack([x, y, 0.05 * x])
+    xyz = np.vstack([xyz, [10.25, 10.25, 0.05 * 10.25 + 0.9]])
+    spacing = nist.point_spacing(xyz[:, :2])
+    top = xyz.shape[0] - 1
+
+    def kept(**over: float) -> NDArray[np.int64]:
+        return nist._screen_points(xyz, nist.NistParams(**over), spacing)
+
+    assert top in kept() and top in kept(screen_tol=0.5)
+    assert top not in kept(screen_points_tol=0.75) and top not in kept(screen_tol=2.0, screen_points_tol=0.75)
+    assert kept(screen_points_tol=0.75).size == xyz.shape[0] - 1
