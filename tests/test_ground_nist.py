@@ -453,3 +453,17 @@ def test_point_file_screening_has_its_own_tolerance():
     assert top in kept() and top in kept(screen_tol=0.5)
     assert top not in kept(screen_points_tol=0.75) and top not in kept(screen_tol=2.0, screen_points_tol=0.75)
     assert kept(screen_points_tol=0.75).size == xyz.shape[0] - 1
+
+
+def test_default_raised_step_takes_a_low_roof_whose_border_climbs_in_small_steps():
+    # A 1.2 m roof whose border the TIN climbs in 0.4 m steps (vertices on the
+    # eaves and a parapet between ground and roof): no edge rises 0.5 m, each 0.4 m.
+    xy = _grid_nodes(60, 1.0, 7)
+    d = np.maximum(np.abs(xy[:, 0] - 30.0), np.abs(xy[:, 1] - 30.0))
+    z = np.select([d < 6.0, d < 8.0, d < 10.0], [1.2, 0.8, 0.4], 0.0)
+    xyz = np.column_stack([xy, z])
+    tri = Delaunay(xy)
+    p = nist.NistParams()
+    drop = raised_segments(xyz, tri, p.raised_step, p.raised_slope, up_share=p.raised_share, min_lift=p.raised_lift)
+    assert np.array_equal(drop, d < 10.0)
+    assert not raised_segments(xyz, tri, 0.5, p.raised_slope).any()

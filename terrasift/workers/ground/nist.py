@@ -152,9 +152,11 @@ class NistParams(StageParams):
     """Final labels: ground down to this depth below the final surface."""
     ground_slope: float = Field(1.0, ge=0, le=10)
     """Extra tolerance per unit of local TIN slope (rise/run), for steep terrain."""
-    raised_step: float = Field(0.5, ge=0, le=100)
+    raised_step: float = Field(0.3, ge=0, le=100)
     """Drop segments of the final TIN that stand above the rest behind steps this high (0: off; ``raised.py``).
-    0.5 m: roofs 1–5 m high whose border the TIN climbs in smaller steps go too (2 m left them on ISPRS samp11/12)."""
+    0.3 m: roofs 1–5 m high whose border the TIN climbs in smaller steps go too (2 m left them on ISPRS
+    samp11/12; 0.5 m some of samp11's and samp12's low roofs and decks: 0.2–0.3 m +0.5 and +0.3 kappa
+    there, though on samp11 a third of what goes is terrain between walls)."""
     raised_slope: float = Field(10.0, gt=0, lt=90)
     """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step."""
     raised_share: float = Field(0.7, ge=0.5, le=1)
