@@ -467,3 +467,21 @@ def test_default_raised_step_takes_a_low_roof_whose_border_climbs_in_small_steps
     drop = raised_segments(xyz, tri, p.raised_step, p.raised_slope, up_share=p.raised_share, min_lift=p.raised_lift)
     assert np.array_equal(drop, d < 10.0)
     assert not raised_segments(xyz, tri, 0.5, p.raised_slope).any()
+
+
+def test_screening_votes_follow_bin_planes_only_up_to_the_slope_cap():
+    # A deck vertex 5 m up, ringed by bins astride its walls: their planes rise
+    # 4 m/m towards it, so votes extrapolated along them (+8 m over 4 m) vouch
+    # for the deck. Capped at 1.5 (56°, steeper than terrain) they do not.
+    ang = np.radians(np.arange(0, 360, 60) + 7.0)
+    ring = 4.0 * np.column_stack([np.cos(ang), np.sin(ang)])
+    xy = np.vstack([[0.0, 0.0], ring])
+    z = np.r_[5.0, np.zeros(6)]
+    slopes = -4.0 * np.vstack([[0.0, 0.0], ring]) / 4.0  # gradients pointing up towards the deck
+    kept_uncapped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 0.0))
+    kept_capped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 1.5))
+    assert 0 in kept_uncapped and 0 not in kept_capped
+    assert set(kept_capped) == set(range(1, 7))
+    # Gentle planes pass unchanged; steep ones keep their direction; NaN is level.
+    v = nist._vote_slopes(np.array([[0.3, -0.4], [3.0, 4.0], [np.nan, np.nan]]), 1.5)
+    assert np.allclose(v, [[0.3, -0.4], [0.9, 1.2], [0.0, 0.0]])
