@@ -485,3 +485,21 @@ def test_screening_votes_follow_bin_planes_only_up_to_the_slope_cap():
     # Gentle planes pass unchanged; steep ones keep their direction; NaN is level.
     v = nist._vote_slopes(np.array([[0.3, -0.4], [3.0, 4.0], [np.nan, np.nan]]), 1.5)
     assert np.allclose(v, [[0.3, -0.4], [0.9, 1.2], [0.0, 0.0]])
+
+
+def test_growth_bends_faster_going_down_over_a_crest():
+    # Nodes 3.5 m apart (sparse data); a sharp ridge with 30° flanks along y,
+    # seeded on its west side only: the east side is reached over the crest,
+    # where the slope turns from +0.58 to -0.58 within one edge.
+    xy = _grid_nodes(120, 3.5, 11)
+    ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
+    roof = (np.abs(xy[:, 0] - 95.0) < 10) & (np.abs(xy[:, 1] - 60.0) < 10)
+    xyz = np.column_stack([xy, ridge + 6.0 * roof])
+    seed = (xyz[:, 2] < 3.0) & ~roof & (xy[:, 0] < 40.0)
+    east = (xy[:, 0] > 41.0) & ~roof
+    kw = {"tol": 0.3, "tol_below": 0.6, "bend_deg": 5.0, "max_rise": 3.0}
+    same = grow_ground(xyz, seed, **kw)
+    down = grow_ground(xyz, seed, bend_below_deg=15.0, **kw)
+    assert not same[east].all()
+    assert down[east].all() and down[xy[:, 0] < 39.0].all()
+    assert not down[roof].any()
