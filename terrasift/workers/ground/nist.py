@@ -31,7 +31,8 @@ above its own height (``support.py``: crests the TIN still cuts).
 
 Where this departs from the paper, and why (measured on ISPRS and synthetic
 scenes): screening tolerances grow with a pass's bin size; with plane bins,
-neighbours vote with heights extrapolated along their planes; vertices far
+neighbours vote with heights extrapolated along their planes, no steeper than
+``screen_slope_cap`` (a bin astride a wall is not a slope); vertices far
 below their neighbours (low outliers) are screened too; mowing tolerances
 grow with slope × bin size, since a TIN one bin apart cuts convex breaks;
 "screen the mowed file" uses 3 × 3 cells of lowest points as neighbours
