@@ -454,3 +454,71 @@ def test_band_codes_agree_with_heights_and_slopes():
         assert np.array_equal(code == IN_BAND, inside)
         assert np.array_equal(code == BELOW, ~above & ~inside)
         assert above.any() and inside.any()
+
+
+def test_point_file_screening_has_its_own_tolerance():
+    # Pass 2 screens the mowed points against the lowest points of the cells
+    # around them, with ``screen_points_tol``, not the TIN's ``screen_tol``.
+    g = np.arange(0.0, 20.0, 0.5)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    xyz = np.column_stack([x, y, 0.05 * x])
+    xyz = np.vstack([xyz, [10.25, 10.25, 0.05 * 10.25 + 0.9]])
+    spacing = nist.point_spacing(xyz[:, :2])
+    top = xyz.shape[0] - 1
+
+    def kept(**over: float) -> NDArray[np.int64]:
+        return nist._screen_points(xyz, nist.NistParams(**over), spacing)
+
+    assert top in kept() and top in kept(screen_tol=0.5)
+    assert top not in kept(screen_points_tol=0.75) and top not in kept(screen_tol=2.0, screen_points_tol=0.75)
+    assert kept(screen_points_tol=0.75).size == xyz.shape[0] - 1
+
+
+def test_default_raised_step_takes_a_low_roof_whose_border_climbs_in_small_steps():
+    # A 1.2 m roof whose border the TIN climbs in 0.4 m steps (vertices on the
+    # eaves and a parapet between ground and roof): no edge rises 0.5 m, each 0.4 m.
+    xy = _grid_nodes(60, 1.0, 7)
+    d = np.maximum(np.abs(xy[:, 0] - 30.0), np.abs(xy[:, 1] - 30.0))
+    z = np.select([d < 6.0, d < 8.0, d < 10.0], [1.2, 0.8, 0.4], 0.0)
+    xyz = np.column_stack([xy, z])
+    tri = Delaunay(xy)
+    p = nist.NistParams()
+    drop = raised_segments(xyz, tri, p.raised_step, p.raised_slope, up_share=p.raised_share, min_lift=p.raised_lift)
+    assert np.array_equal(drop, d < 10.0)
+    assert not raised_segments(xyz, tri, 0.5, p.raised_slope).any()
+
+
+def test_screening_votes_follow_bin_planes_only_up_to_the_slope_cap():
+    # A deck vertex 5 m up, ringed by bins astride its walls: their planes rise
+    # 4 m/m towards it, so votes extrapolated along them (+8 m over 4 m) vouch
+    # for the deck. Capped at 1.5 (56°, steeper than terrain) they do not.
+    ang = np.radians(np.arange(0, 360, 60) + 7.0)
+    ring = 4.0 * np.column_stack([np.cos(ang), np.sin(ang)])
+    xy = np.vstack([[0.0, 0.0], ring])
+    z = np.r_[5.0, np.zeros(6)]
+    slopes = -4.0 * np.vstack([[0.0, 0.0], ring]) / 4.0  # gradients pointing up towards the deck
+    kept_uncapped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 0.0))
+    kept_capped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 1.5))
+    assert 0 in kept_uncapped and 0 not in kept_capped
+    assert set(kept_capped) == set(range(1, 7))
+    # Gentle planes pass unchanged; steep ones keep their direction; NaN is level.
+    v = nist._vote_slopes(np.array([[0.3, -0.4], [3.0, 4.0], [np.nan, np.nan]]), 1.5)
+    assert np.allclose(v, [[0.3, -0.4], [0.9, 1.2], [0.0, 0.0]])
+
+
+def test_growth_bends_faster_going_down_over_a_crest():
+    # Nodes 3.5 m apart (sparse data); a sharp ridge with 30° flanks along y,
+    # seeded on its west side only: the east side is reached over the crest,
+    # where the slope turns from +0.58 to -0.58 within one edge.
+    xy = _grid_nodes(120, 3.5, 11)
+    ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
+    roof = (np.abs(xy[:, 0] - 95.0) < 10) & (np.abs(xy[:, 1] - 60.0) < 10)
+    xyz = np.column_stack([xy, ridge + 6.0 * roof])
+    seed = (xyz[:, 2] < 3.0) & ~roof & (xy[:, 0] < 40.0)
+    east = (xy[:, 0] > 41.0) & ~roof
+    kw = {"tol": 0.3, "tol_below": 0.6, "bend_deg": 5.0, "max_rise": 3.0}
+    same = grow_ground(xyz, seed, **kw)
+    down = grow_ground(xyz, seed, bend_below_deg=15.0, **kw)
+    assert not same[east].all()
+    assert down[east].all() and down[xy[:, 0] < 39.0].all()
+    assert not down[roof].any()

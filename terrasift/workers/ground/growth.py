@@ -11,8 +11,10 @@ are the lowest points of small bins, meshed once (Delaunay); nodes the
 surface already labels ground are the seeds. In rounds, a node joins when a
 ground neighbour, continued along its own slope (a least-squares plane
 through its ground neighbours), predicts the node's height within ``tol`` +
-tan(``bend``) × distance (``tol_below`` in place of ``tol`` for a node lower
-than predicted: objects stand above terrain, so going down leads onto none).
+tan(``bend``) × distance (``tol_below`` and ``bend_below`` in place of ``tol``
+and ``bend`` for a node lower than predicted: objects stand above terrain, so
+going down leads onto none, and over a crest the slope turns from rising to
+falling within one edge, by more the further apart the nodes are).
 The surface can thus follow a slope that bends gradually onto a hill, but
 not jump onto a roof (a wall is a bend of ~90°), and a ground neighbour's
 slope is only ever taken from ground.
@@ -45,6 +47,7 @@ def grow_ground(
     bend_deg: float,
     max_rise: float,
     tol_below: float | None = None,
+    bend_below_deg: float | None = None,
     max_rounds: int = 200,
     adjacency: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
     barred: NDArray[np.bool_] | None = None,
@@ -54,7 +57,8 @@ def grow_ground(
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
     ``max_rise`` bounds the rise of one edge (metres), whatever the slope.
-    ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted.
+    ``tol_below`` (default ``tol``) replaces ``tol`` for nodes lower than predicted,
+    and ``bend_below_deg`` (default ``bend_deg``, never less) replaces ``bend_deg``.
     ``adjacency`` (CSR indptr, indices) is the Delaunay neighbourhood of the
     nodes when the caller has triangulated them already. ``barred`` nodes are
     never grown onto (objects judged already, such as raised roofs). With
@@ -79,7 +83,10 @@ def grow_ground(
     dist = np.hypot(du, dv)
     bend = np.tan(np.radians(bend_deg)) * dist
     limit = tol + bend
-    limit_below = limit if tol_below is None else tol_below + bend
+    # Going down, the slope may bend faster: over a crest it turns from rising
+    # to falling within one edge, while objects stand above terrain.
+    bend_below = bend if bend_below_deg is None else np.tan(np.radians(max(bend_below_deg, bend_deg))) * dist
+    limit_below = (tol if tol_below is None else tol_below) + bend_below
     all_edges = (own, nbr, dz)
     # Edges that may ever carry growth: not a rise steeper than max_rise.
     usable = dz <= max_rise
