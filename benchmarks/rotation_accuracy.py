@@ -1,15 +1,25 @@
 """Rotated classification on cliffs, its cost on flat blocks, and its effect on ISPRS.
 
-    python benchmarks/rotation_accuracy.py [--square 130] [--density 8] [--no-isprs] [--no-cost]
+    python benchmarks/rotation_accuracy.py [--method ground.nist] [--square 130] [--density 8]
+        [--no-isprs] [--no-cost]
+
+``--method`` is the ground stage (``ground.ptd`` or ``ground.nist``; default the
+job default, ``terrasift.params.DEFAULT_GROUND``). Every run goes through the
+registry stage as a block does (``terrasift.workers.block._ground``): the
+method's default preset on the block, the steepness test on its ground, and on
+a steep block ``RotationParams.ground_preset`` for the unrotated and the rotated
+runs, seeded with the labels found so far only where the stage takes a
+``seed_mask`` (ground.ptd). Isolated low points are not taken out here.
 
 Cliff scene (``terrasift.synthetic.cliffs``): Type I on ground of faces steeper
 than 60°, Type I/II overall, share of covered ground found (under the lip),
 for the unrotated conservative/aggressive/default filters and rotation.
-Cost: steepness test vs a ptd run on a flat block, and a steep block (steepness
-+ rotation) vs a flat block of similar point count, for the ground alone and
-for the whole block task. ISPRS: mean kappa of
-ptd (default) with and without rotation=auto, where the steepness test runs on
-the unrotated ground (the seed's step 1 preliminary classification).
+Cost: steepness test vs a default run of the method on a flat block, and a
+steep block (steepness + rotation) vs a flat block of similar point count, for
+the ground alone and for the whole block task (``ground=<method>``). ISPRS:
+mean kappa of the method (default) with and without rotation=auto, where the
+steepness test runs on the unrotated ground (the seed's step 1 preliminary
+classification).
 """
 
 from __future__ import annotations
@@ -30,41 +40,55 @@ single_threaded_blas()  # as in the workers; CPU times otherwise count BLAS thre
 import numpy as np  # noqa: E402
 
 from terrasift.metrics import ground_score  # noqa: E402
+from terrasift.params import DEFAULT_GROUND  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
-from terrasift.workers.ground.ptd import PtdParams, classify_ground  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
     RotationParams,
     SteepParams,
+    bind_ground,
+    can_seed,
     classify_rotated,
     steepness,
 )
+from terrasift.workers.registry import get_stage  # noqa: E402
+
+METHOD = f"ground.{DEFAULT_GROUND}"
 
 
-def ptd(preset: str):
-    params = PtdParams.preset(preset)
-    return lambda pts: classify_ground(pts, params)
+def ground(preset: str, method: str | None = None, seeded: bool = False):
+    """The registry stage ``method`` bound to its ``preset``: ``f(points)``, or
+    with ``seeded`` ``f(points, known)`` (None when the stage cannot seed)."""
+    stage = get_stage(method or METHOD)
+    plain, seed = bind_ground(stage, stage.params.preset(preset))
+    return seed if seeded else plain
+
+
+def rotation_runs(**rotation) -> tuple[RotationParams, object, object]:
+    """Rotation parameters and the ground runs a steep block uses (block.py)."""
+    rp = RotationParams(**rotation)
+    return rp, ground(rp.ground_preset), ground(rp.ground_preset, seeded=True)
 
 
 def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
-    """The block flow: default ptd, steepness on its ground; if steep, a
-    conservative unrotated run and eight conservative rotated runs OR'ed (with
-    ``rerun_unrotated=False``, the default labels instead of the first)."""
+    """The block flow: the default method, steepness on its ground; if steep, an
+    unrotated and eight rotated runs with ``ground_preset`` OR'ed (seeded where
+    the method can; with ``rerun_unrotated=False``, the default labels instead
+    of the first)."""
     t0 = time.perf_counter()
-    g = ptd("default")(xyz)
+    g = ground("default")(xyz)
     t1 = time.perf_counter()
     test = steepness(xyz[g], SteepParams())
     t2 = time.perf_counter()
-    info = {"ptd_s": t1 - t0, "steep_s": t2 - t1, "share": test.facet_share, "steep": test.steep}
+    info = {"ground_s": t1 - t0, "steep_s": t2 - t1, "share": test.facet_share, "steep": test.steep}
     if test.steep:
-        rp = RotationParams(**rotation)
-        params = PtdParams.preset(rp.ground_preset)
+        rp, plain, seeded = rotation_runs(**rotation)
         res = classify_rotated(
             xyz,
-            lambda p: classify_ground(p, params),
+            plain,
             rp,
             unrotated=None if rp.rerun_unrotated else g,
-            seeded=lambda p, known: classify_ground(p, params, seed_mask=known),
+            seeded=seeded,
         )
         g = res.is_ground
         info["added"] = res.added
@@ -101,22 +125,24 @@ def cliffs(square: float, density: float, buffer: float) -> None:
     print(f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}")
     for preset in ("default", "conservative", "aggressive"):
         t = time.perf_counter()
-        g = ptd(preset)(scene.xyz)
+        g = ground(preset)(scene.xyz)
         row(f"unrotated {preset}", scene, g, time.perf_counter() - t)
     t = time.perf_counter()
-    res = classify_rotated(scene.xyz, ptd("conservative"), RotationParams())
+    res = classify_rotated(scene.xyz, ground("conservative"), RotationParams())
     row("rotated, all conservative", scene, res.is_ground, time.perf_counter() - t)
     print(f"  added per direction N..NW: {res.added}")
-    t = time.perf_counter()
-    cons = PtdParams.preset("conservative")
-    res = classify_rotated(
-        scene.xyz,
-        lambda p: classify_ground(p, cons),
-        RotationParams(),
-        seeded=lambda p, known: classify_ground(p, cons, seed_mask=known),
-    )
-    row("rotated conservative, seeded", scene, res.is_ground, time.perf_counter() - t)
-    print(f"  added per direction N..NW: {res.added}")
+    if can_seed(get_stage(METHOD)):
+        t = time.perf_counter()
+        res = classify_rotated(
+            scene.xyz,
+            ground("conservative"),
+            RotationParams(),
+            seeded=ground("conservative", seeded=True),
+        )
+        row("rotated conservative, seeded", scene, res.is_ground, time.perf_counter() - t)
+        print(f"  added per direction N..NW: {res.added}")
+    else:
+        print(f"  ({METHOD} takes no seed_mask: no seeded rotated runs)")
     g, info = auto(scene.xyz)
     row("auto (the block's flow)", scene, g, info["total_s"])
     print(f"  steep share {info['share']:.3f}, added {info.get('added')}")
@@ -128,8 +154,8 @@ def cost() -> None:
     flat = make_scene(size=130, density=8, seed=5)
     xyz = flat.xyz
     t = time.perf_counter()
-    g = ptd("default")(xyz)
-    t_ptd = time.perf_counter() - t
+    g = ground("default")(xyz)
+    t_ground_run = time.perf_counter() - t
     t = time.perf_counter()
     for _ in range(5):
         steepness(xyz, SteepParams())
@@ -139,8 +165,9 @@ def cost() -> None:
         test = steepness(xyz[g], SteepParams())
     t_ground = (time.perf_counter() - t) / 5
     print(
-        f"flat block {len(flat)} pts: ptd {t_ptd:.2f} s; steepness on all points {t_raw:.3f} s "
-        f"({100 * t_raw / t_ptd:.1f} %), on ptd ground {t_ground:.3f} s ({100 * t_ground / t_ptd:.1f} %), "
+        f"flat block {len(flat)} pts: {METHOD} {t_ground_run:.2f} s; steepness on all points {t_raw:.3f} s "
+        f"({100 * t_raw / t_ground_run:.1f} %), on its ground {t_ground:.3f} s "
+        f"({100 * t_ground / t_ground_run:.1f} %), "
         f"share {test.facet_share:.3f} steep={test.steep}"
     )
     # CPU seconds, median of 3: other processes share the machine's cores.
@@ -186,7 +213,7 @@ def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
     mins, maxs = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     span = float(np.max(maxs - mins)) + 2.0
     grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=0.0)
-    params = validate_params({})
+    params = validate_params({"ground": METHOD.removeprefix("ground.")})
     times, steep = [], False
     for _ in range(3):
         t0 = time.process_time()
@@ -205,7 +232,7 @@ def isprs() -> None:
     k0, k1, k2 = [], [], []
     print(f"{'sample':8} {'kappa off':>10} {'kappa auto':>10} {'share':>6} steep")
     for name, (xyz, truth) in load_isprs().items():
-        g0 = ptd("default")(xyz)
+        g0 = ground("default")(xyz)
         g1, info = auto(xyz)
         g2, _ = auto(xyz, rerun_unrotated=False)
         k2.append(100 * ground_score(truth, g2).kappa)
@@ -219,13 +246,19 @@ def isprs() -> None:
 
 
 def main() -> None:
+    global METHOD
     ap = argparse.ArgumentParser()
     ap.add_argument("--square", type=float, default=130.0, help="side of the block cut from the cliff scene")
     ap.add_argument("--density", type=float, default=8.0)
     ap.add_argument("--buffer", type=float, default=20.0, help="halo around the block (spine default 20 m)")
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
+    ap.add_argument(
+        "--method", default=METHOD, choices=["ground.ptd", "ground.nist"], help=f"ground stage (default {METHOD})"
+    )
     args = ap.parse_args()
+    METHOD = args.method
+    print(f"ground method {METHOD}")
     cliffs(args.square, args.density, args.buffer)
     if not args.no_cost:
         cost()

@@ -197,3 +197,20 @@ def test_rolling_ground_cut_by_the_data_edge_is_not_steep():
         z = 0.05 * xy[:, 1] + 1.5 * np.sin(xy[:, 1] / 6.0) + 0.5 * np.sin(xy[:, 0] / 5) + rng.normal(0, 0.1, len(xy))
         test = steepness(np.column_stack([xy + [5e5, 5.4e6], z]), SteepParams())
         assert test.facet_share == 0.0, (seed, test)
+
+
+def test_bind_ground_seeds_only_stages_that_take_a_seed_mask():
+    from terrasift.workers.ground.rotation import bind_ground, can_seed
+    from terrasift.workers.registry import get_stage
+
+    ptd, nist = get_stage("ground.ptd"), get_stage("ground.nist")
+    assert can_seed(ptd) and not can_seed(nist)
+    pts = _plane(0.0)[:3000]
+    params = ptd.params.preset("conservative")
+    plain, seeded = bind_ground(ptd, params)
+    assert np.array_equal(plain(pts), classify_ground(pts, params))
+    known = np.zeros(len(pts), dtype=bool)
+    known[::7] = True
+    assert np.array_equal(seeded(pts, known), classify_ground(pts, params, seed_mask=known))
+    plain, seeded = bind_ground(nist, nist.params.preset("conservative"))
+    assert seeded is None and plain(pts).dtype == bool

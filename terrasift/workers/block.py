@@ -261,16 +261,12 @@ def _ground(
         return is_ground, low, steep_info
     rparams = stage_params(params, "ground.rotation")
     cparams = stage_params(params, stage.id, rparams.ground_preset)
-    seeded = None
-    if stage.id == "ground.ptd":  # ptd can grow from the labels found so far
-
-        def seeded(p: NDArray, known: NDArray) -> NDArray:
-            return stage.run(p, cparams, seed_mask=known, **kwargs)
-
+    # Seeded rotated runs where the method can grow from the labels found so far (ptd).
+    ground, seeded = rotation.bind_ground(stage, cparams, **kwargs)
     with timer("rotation"):
         result = rotation.classify_rotated(
             xyz,
-            lambda p: stage.run(p, cparams, **kwargs),
+            ground,
             rparams,
             unrotated=None if rparams.rerun_unrotated else is_ground,
             seeded=seeded,

@@ -17,8 +17,10 @@ their run: memory is one extra copy of the block.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,9 +28,10 @@ from pydantic import Field
 from scipy.spatial import Delaunay, QhullError
 
 from terrasift.workers.bins import Grid, lowest_per_bin
-from terrasift.workers.registry import StageParams, register
+from terrasift.workers.registry import Stage, StageParams, register
 
 GroundFn = Callable[[NDArray[np.float64]], NDArray[np.bool_]]
+SeededFn = Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]]
 
 
 class SteepParams(StageParams):
@@ -202,6 +205,28 @@ def rotation_matrix(azimuth_deg: float, angle_deg: float) -> NDArray[np.float64]
     t = np.radians(angle_deg)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
+
+
+def can_seed(stage: Stage) -> bool:
+    """Does the ground stage grow from known labels (a ``seed_mask`` keyword, as ground.ptd)?"""
+    return "seed_mask" in inspect.signature(stage.run).parameters
+
+
+def bind_ground(stage: Stage, params: StageParams, **kwargs: Any) -> tuple[GroundFn, SeededFn | None]:
+    """The ground stage bound to ``params`` (and ``kwargs``, e.g. ``sensor_origin``)
+    for ``classify_rotated``: the plain run and, when the stage can seed
+    (``can_seed``), the run seeded with the labels found so far; else None."""
+
+    def ground(p: NDArray[np.float64]) -> NDArray[np.bool_]:
+        return stage.run(p, params, **kwargs)
+
+    if not can_seed(stage):
+        return ground, None
+
+    def seeded(p: NDArray[np.float64], known: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return stage.run(p, params, seed_mask=known, **kwargs)
+
+    return ground, seeded
 
 
 @register("ground.rotation", RotationParams, "ground on the block and on copies tipped toward 8 directions, OR'ed")
