@@ -7,13 +7,17 @@
 job default, ``terrasift.params.DEFAULT_GROUND``). Every run goes through the
 registry stage as a block does (``terrasift.workers.block._ground``): the
 method's default preset on the block, the steepness test on its ground, and on
-a steep block ``RotationParams.ground_preset`` for the unrotated and the rotated
-runs, seeded with the labels found so far only where the stage takes a
-``seed_mask`` (ground.ptd). Isolated low points are not taken out here.
+a steep block the rotation parameters of the method (``RotationParams.presets``,
+e.g. 45° and the default labels kept for ground.nist; the seed's settings for
+ground.ptd) with ``ground_preset`` for the rotated runs, seeded with the labels
+found so far only where the stage takes a ``seed_mask`` (ground.ptd). Isolated
+low points are not taken out here.
 
 Cliff scene (``terrasift.synthetic.cliffs``): Type I on ground of faces steeper
 than 60°, Type I/II overall, share of covered ground found (under the lip),
-for the unrotated conservative/aggressive/default filters and rotation.
+for the unrotated conservative/aggressive/default filters, rotation with the
+seed's settings (``RotationParams()``: 30°, nine conservative runs; seeded
+where the method can) and the block's flow (``auto``).
 Cost: steepness test vs a default run of the method on a flat block, and a
 steep block (steepness + rotation) vs a flat block of similar point count, for
 the ground alone and for the whole block task (``ground=<method>``). ISPRS:
@@ -40,7 +44,7 @@ single_threaded_blas()  # as in the workers; CPU times otherwise count BLAS thre
 import numpy as np  # noqa: E402
 
 from terrasift.metrics import ground_score  # noqa: E402
-from terrasift.params import DEFAULT_GROUND  # noqa: E402
+from terrasift.params import DEFAULT_GROUND, stage_params  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
@@ -65,8 +69,9 @@ def ground(preset: str, method: str | None = None, seeded: bool = False):
 
 
 def rotation_runs(**rotation) -> tuple[RotationParams, object, object]:
-    """Rotation parameters and the ground runs a steep block uses (block.py)."""
-    rp = RotationParams(**rotation)
+    """Rotation parameters (the method's preset, ``rotation`` on top) and the
+    ground runs a steep block uses (block.py)."""
+    rp = stage_params({f"ground.rotation.{k}": v for k, v in rotation.items()}, "ground.rotation", METHOD)
     return rp, ground(rp.ground_preset), ground(rp.ground_preset, seeded=True)
 
 
@@ -74,7 +79,7 @@ def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
     """The block flow: the default method, steepness on its ground; if steep, an
     unrotated and eight rotated runs with ``ground_preset`` OR'ed (seeded where
     the method can; with ``rerun_unrotated=False``, the default labels instead
-    of the first)."""
+    of the first), with the method's rotation preset and ``rotation`` on top."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
     t1 = time.perf_counter()

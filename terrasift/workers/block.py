@@ -259,7 +259,7 @@ def _ground(
     steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
     if not (test.steep or mode == "always"):
         return is_ground, low, steep_info
-    rparams = stage_params(params, "ground.rotation")
+    rparams = stage_params(params, "ground.rotation", stage.id)  # per-method preset (RotationParams.presets)
     cparams = stage_params(params, stage.id, rparams.ground_preset)
     # Seeded rotated runs where the method can grow from the labels found so far (ptd).
     ground, seeded = rotation.bind_ground(stage, cparams, **kwargs)
