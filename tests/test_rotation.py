@@ -221,9 +221,11 @@ def test_rotation_preset_follows_the_ground_method():
 
     assert stage_params({}, "ground.rotation", "ground.ptd") == RotationParams()
     nist = stage_params({}, "ground.rotation", "ground.nist")
-    assert nist.angle == 45.0 and not nist.rerun_unrotated and nist.ground_preset == "conservative"
+    assert (nist.angle, nist.second_angle) == (30.0, 45.0) and not nist.rerun_unrotated
+    assert nist.ground_preset == "conservative"
     # job overrides still go on top of the method's preset
-    assert stage_params({"ground.rotation.angle": 35}, "ground.rotation", "ground.nist").angle == 35.0
+    one = stage_params({"ground.rotation.second_angle": "none"}, "ground.rotation", "ground.nist")
+    assert one.second_angle is None and one.angle == 30.0
 
 
 def test_block_rotates_with_the_methods_preset(monkeypatch):
@@ -239,17 +241,17 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
 
     monkeypatch.setattr(rotation, "classify_rotated", spy)
     pts = _plane(25.0)[::4]
-    for method, angle in (("ptd", 30.0), ("nist", 45.0)):
+    for method, second in (("ptd", None), ("nist", 45.0)):
         seen.clear()
         block._ground(pts, {"ground": method, "rotation": "always"}, None, block._Timer())
-        assert seen["params"].angle == angle
+        assert seen["params"].second_angle == second
         assert (seen["seeded"] is not None) == (method == "ptd")
         assert (seen["unrotated"] is not None) == (method == "nist")  # nist keeps its default labels
 
 
-def test_nist_tipped_45_degrees_finds_more_of_the_faces(cliffs):
-    # Tipped by 30° the overhang stays steeper than ground.nist follows; the
-    # rerun conservative unrotated run drops terrain the default run keeps.
+def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
+    # Tipped by 30° only, the overhang stays steeper than ground.nist follows;
+    # the rerun conservative unrotated run drops terrain the default run keeps.
     from terrasift.params import stage_params
     from terrasift.workers.ground.rotation import bind_ground
     from terrasift.workers.registry import get_stage
@@ -262,5 +264,19 @@ def test_nist_tipped_45_degrees_finds_more_of_the_faces(cliffs):
     rp = stage_params({}, "ground.rotation", "ground.nist")
     own = classify_rotated(cliffs.xyz, plain, rp, unrotated=default)
     missed_seed = np.mean(~seed.is_ground[steep])  # 0.94 measured
-    missed_own = np.mean(~own.is_ground[steep])  # 0.51
+    missed_own = np.mean(~own.is_ground[steep])
     assert missed_own < 0.7 * missed_seed
+    assert len(own.added) == 16 and len(seed.added) == 8
+
+
+def test_second_angle_adds_a_run_per_direction():
+    pts = _plane(0.0)[:500]
+    tips = []
+
+    def fake_ground(p):
+        tips.append(float(np.ptp(p[:, 2])))
+        return p[:, 2] < np.median(p[:, 2])
+
+    res = classify_rotated(pts, fake_ground, RotationParams(directions=2, angle=10, second_angle=40, steep_reach=None))
+    assert len(tips) == 5 and len(res.added) == 4
+    assert max(tips[1:3]) < min(tips[3:])  # 10° runs first, then the steeper 40° ones
