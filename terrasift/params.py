@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from terrasift.errors import ParameterError
 from terrasift.workers.registry import get_stage, stages
 
-DEFAULT_GROUND = "ptd"
+DEFAULT_GROUND = "nist"
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
 
 

@@ -88,7 +88,7 @@ def test_effective_stage_params_lists_the_jobs_ground_method_with_preset_and_ove
     assert nist["cell_3"] == stage_params(params, "ground.nist").cell_3  # untouched defaults are listed too
     assert {"vegetation", "terrain", "ground.lowpoints"} <= set(stages_out)
     default = effective_stage_params(validate_params({}))
-    assert "ground.ptd" in default and "ground.nist" not in default
+    assert "ground.nist" in default and "ground.ptd" not in default
 
 
 def test_auto_buffer_widens_for_nist_on_sparse_data_only():

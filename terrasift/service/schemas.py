@@ -62,7 +62,7 @@ class ExecuteRequest(BaseModel):
 
     inputs: dict[str, Any] = Field(
         description="`files`: paths under the input root; `params`: object of parameters; any other key is a parameter",
-        examples=[{"files": ["survey-2024/tile_01.laz"], "params": {"ground": "ptd", "resolution": 0.5}}],
+        examples=[{"files": ["survey-2024/tile_01.laz"], "params": {"ground": "nist", "resolution": 0.5}}],
     )
     outputs: dict[str, Any] | None = None
     response: Literal["document"] | None = None
