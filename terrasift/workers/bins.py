@@ -51,6 +51,36 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     return order
 
 
+def bounds(x: NDArray, y: NDArray) -> tuple[np.floating, np.floating, np.floating, np.floating]:
+    """``x.min(), x.max(), y.min(), y.max()`` in one compiled pass for float64
+    input (four numpy reductions over strided columns cost several times more)."""
+    if x.size and x.size == y.size and x.dtype == np.float64 and y.dtype == np.float64:
+        return tuple(np.float64(v) for v in _bounds_kernel(x.reshape(-1), y.reshape(-1)))
+    return x.min(), x.max(), y.min(), y.max()
+
+
+@numba.njit(cache=True)
+def _bounds_kernel(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """Min and max of ``x`` and of ``y`` (same length: one pass over the rows);
+    NaN for both of an array holding a NaN, as numpy's."""
+    xmin, xmax, ymin, ymax = np.inf, -np.inf, np.inf, -np.inf
+    nan_x = nan_y = False
+    for i in range(x.size):
+        u = x[i]
+        v = y[i]
+        xmin = min(xmin, u)
+        xmax = max(xmax, u)
+        ymin = min(ymin, v)
+        ymax = max(ymax, v)
+        nan_x |= u != u
+        nan_y |= v != v
+    if nan_x:
+        xmin = xmax = np.nan
+    if nan_y:
+        ymin = ymax = np.nan
+    return xmin, xmax, ymin, ymax
+
+
 @numba.njit(cache=True)
 def _index_kernel(
     x: NDArray[np.float64], y: NDArray[np.float64], x0: float, y0: float, cell: float, nx: int, ny: int, out: NDArray[np.int64]
@@ -232,10 +262,11 @@ class Grid:
     def covering(cls, x: NDArray, y: NDArray, cell: float) -> Grid:
         """The smallest grid of ``cell``-sized bins, anchored on a multiple of
         ``cell``, that holds every point."""
-        x0 = np.floor(x.min() / cell) * cell
-        y0 = np.floor(y.min() / cell) * cell
-        nx = int(np.floor((x.max() - x0) / cell)) + 1
-        ny = int(np.floor((y.max() - y0) / cell)) + 1
+        xmin, xmax, ymin, ymax = bounds(x, y)
+        x0 = np.floor(xmin / cell) * cell
+        y0 = np.floor(ymin / cell) * cell
+        nx = int(np.floor((xmax - x0) / cell)) + 1
+        ny = int(np.floor((ymax - y0) / cell)) + 1
         return cls(float(x0), float(y0), float(cell), nx, ny)
 
     @property

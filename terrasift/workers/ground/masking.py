@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import QhullError
 
+from terrasift.workers.bins import bounds
 from terrasift.workers.ground.tin import Tin
 
 
@@ -36,10 +37,10 @@ def extremes_per_cell(xyz: NDArray[np.float64], cell: float) -> NDArray[np.int64
     from the smallest x and y; two compiled passes (``_extremes``).
     """
     x, y, z = (np.asarray(xyz[:, k], dtype=np.float64) for k in range(3))
-    x0, y0 = float(x.min()), float(y.min())
+    x0, x1, y0, y1 = (float(v) for v in bounds(x, y))
     # floor((x - x0) / cell) is monotone in x: the largest comes from the largest x.
-    nx = int(np.floor((x.max() - x0) / cell)) + 1
-    ny = int(np.floor((y.max() - y0) / cell)) + 1
+    nx = int(np.floor((x1 - x0) / cell)) + 1
+    ny = int(np.floor((y1 - y0) / cell)) + 1
     return _extremes(x, y, z, x0, y0, float(cell), nx, ny)
 
 

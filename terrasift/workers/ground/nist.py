@@ -82,6 +82,7 @@ from terrasift.workers.bins import (
 from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
+from terrasift.workers.ground.pointwise import below_limit, ground_band
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import Tin, screen
@@ -376,9 +377,7 @@ def _mow(tin: Tin, xyz: NDArray[np.float64], tol: float, cell: float, params: Ni
     slope change times half the spacing, and steep facets flag where that happens.
     """
     h, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.mow_slope > 0)
-    h = xyz[:, 2] - h
-    limit = tol if slope is None else tol + params.mow_slope * cell * _capped(slope, params)
-    return np.flatnonzero(h <= limit)
+    return below_limit(xyz[:, 2], h, slope, tol, params.mow_slope * cell, params.slope_cap)
 
 
 @register("ground.nist", NistParams, "NIST select/reject, TIN masking, meshing, screening, mowing")
@@ -478,15 +477,9 @@ def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np
 def _band(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Points in the ground band of ``tin`` (see ``_label``), and points above it."""
     surf, slope = tin.height_and_slope(xyz[:, :2] - tin.origin, slope=params.ground_slope > 0)
-    h = xyz[:, 2] - surf
-    tol_up: NDArray | float = params.ground_tol
-    tol_down: NDArray | float = params.ground_tol_below
-    if slope is not None:
-        slope = _capped(slope, params)
-        tol_up = tol_up + params.ground_slope * slope
-        tol_down = tol_down + params.ground_slope * slope
-    above = h > tol_up
-    return ~above & (h >= -tol_down), above
+    return ground_band(
+        xyz[:, 2], surf, slope, params.ground_tol, params.ground_tol_below, params.ground_slope, params.slope_cap
+    )
 
 
 def _without_raised(
