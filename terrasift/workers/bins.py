@@ -33,10 +33,19 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     """Stable permutation putting points in row-major order of the ``cell``-sized
     squares of a grid through the origin.
 
-    The cell key is sorted by numpy's radix sort on 16-bit digits (one pass
-    when there are fewer than 65536 cells, two up to 2**32): several times
-    faster than a comparison sort of millions of 64-bit keys, same permutation.
+    A compiled counting sort on the cell key (``_cell_counting_sort``) when the
+    keys span at most a few times as many cells as there are points: the
+    stable order is unique, so it is the permutation of a stable argsort, at
+    a fraction of the cost. Otherwise the key is sorted by numpy's radix sort
+    on 16-bit digits (one pass when there are fewer than 65536 cells, two up
+    to 2**32).
     """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if x.size:
+        order = _cell_counting_sort(x.reshape(-1), y.reshape(-1), float(cell), 4 * x.size + (1 << 20))
+        if order.size == x.size:
+            return order
     ix = np.floor(x / cell).astype(np.int64)
     iy = np.floor(y / cell).astype(np.int64)
     if ix.size:
@@ -48,6 +57,48 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     order = np.argsort((key & 0xFFFF).astype(np.uint16), kind="stable")
     if int(key.max()) >= 1 << 16:
         order = order[np.argsort((key[order] >> 16).astype(np.uint16), kind="stable")]
+    return order
+
+
+@numba.njit(cache=True)
+def _cell_counting_sort(x: NDArray[np.float64], y: NDArray[np.float64], cell: float, max_keys: int) -> NDArray[np.int64]:
+    """Stable counting sort of the points by row-major cell key (the key of
+    ``cell_order``); an empty array when a coordinate is not finite or the keys
+    span more than ``max_keys`` cells (the caller falls back to a radix sort)."""
+    n = x.size
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    lo_x = lo_y = np.iinfo(np.int64).max
+    hi_x = hi_y = np.iinfo(np.int64).min
+    for i in range(n):
+        fx = np.floor(x[i] / cell)
+        fy = np.floor(y[i] / cell)
+        if not (np.isfinite(fx) and np.isfinite(fy)) or abs(fx) > 2.0**52 or abs(fy) > 2.0**52:
+            return np.empty(0, dtype=np.int64)
+        a = np.int64(fx)
+        b = np.int64(fy)
+        ix[i] = a
+        iy[i] = b
+        lo_x = min(lo_x, a)
+        hi_x = max(hi_x, a)
+        lo_y = min(lo_y, b)
+        hi_y = max(hi_y, b)
+    nx = hi_x - lo_x + 1
+    ny = hi_y - lo_y + 1
+    if nx > max_keys or ny > max_keys or nx * ny > max_keys:
+        return np.empty(0, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(n):
+        k = (iy[i] - lo_y) * nx + (ix[i] - lo_x)
+        ix[i] = k
+        start[k + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        k = ix[i]
+        order[start[k]] = i
+        start[k] += 1
     return order
 
 
