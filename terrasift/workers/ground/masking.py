@@ -97,14 +97,15 @@ def partial_tin(
         verts = np.flatnonzero(inserted)
         # Pools of extremes hold coincident points (the lowest and highest of a
         # cell at one position, as with several returns of one pulse).
-        tin = Tin(xyz[verts], origin=origin, coincident=True)
+        tin = Tin(np.take(xyz, verts, axis=0), origin=origin, coincident=True)
         if verts.size >= target:
             return tin, verts
         rest = np.flatnonzero(~inserted)
         if rest.size == 0:
             return tin, verts
-        ti, surf = tin.linear(xy[rest])
-        score = np.abs(xyz[rest, 2] - surf)
+        # np.take: several times faster than fancy indexing of rows, same values.
+        ti, surf = tin.linear(np.take(xy, rest, axis=0))
+        score = np.abs(np.take(xyz[:, 2], rest) - surf)
         if rule == "area":
             score = score * _areas(tin)[ti]
         winners = _worst_per_triangle(ti, score, tin.tri.simplices.shape[0], per_round)
