@@ -105,7 +105,7 @@ def partial_tin(
             return tin, verts
         # np.take: several times faster than fancy indexing of rows, same values.
         ti, surf = tin.linear(np.take(xy, rest, axis=0))
-        score = np.abs(np.take(xyz[:, 2], rest) - surf)
+        score = np.abs(xyz[rest, 2] - surf)
         if rule == "area":
             score = score * _areas(tin)[ti]
         winners = _worst_per_triangle(ti, score, tin.tri.simplices.shape[0], per_round)
