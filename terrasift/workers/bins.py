@@ -123,8 +123,8 @@ def _bounds_kernel(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[floa
         xmax = max(xmax, u)
         ymin = min(ymin, v)
         ymax = max(ymax, v)
-        nan_x |= u != u
-        nan_y |= v != v
+        nan_x |= np.isnan(u)
+        nan_y |= np.isnan(v)
     if nan_x:
         xmin = xmax = np.nan
     if nan_y:
@@ -168,10 +168,10 @@ def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> t
         elif zi == m:
             if low[b] < 0:  # the first point at +inf
                 low[b] = i
-        elif zi != zi:
+        elif np.isnan(zi):
             zmin[b] = np.nan
     for b in range(size):
-        if zmin[b] != zmin[b]:
+        if np.isnan(zmin[b]):
             low[b] = -1
     return zmin, low
 
@@ -201,12 +201,12 @@ def _level_sums(
         elif zi == m:
             if low[b] < 0:
                 low[b] = i
-        elif zi != zi:
+        elif np.isnan(zi):
             zmin[b] = np.nan
-        if zi > zmax[b] or zi != zi:
+        if zi > zmax[b] or np.isnan(zi):
             zmax[b] = zi
     for b in range(size):
-        if zmin[b] != zmin[b]:
+        if np.isnan(zmin[b]):
             low[b] = -1
     return n, zsum, zmin, zmax, low
 
@@ -291,10 +291,10 @@ def _plane_residuals(
         elif r == m:
             if low[b] < 0:
                 low[b] = i
-        elif r != r:
+        elif np.isnan(r):
             rmin[b] = np.nan
     for b in range(size):
-        if rmin[b] != rmin[b]:
+        if np.isnan(rmin[b]):
             low[b] = -1
     return ss, rmin, low
 

@@ -58,9 +58,9 @@ def _extremes(
         b = np.int64(np.floor((y[i] - y0) / cell)) * nx + np.int64(np.floor((x[i] - x0) / cell))
         flat[i] = b
         zi = z[i]
-        if zi < lo[b] or zi != zi:
+        if zi < lo[b] or np.isnan(zi):
             lo[b] = zi
-        if zi > hi[b] or zi != zi:
+        if zi > hi[b] or np.isnan(zi):
             hi[b] = zi
     out = np.empty(n, dtype=np.int64)
     m = 0

@@ -69,7 +69,7 @@ def _below_limit(
         limit = tol
         if has_slope:
             s = slope[i]
-            if s > cap:
+            if s > cap:  # noqa: PLR1730 (keeps a NaN slope NaN, as np.minimum does)
                 s = cap
             limit = tol + per_slope * s
         out[m] = i  # branch-free: kept when m moves on
@@ -97,7 +97,7 @@ def _ground_band(
         down = tol_down
         if has_slope:
             s = slope[i]
-            if s > cap:
+            if s > cap:  # noqa: PLR1730 (keeps a NaN slope NaN, as np.minimum does)
                 s = cap
             w = per_slope * s
             up = tol_up + w

@@ -111,7 +111,7 @@ def _top_of_ground(cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDAr
         if ground[i]:
             v = z[i]
             b = cell[i]
-            if v > top[b] or v != v:
+            if v > top[b] or np.isnan(v):
                 top[b] = v
     return top
 
