@@ -1,14 +1,17 @@
 """Per-bin statistics on a regular grid: the select/reject basis of NIST §2.
 
-Everything is computed with ``np.bincount`` over flat bin indices, so one call
-costs a few passes over the points whatever the number of bins. Bins are
-addressed row-major from the grid origin (lower-left corner): ``flat = iy * nx + ix``.
+Sums over the points of each bin are accumulated by small compiled loops
+(numba) in point order, as ``np.bincount`` would, so one call costs one or two
+passes over the points whatever the number of bins; the per-bin arithmetic
+stays in numpy. Bins are addressed row-major from the grid origin (lower-left
+corner): ``flat = iy * nx + ix``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,10 +33,19 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     """Stable permutation putting points in row-major order of the ``cell``-sized
     squares of a grid through the origin.
 
-    The cell key is sorted by numpy's radix sort on 16-bit digits (one pass
-    when there are fewer than 65536 cells, two up to 2**32): several times
-    faster than a comparison sort of millions of 64-bit keys, same permutation.
+    A compiled counting sort on the cell key (``_cell_counting_sort``) when the
+    keys span at most a few times as many cells as there are points: the
+    stable order is unique, so it is the permutation of a stable argsort, at
+    a fraction of the cost. Otherwise the key is sorted by numpy's radix sort
+    on 16-bit digits (one pass when there are fewer than 65536 cells, two up
+    to 2**32).
     """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if x.size:
+        order = _cell_counting_sort(x.reshape(-1), y.reshape(-1), float(cell), 4 * x.size + (1 << 20))
+        if order.size == x.size:
+            return order
     ix = np.floor(x / cell).astype(np.int64)
     iy = np.floor(y / cell).astype(np.int64)
     if ix.size:
@@ -46,6 +58,245 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     if int(key.max()) >= 1 << 16:
         order = order[np.argsort((key[order] >> 16).astype(np.uint16), kind="stable")]
     return order
+
+
+@numba.njit(cache=True)
+def _cell_counting_sort(x: NDArray[np.float64], y: NDArray[np.float64], cell: float, max_keys: int) -> NDArray[np.int64]:
+    """Stable counting sort of the points by row-major cell key (the key of
+    ``cell_order``); an empty array when a coordinate is not finite or the keys
+    span more than ``max_keys`` cells (the caller falls back to a radix sort)."""
+    n = x.size
+    ix = np.empty(n, dtype=np.int64)
+    iy = np.empty(n, dtype=np.int64)
+    lo_x = lo_y = np.iinfo(np.int64).max
+    hi_x = hi_y = np.iinfo(np.int64).min
+    for i in range(n):
+        fx = np.floor(x[i] / cell)
+        fy = np.floor(y[i] / cell)
+        if not (np.isfinite(fx) and np.isfinite(fy)) or abs(fx) > 2.0**52 or abs(fy) > 2.0**52:
+            return np.empty(0, dtype=np.int64)
+        a = np.int64(fx)
+        b = np.int64(fy)
+        ix[i] = a
+        iy[i] = b
+        lo_x = min(lo_x, a)
+        hi_x = max(hi_x, a)
+        lo_y = min(lo_y, b)
+        hi_y = max(hi_y, b)
+    nx = hi_x - lo_x + 1
+    ny = hi_y - lo_y + 1
+    if nx > max_keys or ny > max_keys or nx * ny > max_keys:
+        return np.empty(0, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(n):
+        k = (iy[i] - lo_y) * nx + (ix[i] - lo_x)
+        ix[i] = k
+        start[k + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        k = ix[i]
+        order[start[k]] = i
+        start[k] += 1
+    return order
+
+
+def bounds(x: NDArray, y: NDArray) -> tuple[np.floating, np.floating, np.floating, np.floating]:
+    """``x.min(), x.max(), y.min(), y.max()`` in one compiled pass for float64
+    input (four numpy reductions over strided columns cost several times more)."""
+    if x.size and x.size == y.size and x.dtype == np.float64 and y.dtype == np.float64:
+        return tuple(np.float64(v) for v in _bounds_kernel(x.reshape(-1), y.reshape(-1)))
+    return x.min(), x.max(), y.min(), y.max()
+
+
+@numba.njit(cache=True)
+def _bounds_kernel(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """Min and max of ``x`` and of ``y`` (same length: one pass over the rows);
+    NaN for both of an array holding a NaN, as numpy's."""
+    xmin, xmax, ymin, ymax = np.inf, -np.inf, np.inf, -np.inf
+    nan_x = nan_y = False
+    for i in range(x.size):
+        u = x[i]
+        v = y[i]
+        xmin = min(xmin, u)
+        xmax = max(xmax, u)
+        ymin = min(ymin, v)
+        ymax = max(ymax, v)
+        nan_x |= np.isnan(u)
+        nan_y |= np.isnan(v)
+    if nan_x:
+        xmin = xmax = np.nan
+    if nan_y:
+        ymin = ymax = np.nan
+    return xmin, xmax, ymin, ymax
+
+
+@numba.njit(cache=True)
+def _index_kernel(
+    x: NDArray[np.float64], y: NDArray[np.float64], x0: float, y0: float, cell: float, nx: int, ny: int, out: NDArray[np.int64]
+) -> None:
+    """``out[i]`` = row-major bin of point i, -1 outside (and for NaN).
+
+    Truncation equals the floor on the non-negative offsets that can be
+    inside, and ``trunc(f) < n`` is ``f < n`` for ``f >= 0``.
+    """
+    for i in range(x.size):
+        fx = (x[i] - x0) / cell
+        fy = (y[i] - y0) / cell
+        if fx >= 0 and fy >= 0 and fx < nx and fy < ny:
+            out[i] = np.int64(fy) * nx + np.int64(fx)
+        else:
+            out[i] = -1
+
+
+@numba.njit(cache=True)
+def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Per bin: minimum of ``z`` (+inf when empty, NaN as ``np.minimum`` propagates it)
+    and the smallest index of a point holding it (-1 when none). Points with flat < 0 are skipped."""
+    zmin = np.full(size, np.inf)
+    low = np.full(size, -1, dtype=np.int64)
+    for i in range(flat.size):
+        b = flat[i]
+        if b < 0:
+            continue
+        zi = z[i]
+        m = zmin[b]
+        if zi < m:
+            zmin[b] = zi
+            low[b] = i
+        elif zi == m:
+            if low[b] < 0:  # the first point at +inf
+                low[b] = i
+        elif np.isnan(zi):
+            zmin[b] = np.nan
+    for b in range(size):
+        if np.isnan(zmin[b]):
+            low[b] = -1
+    return zmin, low
+
+
+@numba.njit(cache=True)
+def _level_sums(
+    flat: NDArray[np.int64], z: NDArray[np.float64], size: int
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per bin: count, sum of z (in point order, as ``np.bincount``), min, max
+    (NaN-propagating like ``np.minimum.at``) and the lowest point (as ``_min_argmin``)."""
+    n = np.zeros(size, dtype=np.int64)
+    zsum = np.zeros(size)
+    zmin = np.full(size, np.inf)
+    zmax = np.full(size, -np.inf)
+    low = np.full(size, -1, dtype=np.int64)
+    for i in range(flat.size):
+        b = flat[i]
+        if b < 0:
+            continue
+        zi = z[i]
+        n[b] += 1
+        zsum[b] += zi
+        m = zmin[b]
+        if zi < m:
+            zmin[b] = zi
+            low[b] = i
+        elif zi == m:
+            if low[b] < 0:
+                low[b] = i
+        elif np.isnan(zi):
+            zmin[b] = np.nan
+        if zi > zmax[b] or np.isnan(zi):
+            zmax[b] = zi
+    for b in range(size):
+        if np.isnan(zmin[b]):
+            low[b] = -1
+    return n, zsum, zmin, zmax, low
+
+
+@numba.njit(cache=True)
+def _squared_deviations(flat: NDArray[np.int64], z: NDArray[np.float64], mean: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per bin: sum of (z - mean[bin])² in point order."""
+    out = np.zeros(mean.size)
+    for i in range(flat.size):
+        b = flat[i]
+        if b >= 0:
+            d = z[i] - mean[b]
+            out[b] += d * d
+    return out
+
+
+@numba.njit(cache=True)
+def _plane_sums(
+    flat: NDArray[np.int64],
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    z: NDArray[np.float64],
+    cx: NDArray[np.float64],
+    cy: NDArray[np.float64],
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Per bin: count and the sums of u, v, z, u², v², uv, uz, vz (columns 0–7),
+    u, v = x, y relative to the bin centre; each summed in point order."""
+    size = cx.size
+    n = np.zeros(size, dtype=np.int64)
+    s = np.zeros((size, 8))
+    for i in range(flat.size):
+        b = flat[i]
+        if b < 0:
+            continue
+        u = x[i] - cx[b]
+        v = y[i] - cy[b]
+        zi = z[i]
+        n[b] += 1
+        s[b, 0] += u
+        s[b, 1] += v
+        s[b, 2] += zi
+        s[b, 3] += u * u
+        s[b, 4] += v * v
+        s[b, 5] += u * v
+        s[b, 6] += u * zi
+        s[b, 7] += v * zi
+    return n, s
+
+
+@numba.njit(cache=True)
+def _plane_residuals(
+    flat: NDArray[np.int64],
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    z: NDArray[np.float64],
+    cx: NDArray[np.float64],
+    cy: NDArray[np.float64],
+    c: NDArray[np.float64],
+    sx: NDArray[np.float64],
+    sy: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Per bin: sum of squared residuals about z = c + sx·u + sy·v, the smallest
+    residual and the first point holding it (as ``_min_argmin``)."""
+    size = cx.size
+    ss = np.zeros(size)
+    rmin = np.full(size, np.inf)
+    low = np.full(size, -1, dtype=np.int64)
+    for i in range(flat.size):
+        b = flat[i]
+        if b < 0:
+            continue
+        u = x[i] - cx[b]
+        v = y[i] - cy[b]
+        r = z[i] - c[b]
+        r -= sx[b] * u
+        r -= sy[b] * v
+        ss[b] += r * r
+        m = rmin[b]
+        if r < m:
+            rmin[b] = r
+            low[b] = i
+        elif r == m:
+            if low[b] < 0:
+                low[b] = i
+        elif np.isnan(r):
+            rmin[b] = np.nan
+    for b in range(size):
+        if np.isnan(rmin[b]):
+            low[b] = -1
+    return ss, rmin, low
 
 
 @dataclass(frozen=True)
@@ -62,10 +313,11 @@ class Grid:
     def covering(cls, x: NDArray, y: NDArray, cell: float) -> Grid:
         """The smallest grid of ``cell``-sized bins, anchored on a multiple of
         ``cell``, that holds every point."""
-        x0 = np.floor(x.min() / cell) * cell
-        y0 = np.floor(y.min() / cell) * cell
-        nx = int(np.floor((x.max() - x0) / cell)) + 1
-        ny = int(np.floor((y.max() - y0) / cell)) + 1
+        xmin, xmax, ymin, ymax = bounds(x, y)
+        x0 = np.floor(xmin / cell) * cell
+        y0 = np.floor(ymin / cell) * cell
+        nx = int(np.floor((xmax - x0) / cell)) + 1
+        ny = int(np.floor((ymax - y0) / cell)) + 1
         return cls(float(x0), float(y0), float(cell), nx, ny)
 
     @property
@@ -75,22 +327,14 @@ class Grid:
     def index(self, x: NDArray, y: NDArray) -> NDArray[np.int64]:
         """Flat bin index of each point, -1 for points outside the grid.
 
-        Truncation equals the floor on the non-negative offsets that can be
-        inside, so no separate floor pass over millions of points is needed.
+        One compiled pass (``_index_kernel``) instead of a dozen numpy passes
+        over millions of points.
         """
-        fx = (np.asarray(x, dtype=np.float64) - self.x0) / self.cell
-        fy = (np.asarray(y, dtype=np.float64) - self.y0) / self.cell
-        ix = fx.astype(np.int64)
-        iy = fy.astype(np.int64)
-        if ix.size and fx.min() >= 0 and fy.min() >= 0 and ix.max() < self.nx and iy.max() < self.ny:
-            inside = None  # the usual case, settled by four reductions
-        else:
-            inside = (fx >= 0) & (ix < self.nx) & (fy >= 0) & (iy < self.ny)
-        iy *= self.nx
-        iy += ix
-        if inside is not None:
-            iy[~inside] = -1
-        return iy
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        out = np.empty(x.size, dtype=np.int64)
+        _index_kernel(x.reshape(-1), y.reshape(-1), self.x0, self.y0, self.cell, self.nx, self.ny, out)
+        return out.reshape(x.shape)
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Flat arrays of bin-centre x and y, in flat-index order."""
@@ -120,64 +364,30 @@ class BinStats:
 def lowest_per_bin(flat: NDArray[np.int64], z: NDArray, size: int) -> NDArray[np.int64]:
     """Index of the lowest point of each bin (-1 for empty bins or flat == -1).
 
-    Ties go to the smaller index. Two scatter passes (``ufunc.at`` is fast
-    since numpy 1.25) instead of a lexsort, which costs seconds on millions.
+    Ties go to the smaller index. One compiled pass (``_min_argmin``).
     """
-    valid = np.flatnonzero(flat >= 0)
-    f, zv = flat[valid], z[valid]
-    zmin = np.full(size, np.inf)
-    np.minimum.at(zmin, f, zv)
-    return _lowest_given_min(f, zv, zmin, valid)
-
-
-def _lowest_given_min(
-    f: NDArray[np.int64], z: NDArray, zmin: NDArray, ids: NDArray[np.int64] | None
-) -> NDArray[np.int64]:
-    """Smallest index among the points of each bin whose ``z`` equals the bin's ``zmin``.
-
-    ``f`` holds valid bins only; ``ids`` maps its rows to point indices (None: identity).
-    """
-    hit = np.flatnonzero(z == zmin[f])
-    big = np.iinfo(np.int64).max
-    out = np.full(zmin.size, big, dtype=np.int64)
-    np.minimum.at(out, f[hit], hit if ids is None else ids[hit])
-    out[out == big] = -1
-    return out
+    flat = np.asarray(flat, dtype=np.int64)
+    return _min_argmin(flat, np.asarray(z, dtype=np.float64), size)[1]
 
 
 def bin_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> BinStats:
     """Count, min, max, mean, RMS and lowest point of every bin of ``grid``.
 
     ``flat`` is ``grid.index`` of the points when the caller has it already.
+    Two compiled passes over the points (sums, then deviations from the mean).
     """
     if flat is None:
         flat = grid.index(xyz[:, 0], xyz[:, 1])
-    f, z, ids = _valid(flat, xyz[:, 2])
-    size = grid.size
-    n = np.bincount(f, minlength=size)
+    flat = np.asarray(flat, dtype=np.int64)
+    z = np.asarray(xyz[:, 2], dtype=np.float64)
+    n, zsum, zmin, zmax, lowest = _level_sums(flat, z, grid.size)
     with np.errstate(invalid="ignore", divide="ignore"):
-        zsum = np.bincount(f, weights=z, minlength=size)
         zmean = zsum / n
-        dev = z - zmean[f]
-        rms = np.sqrt(np.bincount(f, weights=dev * dev, minlength=size) / n)
-    zmin = np.full(size, np.inf)
-    np.minimum.at(zmin, f, z)
-    zmax = np.full(size, -np.inf)
-    np.maximum.at(zmax, f, z)
-    lowest = _lowest_given_min(f, z, zmin, ids)  # before the NaNs go in
+        rms = np.sqrt(_squared_deviations(flat, z, zmean) / n)
     empty = n == 0
     zmin[empty] = np.nan
     zmax[empty] = np.nan
     return BinStats(grid, n, zmin, zmax, zmean, rms, lowest)
-
-
-def _valid(flat: NDArray[np.int64], z: NDArray) -> tuple[NDArray[np.int64], NDArray, NDArray[np.int64] | None]:
-    """Bins, values and point indices of the points inside the grid (no copies when all are)."""
-    inside = flat >= 0
-    if inside.all():
-        return flat, z, None
-    ids = np.flatnonzero(inside)
-    return flat[ids], z[ids], ids
 
 
 @dataclass(frozen=True)
@@ -199,34 +409,21 @@ class PlaneStats:
 
 
 def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> PlaneStats:
-    """Fit a least-squares plane in every bin at once via bincount'ed normal equations.
+    """Fit a least-squares plane in every bin at once via per-bin normal equations.
 
-    The 3 × 3 systems are solved in closed form (cofactors), vectorised over
-    bins: a batched LAPACK solve costs more than all the sums. ``flat`` is
-    ``grid.index`` of the points when the caller has it already.
+    The sums are one compiled pass over the points; the 3 × 3 systems are
+    solved in closed form (cofactors), vectorised over bins: a batched LAPACK
+    solve costs more than all the sums. A second pass gives the residuals.
+    ``flat`` is ``grid.index`` of the points when the caller has it already.
     """
     if flat is None:
         flat = grid.index(xyz[:, 0], xyz[:, 1])
-    f, _, ids = _valid(flat, xyz[:, 2])
-    size = grid.size
+    flat = np.asarray(flat, dtype=np.int64)
+    x, y, z = (np.asarray(xyz[:, k], dtype=np.float64) for k in range(3))
     cx, cy = grid.centers()
-    if ids is None:
-        u = xyz[:, 0] - cx[f]
-        v = xyz[:, 1] - cy[f]
-        z = xyz[:, 2]
-    else:
-        u = xyz[ids, 0] - cx[f]
-        v = xyz[ids, 1] - cy[f]
-        z = xyz[ids, 2]
-
-    def s(w: NDArray | None) -> NDArray:
-        return np.bincount(f, weights=w, minlength=size).astype(np.float64)
-
-    n = np.bincount(f, minlength=size)
+    n, sums = _plane_sums(flat, x, y, z, cx, cy)
     nf = n.astype(np.float64)
-    su, sv, sz = s(u), s(v), s(z)
-    suu, svv, suv = s(u * u), s(v * v), s(u * v)
-    suz, svz = s(u * z), s(v * z)
+    su, sv, sz, suu, svv, suv, suz, svz = sums.T
     # Solve [[n, su, sv], [su, suu, suv], [sv, suv, svv]] @ [c, sx, sy] = [sz, suz, svz]
     # with the (symmetric) adjugate.
     a00 = suu * svv - suv * suv
@@ -243,17 +440,11 @@ def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.
     sx = (a01 * sz + a11 * suz + a12 * svz) * inv
     sy = (a02 * sz + a12 * suz + a22 * svz) * inv
     # Residuals about zero planes in bins without a fit keep every residual
-    # finite (no masking passes over the points); those bins get NaN / -1 below.
+    # finite; those bins get NaN / -1 below.
     c0, sx0, sy0 = (np.where(ok, a, 0.0) for a in (c, sx, sy))
-    resid = z - c0[f]
-    resid -= sx0[f] * u
-    resid -= sy0[f] * v
+    ss, _, lowest = _plane_residuals(flat, x, y, z, cx, cy, c0, sx0, sy0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        rms = np.sqrt(np.bincount(f, weights=resid * resid, minlength=size) / n)
+        rms = np.sqrt(ss / n)
     rms[~ok] = np.nan
-    rmin = np.full(size, np.inf)
-    np.minimum.at(rmin, f, resid)
-    lowest = _lowest_given_min(f, resid, rmin, ids)
     lowest[~ok] = -1
     return PlaneStats(grid, n, c, sx, sy, rms, lowest)
-

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import QhullError
 
+from terrasift.workers.bins import bounds
 from terrasift.workers.ground.tin import Tin
 
 
@@ -31,19 +33,43 @@ def extremes_per_cell(xyz: NDArray[np.float64], cell: float) -> NDArray[np.int64
     """Indices of the lowest and the highest point of every ``cell``-sized square.
 
     The points a largest-deviation insertion picks first are a cell's extremes,
-    so masking can run on them alone when a block is dense.
+    so masking can run on them alone when a block is dense. Cells are counted
+    from the smallest x and y; two compiled passes (``_extremes``).
     """
-    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    ix = np.floor((x - x.min()) / cell).astype(np.int64)
-    iy = np.floor((y - y.min()) / cell).astype(np.int64)
-    flat = iy * (int(ix.max()) + 1) + ix
-    size = int(flat.max()) + 1
-    lo = np.full(size, np.inf)
-    hi = np.full(size, -np.inf)
-    np.minimum.at(lo, flat, z)
-    np.maximum.at(hi, flat, z)
-    is_ext = (z == lo[flat]) | (z == hi[flat])
-    return np.flatnonzero(is_ext)
+    x, y, z = (np.asarray(xyz[:, k], dtype=np.float64) for k in range(3))
+    x0, x1, y0, y1 = (float(v) for v in bounds(x, y))
+    # floor((x - x0) / cell) is monotone in x: the largest comes from the largest x.
+    nx = int(np.floor((x1 - x0) / cell)) + 1
+    ny = int(np.floor((y1 - y0) / cell)) + 1
+    return _extremes(x, y, z, x0, y0, float(cell), nx, ny)
+
+
+@numba.njit(cache=True)
+def _extremes(
+    x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64], x0: float, y0: float, cell: float, nx: int, ny: int
+) -> NDArray[np.int64]:
+    """Increasing indices of the points whose z is the min or max of their cell
+    (NaN propagating into a cell's min and max as with ``np.minimum.at``)."""
+    n = x.size
+    flat = np.empty(n, dtype=np.int64)
+    lo = np.full(nx * ny, np.inf)
+    hi = np.full(nx * ny, -np.inf)
+    for i in range(n):
+        b = np.int64(np.floor((y[i] - y0) / cell)) * nx + np.int64(np.floor((x[i] - x0) / cell))
+        flat[i] = b
+        zi = z[i]
+        if zi < lo[b] or np.isnan(zi):
+            lo[b] = zi
+        if zi > hi[b] or np.isnan(zi):
+            hi[b] = zi
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        b = flat[i]
+        if z[i] == lo[b] or z[i] == hi[b]:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
 
 
 def partial_tin(
@@ -71,13 +97,14 @@ def partial_tin(
         verts = np.flatnonzero(inserted)
         # Pools of extremes hold coincident points (the lowest and highest of a
         # cell at one position, as with several returns of one pulse).
-        tin = Tin(xyz[verts], origin=origin, coincident=True)
+        tin = Tin(np.take(xyz, verts, axis=0), origin=origin, coincident=True)
         if verts.size >= target:
             return tin, verts
         rest = np.flatnonzero(~inserted)
         if rest.size == 0:
             return tin, verts
-        ti, surf = tin.linear(xy[rest])
+        # np.take: several times faster than fancy indexing of rows, same values.
+        ti, surf = tin.linear(np.take(xy, rest, axis=0))
         score = np.abs(xyz[rest, 2] - surf)
         if rule == "area":
             score = score * _areas(tin)[ti]
@@ -119,20 +146,46 @@ def mask_points(
 
 
 def _worst_per_triangle(ti: NDArray[np.int64], score: NDArray[np.float64], n_tri: int, k: int) -> NDArray[np.int64]:
-    """Indices of the up-to-``k`` highest positive scores per triangle (one scatter-max per rank)."""
-    out = []
-    s = np.where(score > 0, score, -1.0)
-    for _ in range(k):
-        best = np.full(n_tri, -1.0)
-        np.maximum.at(best, ti, s)
-        win = np.flatnonzero((s == best[ti]) & (s > 0))
-        _, first = np.unique(ti[win], return_index=True)  # one per triangle even on ties
-        win = win[first]
-        if win.size == 0:
-            break
-        out.append(win)
-        s[win] = -1.0
-    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+    """Indices of the up-to-``k`` highest positive scores per triangle: the
+    best of every triangle (by triangle), then the second best, and so on; ties
+    go to the smaller index. One compiled pass keeping each triangle's top ``k``."""
+    return _top_k_per_group(np.asarray(ti, dtype=np.int64), np.asarray(score, dtype=np.float64), n_tri, k)
+
+
+@numba.njit(cache=True)
+def _top_k_per_group(group: NDArray[np.int64], score: NDArray[np.float64], n_groups: int, k: int) -> NDArray[np.int64]:
+    """Rank by rank, in group order, the indices of the ``k`` largest positive
+    scores of each group (equal scores: smaller index first)."""
+    val = np.empty((n_groups, k))
+    idx = np.full((n_groups, k), -1, dtype=np.int64)
+    for i in range(group.size):
+        s = score[i]
+        if not s > 0:
+            continue
+        g = group[i]
+        j = 0
+        while j < k and idx[g, j] >= 0 and val[g, j] >= s:
+            j += 1
+        if j == k:
+            continue
+        for m in range(k - 1, j, -1):
+            val[g, m] = val[g, m - 1]
+            idx[g, m] = idx[g, m - 1]
+        val[g, j] = s
+        idx[g, j] = i
+    count = 0
+    for g in range(n_groups):
+        for r in range(k):
+            if idx[g, r] >= 0:
+                count += 1
+    out = np.empty(count, dtype=np.int64)
+    m = 0
+    for r in range(k):
+        for g in range(n_groups):
+            if idx[g, r] >= 0:
+                out[m] = idx[g, r]
+                m += 1
+    return out
 
 
 def _areas(tin: Tin) -> NDArray[np.float64]:

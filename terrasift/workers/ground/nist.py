@@ -315,7 +315,7 @@ def _mask(xyz: NDArray[np.float64], params: NistParams, spacing: float) -> NDArr
     pool_cell = params.mask_pool_cell or max(2.0 * spacing, 1.0)
     edge = params.mask_edge or 2.5 * spacing
     pool = extremes_per_cell(xyz, pool_cell)
-    return xyz[pool[mask_points(xyz[pool], params.mask_fraction, edge, params.mask_rule)], :2]
+    return xyz[pool[mask_points(np.take(xyz, pool, axis=0), params.mask_fraction, edge, params.mask_rule)], :2]
 
 
 def _screen_points(xyz: NDArray[np.float64], params: NistParams, spacing: float) -> NDArray[np.int64]:
@@ -454,7 +454,9 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
     order = cell_order(xyz[:, 0] - shift[0], xyz[:, 1] - shift[1], 8.0)
-    local = np.column_stack([xyz[order, :2] - shift, xyz[order, 2]])
+    # np.take: several times faster than fancy indexing of rows (here and below), same values.
+    local = np.take(xyz[:, :3], order, axis=0)
+    local[:, :2] -= shift
     origin = None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
     spacing = point_spacing(local[:, :2])
     g1, g2, g3 = _grids(local, params, spacing, origin)
@@ -470,7 +472,7 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     mowed = _mow(tin1, local, params.mow_tol_1, _cell_of(g1), params)
 
     # Pass 2: screen the mowed points, mask them, bin, mesh/screen; mow the originals again.
-    mowed_pts = local[mowed]
+    mowed_pts = np.take(local, mowed, axis=0)
     mask2 = none
     if params.mask:
         mowed_pts = mowed_pts[_screen_points(mowed_pts, params, spacing)]
@@ -479,12 +481,12 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     mowed = _mow(tin2, local, params.mow_tol_2, _cell_of(g2), params)
 
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
-    mowed_pts = local[mowed]
+    mowed_pts = np.take(local, mowed, axis=0)
     tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
     # Repeats of mow → bin → mesh/screen at the final cell size let the
     # surface climb back onto convex breaks that the coarser passes cut.
     for _ in range(params.repeats):
-        mowed_pts = local[_mow(tin3, local, params.mow_tol_2, _cell_of(g3), params)]
+        mowed_pts = np.take(local, _mow(tin3, local, params.mow_tol_2, _cell_of(g3), params), axis=0)
         tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
     raised = None
     if params.raised_step > 0:

@@ -20,6 +20,7 @@ around them can pass, so the k-nearest queries run on those alone.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
@@ -48,21 +49,21 @@ def supported_points(
         return out
     grid = Grid.covering(xyz[:, 0], xyz[:, 1], radius)
     cell = grid.index(xyz[:, 0], xyz[:, 1])
+    zs = np.ascontiguousarray(xyz[:, 2], dtype=np.float64)
     may = ~out if eligible is None else eligible & ~out
     todo = may
     for _ in range(rounds):
         # Necessary condition: some ground point of the 3 x 3 cells is as high.
-        top = np.full(grid.size, -np.inf)
-        np.maximum.at(top, cell[out], xyz[out, 2])
+        top = _top_of_ground(cell, zs, out, grid.size)
         top = _max3x3(top.reshape(grid.ny, grid.nx)).ravel()
-        cand = np.flatnonzero(todo & (xyz[:, 2] <= top[cell] + tol))
+        cand = _under_top(todo, zs, top, cell, tol)
         if cand.size == 0:
             break
         # The tree holds only the ground of the 3 x 3 cells around candidates.
         busy = np.zeros(grid.size, dtype=bool)
         busy[cell[cand]] = True
         busy = _dilate(busy.reshape(grid.ny, grid.nx)).ravel()
-        gi = np.flatnonzero(out & busy[cell])
+        gi = _flagged_in(out, busy, cell)
         kk = min(k, gi.size)
         if kk <= rank:
             break
@@ -78,7 +79,7 @@ def supported_points(
         near = np.zeros(grid.size, dtype=bool)
         near[cell[new]] = True
         near = _dilate(near.reshape(grid.ny, grid.nx)).ravel()
-        todo = may & ~out & near[cell]
+        todo = _still_todo(may, out, near, cell)
     return out
 
 
@@ -96,3 +97,57 @@ def _max3x3(a: NDArray[np.float64]) -> NDArray[np.float64]:
 def _dilate(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Cells of the 2-D mask ``a`` and their 8 neighbours."""
     return _max3x3(a.astype(np.float64)) > 0
+
+
+# One compiled pass each over the millions of points: the numpy forms gather
+# and combine several full-length temporaries per round.
+
+
+@numba.njit(cache=True)
+def _top_of_ground(cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int) -> NDArray[np.float64]:
+    """Highest z of the ground points of each cell (-inf when none; NaN propagates as in ``np.maximum.at``)."""
+    top = np.full(size, -np.inf)
+    for i in range(cell.size):
+        if ground[i]:
+            v = z[i]
+            b = cell[i]
+            if v > top[b] or np.isnan(v):
+                top[b] = v
+    return top
+
+
+@numba.njit(cache=True)
+def _under_top(
+    todo: NDArray[np.bool_], z: NDArray[np.float64], top: NDArray[np.float64], cell: NDArray[np.int64], tol: float
+) -> NDArray[np.int64]:
+    """Indices of the ``todo`` points with ``z <= top[cell] + tol``."""
+    out = np.empty(cell.size, dtype=np.int64)
+    m = 0
+    for i in range(cell.size):
+        if todo[i] and z[i] <= top[cell[i]] + tol:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def _flagged_in(points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Indices of the flagged ``points`` lying in flagged ``cells``."""
+    out = np.empty(cell.size, dtype=np.int64)
+    m = 0
+    for i in range(cell.size):
+        if points[i] and cells[cell[i]]:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def _still_todo(
+    may: NDArray[np.bool_], ground: NDArray[np.bool_], near: NDArray[np.bool_], cell: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """``may & ~ground & near[cell]``."""
+    out = np.empty(cell.size, dtype=np.bool_)
+    for i in range(cell.size):
+        out[i] = may[i] and not ground[i] and near[cell[i]]
+    return out
