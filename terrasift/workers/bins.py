@@ -150,6 +150,30 @@ def _index_kernel(
             out[i] = -1
 
 
+@numba.njit(cache=True, inline="always")
+def _keep_lower(zmin: NDArray[np.float64], low: NDArray[np.int64], b: int, zi: float, i: int) -> None:
+    """Fold point ``i`` of value ``zi`` into bin ``b``'s running minimum: a
+    smaller value wins, a tie keeps the earlier point (the first one at +inf
+    fills an empty slot), and a NaN poisons the bin as ``np.minimum`` does."""
+    m = zmin[b]
+    if zi < m:
+        zmin[b] = zi
+        low[b] = i
+    elif zi == m:
+        if low[b] < 0:
+            low[b] = i
+    elif np.isnan(zi):
+        zmin[b] = np.nan
+
+
+@numba.njit(cache=True, inline="always")
+def _forget_nan_lows(zmin: NDArray[np.float64], low: NDArray[np.int64]) -> None:
+    """A bin whose minimum is NaN has no lowest point."""
+    for b in range(zmin.size):
+        if np.isnan(zmin[b]):
+            low[b] = -1
+
+
 @numba.njit(cache=True)
 def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Per bin: minimum of ``z`` (+inf when empty, NaN as ``np.minimum`` propagates it)
@@ -161,18 +185,8 @@ def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> t
         if b < 0:
             continue
         zi = z[i]
-        m = zmin[b]
-        if zi < m:
-            zmin[b] = zi
-            low[b] = i
-        elif zi == m:
-            if low[b] < 0:  # the first point at +inf
-                low[b] = i
-        elif np.isnan(zi):
-            zmin[b] = np.nan
-    for b in range(size):
-        if np.isnan(zmin[b]):
-            low[b] = -1
+        _keep_lower(zmin, low, b, zi, i)
+    _forget_nan_lows(zmin, low)
     return zmin, low
 
 
@@ -194,20 +208,10 @@ def _level_sums(
         zi = z[i]
         n[b] += 1
         zsum[b] += zi
-        m = zmin[b]
-        if zi < m:
-            zmin[b] = zi
-            low[b] = i
-        elif zi == m:
-            if low[b] < 0:
-                low[b] = i
-        elif np.isnan(zi):
-            zmin[b] = np.nan
+        _keep_lower(zmin, low, b, zi, i)
         if zi > zmax[b] or np.isnan(zi):
             zmax[b] = zi
-    for b in range(size):
-        if np.isnan(zmin[b]):
-            low[b] = -1
+    _forget_nan_lows(zmin, low)
     return n, zsum, zmin, zmax, low
 
 
@@ -284,18 +288,8 @@ def _plane_residuals(
         r -= sx[b] * u
         r -= sy[b] * v
         ss[b] += r * r
-        m = rmin[b]
-        if r < m:
-            rmin[b] = r
-            low[b] = i
-        elif r == m:
-            if low[b] < 0:
-                low[b] = i
-        elif np.isnan(r):
-            rmin[b] = np.nan
-    for b in range(size):
-        if np.isnan(rmin[b]):
-            low[b] = -1
+        _keep_lower(rmin, low, b, r, i)
+    _forget_nan_lows(rmin, low)
     return ss, rmin, low
 
 
