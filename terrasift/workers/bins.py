@@ -15,7 +15,6 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-
 #: Local origins of blocks are multiples of this many metres, a common multiple
 #: of every usual bin size (0.5 … 240 m), so bins of two blocks line up and a
 #: point near a block edge falls in the same bin whichever block it is in.
