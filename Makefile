@@ -16,6 +16,8 @@ serve: $(STAMP)
 	$(VENV)/bin/terrasift serve
 
 test: $(STAMP)
+	$(VENV)/bin/ruff check terrasift tests benchmarks scripts
+	$(VENV)/bin/ruff format --check terrasift tests benchmarks scripts
 	$(PY) -m pytest
 
 bench: $(STAMP)

@@ -42,13 +42,23 @@ def score(scene, result, kinds):
         matched_det = 0
         len_err = []
         for f in det:
-            best = max(((iou(f.geometry, t.polygon), i) for i, t in enumerate(truth)), default=(0.0, -1))
+            best = max(
+                ((iou(f.geometry, t.polygon), i) for i, t in enumerate(truth)), default=(0.0, -1)
+            )
             if best[0] >= 0.3:
                 matched_det += 1
                 if best[1] not in matched_truth:
-                    len_err.append(abs(f.length_m - truth[best[1]].length_m) / truth[best[1]].length_m)
+                    len_err.append(
+                        abs(f.length_m - truth[best[1]].length_m) / truth[best[1]].length_m
+                    )
                 matched_truth.add(best[1])
-        rows[kind] = (len(truth), len(det), len(matched_truth), matched_det, max(len_err, default=float("nan")))
+        rows[kind] = (
+            len(truth),
+            len(det),
+            len(matched_truth),
+            matched_det,
+            max(len_err, default=float("nan")),
+        )
     return rows
 
 
@@ -73,7 +83,9 @@ def accuracy(seeds: list[int], vegetation: float, noise: float) -> None:
     print("\nall seeds   truth  found  recall  precision  max length error")
     for kind, (nt, nd, mt, md) in totals.items():
         prec = md / nd if nd else float("nan")
-        print(f"  {kind:10s} {nt:6d} {nd:6d}  {mt / nt:6.0%}  {prec:9.0%}  {worst_len.get(kind, float('nan')):8.1%}")
+        print(
+            f"  {kind:10s} {nt:6d} {nd:6d}  {mt / nt:6.0%}  {prec:9.0%}  {worst_len.get(kind, float('nan')):8.1%}"
+        )
 
 
 def speed() -> None:
@@ -96,7 +108,9 @@ def run_speed(label: str, dtm, cell: float, transform) -> None:
         res = detect_features(cats, [f], transform, cats.tile_size)
         times[f.name] = (time.perf_counter() - s, len(res.objects))
     t2 = time.perf_counter()
-    print(f"\nspeed, {label}: {dtm.shape[0]}x{dtm.shape[1]} cells -> {cats.shape[0]}x{cats.shape[1]} tiles (1 core)")
+    print(
+        f"\nspeed, {label}: {dtm.shape[0]}x{dtm.shape[1]} cells -> {cats.shape[0]}x{cats.shape[1]} tiles (1 core)"
+    )
     print(f"  categories        {t1 - t0:6.2f} s")
     for name, (t, n) in times.items():
         print(f"  filter {name:10s} {t:6.2f} s   {n:5d} objects")
@@ -106,7 +120,12 @@ def run_speed(label: str, dtm, cell: float, transform) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--vegetation", type=float, default=0.002, help="share of DTM cells with a low-vegetation bump")
+    ap.add_argument(
+        "--vegetation",
+        type=float,
+        default=0.002,
+        help="share of DTM cells with a low-vegetation bump",
+    )
     ap.add_argument("--noise", type=float, default=0.015, help="DTM noise sigma, m")
     ap.add_argument("--no-speed", action="store_true")
     args = ap.parse_args()

@@ -61,7 +61,11 @@ HEADER = f"{'data':<22} {'points':>8} {'typeI%':>7} {'typeII%':>7} {'total%':>7}
 def _run(stage, xyz, sensor_origin=None, **over):
     params = stage.params.preset("default", **over)
     t, c = time.perf_counter(), time.process_time()
-    g = stage.run(xyz, params) if sensor_origin is None else stage.run(xyz, params, sensor_origin=sensor_origin)
+    g = (
+        stage.run(xyz, params)
+        if sensor_origin is None
+        else stage.run(xyz, params, sensor_origin=sensor_origin)
+    )
     _run.wall = time.perf_counter() - t
     return g, time.process_time() - c  # CPU seconds: the machine may be shared
 
@@ -82,7 +86,9 @@ def isprs(stage) -> None:
         smrf = SMRF_KAPPA.get(f.stem)
         note = f"SMRF {smrf}: {'beats' if 100 * s.kappa > smrf else 'BELOW'}" if smrf else ""
         print(_row(f.stem, s, sec, note))
-    print(f"{'mean':<22} {'':>8} {'':>7} {'':>7} {100 * np.mean(tot):>7.2f} {100 * np.mean(kap):>7.2f}")
+    print(
+        f"{'mean':<22} {'':>8} {'':>7} {'':>7} {100 * np.mean(tot):>7.2f} {100 * np.mean(kap):>7.2f}"
+    )
 
 
 def topo(stage) -> None:
@@ -118,14 +124,30 @@ def synthetic(stage) -> None:
     for near in (100.0, 400.0):
         sc, origin = slopes.ground_based(near_density=near)
         g, sec = _run(stage, sc.xyz, sensor_origin=origin)
-        print(_row(f"scan {near:g}/m² near", ground_score(sc.is_ground, g), sec, "concentric grid (sensor origin)"))
+        print(
+            _row(
+                f"scan {near:g}/m² near",
+                ground_score(sc.is_ground, g),
+                sec,
+                "concentric grid (sensor origin)",
+            )
+        )
         g, sec = _run(stage, sc.xyz, grid="regular")
         print(_row("  grid=regular", ground_score(sc.is_ground, g), sec))
 
 
 # Translations (m) of the ISPRS samples for ``shifted``: none, then offsets that
 # are not multiples of the bin sizes in use (1.5 to 25 m).
-SHIFTS = ((0.0, 0.0), (5.0, 0.0), (0.0, 5.0), (11.0, 7.0), (17.0, 13.0), (3.3, 21.1), (29.0, 2.0), (40.0, 40.0))
+SHIFTS = (
+    (0.0, 0.0),
+    (5.0, 0.0),
+    (0.0, 5.0),
+    (11.0, 7.0),
+    (17.0, 13.0),
+    (3.3, 21.1),
+    (29.0, 2.0),
+    (40.0, 40.0),
+)
 
 
 def shifted(stage) -> None:
@@ -134,15 +156,30 @@ def shifted(stage) -> None:
         print("ISPRS samples not found: skipped")
         return
     print(f"\n== {stage.id}: ISPRS kappa % with the data translated by (dx, dy) m")
-    print(f"{'data':<8} " + " ".join(f"{f'{dx:g},{dy:g}':>9}" for dx, dy in SHIFTS) + f" {'median':>7} {'min':>7}")
+    print(
+        f"{'data':<8} "
+        + " ".join(f"{f'{dx:g},{dy:g}':>9}" for dx, dy in SHIFTS)
+        + f" {'median':>7} {'min':>7}"
+    )
     kappas = []
     for f in files:
         xyz, cls = _read(f)
-        row = [100 * ground_score(cls == 2, _run(stage, xyz + np.array([dx, dy, 0.0]))[0]).kappa for dx, dy in SHIFTS]
+        row = [
+            100 * ground_score(cls == 2, _run(stage, xyz + np.array([dx, dy, 0.0]))[0]).kappa
+            for dx, dy in SHIFTS
+        ]
         kappas.append(row)
-        print(f"{f.stem:<8} " + " ".join(f"{k:>9.2f}" for k in row) + f" {np.median(row):>7.2f} {min(row):>7.2f}")
+        print(
+            f"{f.stem:<8} "
+            + " ".join(f"{k:>9.2f}" for k in row)
+            + f" {np.median(row):>7.2f} {min(row):>7.2f}"
+        )
     mean = np.mean(kappas, axis=0)
-    print(f"{'mean':<8} " + " ".join(f"{k:>9.2f}" for k in mean) + f" {np.median(mean):>7.2f} {mean.min():>7.2f}")
+    print(
+        f"{'mean':<8} "
+        + " ".join(f"{k:>9.2f}" for k in mean)
+        + f" {np.median(mean):>7.2f} {mean.min():>7.2f}"
+    )
 
 
 def speed(stage) -> None:
@@ -150,7 +187,9 @@ def speed(stage) -> None:
     g, sec = _run(stage, sc.xyz)
     print(f"\n== {stage.id}: speed, make_scene(790, 8): {len(sc):,} points")
     print(HEADER)
-    print(_row("tile", ground_score(sc.is_ground, g), sec, f"{sec:.1f} s CPU, {_run.wall:.1f} s wall"))
+    print(
+        _row("tile", ground_score(sc.is_ground, g), sec, f"{sec:.1f} s CPU, {_run.wall:.1f} s wall")
+    )
 
 
 def main() -> None:

@@ -27,7 +27,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from terrasift.synthetic.scan import make_scan  # noqa: E402
 from terrasift.workers.mixed import MixedParams, mark_mixed  # noqa: E402
 
-VARIANTS = ("naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window")
+VARIANTS = (
+    "naive",
+    "aggressive",
+    "accumulator",
+    "exclusive",
+    "blind_window",
+    "exclusive_blind_window",
+)
 TRIGGERS = ("surfaceness", "normal", "both")
 
 
@@ -49,12 +56,16 @@ def score(truth_mixed: np.ndarray, marked: np.ndarray, lost: np.ndarray) -> dict
     fn_cls = np.count_nonzero(t & ~m & ~lost)
     fp_cls = np.count_nonzero(~t & m & ~lost)
     sc = (5 * ok_cls - 3 * fn_cls - 4 * fp_cls - nl) / (5 * n)
-    return dict(tpr=tpr, fpr=fpr, precision=prec, f1=f1, accuracy=(tp + tn) / n, loss=nl / n, score=sc)
+    return dict(
+        tpr=tpr, fpr=fpr, precision=prec, f1=f1, accuracy=(tp + tn) / n, loss=nl / n, score=sc
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--step", type=float, default=0.15, help="scan angular step (deg) for the accuracy table")
+    ap.add_argument(
+        "--step", type=float, default=0.15, help="scan angular step (deg) for the accuracy table"
+    )
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--speed-step", type=float, default=0.08, help="angular step of the speed scan")
     ap.add_argument("--no-speed", action="store_true")
@@ -64,8 +75,12 @@ def main() -> None:
     truth = np.concatenate([s.is_mixed for s in scans])
     n_mixed = sum(int((s.truth == 1).sum()) for s in scans)
     n_ghost = sum(int((s.truth == 2).sum()) for s in scans)
-    print(f"scans: {len(scans)} × step {args.step}°, {truth.size} points, {n_mixed} mixed, {n_ghost} ghost")
-    print(f"{'trigger':<12}{'variant':<24}{'tpr':>7}{'fpr':>7}{'prec':>7}{'F1':>7}{'acc':>7}{'loss':>7}{'score':>7}")
+    print(
+        f"scans: {len(scans)} × step {args.step}°, {truth.size} points, {n_mixed} mixed, {n_ghost} ghost"
+    )
+    print(
+        f"{'trigger':<12}{'variant':<24}{'tpr':>7}{'fpr':>7}{'prec':>7}{'F1':>7}{'acc':>7}{'loss':>7}{'score':>7}"
+    )
     for trig in TRIGGERS:
         for var in VARIANTS:
             p = MixedParams(variant=var, trigger=trig)
@@ -73,7 +88,13 @@ def main() -> None:
             m = np.concatenate([r.marked for r in res])
             lost = np.concatenate([r.unclassified for r in res])
             k = score(truth, m, lost)
-            print(f"{trig:<12}{var:<24}" + "".join(f"{k[c]:7.3f}" for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")))
+            print(
+                f"{trig:<12}{var:<24}"
+                + "".join(
+                    f"{k[c]:7.3f}"
+                    for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")
+                )
+            )
 
     print("\nwith cross_box (a second box rolled 90° for horizontal edges):")
     for trig in TRIGGERS:
@@ -82,10 +103,18 @@ def main() -> None:
         m = np.concatenate([r.marked for r in res])
         lost = np.concatenate([r.unclassified for r in res])
         k = score(truth, m, lost)
-        print(f"{trig:<12}{'exclusive_blind_window':<24}" + "".join(f"{k[c]:7.3f}" for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")))
+        print(
+            f"{trig:<12}{'exclusive_blind_window':<24}"
+            + "".join(
+                f"{k[c]:7.3f}"
+                for c in ("tpr", "fpr", "precision", "f1", "accuracy", "loss", "score")
+            )
+        )
 
     # Seed §V-D: uniform random points in 10 m cubes, five clouds per density.
-    print("\nuniform random points (10 m cube, sensor 5 m off its face), share marked by the default:")
+    print(
+        "\nuniform random points (10 m cube, sensor 5 m off its face), share marked by the default:"
+    )
     for density in (0.3, 1.5, 2.0, 6.0, 15.0):
         marked = total = 0
         for seed in range(5):
@@ -104,8 +133,10 @@ def main() -> None:
     res = mark_mixed(big.xyz, p, big.origin)
     dt = time.process_time() - t0
     k = score(big.is_mixed, res.marked, res.unclassified)
-    print(f"\nspeed (defaults: exclusive_blind_window, normal trigger): {len(big)} points in {dt:.2f} s CPU "
-          f"= {len(big) / dt / 1e3:.0f} k points/s; tpr {k['tpr']:.3f} fpr {k['fpr']:.4f} on that scan")
+    print(
+        f"\nspeed (defaults: exclusive_blind_window, normal trigger): {len(big)} points in {dt:.2f} s CPU "
+        f"= {len(big) / dt / 1e3:.0f} k points/s; tpr {k['tpr']:.3f} fpr {k['fpr']:.4f} on that scan"
+    )
 
 
 if __name__ == "__main__":

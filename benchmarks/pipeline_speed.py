@@ -30,7 +30,9 @@ from terrasift.synthetic.terrain import make_scene, write_las  # noqa: E402
 
 def make_tile(path: Path, size: float, density: float, seed: int = 7) -> int:
     if not path.exists():
-        scene = make_scene(size=size, density=density, seed=seed, n_buildings=int(size * size / 12_000))
+        scene = make_scene(
+            size=size, density=density, seed=seed, n_buildings=int(size * size / 12_000)
+        )
         write_las(scene, path)
         return len(scene)
     import laspy
@@ -89,15 +91,27 @@ def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]
 def job_run(tile: Path, workers: int, params: dict) -> tuple[float, float]:
     """Seconds and peak RSS (MiB, largest process) of one ``terrasift process`` run."""
     out = Path(tempfile.mkdtemp(prefix="bench-job-"))
-    args = [sys.executable, "-m", "terrasift", "process", str(tile), "--out", str(out), "--quiet",
-            "--param", f"workers={workers}"]
+    args = [
+        sys.executable,
+        "-m",
+        "terrasift",
+        "process",
+        str(tile),
+        "--out",
+        str(out),
+        "--quiet",
+        "--param",
+        f"workers={workers}",
+    ]
     args += [f"--param={k}={v}" for k, v in params.items()]
     code = (
         "import resource, subprocess, sys, time; t = time.perf_counter(); "
         "r = subprocess.run(sys.argv[1:]); dt = time.perf_counter() - t; "
         "print(dt, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
     )
-    res = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=REPO)
+    res = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=REPO
+    )
     if res.returncode != 0:
         raise RuntimeError(res.stderr[-2000:])
     seconds, rss_kib = res.stdout.split()[-2:]
@@ -128,9 +142,13 @@ def isprs_accuracy(params: dict) -> None:
         ref = laspy.read(f)
         s = ground_score(np.asarray(ref.classification) == 2, np.asarray(out.classification) == 2)
         rows.append(s)
-        print(f"{f.stem:<14}{100 * s.type1:>10.2f}{100 * s.type2:>11.2f}{100 * s.total:>9.2f}{100 * s.kappa:>9.2f}")
+        print(
+            f"{f.stem:<14}{100 * s.type1:>10.2f}{100 * s.type2:>11.2f}{100 * s.total:>9.2f}{100 * s.kappa:>9.2f}"
+        )
     mean = lambda k: 100 * float(np.mean([getattr(r, k) for r in rows]))  # noqa: E731
-    print(f"{'mean':<14}{mean('type1'):>10.2f}{mean('type2'):>11.2f}{mean('total'):>9.2f}{mean('kappa'):>9.2f}")
+    print(
+        f"{'mean':<14}{mean('type1'):>10.2f}{mean('type2'):>11.2f}{mean('total'):>9.2f}{mean('kappa'):>9.2f}"
+    )
 
 
 def main() -> None:
@@ -147,7 +165,9 @@ def main() -> None:
     tile = args.out / f"bench-{int(args.size)}m.laz"
     t = time.perf_counter()
     n = make_tile(tile, args.size, args.density)
-    print(f"tile: {tile.name}, {n:,} points, {tile.stat().st_size / 2**20:.0f} MiB ({time.perf_counter() - t:.0f} s to make)")
+    print(
+        f"tile: {tile.name}, {n:,} points, {tile.stat().st_size / 2**20:.0f} MiB ({time.perf_counter() - t:.0f} s to make)"
+    )
     print(f"parameters: {params or 'defaults'}; medians over {args.runs} runs\n")
 
     rates = stage_rates(tile, n, args.runs, params)
@@ -170,8 +190,10 @@ def main() -> None:
         big = args.out / f"bench-{int(args.size * 2)}m.laz"
         nb = make_tile(big, args.size * 2, args.density, seed=8)
         secs, rss_big = job_run(big, 2, params)
-        print(f"\n4× tile: {nb:,} points, {nb / secs:,.0f} points/s, peak RSS {rss_big:.0f} MiB "
-              f"({100 * (rss_big / rss[2] - 1):+.0f} % against the 1× tile)")
+        print(
+            f"\n4× tile: {nb:,} points, {nb / secs:,.0f} points/s, peak RSS {rss_big:.0f} MiB "
+            f"({100 * (rss_big / rss[2] - 1):+.0f} % against the 1× tile)"
+        )
 
     print()
     isprs_accuracy(params)

@@ -41,7 +41,9 @@ def isprs_table(params: PtdParams, samples=None, quiet: bool = False) -> float:
     samples = samples if samples is not None else load_isprs()
     kappas = []
     if not quiet:
-        print(f"{'sample':8} {'n':>7} {'TypeI%':>7} {'TypeII%':>8} {'total%':>7} {'kappa%':>7} {'s':>6}")
+        print(
+            f"{'sample':8} {'n':>7} {'TypeI%':>7} {'TypeII%':>8} {'total%':>7} {'kappa%':>7} {'s':>6}"
+        )
     for name, (xyz, truth) in samples.items():
         t = time.perf_counter()
         pred = classify_ground(xyz, params)
@@ -49,7 +51,9 @@ def isprs_table(params: PtdParams, samples=None, quiet: bool = False) -> float:
         sc = ground_score(truth, pred).as_percent()
         kappas.append(sc["kappa"])
         if not quiet:
-            print(f"{name:8} {sc['n']:7d} {sc['type1']:7.2f} {sc['type2']:8.2f} {sc['total']:7.2f} {sc['kappa']:7.2f} {dt:6.2f}")
+            print(
+                f"{name:8} {sc['n']:7d} {sc['type1']:7.2f} {sc['type2']:8.2f} {sc['total']:7.2f} {sc['kappa']:7.2f} {dt:6.2f}"
+            )
     mean = float(np.mean(kappas))
     if not quiet:
         print(f"{'mean':8} {'':7} {'':7} {'':8} {'':7} {mean:7.2f}")
@@ -88,7 +92,9 @@ def main() -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--set", action="append", default=[], help="key=value override")
     ap.add_argument("--speed", type=float, default=0.0, help="synthetic scene size in m (0: skip)")
-    ap.add_argument("--block", type=float, default=0.0, help="time one block of this size (0: whole scene)")
+    ap.add_argument(
+        "--block", type=float, default=0.0, help="time one block of this size (0: whole scene)"
+    )
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--no-isprs", action="store_true")
     args = ap.parse_args()

@@ -36,7 +36,11 @@ from terrasift.workers.ground import ptd  # noqa: E402
 def load_ref(ref: str):
     """``terrasift.workers.ground.ptd`` as it is at git ``ref``, as a separate module."""
     src = subprocess.run(
-        ["git", "show", f"{ref}:terrasift/workers/ground/ptd.py"], cwd=ROOT, capture_output=True, text=True, check=True
+        ["git", "show", f"{ref}:terrasift/workers/ground/ptd.py"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
     # The registry refuses a second "ground.ptd": register the old one under another id.
     src = src.replace('@register("ground.ptd"', '@register("ground.ptd_ref"')
@@ -96,7 +100,9 @@ def main() -> None:
                 labels[name, b] = mod.classify_ground(xyz, params)
                 times[name][b].append(time.perf_counter() - t)
     print(f"preset {args.preset}; medians over {args.runs} runs")
-    head = f"{'block':>5} {'points':>9}" + "".join(f" {k + ' s':>8} {k + ' kpt/s':>10}" for k in impls)
+    head = f"{'block':>5} {'points':>9}" + "".join(
+        f" {k + ' s':>8} {k + ' kpt/s':>10}" for k in impls
+    )
     if "old" in impls:
         head += f" {'old/new':>8} {'ground old':>10} {'ground new':>10} {'differ%':>8}"
     print(head)
@@ -114,7 +120,9 @@ def main() -> None:
             lo, ln = labels["old", b], labels["new", b]
             row += f" {med['old'] / med['new']:>8.2f} {lo.sum():>10} {ln.sum():>10} {100 * np.mean(lo != ln):>8.2f}"
         print(row)
-    row = f"{'all':>5} {npts:>9}" + "".join(f" {tot[k]:>8.2f} {npts / tot[k] / 1e3:>10.0f}" for k in impls)
+    row = f"{'all':>5} {npts:>9}" + "".join(
+        f" {tot[k]:>8.2f} {npts / tot[k] / 1e3:>10.0f}" for k in impls
+    )
     if "old" in impls:
         row += f" {tot['old'] / tot['new']:>8.2f}"
     print(row)

@@ -71,7 +71,9 @@ def ground(preset: str, method: str | None = None, seeded: bool = False):
 def rotation_runs(**rotation) -> tuple[RotationParams, object, object]:
     """Rotation parameters (the method's preset, ``rotation`` on top) and the
     ground runs a steep block uses (block.py)."""
-    rp = stage_params({f"ground.rotation.{k}": v for k, v in rotation.items()}, "ground.rotation", METHOD)
+    rp = stage_params(
+        {f"ground.rotation.{k}": v for k, v in rotation.items()}, "ground.rotation", METHOD
+    )
     return rp, ground(rp.ground_preset), ground(rp.ground_preset, seeded=True)
 
 
@@ -127,7 +129,9 @@ def cliffs(square: float, density: float, buffer: float) -> None:
         f"cliff block: {len(scene)} points ({square:.0f} m core + {buffer:.0f} m halo), "
         f"{int(scene.extra['core'].sum())} in the core, {n_steep} core ground points on faces > 60°"
     )
-    print(f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}")
+    print(
+        f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}"
+    )
     for preset in ("default", "conservative", "aggressive"):
         t = time.perf_counter()
         g = ground(preset)(scene.xyz)
@@ -175,6 +179,7 @@ def cost() -> None:
         f"({100 * t_ground / t_ground_run:.1f} %), "
         f"share {test.facet_share:.3f} steep={test.steep}"
     )
+
     # CPU seconds, median of 3: other processes share the machine's cores.
     def cpu(points: np.ndarray) -> tuple[float, dict]:
         times, info = [], {}
@@ -246,20 +251,31 @@ def isprs() -> None:
         k0.append(a)
         k1.append(b)
         print(f"{name:8} {a:10.2f} {b:10.2f} {info['share']:6.3f} {info['steep']}")
-    print(f"{'mean':8} {np.mean(k0):10.2f} {np.mean(k1):10.2f}  difference {np.mean(k1) - np.mean(k0):+.2f}")
-    print(f"default labels kept: mean kappa {np.mean(k2):.2f}, difference {np.mean(k2) - np.mean(k0):+.2f}")
+    print(
+        f"{'mean':8} {np.mean(k0):10.2f} {np.mean(k1):10.2f}  difference {np.mean(k1) - np.mean(k0):+.2f}"
+    )
+    print(
+        f"default labels kept: mean kappa {np.mean(k2):.2f}, difference {np.mean(k2) - np.mean(k0):+.2f}"
+    )
 
 
 def main() -> None:
     global METHOD
     ap = argparse.ArgumentParser()
-    ap.add_argument("--square", type=float, default=130.0, help="side of the block cut from the cliff scene")
+    ap.add_argument(
+        "--square", type=float, default=130.0, help="side of the block cut from the cliff scene"
+    )
     ap.add_argument("--density", type=float, default=8.0)
-    ap.add_argument("--buffer", type=float, default=20.0, help="halo around the block (spine default 20 m)")
+    ap.add_argument(
+        "--buffer", type=float, default=20.0, help="halo around the block (spine default 20 m)"
+    )
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
     ap.add_argument(
-        "--method", default=METHOD, choices=["ground.ptd", "ground.nist"], help=f"ground stage (default {METHOD})"
+        "--method",
+        default=METHOD,
+        choices=["ground.ptd", "ground.nist"],
+        help=f"ground stage (default {METHOD})",
     )
     args = ap.parse_args()
     METHOD = args.method

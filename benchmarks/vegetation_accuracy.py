@@ -31,9 +31,15 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from terrasift.synthetic.forest import raster_of, sinusoid, tilted_plane, make_forest  # noqa: E402
+from terrasift.synthetic.forest import make_forest, raster_of, sinusoid, tilted_plane  # noqa: E402
 from terrasift.workers.bins import Grid, bin_statistics  # noqa: E402
-from terrasift.workers.terrain import gradient, median_smooth, path_profile, roughness, smoothed_gradient  # noqa: E402
+from terrasift.workers.terrain import (  # noqa: E402
+    gradient,
+    median_smooth,
+    path_profile,
+    roughness,
+    smoothed_gradient,
+)  # noqa: E402
 from terrasift.workers.vegetation import VegetationParams, classify_bins  # noqa: E402
 
 DATA = ROOT / ".." / "shared" / "data"
@@ -79,8 +85,18 @@ def forests(size: float, seeds: list[int]) -> None:
         f"Synthetic forests {size:.0f} m x {size:.0f} m, 1 m bins, default parameters "
         "(targets: agreement >= 0.95, coverage error <= 2 points)",
         [
-            "crowns", "pulses/m2", "seed", "points", "support", "agreement", "agree off-edge",
-            "tree err pts", "bush err pts", "tree %", "bush %", "nogo agree",
+            "crowns",
+            "pulses/m2",
+            "seed",
+            "points",
+            "support",
+            "agreement",
+            "agree off-edge",
+            "tree err pts",
+            "bush err pts",
+            "tree %",
+            "bush %",
+            "nogo agree",
         ],
         rows,
     )
@@ -110,8 +126,17 @@ def mixed_conifer() -> None:
         t = time.perf_counter()
         vb = classify_bins(xyz, ground, grid, p)
         dt = time.perf_counter() - t
-        rows.append([label, vb.support, 100 * vb.tree_coverage, 100 * share, 100 * (vb.tree_coverage - share),
-                     100 * vb.bush_coverage, f"{dt:.2f}"])
+        rows.append(
+            [
+                label,
+                vb.support,
+                100 * vb.tree_coverage,
+                100 * share,
+                100 * (vb.tree_coverage - share),
+                100 * vb.bush_coverage,
+                f"{dt:.2f}",
+            ]
+        )
     table(
         f"MixedConifer ({len(xyz)} points, {len(xyz) / ((st.n > 0).sum()):.1f} per non-empty 1 m bin): "
         "tree coverage vs share of 1 m bins with max height > 3.75 m (target: within 5 points)",
@@ -122,7 +147,9 @@ def mixed_conifer() -> None:
 
 def pitch_roll() -> None:
     x0, y0 = 500_000.0, 5_400_000.0
-    line = np.array([[x0 + 20, y0 + 30], [x0 + 280, y0 + 90], [x0 + 200, y0 + 270], [x0 + 40, y0 + 220]])
+    line = np.array(
+        [[x0 + 20, y0 + 30], [x0 + 280, y0 + 90], [x0 + 200, y0 + 270], [x0 + 40, y0 + 220]]
+    )
     rows = []
     for name, surf in [("tilted plane", tilted_plane()), ("sinusoid", sinusoid())]:
         for cell in (1.0, 0.5):
@@ -132,15 +159,39 @@ def pitch_roll() -> None:
                 pp = path_profile(dtm, tr, line, 0.5, smooth=smooth)
                 seg = np.diff(line, axis=0)
                 length = np.hypot(seg[:, 0], seg[:, 1])
-                k = np.clip(np.searchsorted(np.r_[0, np.cumsum(length)], pp.distance, "right") - 1, 0, len(seg) - 1)
+                k = np.clip(
+                    np.searchsorted(np.r_[0, np.cumsum(length)], pp.distance, "right") - 1,
+                    0,
+                    len(seg) - 1,
+                )
                 tx, ty = seg[k, 0] / length[k], seg[k, 1] / length[k]
                 zx, zy = surf.gradient(pp.x - x0, pp.y - y0)
                 pitch = np.degrees(np.arctan(tx * zx + ty * zy))
                 roll = np.degrees(np.arctan(ty * zx - tx * zy))
-                rows.append([name, cell, smooth, pp.distance.size, float(np.abs(pitch).max()),
-                             float(np.abs(pp.pitch_deg - pitch).max()), float(np.abs(pp.roll_deg - roll).max())])
-    table("Pitch and roll along a 4-vertex path, 3x3 median (target: error <= 0.5 deg)",
-          ["surface", "cell m", "smoothing", "points", "max |pitch| deg", "pitch err deg", "roll err deg"], rows)
+                rows.append(
+                    [
+                        name,
+                        cell,
+                        smooth,
+                        pp.distance.size,
+                        float(np.abs(pitch).max()),
+                        float(np.abs(pp.pitch_deg - pitch).max()),
+                        float(np.abs(pp.roll_deg - roll).max()),
+                    ]
+                )
+    table(
+        "Pitch and roll along a 4-vertex path, 3x3 median (target: error <= 0.5 deg)",
+        [
+            "surface",
+            "cell m",
+            "smoothing",
+            "points",
+            "max |pitch| deg",
+            "pitch err deg",
+            "roll err deg",
+        ],
+        rows,
+    )
 
     rows = []
     surf = sinusoid()
@@ -157,8 +208,11 @@ def pitch_roll() -> None:
         ]:
             e = (np.degrees(np.arctan(gx)) - np.degrees(np.arctan(ax)))[2:-2, 2:-2]
             rows.append([sigma, label, float(np.abs(e).max()), float(np.sqrt((e**2).mean()))])
-    table("x-slope error on the sinusoid DTM (1 m cells), interior cells",
-          ["DTM noise m", "smoothing", "max err deg", "rms err deg"], rows)
+    table(
+        "x-slope error on the sinusoid DTM (1 m cells), interior cells",
+        ["DTM noise m", "smoothing", "max err deg", "rms err deg"],
+        rows,
+    )
 
 
 def timing(size: float) -> None:
@@ -166,13 +220,19 @@ def timing(size: float) -> None:
     rows = []
     for label, fn in [
         ("vegetation", lambda: classify_bins(f.xyz, f.is_ground, f.grid, VegetationParams())),
-        ("vegetation + mow 3 m", lambda: classify_bins(f.xyz, f.is_ground, f.grid, VegetationParams(mow_height=3.0))),
+        (
+            "vegetation + mow 3 m",
+            lambda: classify_bins(f.xyz, f.is_ground, f.grid, VegetationParams(mow_height=3.0)),
+        ),
         ("roughness (ground points)", lambda: roughness(f.xyz[f.is_ground], f.grid)),
     ]:
         best = min(_timed(fn) for _ in range(3))
         rows.append([label, len(f.xyz), f"{best:.2f}", f"{best / len(f.xyz) * 1e6:.2f}"])
-    table("Stage time, best of 3 (2 shared cores: compare, do not quote as throughput)",
-          ["stage", "points", "s", "s per M points"], rows)
+    table(
+        "Stage time, best of 3 (2 shared cores: compare, do not quote as throughput)",
+        ["stage", "points", "s", "s per M points"],
+        rows,
+    )
 
 
 def _timed(fn) -> float:

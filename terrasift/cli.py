@@ -46,13 +46,22 @@ def main(argv: list[str] | None = None) -> int:
 
     p = sub.add_parser("path", help="pitch and roll along a GeoJSON LineString over a DTM")
     p.add_argument("dtm", type=Path, help="a DTM GeoTIFF, e.g. OUT/dtm.tif from `process`")
-    p.add_argument("line", type=Path, help="GeoJSON file with a LineString (or a Feature holding one)")
-    p.add_argument("--crs", default=None, help="CRS of the line: WGS 84 if omitted, `native` for the DTM's")
+    p.add_argument(
+        "line", type=Path, help="GeoJSON file with a LineString (or a Feature holding one)"
+    )
+    p.add_argument(
+        "--crs", default=None, help="CRS of the line: WGS 84 if omitted, `native` for the DTM's"
+    )
     p.add_argument("--spacing", type=float, default=1.0, help="metres between samples")
     p.add_argument("--format", choices=["csv", "json"], default="csv")
 
     p = sub.add_parser("worker", help="join a Dask cluster as a terrasift worker")
-    p.add_argument("scheduler", nargs="?", default=None, help="tcp://host:8786 (default: TERRASIFT_DASK_SCHEDULER)")
+    p.add_argument(
+        "scheduler",
+        nargs="?",
+        default=None,
+        help="tcp://host:8786 (default: TERRASIFT_DASK_SCHEDULER)",
+    )
     p.add_argument("--nthreads", type=int, default=1)
 
     args = parser.parse_args(argv)
@@ -63,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
             serve(host=args.host, port=args.port)
             return 0
         if args.command == "process":
-            names = process(args.inputs, args.out, parse_cli_params(args.param), progress=not args.quiet)
+            names = process(
+                args.inputs, args.out, parse_cli_params(args.param), progress=not args.quiet
+            )
             print("\n".join(str(args.out / n) for n in names))
             return 0
         if args.command == "classify":
@@ -72,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "survey":
             from terrasift.survey import run_survey
 
-            return run_survey(args.folder, args.server, parse_cli_params(args.param), token=args.token)
+            return run_survey(
+                args.folder, args.server, parse_cli_params(args.param), token=args.token
+            )
         if args.command == "path":
             import json
 
@@ -98,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     return 1
 
 
-def process(inputs: list[Path], out: Path, raw_params: dict, *, progress: bool = True, products: str = "all") -> list[str]:
+def process(
+    inputs: list[Path], out: Path, raw_params: dict, *, progress: bool = True, products: str = "all"
+) -> list[str]:
     """Run the pipeline on ``inputs`` into folder ``out``; return the output names."""
     from terrasift.workers.executors import make_executor, single_threaded_blas
 
@@ -167,7 +182,10 @@ def run_worker(scheduler: str | None, nthreads: int) -> int:
 
     address = scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if not address:
-        print("terrasift worker: give a scheduler address or set TERRASIFT_DASK_SCHEDULER", file=sys.stderr)
+        print(
+            "terrasift worker: give a scheduler address or set TERRASIFT_DASK_SCHEDULER",
+            file=sys.stderr,
+        )
         return 2
 
     async def run() -> None:

@@ -26,7 +26,9 @@ class GroundScore:
         return {k: (round(100 * v, 2) if k != "n" else v) for k, v in d.items()}
 
 
-def ground_score(truth_ground: NDArray[np.bool_], predicted_ground: NDArray[np.bool_]) -> GroundScore:
+def ground_score(
+    truth_ground: NDArray[np.bool_], predicted_ground: NDArray[np.bool_]
+) -> GroundScore:
     """Score ``predicted_ground`` against ``truth_ground`` (boolean per point)."""
     t = np.asarray(truth_ground, dtype=bool)
     p = np.asarray(predicted_ground, dtype=bool)

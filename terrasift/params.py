@@ -50,7 +50,9 @@ class JobParams(BaseModel):
         "method needs at the tiles' density, below half the block size",
     )
     resolution: float = Field(0.5, ge=0.05, le=100.0, description="DTM/DSM cell size in metres")
-    crs: str | None = Field(None, description="CRS of the tiles when missing or wrong, e.g. EPSG:32632")
+    crs: str | None = Field(
+        None, description="CRS of the tiles when missing or wrong, e.g. EPSG:32632"
+    )
     workers: int | None = Field(None, ge=1, le=256, description="worker processes for `process`")
     scan_dimension: str | None = Field(
         None, description="LAS dimension holding a scan-position id (default point_source_id)"
@@ -67,7 +69,11 @@ class JobParams(BaseModel):
                     raise ValueError("sensor_origin must be X,Y,Z (several: X,Y,Z;X,Y,Z)")
                 origins.append(tuple(float(p) for p in parts))
             return origins
-        if isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(c, (int, float)) for c in v):
+        if (
+            isinstance(v, (list, tuple))
+            and len(v) == 3
+            and all(isinstance(c, (int, float)) for c in v)
+        ):
             return [tuple(v)]
         return v
 
@@ -103,7 +109,9 @@ class JobParams(BaseModel):
     @model_validator(mode="after")
     def _buffer_fits(self) -> JobParams:
         if self.buffer != "auto" and self.buffer >= self.block_size / 2:
-            raise ValueError(f"buffer ({self.buffer}) must be less than half the block size ({self.block_size})")
+            raise ValueError(
+                f"buffer ({self.buffer}) must be less than half the block size ({self.block_size})"
+            )
         if self.resolution > self.block_size / 2:
             raise ValueError("resolution must be at most half the block size")
         return self
@@ -126,7 +134,10 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     except ValidationError as exc:
         err = exc.errors()[0]
         # Union members show up in the location as tags such as "constrained-float".
-        loc = ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p)) or "params"
+        loc = (
+            ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p))
+            or "params"
+        )
         raise ParameterError(f"parameter {loc}: {err['msg']}") from None
     out = job.model_dump(by_alias=True, mode="json")
     overrides = _stage_overrides(rest)
@@ -162,7 +173,11 @@ def effective_stage_params(params: Mapping[str, Any]) -> dict[str, dict[str, Any
     chosen = f"ground.{params['ground']}"
     out: dict[str, dict[str, Any]] = {}
     for stage in stages():
-        if stage.id.startswith("ground.") and stage.id[len("ground.") :] in methods and stage.id != chosen:
+        if (
+            stage.id.startswith("ground.")
+            and stage.id[len("ground.") :] in methods
+            and stage.id != chosen
+        ):
             continue
         preset = params.get("ground.preset", "default") if stage.id == chosen else "default"
         out[stage.id] = stage_params(params, stage.id, preset).model_dump(mode="json")
@@ -200,11 +215,17 @@ def grid_alignment(params: Mapping[str, Any]) -> float:
     """
     res = float(params["resolution"])
     cells = []
-    for stage_id, field in (("vegetation", "cell"), ("terrain", "cell"), ("categories", "tile_size")):
+    for stage_id, field in (
+        ("vegetation", "cell"),
+        ("terrain", "cell"),
+        ("categories", "tile_size"),
+    ):
         size = float(getattr(stage_params(params, stage_id), field))
         k = size / res
         if round(k) < 1 or abs(k - round(k)) > 1e-6:
-            raise ParameterError(f"{stage_id}.{field} ({size}) must be a whole multiple of resolution ({res})")
+            raise ParameterError(
+                f"{stage_id}.{field} ({size}) must be a whole multiple of resolution ({res})"
+            )
         cells.append(int(round(k)))
     return math.lcm(*cells) * res
 
@@ -222,7 +243,9 @@ def _stage_overrides(rest: dict[str, Any]) -> dict[str, dict[str, Any]]:
             )
         field = key[len(stage_id) + 1 :]
         if field not in stages_params_fields(stage_id):
-            raise ParameterError(f"unknown parameter {key!r}: stage {stage_id} has no field {field!r}")
+            raise ParameterError(
+                f"unknown parameter {key!r}: stage {stage_id} has no field {field!r}"
+            )
         grouped.setdefault(stage_id, {})[field] = value
     return grouped
 
@@ -236,7 +259,11 @@ def stage_params(params: Mapping[str, Any], stage_id: str, preset: str = "defaul
     """The validated parameter model of ``stage_id`` for a job: preset plus overrides."""
     stage = get_stage(stage_id)
     prefix = stage_id + "."
-    overrides = {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix) and "." not in k[len(prefix) :]}
+    overrides = {
+        k[len(prefix) :]: v
+        for k, v in params.items()
+        if k.startswith(prefix) and "." not in k[len(prefix) :]
+    }
     if preset != "default" and preset not in stage.params.presets:
         preset = "default"
     return stage.params.preset(preset, **overrides)

@@ -83,7 +83,9 @@ def check_cancel(job_dir: Path) -> None:
 # ------------------------------------------------------------------ submission
 
 
-def inspect_inputs(paths: list[Path], params: Mapping[str, Any], *, max_points: int | None = None) -> dict[str, Any]:
+def inspect_inputs(
+    paths: list[Path], params: Mapping[str, Any], *, max_points: int | None = None
+) -> dict[str, Any]:
     """Check every input's header (no points read) and the job's CRS.
 
     Raises InputError naming the problem. Returns a summary for the job record.
@@ -111,10 +113,12 @@ def resolve_crs(infos: list[TileInfo], override: str | None) -> tuple[str | None
         return crs.to_wkt(), [w for w in warnings if "no CRS" not in w]
     found = [pyproj.CRS.from_wkt(i.crs_wkt) for i in infos if i.crs_wkt]
     if not found:
-        warnings.append("no CRS known: rasters carry none and features.geojson is not written; pass crs=EPSG:...")
+        warnings.append(
+            "no CRS known: rasters carry none and features.geojson is not written; pass crs=EPSG:..."
+        )
         return None, warnings
     first = found[0]
-    for other, info in zip(found[1:], [i for i in infos if i.crs_wkt][1:]):
+    for other, info in zip(found[1:], [i for i in infos if i.crs_wkt][1:], strict=True):
         if not first.equals(other, ignore_axis_order=True):
             raise InputError(
                 f"tiles of one job must share a CRS: {Path(info.path).name} is {_crs_label(other.to_wkt())}, "
@@ -137,7 +141,10 @@ def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) ->
     """Write the job's ``job.json`` (inputs as absolute paths, validated parameters)."""
     job_dir = Path(job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(job_dir / "job.json", {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)})
+    write_json_atomic(
+        job_dir / "job.json",
+        {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)},
+    )
 
 
 # ------------------------------------------------------------------ running
@@ -169,8 +176,13 @@ def run_job(
     finish: list[Task] = [Task(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
     if products == "all":
         dtm = Task(outputs.write_raster, (str(job_dir), "dtm"))
-        terrain = [Task(fn, (str(job_dir),), after=(0,)) for fn in (outputs.write_categories, outputs.write_slope)]
-        others = [Task(outputs.write_raster, (str(job_dir), n)) for n in outputs.RASTERS if n != "dtm"]
+        terrain = [
+            Task(fn, (str(job_dir),), after=(0,))
+            for fn in (outputs.write_categories, outputs.write_slope)
+        ]
+        others = [
+            Task(outputs.write_raster, (str(job_dir), n)) for n in outputs.RASTERS if n != "dtm"
+        ]
         finish = [dtm, *finish, *terrain, *others]
 
     # Progress counts tasks: shards, blocks, finishing tasks, the report.
@@ -188,8 +200,16 @@ def run_job(
     # Shard: one streaming pass per tile (per part of a large tile).
     t = time.perf_counter()
     shard_args = [
-        (plan["tiles"][p.tile]["path"], p.tile, grid, str(shard_root / p.name), 1_000_000,
-         params.get("scan_dimension"), p.start, p.stop)
+        (
+            plan["tiles"][p.tile]["path"],
+            p.tile,
+            grid,
+            str(shard_root / p.name),
+            1_000_000,
+            params.get("scan_dimension"),
+            p.start,
+            p.stop,
+        )
         for p in todo
     ]
     _run_tasks(executor, job_dir, shard_tile, shard_args, tick)
@@ -237,7 +257,9 @@ def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     buffer, warning = resolve_buffer(params, density)
     if warning:
         warnings.append(warning)
-    grid = BlockGrid.over(mins, maxs, params["resolution"], params["block_size"], buffer, grid_alignment(params))
+    grid = BlockGrid.over(
+        mins, maxs, params["resolution"], params["block_size"], buffer, grid_alignment(params)
+    )
     plan = {
         "tiles": [dict(i.__dict__) for i in infos],
         "density": density,
@@ -260,7 +282,11 @@ class Task:
 
 
 def _run_tasks(
-    executor: Executor, job_dir: Path, fn: Callable[..., Any], arg_list: list[tuple], on_done: Callable[[Any], None]
+    executor: Executor,
+    job_dir: Path,
+    fn: Callable[..., Any],
+    arg_list: list[tuple],
+    on_done: Callable[[Any], None],
 ) -> list[Any]:
     return _run_mixed_tasks(executor, job_dir, [Task(fn, a) for a in arg_list], on_done)
 
@@ -324,15 +350,25 @@ def clear_outputs(job_dir: Path) -> None:
         shutil.rmtree(Path(job_dir) / sub, ignore_errors=True)
 
 
-def job_path_profile(job_dir: Path, geometry: Mapping[str, Any], *, crs: str | None = None, spacing: float | None = None) -> Any:
+def job_path_profile(
+    job_dir: Path,
+    geometry: Mapping[str, Any],
+    *,
+    crs: str | None = None,
+    spacing: float | None = None,
+) -> Any:
     """Pitch and roll along a GeoJSON LineString over a finished job's DTM (see ``dtm_path_profile``)."""
     from terrasift.params import stage_params
 
     params = load_json(Path(job_dir) / "job.json")["params"]
     tparams = stage_params(params, "terrain")
     return dtm_path_profile(
-        output_path(job_dir, "dtm.tif"), geometry, crs=crs, spacing=spacing or tparams.spacing,
-        median_size=tparams.median_size, smooth=tparams.smooth,
+        output_path(job_dir, "dtm.tif"),
+        geometry,
+        crs=crs,
+        spacing=spacing or tparams.spacing,
+        median_size=tparams.median_size,
+        smooth=tparams.smooth,
     )
 
 
@@ -365,9 +401,13 @@ def dtm_path_profile(
         line = terrain.line_coordinates(dict(geometry), None)
     else:
         if tile_crs is None:
-            raise ParameterError("the DTM has no CRS: give the line in its coordinates (crs=native)")
+            raise ParameterError(
+                "the DTM has no CRS: give the line in its coordinates (crs=native)"
+            )
         line = terrain.line_coordinates(dict(geometry), tile_crs, crs or "EPSG:4326")
     length = float(np.sum(np.hypot(*np.diff(line, axis=0).T)))
     if length / spacing > 1_000_000:
-        raise ParameterError(f"a {length:.0f} m path at {spacing} m spacing is over a million samples")
+        raise ParameterError(
+            f"a {length:.0f} m path at {spacing} m spacing is over a million samples"
+        )
     return terrain.path_profile(dtm, transform, line, spacing, median_size, smooth)

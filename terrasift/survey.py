@@ -7,6 +7,7 @@ submits only new or changed tiles (and tiles whose last job did not succeed).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
@@ -27,17 +28,28 @@ def tile_signature(path: Path) -> dict[str, int]:
 
 def changed_tiles(folder: Path, state: dict[str, Any]) -> list[Path]:
     """Tiles that are new, changed since their last job, or whose last job failed."""
-    tiles = sorted(p for p in folder.iterdir() if p.suffix.lower() in {".las", ".laz"} and p.is_file())
+    tiles = sorted(
+        p for p in folder.iterdir() if p.suffix.lower() in {".las", ".laz"} and p.is_file()
+    )
     out = []
     for p in tiles:
         seen = state.get(p.name)
-        if not seen or seen.get("signature") != tile_signature(p) or seen.get("status") != "successful":
+        if (
+            not seen
+            or seen.get("signature") != tile_signature(p)
+            or seen.get("status") != "successful"
+        ):
             out.append(p)
     return out
 
 
 def run_survey(
-    folder: Path, server: str, params: dict[str, Any], *, token: str | None = None, poll: float = 2.0
+    folder: Path,
+    server: str,
+    params: dict[str, Any],
+    *,
+    token: str | None = None,
+    poll: float = 2.0,
 ) -> int:
     """Submit the changed tiles of ``folder`` as one job and wait for it; 0 on success."""
     state_path = folder / STATE_FILE
@@ -48,16 +60,20 @@ def run_survey(
         return 0
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     base = server.rstrip("/")
-    with httpx.Client(base_url=base, headers=headers, timeout=httpx.Timeout(60.0, read=600.0)) as client:
-        handles = [open(p, "rb") for p in todo]
-        try:
-            files = [("file", (p.name, fh, "application/octet-stream")) for p, fh in zip(todo, handles)]
+    with httpx.Client(
+        base_url=base, headers=headers, timeout=httpx.Timeout(60.0, read=600.0)
+    ) as client:
+        with contextlib.ExitStack() as stack:
+            files = [
+                ("file", (p.name, stack.enter_context(open(p, "rb")), "application/octet-stream"))
+                for p in todo
+            ]
             resp = client.post("/jobs", files=files, data={"params": json.dumps(params)})
-        finally:
-            for fh in handles:
-                fh.close()
         if resp.status_code != 201:
-            print(f"terrasift survey: submission refused ({resp.status_code}): {resp.text}", file=sys.stderr)
+            print(
+                f"terrasift survey: submission refused ({resp.status_code}): {resp.text}",
+                file=sys.stderr,
+            )
             return 2
         job_id = resp.json()["jobID"]
         print(f"terrasift survey: job {job_id} with {len(todo)} tile(s)")
@@ -72,12 +88,18 @@ def run_survey(
             out.mkdir(parents=True, exist_ok=True)
             results = client.get(f"/jobs/{job_id}/results").json()
             for name in _output_names(results):
-                with client.stream("GET", f"/jobs/{job_id}/outputs/{name}") as r, open(out / name, "wb") as fh:
+                with (
+                    client.stream("GET", f"/jobs/{job_id}/outputs/{name}") as r,
+                    open(out / name, "wb") as fh,
+                ):
                     for chunk in r.iter_bytes():
                         fh.write(chunk)
             print(f"terrasift survey: outputs in {out}")
         else:
-            print(f"terrasift survey: job {status['status']}: {status.get('message', '')}", file=sys.stderr)
+            print(
+                f"terrasift survey: job {status['status']}: {status.get('message', '')}",
+                file=sys.stderr,
+            )
     for p in todo:
         state[p.name] = {"signature": tile_signature(p), "job": job_id, "status": status["status"]}
     tmp = state_path.with_suffix(".tmp")

@@ -22,7 +22,9 @@ MARKER = "CANCELLED"
 
 
 class FakePipeline:
-    def __init__(self, tasks: int = 4, free_tasks: int | None = None, fail: BaseException | None = None):
+    def __init__(
+        self, tasks: int = 4, free_tasks: int | None = None, fail: BaseException | None = None
+    ):
         self.tasks = tasks
         self.free_tasks = tasks if free_tasks is None else free_tasks
         self.gate = threading.Event()
@@ -37,7 +39,9 @@ class FakePipeline:
             if key != "resolution":
                 raise ParameterError(f"unknown parameter {key!r}")
             if not isinstance(value, int | float) or not 0.05 <= value <= 100:
-                raise ParameterError(f"parameter resolution: must be a number in [0.05, 100], not {value!r}")
+                raise ParameterError(
+                    f"parameter resolution: must be a number in [0.05, 100], not {value!r}"
+                )
             out[key] = value
         return out
 
@@ -49,9 +53,13 @@ class FakePipeline:
         return {"points": sum(p.stat().st_size for p in paths), "tiles": len(paths)}
 
     def prepare_job(self, job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
-        (job_dir / "job.json").write_text(json.dumps({"inputs": [str(p) for p in inputs], "params": dict(params)}))
+        (job_dir / "job.json").write_text(
+            json.dumps({"inputs": [str(p) for p in inputs], "params": dict(params)})
+        )
 
-    def run_job(self, job_dir: Path, executor: Any, progress: Callable[[int, int], None] | None = None) -> list[str]:
+    def run_job(
+        self, job_dir: Path, executor: Any, progress: Callable[[int, int], None] | None = None
+    ) -> list[str]:
         if (job_dir / MARKER).exists():
             raise JobCancelled("dismissed")
         todo = [i for i in range(self.tasks) if not (job_dir / f"task{i}.done").exists()]

@@ -59,7 +59,9 @@ def wait_final(client: TestClient, job_id: str, timeout: float = 120.0) -> tuple
     raise AssertionError(f"job {job_id} still {info['status']} after {timeout} s")
 
 
-def test_upload_poll_download_open(client: TestClient, scene_file: tuple[Any, Path], tmp_path: Path) -> None:
+def test_upload_poll_download_open(
+    client: TestClient, scene_file: tuple[Any, Path], tmp_path: Path
+) -> None:
     scene, path = scene_file
     r = submit(client, "tile.laz", path.read_bytes(), PARAMS)
     assert r.status_code == 201, r.text
@@ -82,7 +84,9 @@ def test_upload_poll_download_open(client: TestClient, scene_file: tuple[Any, Pa
     assert dtm.status_code == 200 and dtm.headers["content-type"].startswith("image/tiff")
     assert int(dtm.headers["content-length"]) == len(dtm.content)
     head = client.get(results["dtm.tif"]["href"], headers={"Range": "bytes=0-4095"})
-    assert head.status_code == 206 and head.content == dtm.content[:4096] and head.content[:2] == b"II"
+    assert (
+        head.status_code == 206 and head.content == dtm.content[:4096] and head.content[:2] == b"II"
+    )
     (tmp_path / "dtm.tif").write_bytes(dtm.content)
     with rasterio.open(tmp_path / "dtm.tif") as ds:
         assert ds.crs.to_epsg() == 32632 and ds.dtypes[0] == "float32"
@@ -105,7 +109,10 @@ def test_upload_poll_download_open(client: TestClient, scene_file: tuple[Any, Pa
     truly_ground = scene.is_ground
     assert (classes[truly_ground] == 2).mean() > 0.8
     head = client.head(results["classified.laz"]["href"])
-    assert head.headers["content-length"] == str(len(laz.content)) and head.headers["etag"] == laz.headers["etag"]
+    assert (
+        head.headers["content-length"] == str(len(laz.content))
+        and head.headers["etag"] == laz.headers["etag"]
+    )
 
     report = client.get(results["report.json"]["href"]).json()
     assert json.dumps(report)  # plain JSON
@@ -114,7 +121,9 @@ def test_upload_poll_download_open(client: TestClient, scene_file: tuple[Any, Pa
 
 def test_dismiss_stops_a_real_job(client: TestClient, scene_file: tuple[Any, Path]) -> None:
     _, path = scene_file
-    job_id = submit(client, "tile.laz", path.read_bytes(), {**PARAMS, "block_size": 20, "buffer": 2}).json()["jobID"]
+    job_id = submit(
+        client, "tile.laz", path.read_bytes(), {**PARAMS, "block_size": 20, "buffer": 2}
+    ).json()["jobID"]
     end = time.monotonic() + 30
     while client.get(f"/jobs/{job_id}").json()["status"] == "accepted" and time.monotonic() < end:
         time.sleep(0.05)
@@ -155,7 +164,12 @@ BAD_INPUTS = {
     "not-a-las": (lambda tmp: b"This is a CSV,x,y,z\n1,2,3\n" * 20, "notes.las", 422, "not a LAS"),
     "truncated-laz": (lambda tmp: _las_bytes(tmp, ".laz")[:2000], "cut.laz", 422, "truncated"),
     "zero-points": (_empty_las, "empty.las", 422, "no points"),
-    "header-claims-more": (lambda tmp: _las_bytes(tmp, ".las", n_points=10**6), "liar.las", 422, "claims 1000000 points"),
+    "header-claims-more": (
+        lambda tmp: _las_bytes(tmp, ".las", n_points=10**6),
+        "liar.las",
+        422,
+        "claims 1000000 points",
+    ),
     "absurd-scale": (_bad_scale, "scale.las", 422, "scale"),
 }
 
@@ -168,14 +182,23 @@ def test_bad_files_are_refused_at_submission(client: TestClient, tmp_path: Path,
     assert r.status_code == status, r.text
     assert r.headers["content-type"] == PROBLEM
     body = r.json()
-    assert body["type"] == "/problems/invalid-input" and body["status"] == status and body["instance"] == "/jobs"
+    assert (
+        body["type"] == "/problems/invalid-input"
+        and body["status"] == status
+        and body["instance"] == "/jobs"
+    )
     assert name in body["detail"] and mention in body["detail"], body["detail"]
     assert client.get("/jobs?limit=1000").json()["jobs"] == before
 
 
 @pytest.mark.parametrize(
     ("params", "mention"),
-    [({"colour": "red"}, "colour"), ({"resolution": 0}, "resolution"), ({"ground": "magic"}, "ground"), ({"buffer": 1e6}, "buffer")],
+    [
+        ({"colour": "red"}, "colour"),
+        ({"resolution": 0}, "resolution"),
+        ({"ground": "magic"}, "ground"),
+        ({"buffer": 1e6}, "buffer"),
+    ],
 )
 def test_bad_parameters_are_refused_at_submission(
     client: TestClient, scene_file: tuple[Any, Path], params: dict, mention: str
@@ -189,9 +212,13 @@ def test_bad_parameters_are_refused_at_submission(
 
 
 def test_path_profile_json_csv_and_bad_line(client: TestClient, tmp_path: Path) -> None:
-    scene = make_scene(size=60, density=4, seed=3, n_buildings=0)  # the profile, not the ground filter, is tested
+    scene = make_scene(
+        size=60, density=4, seed=3, n_buildings=0
+    )  # the profile, not the ground filter, is tested
     path = write_las(scene, tmp_path / "bare.laz")
-    job_id = submit(client, "bare.laz", path.read_bytes(), {**PARAMS, "features": "none"}).json()["jobID"]
+    job_id = submit(client, "bare.laz", path.read_bytes(), {**PARAMS, "features": "none"}).json()[
+        "jobID"
+    ]
     info, _ = wait_final(client, job_id)
     assert info["status"] == "successful", info
     x0, y0, x1, y1 = scene.bounds
@@ -205,7 +232,9 @@ def test_path_profile_json_csv_and_bad_line(client: TestClient, tmp_path: Path) 
     truth = scene.surface(xs, np.full_like(xs, y0 + 30))
     assert np.abs(np.array([s["z"] for s in samples]) - truth).max() < 0.3
     csv = client.post(f"/jobs/{job_id}/path", params={"crs": "native", "f": "csv"}, json=line)
-    assert csv.headers["content-type"].startswith("text/csv") and csv.text.splitlines()[0].startswith("distance")
+    assert csv.headers["content-type"].startswith("text/csv") and csv.text.splitlines()[
+        0
+    ].startswith("distance")
     bad = client.post(f"/jobs/{job_id}/path", json={"type": "Point", "coordinates": [1, 2]})
     assert bad.status_code == 400 and bad.headers["content-type"].startswith(PROBLEM)
     assert "LineString" in bad.json()["detail"]

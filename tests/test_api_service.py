@@ -27,7 +27,9 @@ PROBLEM = "application/problem+json"
 @contextmanager
 def client_for(tmp_path: Path, fake: FakePipeline, **settings: Any) -> Iterator[TestClient]:
     settings.setdefault("data_dir", tmp_path / "data")
-    app = create_app(Settings(_env_file=None, **settings), pipeline=fake, executor_factory=thread_executor)
+    app = create_app(
+        Settings(_env_file=None, **settings), pipeline=fake, executor_factory=thread_executor
+    )
     with TestClient(app, raise_server_exceptions=False) as client:
         # tasks held at the gate give up when the service stops, like workers that go away
         fake.abort = lambda: app.state.svc.scheduler.stopping
@@ -35,12 +37,18 @@ def client_for(tmp_path: Path, fake: FakePipeline, **settings: Any) -> Iterator[
 
 
 def upload(client: TestClient, *files: tuple[str, bytes], params: Any = None, **kw: Any):
-    data = {"params": params if isinstance(params, str) else json.dumps(params)} if params is not None else None
+    data = (
+        {"params": params if isinstance(params, str) else json.dumps(params)}
+        if params is not None
+        else None
+    )
     return client.post("/jobs", files=[("file", f) for f in files], data=data, **kw)
 
 
 def poll(client: TestClient, job_id: str, *statuses: str, timeout: float = 10.0) -> dict:
-    return wait_for(lambda: (s := client.get(f"/jobs/{job_id}").json())["status"] in statuses and s, timeout)
+    return wait_for(
+        lambda: (s := client.get(f"/jobs/{job_id}").json())["status"] in statuses and s, timeout
+    )
 
 
 def assert_problem(resp, status: int, slug: str, mention: str | None = None) -> dict:
@@ -58,13 +66,23 @@ def test_capabilities(tmp_path: Path) -> None:
     with client_for(tmp_path, FakePipeline()) as c:
         landing = c.get("/").json()
         rels = {link["rel"] for link in landing["links"]}
-        assert {"self", "service-desc", "http://www.opengis.net/def/rel/ogc/1.0/conformance"} <= rels
+        assert {
+            "self",
+            "service-desc",
+            "http://www.opengis.net/def/rel/ogc/1.0/conformance",
+        } <= rels
         conf = c.get("/conformance").json()["conformsTo"]
-        assert any(u.endswith("/conf/job-list") for u in conf) and any(u.endswith("/conf/dismiss") for u in conf)
+        assert any(u.endswith("/conf/job-list") for u in conf) and any(
+            u.endswith("/conf/dismiss") for u in conf
+        )
         procs = c.get("/processes").json()["processes"]
         assert [p["id"] for p in procs] == ["terrain"]
         desc = c.get("/processes/terrain").json()
-        assert "files" in desc["inputs"] and "resolution" in desc["inputs"] and "ground.preset" in desc["inputs"]
+        assert (
+            "files" in desc["inputs"]
+            and "resolution" in desc["inputs"]
+            and "ground.preset" in desc["inputs"]
+        )
         assert desc["outputs"]["dtm.tif"]["schema"]["contentMediaType"].startswith("image/tiff")
         assert_problem(c.get("/processes/nope"), 404, "no-such-process")
         assert c.get(desc["links"][0]["href"]).status_code == 200
@@ -78,8 +96,15 @@ def test_upload_run_download(tmp_path: Path) -> None:
         info = r.json()
         job_id = info["jobID"]
         assert r.headers["location"].endswith(f"/jobs/{job_id}")
-        assert info["type"] == "process" and info["status"] in ("accepted", "running") and info["progress"] >= 0
-        assert {link["rel"] for link in info["links"]} == {"self", "http://www.opengis.net/def/rel/ogc/1.0/results"}
+        assert (
+            info["type"] == "process"
+            and info["status"] in ("accepted", "running")
+            and info["progress"] >= 0
+        )
+        assert {link["rel"] for link in info["links"]} == {
+            "self",
+            "http://www.opengis.net/def/rel/ogc/1.0/results",
+        }
         # the job is persisted with its uploaded inputs before the answer
         job_dir = tmp_path / "data" / "jobs" / job_id
         assert sorted(p.name for p in (job_dir / "inputs").iterdir()) == ["a.las", "b.las"]
@@ -87,39 +112,73 @@ def test_upload_run_download(tmp_path: Path) -> None:
 
         final = poll(c, job_id, "successful", "failed")
         assert final["status"] == "successful" and final["progress"] == 100
-        allowed = {"processID", "type", "jobID", "status", "message", "created", "started", "finished", "updated", "progress", "links"}
+        allowed = {
+            "processID",
+            "type",
+            "jobID",
+            "status",
+            "message",
+            "created",
+            "started",
+            "finished",
+            "updated",
+            "progress",
+            "links",
+        }
         assert {"jobID", "status", "type"} <= set(final) <= allowed
-        assert all(final[k].endswith("Z") and "T" in final[k] for k in ("created", "started", "finished", "updated"))
+        assert all(
+            final[k].endswith("Z") and "T" in final[k]
+            for k in ("created", "started", "finished", "updated")
+        )
         assert isinstance(final["progress"], int) and None not in final.values()
         assert final["started"] <= final["finished"] and "message" in final
         results = c.get(f"/jobs/{job_id}/results").json()
         assert set(results) == {"dtm.tif", "report.json"}
-        assert results["dtm.tif"]["type"] == "image/tiff; application=geotiff; profile=cloud-optimized"
+        assert (
+            results["dtm.tif"]["type"] == "image/tiff; application=geotiff; profile=cloud-optimized"
+        )
         body = (job_dir / "outputs" / "dtm.tif").read_bytes()
 
         full = c.get(results["dtm.tif"]["href"])
         assert full.status_code == 200 and full.content == body
-        assert full.headers["content-length"] == str(len(body)) and full.headers["accept-ranges"] == "bytes"
+        assert (
+            full.headers["content-length"] == str(len(body))
+            and full.headers["accept-ranges"] == "bytes"
+        )
         etag = full.headers["etag"]
 
         part = c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"Range": "bytes=100-355"})
         assert part.status_code == 206 and part.content == body[100:356]
-        assert part.headers["content-range"] == f"bytes 100-355/{len(body)}" and part.headers["content-length"] == "256"
+        assert (
+            part.headers["content-range"] == f"bytes 100-355/{len(body)}"
+            and part.headers["content-length"] == "256"
+        )
         tail = c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"Range": "bytes=-7"})
         assert tail.status_code == 206 and tail.content == body[-7:]
 
         head = c.head(f"/jobs/{job_id}/outputs/dtm.tif")
-        assert head.status_code == 200 and head.content == b"" and head.headers["content-length"] == str(len(body))
+        assert (
+            head.status_code == 200
+            and head.content == b""
+            and head.headers["content-length"] == str(len(body))
+        )
         assert head.headers["etag"] == etag
 
-        assert c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"If-None-Match": etag}).status_code == 304
-        stale = c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"Range": "bytes=0-9", "If-Range": '"other"'})
+        assert (
+            c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"If-None-Match": etag}).status_code
+            == 304
+        )
+        stale = c.get(
+            f"/jobs/{job_id}/outputs/dtm.tif", headers={"Range": "bytes=0-9", "If-Range": '"other"'}
+        )
         assert stale.status_code == 200 and len(stale.content) == len(body)
         bad = c.get(f"/jobs/{job_id}/outputs/dtm.tif", headers={"Range": f"bytes={len(body)}-"})
         assert_problem(bad, 416, "range-not-satisfiable")
         assert bad.headers["content-range"] == f"bytes */{len(body)}"
         report = c.get(f"/jobs/{job_id}/outputs/report.json")
-        assert report.headers["content-type"] == "application/json" and report.json() == {"tasks": 4}
+        assert report.headers["content-type"] == "application/json" and report.json() == {
+            "tasks": 4
+        }
         assert_problem(c.get(f"/jobs/{job_id}/outputs/..%2Fjob.json"), 404, "not-found")
         assert_problem(c.get(f"/jobs/{job_id}/outputs/job.json"), 404, "no-such-output")
         assert_problem(c.get(f"/jobs/{job_id}/outputs/chm.tif"), 404, "no-such-output")
@@ -197,7 +256,9 @@ def test_api_answers_while_workers_are_busy(tmp_path: Path) -> None:
 
 
 def test_failed_jobs_say_why(tmp_path: Path) -> None:
-    with client_for(tmp_path, FakePipeline(tasks=1, fail=InputError("tile a.las: 12 points missing at the end"))) as c:
+    with client_for(
+        tmp_path, FakePipeline(tasks=1, fail=InputError("tile a.las: 12 points missing at the end"))
+    ) as c:
         job_id = upload(c, ("a.las", las_bytes())).json()["jobID"]
         final = poll(c, job_id, "successful", "failed")
         assert final["status"] == "failed" and "12 points missing" in final["message"]
@@ -205,22 +266,55 @@ def test_failed_jobs_say_why(tmp_path: Path) -> None:
     with client_for(tmp_path, FakePipeline(tasks=1, fail=RuntimeError("secret internals"))) as c:
         job_id = upload(c, ("a.las", las_bytes())).json()["jobID"]
         final = poll(c, job_id, "successful", "failed")
-        assert final["status"] == "failed" and "secret" not in final["message"] and "log" in final["message"]
+        assert (
+            final["status"] == "failed"
+            and "secret" not in final["message"]
+            and "log" in final["message"]
+        )
 
 
 def test_bad_uploads_are_problems_and_leave_nothing(tmp_path: Path) -> None:
     with client_for(tmp_path, FakePipeline(), max_upload_bytes=10_000) as c:
         assert_problem(upload(c, ("a.txt", b"hello world")), 422, "invalid-input", "a.txt")
-        assert_problem(upload(c, ("a.las", las_bytes()), params={"colour": "red"}), 400, "invalid-parameter", "colour")
-        assert_problem(upload(c, ("a.las", las_bytes()), params={"resolution": -1}), 400, "invalid-parameter", "resolution")
-        assert_problem(upload(c, ("a.las", las_bytes()), params="{not json"), 400, "invalid-parameter", "not JSON")
-        assert_problem(upload(c, ("a.las", las_bytes()), params="[1, 2]"), 400, "invalid-parameter", "object")
+        assert_problem(
+            upload(c, ("a.las", las_bytes()), params={"colour": "red"}),
+            400,
+            "invalid-parameter",
+            "colour",
+        )
+        assert_problem(
+            upload(c, ("a.las", las_bytes()), params={"resolution": -1}),
+            400,
+            "invalid-parameter",
+            "resolution",
+        )
+        assert_problem(
+            upload(c, ("a.las", las_bytes()), params="{not json"),
+            400,
+            "invalid-parameter",
+            "not JSON",
+        )
+        assert_problem(
+            upload(c, ("a.las", las_bytes()), params="[1, 2]"), 400, "invalid-parameter", "object"
+        )
         assert_problem(upload(c, ("a.las", las_bytes(20_000))), 413, "payload-too-large")
-        assert_problem(c.post("/jobs", data={"params": "{}"}, files=[]), 415, "unsupported-media-type")
-        assert_problem(c.post("/jobs", files=[("tile", ("a.las", las_bytes()))]), 400, "invalid-request", "tile")
+        assert_problem(
+            c.post("/jobs", data={"params": "{}"}, files=[]), 415, "unsupported-media-type"
+        )
+        assert_problem(
+            c.post("/jobs", files=[("tile", ("a.las", las_bytes()))]),
+            400,
+            "invalid-request",
+            "tile",
+        )
         assert_problem(c.post("/jobs", json={"files": []}), 415, "unsupported-media-type")
-        cut = b'--xx\r\nContent-Disposition: form-data; name="file"; filename="a.las"\r\n\r\nLASF' + bytes(50)
-        r = c.post("/jobs", content=cut, headers={"content-type": "multipart/form-data; boundary=xx"})
+        cut = (
+            b'--xx\r\nContent-Disposition: form-data; name="file"; filename="a.las"\r\n\r\nLASF'
+            + bytes(50)
+        )
+        r = c.post(
+            "/jobs", content=cut, headers={"content-type": "multipart/form-data; boundary=xx"}
+        )
         assert_problem(r, 400, "invalid-request", "closing boundary")
         assert c.get("/jobs").json()["jobs"] == []
         assert list((tmp_path / "data" / "jobs").iterdir()) == []
@@ -237,7 +331,11 @@ def test_streamed_upload_over_the_limit_without_content_length(tmp_path: Path) -
                 yield bytes(10_000)
             yield f"\r\n--{boundary}--\r\n".encode()
 
-        r = c.post("/jobs", content=body(), headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+        r = c.post(
+            "/jobs",
+            content=body(),
+            headers={"content-type": f"multipart/form-data; boundary={boundary}"},
+        )
         assert_problem(r, 413, "payload-too-large")
         assert list((tmp_path / "data" / "jobs").iterdir()) == []
 
@@ -284,10 +382,15 @@ def test_execution_with_server_paths(tmp_path: Path) -> None:
         job_id = r.json()["jobID"]
         assert r.headers["location"].endswith(f"/jobs/{job_id}")
         job = json.loads((tmp_path / "data" / "jobs" / job_id / "job.json").read_text())
-        assert job["inputs"] == [str((root / "survey" / "t1.las").resolve())] and job["params"]["resolution"] == 2.0
+        assert (
+            job["inputs"] == [str((root / "survey" / "t1.las").resolve())]
+            and job["params"]["resolution"] == 2.0
+        )
         assert poll(c, job_id, "successful")["status"] == "successful"
 
-        r = c.post("/processes/terrain/execution", json={"inputs": {"files": ["survey"], "params": {}}})
+        r = c.post(
+            "/processes/terrain/execution", json={"inputs": {"files": ["survey"], "params": {}}}
+        )
         assert r.status_code == 201 and "preference-applied" not in r.headers
         job = json.loads((tmp_path / "data" / "jobs" / r.json()["jobID"] / "job.json").read_text())
         assert [Path(p).name for p in job["inputs"]] == ["t1.las", "t2.laz"]
@@ -300,9 +403,20 @@ def test_execution_with_server_paths(tmp_path: Path) -> None:
         assert_problem(run({"files": ["survey/none.las"]}), 400, "invalid-request", "none.las")
         assert_problem(run({"files": ["survey/notes.txt"]}), 422, "invalid-input", "notes.txt")
         assert_problem(run({"params": {}}), 400, "invalid-request", "files")
-        assert_problem(run({"files": ["survey/t1.las"], "params": {"resolution": 1}, "resolution": 2}), 400, "invalid-parameter")
-        assert_problem(c.post("/processes/terrain/execution", json={"nothing": 1}), 400, "invalid-request", "inputs")
-        assert_problem(c.post("/processes/other/execution", json={"inputs": {}}), 404, "no-such-process")
+        assert_problem(
+            run({"files": ["survey/t1.las"], "params": {"resolution": 1}, "resolution": 2}),
+            400,
+            "invalid-parameter",
+        )
+        assert_problem(
+            c.post("/processes/terrain/execution", json={"nothing": 1}),
+            400,
+            "invalid-request",
+            "inputs",
+        )
+        assert_problem(
+            c.post("/processes/other/execution", json={"inputs": {}}), 404, "no-such-process"
+        )
     with client_for(tmp_path, FakePipeline()) as c:  # no input root configured
         r = c.post("/processes/terrain/execution", json={"inputs": {"files": ["survey/t1.las"]}})
         assert_problem(r, 403, "forbidden-path", "INPUT_ROOT")
@@ -313,28 +427,51 @@ def test_surveys_from_uploads_and_paths(tmp_path: Path) -> None:
     root.mkdir()
     (root / "t1.las").write_bytes(las_bytes())
     with client_for(tmp_path, FakePipeline(tasks=1), input_root=root) as c:
-        r = c.post("/surveys", files=[("file", ("x.las", las_bytes())), ("file", ("y.las", las_bytes()))],
-                   data={"params": json.dumps({"resolution": 1.0})})
+        r = c.post(
+            "/surveys",
+            files=[("file", ("x.las", las_bytes())), ("file", ("y.las", las_bytes()))],
+            data={"params": json.dumps({"resolution": 1.0})},
+        )
         assert r.status_code == 201, r.text
         survey = r.json()
-        assert survey["files"] == ["x.las", "y.las"] and r.headers["location"].endswith(f"/surveys/{survey['id']}")
+        assert survey["files"] == ["x.las", "y.las"] and r.headers["location"].endswith(
+            f"/surveys/{survey['id']}"
+        )
         run = c.post(f"/surveys/{survey['id']}/runs", json={"params": {"resolution": 4.0}})
         assert run.status_code == 201, run.text
         job_id = run.json()["jobID"]
         job = json.loads((tmp_path / "data" / "jobs" / job_id / "job.json").read_text())
-        assert [Path(p).name for p in job["inputs"]] == ["x.las", "y.las"] and job["params"]["resolution"] == 4.0
+        assert [Path(p).name for p in job["inputs"]] == ["x.las", "y.las"] and job["params"][
+            "resolution"
+        ] == 4.0
         assert poll(c, job_id, "successful")["status"] == "successful"
         again = c.post(f"/surveys/{survey['id']}/runs")
         assert again.status_code == 201
-        assert [j["jobID"] for j in c.get(f"/surveys/{survey['id']}").json()["jobs"]] == [job_id, again.json()["jobID"]]
+        assert [j["jobID"] for j in c.get(f"/surveys/{survey['id']}").json()["jobs"]] == [
+            job_id,
+            again.json()["jobID"],
+        ]
 
         r = c.post("/surveys", json={"files": ["t1.las"]})
         assert r.status_code == 201 and r.json()["files"] == ["t1.las"]
         assert_problem(c.post("/surveys", json={"files": ["../x"]}), 403, "forbidden-path")
         assert_problem(c.post("/surveys", json={"files": []}), 400, "invalid-request", "files")
-        assert_problem(c.post("/surveys", files=[("file", ("bad.las", b"nope"))]), 422, "invalid-input", "bad.las")
-        assert_problem(c.post("/surveys", content=b"x", headers={"content-type": "text/plain"}), 415, "unsupported-media-type")
-        assert_problem(c.post(f"/surveys/{survey['id']}/runs", json={"params": {"resolution": 1e9}}), 400, "invalid-parameter")
+        assert_problem(
+            c.post("/surveys", files=[("file", ("bad.las", b"nope"))]),
+            422,
+            "invalid-input",
+            "bad.las",
+        )
+        assert_problem(
+            c.post("/surveys", content=b"x", headers={"content-type": "text/plain"}),
+            415,
+            "unsupported-media-type",
+        )
+        assert_problem(
+            c.post(f"/surveys/{survey['id']}/runs", json={"params": {"resolution": 1e9}}),
+            400,
+            "invalid-parameter",
+        )
         assert_problem(c.post("/surveys/nope/runs"), 404, "no-such-survey")
 
 
@@ -346,7 +483,9 @@ def test_tokens_map_to_tenants(tmp_path: Path) -> None:
         r = upload(c, ("a.las", las_bytes()))
         assert_problem(r, 401, "unauthorized")
         assert r.headers["www-authenticate"].startswith("Bearer")
-        assert_problem(c.get("/jobs", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized")
+        assert_problem(
+            c.get("/jobs", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized"
+        )
         alice, bob = {"Authorization": "Bearer tok-a"}, {"Authorization": "Bearer tok-b"}
         job_id = upload(c, ("a.las", las_bytes()), headers=alice).json()["jobID"]
         assert [j["jobID"] for j in c.get("/jobs", headers=alice).json()["jobs"]] == [job_id]
@@ -368,7 +507,9 @@ def test_job_list_paging(tmp_path: Path) -> None:
         assert [j["jobID"] for j in page["jobs"]] == ids[::-1][:2]
         nxt = next(link["href"] for link in page["links"] if link["rel"] == "next")
         rest = c.get(nxt).json()
-        assert [j["jobID"] for j in rest["jobs"]] == [ids[0]] and all(link["rel"] != "next" for link in rest["links"])
+        assert [j["jobID"] for j in rest["jobs"]] == [ids[0]] and all(
+            link["rel"] != "next" for link in rest["links"]
+        )
         for job_id in ids:
             poll(c, job_id, "successful")
         assert len(c.get("/jobs?status=successful&status=failed").json()["jobs"]) == 3

@@ -33,12 +33,18 @@ def test_single_ranges(header: str, expected: tuple[int, int]) -> None:
     assert rng.content_range == f"bytes {expected[0]}-{expected[1]}/1000"
 
 
-@pytest.mark.parametrize("header", [None, "", "items=0-5", "bytes=0-1,5-9", "bytes=9-5", "bytes=a-b", "bytes=5", "bytes=-"])
+@pytest.mark.parametrize(
+    "header",
+    [None, "", "items=0-5", "bytes=0-1,5-9", "bytes=9-5", "bytes=a-b", "bytes=5", "bytes=-"],
+)
 def test_ranges_we_ignore_give_the_whole_file(header: str | None) -> None:
     assert parse_range(header, 1000) is None
 
 
-@pytest.mark.parametrize(("header", "size"), [("bytes=1000-", 1000), ("bytes=2000-3000", 1000), ("bytes=-0", 1000), ("bytes=-1", 0)])
+@pytest.mark.parametrize(
+    ("header", "size"),
+    [("bytes=1000-", 1000), ("bytes=2000-3000", 1000), ("bytes=-0", 1000), ("bytes=-1", 0)],
+)
 def test_unsatisfiable_ranges(header: str, size: int) -> None:
     with pytest.raises(RangeNotSatisfiable):
         parse_range(header, size)
@@ -67,7 +73,9 @@ def test_problem_table_walks_the_class_hierarchy() -> None:
 
 
 def test_ogc_problem_types_keep_ogc_uris() -> None:
-    assert PROBLEM_TYPES["no-such-job"].uri.startswith("http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/")
+    assert PROBLEM_TYPES["no-such-job"].uri.startswith(
+        "http://www.opengis.net/def/exceptions/ogcapi-processes-1/1.0/"
+    )
     assert PROBLEM_TYPES["result-not-ready"].uri.endswith("/result-not-ready")
     assert PROBLEM_TYPES["invalid-input"].uri == "/problems/invalid-input"
 
@@ -111,7 +119,11 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Pa
     monkeypatch.setenv("TERRASIFT_DASK_SCHEDULER", "tcp://sched:8786")
     monkeypatch.setenv("TERRASIFT_MAX_UPLOAD_BYTES", "1234")
     s = Settings()
-    assert s.data_dir == tmp_path and s.dask_scheduler == "tcp://sched:8786" and s.max_upload_bytes == 1234
+    assert (
+        s.data_dir == tmp_path
+        and s.dask_scheduler == "tcp://sched:8786"
+        and s.max_upload_bytes == 1234
+    )
     assert s.db_path == tmp_path / "jobs.sqlite"
     assert Settings.model_config["env_file"] == ".env"
 

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from terrasift.tiling.blocks import BlockGrid, assign_blocks, block_name, read_block_points, shard_tile
+from terrasift.tiling.blocks import (
+    BlockGrid,
+    assign_blocks,
+    block_name,
+    read_block_points,
+    shard_tile,
+)
 
 
 def _brute_force(grid: BlockGrid, x, y):
@@ -15,7 +21,12 @@ def _brute_force(grid: BlockGrid, x, y):
             x0 = grid.x0 + ix * grid.block_size
             y0 = grid.y0 + iy * grid.block_size
             b = grid.buffer
-            inside = (x >= x0 - b) & (x < x0 + grid.block_size + b) & (y >= y0 - b) & (y < y0 + grid.block_size + b)
+            inside = (
+                (x >= x0 - b)
+                & (x < x0 + grid.block_size + b)
+                & (y >= y0 - b)
+                & (y < y0 + grid.block_size + b)
+            )
             core = (x >= x0) & (x < x0 + grid.block_size) & (y >= y0) & (y < y0 + grid.block_size)
             for p in np.flatnonzero(inside):
                 pairs.add((p, iy * grid.nx + ix))
@@ -31,14 +42,26 @@ def test_assignment_matches_definition_at_edges_and_corners():
     x = rng.uniform(0, 299.9, 3000)
     y = rng.uniform(0, 199.9, 3000)
     # points exactly on block edges, on corners, and exactly at the buffer distance
-    special = np.array([[100.0, 100.0], [90.0, 110.0], [110.0, 90.0], [100.0, 50.0], [50.0, 100.0],
-                        [89.999, 100.0], [110.0, 110.0], [200.0, 100.0], [0.0, 0.0], [190.0, 90.0]])
+    special = np.array(
+        [
+            [100.0, 100.0],
+            [90.0, 110.0],
+            [110.0, 90.0],
+            [100.0, 50.0],
+            [50.0, 100.0],
+            [89.999, 100.0],
+            [110.0, 110.0],
+            [200.0, 100.0],
+            [0.0, 0.0],
+            [190.0, 90.0],
+        ]
+    )
     x = np.r_[x, special[:, 0]]
     y = np.r_[y, special[:, 1]]
     p, b, core = assign_blocks(grid, x, y)
     expected_pairs, expected_cores = _brute_force(grid, x, y)
-    assert set(zip(p.tolist(), b.tolist())) == expected_pairs
-    assert set(zip(p[core].tolist(), b[core].tolist())) == expected_cores
+    assert set(zip(p.tolist(), b.tolist(), strict=True)) == expected_pairs
+    assert set(zip(p[core].tolist(), b[core].tolist(), strict=True)) == expected_cores
     assert np.bincount(p[core], minlength=x.size).tolist() == [1] * x.size
     # the corner point (100, 100) is core of block (1, 1) and halo of the three others around it
     corner = x.size - special.shape[0]
@@ -53,7 +76,9 @@ def test_core_windows_tile_the_raster_exactly():
             r, c, rows, cols = grid.core_window(ix, iy)
             cover[r : r + rows, c : c + cols] += 1
             xmin, ymin, xmax, ymax = grid.core_bounds(ix, iy)
-            assert xmin == grid.x0 + c * grid.resolution and ymax == grid.y_top - r * grid.resolution
+            assert (
+                xmin == grid.x0 + c * grid.resolution and ymax == grid.y_top - r * grid.resolution
+            )
     assert (cover == 1).all()
     assert grid.x0 % 0.5 == 0 and grid.y0 % 0.5 == 0
 

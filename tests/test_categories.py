@@ -103,7 +103,12 @@ def test_edge_with_a_dominant_slope_along_it_is_an_extreme_point():
 def test_rotating_the_dtm_turns_every_direction():
     rng = np.random.default_rng(3)
     x, y = grid(8)
-    z = 2 * np.sin(x / 3) + 1.5 * np.cos(y / 4) + 0.4 * np.abs(x - 7.3) + rng.normal(0, 0.01, x.shape)
+    z = (
+        2 * np.sin(x / 3)
+        + 1.5 * np.cos(y / 4)
+        + 0.4 * np.abs(x - 7.3)
+        + rng.normal(0, 0.01, x.shape)
+    )
     a = compute_categories(z, CELL)
     b = compute_categories(np.rot90(z), CELL)  # contents turned 90° counter-clockwise
     inc_a = np.rot90(a.inclination)

@@ -22,7 +22,19 @@ def tile(tmp_path_factory):
 def test_process_writes_outputs_and_cleans_up(tmp_path, tile, capsys):
     path, scene = tile
     out = tmp_path / "out"
-    code = main(["process", str(path), "--out", str(out), "--quiet", "--param", "block_size=60", "--param", "workers=1"])
+    code = main(
+        [
+            "process",
+            str(path),
+            "--out",
+            str(out),
+            "--quiet",
+            "--param",
+            "block_size=60",
+            "--param",
+            "workers=1",
+        ]
+    )
     assert code == 0
     listed = capsys.readouterr().out.split()
     for name in ["classified.laz", "dtm.tif", "coverage.tif", "categories.tif", "report.json"]:
@@ -50,23 +62,66 @@ def test_bad_parameter_exits_2_with_a_message(tmp_path, tile, capsys):
 def test_path_profile_on_a_tilted_plane(tmp_path, capsys):
     """A plane rising 10 % to the east: pitch atan(0.1) going east, roll 0; going north, roll ±atan(0.1)."""
     surface = Surface(z0=50.0, gx=0.1, gy=0.0, waves=())
-    scene = make_scene(size=80, density=3, seed=2, surface=surface, n_buildings=0, tree_density=0, bush_density=0,
-                       outlier_rate=0, noise_sigma=0.0)
+    scene = make_scene(
+        size=80,
+        density=3,
+        seed=2,
+        surface=surface,
+        n_buildings=0,
+        tree_density=0,
+        bush_density=0,
+        outlier_rate=0,
+        noise_sigma=0.0,
+    )
     src = write_las(scene, tmp_path / "plane.laz")
     out = tmp_path / "out"
-    assert main(["process", str(src), "--out", str(out), "--quiet", "--param", "workers=1", "--param", "features=none"]) == 0
+    assert (
+        main(
+            [
+                "process",
+                str(src),
+                "--out",
+                str(out),
+                "--quiet",
+                "--param",
+                "workers=1",
+                "--param",
+                "features=none",
+            ]
+        )
+        == 0
+    )
     x0, y0, _, _ = scene.bounds
-    line = {"type": "LineString", "coordinates": [[x0 + 20, y0 + 40], [x0 + 60, y0 + 40], [x0 + 60, y0 + 70]]}
+    line = {
+        "type": "LineString",
+        "coordinates": [[x0 + 20, y0 + 40], [x0 + 60, y0 + 40], [x0 + 60, y0 + 70]],
+    }
     (tmp_path / "line.geojson").write_text(json.dumps(line))
     capsys.readouterr()
-    assert main(["path", str(out / "dtm.tif"), str(tmp_path / "line.geojson"), "--crs", "native", "--format", "json",
-                 "--spacing", "5"]) == 0
+    assert (
+        main(
+            [
+                "path",
+                str(out / "dtm.tif"),
+                str(tmp_path / "line.geojson"),
+                "--crs",
+                "native",
+                "--format",
+                "json",
+                "--spacing",
+                "5",
+            ]
+        )
+        == 0
+    )
     records = json.loads(capsys.readouterr().out)
     east = [r for r in records if r["distance"] < 39]
     north = [r for r in records if 41 < r["distance"] < 69]
     expected = np.degrees(np.arctan(0.1))
     assert all(abs(r["pitch_deg"] - expected) < 0.5 and abs(r["roll_deg"]) < 0.5 for r in east)
-    assert all(abs(r["pitch_deg"]) < 0.5 and abs(abs(r["roll_deg"]) - expected) < 0.5 for r in north)
+    assert all(
+        abs(r["pitch_deg"]) < 0.5 and abs(abs(r["roll_deg"]) - expected) < 0.5 for r in north
+    )
     with rasterio.open(out / "slope.tif") as ds:
         slope = ds.read(1, masked=True)
         assert abs(float(np.ma.median(slope)) - expected) < 0.5

@@ -81,32 +81,83 @@ def test_full_filter_round_trip_and_values():
     assert (mid.min_len, mid.max_len, mid.max_errors) == (0, 4, 1)
     cat = mid.categories[0]
     assert cat.inclination.allows(8) and not cat.inclination.allows(3)
-    assert not cat.orientation.allows(37) and cat.orientation.allows(15)  # 73 is 37 written backwards
+    assert not cat.orientation.allows(37) and cat.orientation.allows(
+        15
+    )  # 73 is 37 written backwards
     assert not cat.orientation.allows(11)
     assert mid.categories[1].orientation.values is None  # omitted = any
     assert f.h_and_v and f.connect.method == "segment"
-    assert (f.connect.min_length, f.connect.max_length, f.connect.min_width, f.connect.max_width) == (10, None, 2, 6)
+    assert (
+        f.connect.min_length,
+        f.connect.max_length,
+        f.connect.min_width,
+        f.connect.max_width,
+    ) == (10, None, 2, 6)
     assert f.connect.max_error == 20
 
 
 @pytest.mark.parametrize(
     "text, line, reason",
     [
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 9\nendcategory\nendsubsegment\nendsegment", 4, "0–8"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nstate 3\nendcategory\nendsubsegment\nendsegment", 4, "state"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\norientation 12\nendcategory\nendsubsegment\nendsegment", 4, "orientation 12"),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 9\nendcategory\nendsubsegment\nendsegment",
+            4,
+            "0–8",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nstate 3\nendcategory\nendsubsegment\nendsegment",
+            4,
+            "state",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\norientation 12\nendcategory\nendsubsegment\nendsegment",
+            4,
+            "orientation 12",
+        ),
         ("// c\nbeginsegment\n  beginsubsegment 3 1\n", 3, "bad length range"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\n", 1, "without endsegment"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nslope 2\nendcategory\nendsubsegment\nendsegment", 4, "slope"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect wiggle 1 1 1 1", 7, "algorithm"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 1 1", 7, "minlen"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 1 -1 20", 7, "minlen"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nfindrectangle 5 5", 7, "findrectangle"),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\n",
+            1,
+            "without endsegment",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nslope 2\nendcategory\nendsubsegment\nendsegment",
+            4,
+            "slope",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect wiggle 1 1 1 1",
+            7,
+            "algorithm",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 1 1",
+            7,
+            "minlen",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 1 -1 20",
+            7,
+            "minlen",
+        ),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nfindrectangle 5 5",
+            7,
+            "findrectangle",
+        ),
         ("beginsegment\nbeginsubsegment 1 x\n", 2, "whole number"),
-        ("beginsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nendsegment", 1, "at most 63"),
+        (
+            "beginsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nendsegment",
+            1,
+            "at most 63",
+        ),
         ("\n\n", 1, "at least one"),
         ("beginsegment\nendsegment", 2, "at least one subsegment"),
-        ("beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 -1 -1\nbeginsegment", 8, "before"),
+        (
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\nendsegment\nconnect edge 1 -1 -1 -1\nbeginsegment",
+            8,
+            "before",
+        ),
     ],
 )
 def test_bad_filters_name_line_and_reason(text, line, reason):
@@ -129,7 +180,11 @@ def test_resolve_filters_and_unknown_names():
 
 
 def test_rotation_and_invert_of_a_segment():
-    assert rotate_orientation(37) == 15 and rotate_orientation(26) == 48 and rotate_orientation(33) == 11
+    assert (
+        rotate_orientation(37) == 15
+        and rotate_orientation(26) == 48
+        and rotate_orientation(33) == 11
+    )
     seg = parse_filter(FULL).segments[0]
     cat = seg.subsegments[1].categories[0]
     inv = transform_segment(seg, 0).subsegments[1].categories[0]
@@ -137,7 +192,9 @@ def test_rotation_and_invert_of_a_segment():
     assert transform_segment(seg, 0).subsegments[1].categories[1].state.values == frozenset({1, 2})
     rot = transform_segment(seg, 1).subsegments[1].categories[0]
     assert rot.inclination.values == frozenset({3, 4, 2})  # inverted, then turned: 5 6 4 - 2
-    assert rot.orientation.values == frozenset({15, 11 * 7}) and cat.orientation.values == frozenset({37, 11})
+    assert rot.orientation.values == frozenset(
+        {15, 11 * 7}
+    ) and cat.orientation.values == frozenset({37, 11})
 
 
 # --------------------------------------------------------------------------- search
@@ -187,7 +244,11 @@ def test_exclude_maxerrors_total_length_and_nodata():
     road = load_filter("road")
     inc = np.array([[3, 0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0]], dtype=np.uint8)
     h, _ = search_filter(cats_from(inc), road)
-    assert np.flatnonzero(h[0]).tolist() == [1, 2, 3]  # bounding tiles excluded; 7 flats too wide; open end
+    assert np.flatnonzero(h[0]).tolist() == [
+        1,
+        2,
+        3,
+    ]  # bounding tiles excluded; 7 flats too wide; open end
     pond = parse_filter(
         "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 5\nendcategory\nendsubsegment\n"
         "beginsubsegment 4 6\nmaxerrors 1\nbegincategory\ninclination 0\nendcategory\nendsubsegment\n"
@@ -244,6 +305,7 @@ def test_search_rows_matches_a_brute_force_scan():
 
 
 # --------------------------------------------------------------------------- connect
+
 
 def test_simple_connect_and_h_and_v():
     m = np.zeros((6, 6), bool)
@@ -305,6 +367,7 @@ def test_find_rectangles_first_fit_with_tolerance():
 
 # --------------------------------------------------------------------------- objects
 
+
 @pytest.mark.parametrize("angle", [0, 30, 45, 90])
 def test_object_length_does_not_depend_on_direction(angle):
     from shapely import affinity
@@ -327,10 +390,13 @@ def test_objects_from_labels_polygons_and_limits():
     assert abs(strip.length_m - 72) < 3 and abs(strip.width_m - 6) < 1
     square = min(feats, key=lambda f: f.length_m)
     assert square.tiles == 36 and square.geometry.area == 144.0  # hole filled
-    assert len(objects_from_labels(lab, "thing", t, 2.0, (20, None, None, None))) == 1  # square too short
+    assert (
+        len(objects_from_labels(lab, "thing", t, 2.0, (20, None, None, None))) == 1
+    )  # square too short
 
 
 # --------------------------------------------------------------------------- end to end
+
 
 @pytest.fixture(scope="module")
 def scene_result():
@@ -390,7 +456,10 @@ def test_geojson_native_and_wgs84(scene_result):
     assert native["type"] == "FeatureCollection" and "crs" not in native
     assert len(native["features"]) == len(result.objects)
     props = native["features"][0]["properties"]
-    assert set(props) == {"kind", "length_m", "width_m", "tiles", "job_id"} and props["job_id"] == "job-1"
+    assert (
+        set(props) == {"kind", "length_m", "width_m", "tiles", "job_id"}
+        and props["job_id"] == "job-1"
+    )
     assert "job_id" not in wgs["features"][0]["properties"]
     lon, lat = wgs["features"][0]["geometry"]["coordinates"][0][0]
     assert 14 < lon < 16 and 48 < lat < 49  # UTM 33N, x 500 km, y 5400 km

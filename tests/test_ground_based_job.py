@@ -26,8 +26,15 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
     # the angular cells of the mixed filter must be at least the scan step (0.4°)
-    params = pipeline.validate_params({"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4,
-                                       "mixed.cell_angle": 0.5})
+    params = pipeline.validate_params(
+        {
+            "sensor_origin": origin,
+            "features": "none",
+            "block_size": 40,
+            "buffer": 4,
+            "mixed.cell_angle": 0.5,
+        }
+    )
     pipeline.prepare_job(job, [path], params)
     pipeline.run_job(job, InlineExecutor())
     classes = np.asarray(laspy.read(pipeline.output_path(job, "classified.laz")).classification)
@@ -36,7 +43,10 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     # most marked points are real mixed or ghost returns, and few correct points are lost
     precision = np.mean(scan.is_mixed[marked])
     fpr = np.mean(marked[~scan.is_mixed])
-    assert precision > 0.4 and fpr < 0.03, (precision, fpr)  # measured 0.51 and 0.014 on this coarse scan
+    assert precision > 0.4 and fpr < 0.03, (
+        precision,
+        fpr,
+    )  # measured 0.51 and 0.014 on this coarse scan
     report = json.loads(pipeline.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"]["marked"] == int(marked.sum())
     assert report["counts_per_class"]["7"] == int(marked.sum())
@@ -46,7 +56,9 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
 def test_without_origin_the_report_says_mixed_did_not_run(tmp_path):
     _, path = _scan_tile(tmp_path)
     job = tmp_path / "job"
-    pipeline.prepare_job(job, [path], pipeline.validate_params({"features": "none", "block_size": 40, "buffer": 4}))
+    pipeline.prepare_job(
+        job, [path], pipeline.validate_params({"features": "none", "block_size": 40, "buffer": 4})
+    )
     pipeline.run_job(job, InlineExecutor(), products="classified")
     report = json.loads(pipeline.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"].startswith("not run")
@@ -61,7 +73,11 @@ def test_concentric_grid_holds_where_square_bins_fail_on_a_dense_scan():
     # 400 pts/m² out to 5 m, falling as 1/r² to 50 m: square bins sized from
     # the mean spacing are far too fine out there (measured kappa 0.66).
     scene, origin = ground_based(near_density=400.0)
-    ring = ground_score(scene.is_ground, nist.classify_ground(scene.xyz, nist.NistParams(), sensor_origin=origin))
-    square = ground_score(scene.is_ground, nist.classify_ground(scene.xyz, nist.NistParams(grid="regular")))
+    ring = ground_score(
+        scene.is_ground, nist.classify_ground(scene.xyz, nist.NistParams(), sensor_origin=origin)
+    )
+    square = ground_score(
+        scene.is_ground, nist.classify_ground(scene.xyz, nist.NistParams(grid="regular"))
+    )
     assert ring.kappa > 0.95 and ring.type1 < 0.01, ring  # measured 0.974, 0.0001
     assert square.kappa < ring.kappa - 0.1, square

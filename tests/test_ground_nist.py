@@ -47,10 +47,14 @@ def test_tin_matches_linear_interpolation_and_locates_like_qhull():
     ref = qhull.find_simplex(q)
     assert np.array_equal(ref >= 0, t >= 0)
     inside = ref >= 0
-    same = np.sort(tin.tri.simplices[t[inside]], axis=1) == np.sort(qhull.simplices[ref[inside]], axis=1)
+    same = np.sort(tin.tri.simplices[t[inside]], axis=1) == np.sort(
+        qhull.simplices[ref[inside]], axis=1
+    )
     assert same.all()
     # A plane is reproduced exactly inside the hull.
-    plane = Tin(np.column_stack([pts[:, :2], 2.0 + 0.3 * (pts[:, 0] - 5e5) - 0.1 * (pts[:, 1] - 5.4e6)]))
+    plane = Tin(
+        np.column_stack([pts[:, :2], 2.0 + 0.3 * (pts[:, 0] - 5e5) - 0.1 * (pts[:, 1] - 5.4e6)])
+    )
     inside = ref >= 0
     z = plane.at_local(q[inside])
     xy = q[inside] + plane.origin
@@ -93,7 +97,9 @@ def test_delaunay_keeps_the_first_of_coincident_points_and_rejects_collinear():
     assert _triangle_set(as_xy) == _triangle_set(Delaunay(xy).simplices)
     ptr, _ = mesh.vertex_neighbor_vertices
     assert (np.diff(ptr)[70 + copied] == 0).all()
-    assert np.array_equal(delaunay(pts, coincident=True).simplices, s)  # sorted out first: same mesh
+    assert np.array_equal(
+        delaunay(pts, coincident=True).simplices, s
+    )  # sorted out first: same mesh
     line = np.column_stack([np.arange(10.0), 2.0 * np.arange(10.0)])
     with pytest.raises(QhullError):
         delaunay(line)
@@ -117,7 +123,9 @@ def test_screen_removes_spikes_and_pits_but_keeps_a_slope():
 
 
 def test_masking_marks_trees_not_open_ground():
-    sc = make_scene(120, 4, n_buildings=0, tree_density=0.003, bush_density=0.0, outlier_rate=0, seed=3)
+    sc = make_scene(
+        120, 4, n_buildings=0, tree_density=0.003, bush_density=0.0, outlier_rate=0, seed=3
+    )
     idx = mask_points(sc.xyz, 0.12, edge=2.5 / 2)
     assert idx.size > 0
     # Mask points sit under or in crowns: a vegetation point is within 1 m.
@@ -138,7 +146,9 @@ def test_concentric_grid_has_perpendicular_diagonals():
     a = np.array([r1, 0.0]), np.array([r2 * np.cos(step), r2 * np.sin(step)])
     b = np.array([r1 * np.cos(step), r1 * np.sin(step)]), np.array([r2, 0.0])
     assert abs(np.dot(a[1] - a[0], b[1] - b[0])) < 1e-9
-    assert g.radii[-1] == 50.0 and g.radii[-1] / g.radii[-2] >= ring_ratio(step)  # last ring extended
+    assert g.radii[-1] == 50.0 and g.radii[-1] / g.radii[-2] >= ring_ratio(
+        step
+    )  # last ring extended
     x = np.array([10.0, 13.0, 10.0 + 49.9, 10 + 60.0])
     y = np.array([20.0, 20.1, 20.0, 20.0])
     ring = int(np.floor(np.log(np.hypot(3.0, 0.1) / 2.0) / np.log(ring_ratio(step))))
@@ -151,8 +161,12 @@ def test_select_reject_reasons_and_plane_fit():
     sc = slopes.steep_hillside(60, 8, seed=4)
     grid = Grid.covering(sc.xyz[:, 0], sc.xyz[:, 1], 4.0)
     none = np.zeros((0, 2))
-    level = nist.select_reject(sc.xyz, nist.NistParams(bin_fit="level", z_tol=0.5), grid, mask_xy=none)
-    plane = nist.select_reject(sc.xyz, nist.NistParams(bin_fit="plane", z_tol=0.5), grid, mask_xy=none)
+    level = nist.select_reject(
+        sc.xyz, nist.NistParams(bin_fit="level", z_tol=0.5), grid, mask_xy=none
+    )
+    plane = nist.select_reject(
+        sc.xyz, nist.NistParams(bin_fit="plane", z_tol=0.5), grid, mask_xy=none
+    )
     # On a 40° slope a 4 m bin spans ~1 m RMS about its mean: level rejects, the plane accepts.
     assert np.mean(level.reason[level.stats.n > 0] == nist.RMS) > 0.9
     assert plane.accepted[plane.stats.n >= 3].mean() > 0.9
@@ -177,7 +191,9 @@ def test_classify_ground_on_synthetic_scene(density):
 
 def test_plane_fit_helps_on_steep_hillside():
     sc = slopes.steep_hillside(100, 4, seed=8)
-    plane = ground_score(sc.is_ground, nist.classify_ground(sc.xyz, nist.NistParams(bin_fit="plane")))
+    plane = ground_score(
+        sc.is_ground, nist.classify_ground(sc.xyz, nist.NistParams(bin_fit="plane"))
+    )
     assert plane.type1 < 0.03, plane
 
 
@@ -202,17 +218,24 @@ def test_concentric_path_with_sensor_origin():
 def test_params_registry_and_presets():
     stage = get_stage("ground.nist")
     assert stage.run is nist.classify_ground
-    assert nist.NistParams.preset("conservative").ground_tol < nist.NistParams.preset("aggressive").ground_tol
+    assert (
+        nist.NistParams.preset("conservative").ground_tol
+        < nist.NistParams.preset("aggressive").ground_tol
+    )
     with pytest.raises(ParameterError):
         nist.NistParams.preset("default", mask_fraction=0.9)
 
 
-@pytest.mark.skipif(not (DATA / "isprs" / "samp31.laz").exists(), reason="shared ISPRS data not present")
+@pytest.mark.skipif(
+    not (DATA / "isprs" / "samp31.laz").exists(), reason="shared ISPRS data not present"
+)
 def test_isprs_samp31_kappa():
     laspy = pytest.importorskip("laspy")
     las = laspy.read(str(DATA / "isprs" / "samp31.laz"))
     xyz = np.column_stack([las.x, las.y, las.z])
-    s = ground_score(np.asarray(las.classification) == 2, nist.classify_ground(xyz, nist.NistParams()))
+    s = ground_score(
+        np.asarray(las.classification) == 2, nist.classify_ground(xyz, nist.NistParams())
+    )
     assert s.kappa > 0.88, s  # measured 95.0 %; PDAL SMRF defaults reach 93.2 %
 
 
@@ -325,7 +348,9 @@ def test_cell_order_is_the_stable_sort_of_cell_keys():
     rng = np.random.default_rng(9)
     for span in (50.0, 900.0, 3000.0):  # one and two radix passes
         xy = rng.uniform(-span, span, (20000, 2)).round(1)
-        key = np.floor(xy[:, 1] / 4.0).astype(np.int64) * 10**6 + np.floor(xy[:, 0] / 4.0).astype(np.int64)
+        key = np.floor(xy[:, 1] / 4.0).astype(np.int64) * 10**6 + np.floor(xy[:, 0] / 4.0).astype(
+            np.int64
+        )
         assert np.array_equal(cell_order(xy[:, 0], xy[:, 1], 4.0), np.argsort(key, kind="stable"))
 
 
@@ -373,7 +398,9 @@ def test_growth_drops_peaks_it_stepped_onto_but_keeps_a_crest():
 def test_growth_peak_rule_keeps_a_cut_ridge():
     xy = _grid_nodes(120, 2.0, 11)
     ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
-    hill = np.clip(6.0 - 0.01 * ((xy[:, 0] - 90.0) ** 2 + (xy[:, 1] - 60.0) ** 2), 0.0, None)  # rounded
+    hill = np.clip(
+        6.0 - 0.01 * ((xy[:, 0] - 90.0) ** 2 + (xy[:, 1] - 60.0) ** 2), 0.0, None
+    )  # rounded
     xyz = np.column_stack([xy, ridge + hill])
     seed = xyz[:, 2] < 3.0
     ground = grow_ground(xyz, seed, tol=0.3, bend_deg=7.0, max_rise=3.0, peak=0.3, peak_nodes=6)
@@ -445,7 +472,11 @@ def test_band_codes_agree_with_heights_and_slopes():
     pts = np.column_stack([rng.uniform(-5, 45, (30000, 2)), rng.uniform(-3, 15, 30000)])
     h, slope = tin.height_and_slope(pts[:, :2] - tin.origin)
     r = pts[:, 2] - h
-    for up, down, gain, cap in [(0.5, 1.0, 0.0, np.inf), (0.3, 0.2, 0.8, 0.6), (0.4, np.inf, 2.0, 1.0)]:
+    for up, down, gain, cap in [
+        (0.5, 1.0, 0.0, np.inf),
+        (0.3, 0.2, 0.8, 0.6),
+        (0.4, np.inf, 2.0, 1.0),
+    ]:
         allow = gain * np.minimum(slope, cap)
         code = tin.band(pts, up, down, gain, cap)
         above = r > up + allow
@@ -470,7 +501,9 @@ def test_point_file_screening_has_its_own_tolerance():
         return nist._screen_points(xyz, nist.NistParams(**over), spacing)
 
     assert top in kept() and top in kept(screen_tol=0.5)
-    assert top not in kept(screen_points_tol=0.75) and top not in kept(screen_tol=2.0, screen_points_tol=0.75)
+    assert top not in kept(screen_points_tol=0.75) and top not in kept(
+        screen_tol=2.0, screen_points_tol=0.75
+    )
     assert kept(screen_points_tol=0.75).size == xyz.shape[0] - 1
 
 
@@ -483,7 +516,9 @@ def test_default_raised_step_takes_a_low_roof_whose_border_climbs_in_small_steps
     xyz = np.column_stack([xy, z])
     tri = Delaunay(xy)
     p = nist.NistParams()
-    drop = raised_segments(xyz, tri, p.raised_step, p.raised_slope, up_share=p.raised_share, min_lift=p.raised_lift)
+    drop = raised_segments(
+        xyz, tri, p.raised_step, p.raised_slope, up_share=p.raised_share, min_lift=p.raised_lift
+    )
     assert np.array_equal(drop, d < 10.0)
     assert not raised_segments(xyz, tri, 0.5, p.raised_slope).any()
 
@@ -497,8 +532,12 @@ def test_screening_votes_follow_bin_planes_only_up_to_the_slope_cap():
     xy = np.vstack([[0.0, 0.0], ring])
     z = np.r_[5.0, np.zeros(6)]
     slopes = -4.0 * np.vstack([[0.0, 0.0], ring]) / 4.0  # gradients pointing up towards the deck
-    kept_uncapped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 0.0))
-    kept_capped, _ = screen(np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 1.5))
+    kept_uncapped, _ = screen(
+        np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 0.0)
+    )
+    kept_capped, _ = screen(
+        np.column_stack([xy, z]), 1.0, 0.0, slopes=nist._vote_slopes(slopes, 1.5)
+    )
     assert 0 in kept_uncapped and 0 not in kept_capped
     assert set(kept_capped) == set(range(1, 7))
     # Gentle planes pass unchanged; steep ones keep their direction; NaN is level.

@@ -22,8 +22,18 @@ def test_registered_with_table1_presets():
     assert stage.run is classify_ground and stage.params is PtdParams
     c = PtdParams.preset("conservative")
     a = PtdParams.preset("aggressive")
-    assert (c.terrain_angle, c.iteration_angle, c.iteration_distance, c.max_building_size) == (75, 15, 1.0, 10)
-    assert (a.terrain_angle, a.iteration_angle, a.iteration_distance, a.max_building_size) == (88, 20, 1.2, 10)
+    assert (c.terrain_angle, c.iteration_angle, c.iteration_distance, c.max_building_size) == (
+        75,
+        15,
+        1.0,
+        10,
+    )
+    assert (a.terrain_angle, a.iteration_angle, a.iteration_distance, a.max_building_size) == (
+        88,
+        20,
+        1.2,
+        10,
+    )
     with pytest.raises(ParameterError):
         PtdParams.preset("default", iteration_angle=-1)
 
@@ -59,12 +69,16 @@ def test_low_outliers_do_not_seed(scene):
 def test_shallow_returns_under_the_terrain_do_not_drag_the_tin_down():
     # Returns 0.5-1.5 m under the ground pass the distance test; in the TIN each
     # would tilt its facets down and the true ground around it would fail.
-    s = make_scene(size=120, density=8, n_buildings=0, tree_density=0, bush_density=0, outlier_rate=0, seed=4)
+    s = make_scene(
+        size=120, density=8, n_buildings=0, tree_density=0, bush_density=0, outlier_rate=0, seed=4
+    )
     rng = np.random.default_rng(3)
     x0, y0, x1, y1 = s.bounds
     k = 60
     ox, oy = rng.uniform(x0 + 5, x1 - 5, k), rng.uniform(y0 + 5, y1 - 5, k)
-    xyz = np.vstack([s.xyz, np.column_stack([ox, oy, s.surface(ox, oy) - rng.uniform(0.5, 1.5, k)])])
+    xyz = np.vstack(
+        [s.xyz, np.column_stack([ox, oy, s.surface(ox, oy) - rng.uniform(0.5, 1.5, k)])]
+    )
     truth = np.r_[s.is_ground, np.zeros(k, bool)]
     score = ground_score(truth[:-k], classify_ground(xyz, PtdParams())[:-k])
     assert score.type1 < 0.002, score  # 0.5 % with pit_depth=None
@@ -93,8 +107,16 @@ def test_translation_invariant(scene):
 
 def test_steep_smooth_slope_is_found():
     # A 35° planar slope (no objects): the filter must climb it, not stop at the seeds.
-    s = make_scene(size=60, density=4, surface=Surface(gx=0.7, gy=0.0, waves=()), n_buildings=0,
-                   tree_density=0, bush_density=0, outlier_rate=0, seed=2)
+    s = make_scene(
+        size=60,
+        density=4,
+        surface=Surface(gx=0.7, gy=0.0, waves=()),
+        n_buildings=0,
+        tree_density=0,
+        bush_density=0,
+        outlier_rate=0,
+        seed=2,
+    )
     pred = classify_ground(s.xyz, PtdParams())
     assert pred.mean() > 0.995
 
@@ -116,8 +138,17 @@ def test_labels_do_not_depend_on_point_order(scene):
 def test_roofs_wider_than_seed_cells_are_dropped():
     # 26-30 m buildings fill whole 12 m seed cells, whose lowest points are roof:
     # the roofs grow as raised islands of the TIN, and must be dropped.
-    s = make_scene(size=120, density=4, n_buildings=3, building_size=(26.0, 30.0),
-                   building_height=(5.0, 12.0), tree_density=0, bush_density=0, outlier_rate=0, seed=4)
+    s = make_scene(
+        size=120,
+        density=4,
+        n_buildings=3,
+        building_size=(26.0, 30.0),
+        building_height=(5.0, 12.0),
+        tree_density=0,
+        bush_density=0,
+        outlier_rate=0,
+        seed=4,
+    )
     roof = s.truth == 6
     off = classify_ground(s.xyz, PtdParams(island_step=None))
     assert off[roof].mean() > 0.1  # the case the island test is for

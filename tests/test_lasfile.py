@@ -64,7 +64,9 @@ def test_header_claims_more_points_than_file_holds(tmp_path, las_file):
     data = src.read_bytes()
     p = tmp_path / "short.las"
     p.write_bytes(data[: len(data) - 28 * 100])  # 100 records of format 1 gone
-    with pytest.raises(InputError, match=f"claims {len(scene)} points but the file holds only {len(scene) - 100}"):
+    with pytest.raises(
+        InputError, match=f"claims {len(scene)} points but the file holds only {len(scene) - 100}"
+    ):
         read_tile_info(p)
 
 

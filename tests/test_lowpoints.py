@@ -11,7 +11,9 @@ def _ground(density: float, size: float = 60.0, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     n = int(density * size * size)
     xy = rng.uniform(0, size, (n, 2))
-    z = 0.3 * xy[:, 0] + 0.5 * np.sin(xy[:, 1] / 4.0) + rng.normal(0, 0.05, n)  # a 17° slope, rolling
+    z = (
+        0.3 * xy[:, 0] + 0.5 * np.sin(xy[:, 1] / 4.0) + rng.normal(0, 0.05, n)
+    )  # a 17° slope, rolling
     return np.column_stack([xy + [5e5, 5.4e6], z + 200.0])
 
 
@@ -24,9 +26,16 @@ def test_lone_and_paired_returns_under_the_terrain_are_found_a_cluster_is_kept()
     pts[lone, 2] -= rng.uniform(2.5, 6.0, 20)
     # a pair 0.5 m apart, 3 m down; a cluster of five, 2 m down (a pit with returns: kept)
     pair = np.array([[5e5 + 30.0, 5.4e6 + 30.0], [5e5 + 30.5, 5.4e6 + 30.0]])
-    cluster = np.array([[5e5 + 45.0 + dx, 5.4e6 + 15.0 + dy] for dx in (0, 0.4) for dy in (0, 0.4, 0.8)])[:5]
+    cluster = np.array(
+        [[5e5 + 45.0 + dx, 5.4e6 + 15.0 + dy] for dx in (0, 0.4) for dy in (0, 0.4, 0.8)]
+    )[:5]
     surface = lambda xy: 0.3 * (xy[:, 0] - 5e5) + 0.5 * np.sin((xy[:, 1] - 5.4e6) / 4.0) + 200.0  # noqa: E731
-    extra = np.vstack([np.column_stack([pair, surface(pair) - 3.0]), np.column_stack([cluster, surface(cluster) - 2.0])])
+    extra = np.vstack(
+        [
+            np.column_stack([pair, surface(pair) - 3.0]),
+            np.column_stack([cluster, surface(cluster) - 2.0]),
+        ]
+    )
     xyz = np.vstack([pts, extra])
     ground = np.ones(len(xyz), dtype=bool)
     low = isolated_low_points(xyz, ground, LowPointParams())

@@ -9,7 +9,14 @@ from terrasift.errors import ParameterError
 from terrasift.synthetic.scan import CORRECT, make_scan
 from terrasift.workers.mixed import MixedParams, mark_mixed
 
-VARIANTS = ("naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window")
+VARIANTS = (
+    "naive",
+    "aggressive",
+    "accumulator",
+    "exclusive",
+    "blind_window",
+    "exclusive_blind_window",
+)
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +63,11 @@ def _two_walls(mixed_columns: int, seed: int = 0):
     """A wall at 8 m covering azimuths below 0°, a second wall at 9.5 m behind it;
     optionally ``mixed_columns`` columns at the edge with blended ranges."""
     rng = np.random.default_rng(seed)
-    az, el = np.meshgrid(np.radians(np.arange(-8.0, 8.0, 0.15)), np.radians(np.arange(-6.0, 6.0, 0.15)), indexing="ij")
+    az, el = np.meshgrid(
+        np.radians(np.arange(-8.0, 8.0, 0.15)),
+        np.radians(np.arange(-6.0, 6.0, 0.15)),
+        indexing="ij",
+    )
     az, el = az.ravel(), el.ravel()
     d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     front = az < 0.0
@@ -123,7 +134,9 @@ def test_uniform_random_points_are_not_marked(density):
     pts = rng.uniform(0.0, 10.0, (int(1000 * density), 3)) + [5.0, -5.0, 0.0]
     for trigger in ("surfaceness", "normal", "both"):
         for cross in (False, True):
-            res = mark_mixed(pts, MixedParams(trigger=trigger, cross_box=cross), np.array([0.0, 0.0, 5.0]))
+            res = mark_mixed(
+                pts, MixedParams(trigger=trigger, cross_box=cross), np.array([0.0, 0.0, 5.0])
+            )
             assert res.n_marked <= 0.001 * len(pts)
 
 
@@ -137,8 +150,12 @@ def test_random_points_without_the_background_rule_do_fire():
 
 
 def test_several_origins_match_separate_runs():
-    a = make_scan(step_deg=0.4, n_boards=3, n_poles=3, seed=11, origin=(500_000.0, 5_400_000.0, 100.0))
-    b = make_scan(step_deg=0.4, n_boards=3, n_poles=3, seed=12, origin=(500_040.0, 5_400_010.0, 101.0))
+    a = make_scan(
+        step_deg=0.4, n_boards=3, n_poles=3, seed=11, origin=(500_000.0, 5_400_000.0, 100.0)
+    )
+    b = make_scan(
+        step_deg=0.4, n_boards=3, n_poles=3, seed=12, origin=(500_040.0, 5_400_010.0, 101.0)
+    )
     xyz = np.vstack([b.xyz, a.xyz])
     ids = np.r_[np.ones(len(b), int), np.zeros(len(a), int)]
     p = MixedParams(cell_angle=0.5, min_points=5)  # cells no finer than the coarse 0.4° scan

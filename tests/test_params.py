@@ -62,7 +62,9 @@ def test_stage_overrides_reach_the_stage_model():
 
 
 def test_none_switches_optional_stage_fields_off_and_only_those():
-    p = validate_params(parse_cli_params(["ground.ptd.pit_depth=none", "ground.ptd.island_step=NULL"]))
+    p = validate_params(
+        parse_cli_params(["ground.ptd.pit_depth=none", "ground.ptd.island_step=NULL"])
+    )
     ptd = stage_params(p, "ground.ptd")
     assert ptd.pit_depth is None and ptd.island_step is None
     with pytest.raises(ParameterError, match="tail_fraction"):
@@ -79,13 +81,17 @@ def test_cli_pairs():
 
 
 def test_effective_stage_params_lists_the_jobs_ground_method_with_preset_and_overrides():
-    params = validate_params({"ground": "nist", "ground.preset": "conservative", "ground.nist.mow_tol_2": 0.25})
+    params = validate_params(
+        {"ground": "nist", "ground.preset": "conservative", "ground.nist.mow_tol_2": 0.25}
+    )
     stages_out = effective_stage_params(params)
     assert "ground.nist" in stages_out and "ground.ptd" not in stages_out
     nist = stages_out["ground.nist"]
     assert nist["mow_tol_2"] == 0.25  # the override wins over the preset
     assert nist["ground_tol"] == 0.2  # from the conservative preset
-    assert nist["cell_3"] == stage_params(params, "ground.nist").cell_3  # untouched defaults are listed too
+    assert (
+        nist["cell_3"] == stage_params(params, "ground.nist").cell_3
+    )  # untouched defaults are listed too
     assert {"vegetation", "terrain", "ground.lowpoints"} <= set(stages_out)
     default = effective_stage_params(validate_params({}))
     assert "ground.nist" in default and "ground.ptd" not in default

@@ -49,7 +49,9 @@ def test_outputs_exist_and_cogs_are_valid(finished_job):
             assert ds.overviews(1), "COG should carry overviews"
 
 
-def test_classified_laz_keeps_every_point_order_and_dimension(finished_job, small_tile, small_scene):
+def test_classified_laz_keeps_every_point_order_and_dimension(
+    finished_job, small_tile, small_scene
+):
     job, _ = finished_job
     src = laspy.read(small_tile)
     out = laspy.read(pipeline.output_path(job, "classified.laz"))
@@ -105,7 +107,9 @@ def test_report_and_stac_item(finished_job, small_scene):
     assert report["parameters"]["block_size"] == 80
     assert report["block_buffer"] == report["parameters"]["buffer"] == 15
     method = f"ground.{report['parameters']['ground']}"
-    assert report["stage_parameters"][method] == stage_params(report["parameters"], method).model_dump(mode="json")
+    assert report["stage_parameters"][method] == stage_params(
+        report["parameters"], method
+    ).model_dump(mode="json")
     assert "ground" in report["timings_seconds"]["stages_summed_over_blocks"]
     # the job's roughness gauge covers exactly the bins of its blocks
     per_block = report["roughness_per_block"]
@@ -115,7 +119,9 @@ def test_report_and_stac_item(finished_job, small_scene):
     assert 0 < veg["tree_coverage"] < 1 and sum(veg["bins"].values()) > 0
     item = json.loads(pipeline.output_path(job, "item.json").read_text())
     assert item["properties"]["proj:code"] == "EPSG:32632"
-    assert item["assets"]["dtm.tif"]["type"].startswith("image/tiff; application=geotiff; profile=cloud-optimized")
+    assert item["assets"]["dtm.tif"]["type"].startswith(
+        "image/tiff; application=geotiff; profile=cloud-optimized"
+    )
     assert set(item["assets"]) == set(names) - {"item.json"}
     lon0, lat0, lon1, lat1 = item["bbox"]
     assert 7 < lon0 < lon1 < 11 and 47 < lat0 < lat1 < 50
@@ -145,7 +151,14 @@ def test_dtm_nodata_does_not_depend_on_blocks(tmp_path):
     s = make_scene(size=160, density=1.0, seed=4)
     x0, y0, _, _ = s.bounds
     dry = np.hypot(s.xyz[:, 0] - (x0 + 70), s.xyz[:, 1] - (y0 + 85)) >= 25
-    scene = Scene(s.xyz[dry], s.truth[dry], s.return_number[dry], s.number_of_returns[dry], s.surface, s.bounds)
+    scene = Scene(
+        s.xyz[dry],
+        s.truth[dry],
+        s.return_number[dry],
+        s.number_of_returns[dry],
+        s.surface,
+        s.bounds,
+    )
     tile = write_las(scene, tmp_path / "lake.laz")
     masks = []
     for size in (80, 400):
@@ -168,7 +181,9 @@ def test_resume_redoes_only_missing_work(tmp_path, small_tile):
     after = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}
     changed = {n for n in after if after[n] != before.get(n)}
     assert changed == {victim}
-    assert np.array_equal(laspy.read(pipeline.output_path(job, "classified.laz")).classification, reference)
+    assert np.array_equal(
+        laspy.read(pipeline.output_path(job, "classified.laz")).classification, reference
+    )
     assert pipeline.output_path(job, "dtm.tif").exists()
 
 
@@ -198,7 +213,9 @@ def test_dask_cluster_gives_the_same_labels(tmp_path, small_tile, finished_job):
     distributed = pytest.importorskip("distributed")
     from terrasift.workers.executors import make_executor
 
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
         executor = make_executor(dask_scheduler=cluster.scheduler_address)
         try:
             assert executor.workers == 2
@@ -216,20 +233,31 @@ def test_multi_tile_job_has_no_seam(tmp_path, small_scene, finished_job):
     mid = (small_scene.bounds[0] + small_scene.bounds[2]) / 2
     paths, parts = [], []
     for i, sel in enumerate([small_scene.xyz[:, 0] < mid, small_scene.xyz[:, 0] >= mid]):
-        part = Scene(small_scene.xyz[sel], small_scene.truth[sel], small_scene.return_number[sel],
-                     small_scene.number_of_returns[sel], small_scene.surface, small_scene.bounds)
+        part = Scene(
+            small_scene.xyz[sel],
+            small_scene.truth[sel],
+            small_scene.return_number[sel],
+            small_scene.number_of_returns[sel],
+            small_scene.surface,
+            small_scene.bounds,
+        )
         paths.append(write_las(part, tmp_path / f"part{i}.laz", extra_bytes=True))
         parts.append(sel)
     job = tmp_path / "job"
     pipeline.prepare_job(job, paths, pipeline.validate_params(BLOCK))
     names = pipeline.run_job(job, InlineExecutor())
     assert {"classified-part0.laz", "classified-part1.laz", "dtm.tif"} <= set(names)
-    with rasterio.open(pipeline.output_path(job, "dtm.tif")) as a, rasterio.open(pipeline.output_path(job_one, "dtm.tif")) as b:
+    with (
+        rasterio.open(pipeline.output_path(job, "dtm.tif")) as a,
+        rasterio.open(pipeline.output_path(job_one, "dtm.tif")) as b,
+    ):
         assert a.transform == b.transform and a.shape == b.shape
         np.testing.assert_allclose(a.read(1), b.read(1), atol=1e-4)
     one = np.asarray(laspy.read(pipeline.output_path(job_one, "classified.laz")).classification)
     for i, sel in enumerate(parts):
-        got = np.asarray(laspy.read(pipeline.output_path(job, f"classified-part{i}.laz")).classification)
+        got = np.asarray(
+            laspy.read(pipeline.output_path(job, f"classified-part{i}.laz")).classification
+        )
         assert np.array_equal(got, one[sel])
 
 
@@ -262,7 +290,9 @@ def test_banded_slope_and_categories_equal_whole_dtm(tmp_path, small_tile, monke
     whole_slope = terrain.slope_degrees(dtm, 0.5, tp.median_size, tp.smooth)
     whole_cats = categories.compute_categories(dtm, 0.5, stage_params(params, "categories")).bands()
     with rasterio.open(pipeline.output_path(job, "slope.tif")) as ds:
-        np.testing.assert_allclose(ds.read(1, masked=True).filled(np.nan), whole_slope, atol=1e-4, equal_nan=True)
+        np.testing.assert_allclose(
+            ds.read(1, masked=True).filled(np.nan), whole_slope, atol=1e-4, equal_nan=True
+        )
     with rasterio.open(pipeline.output_path(job, "categories.tif")) as ds:
         assert np.array_equal(ds.read(), whole_cats)
 
@@ -299,7 +329,9 @@ def test_forked_pool_of_the_command_line_gives_the_same_labels(tmp_path, small_t
     )
     args = ["classify", str(small_tile), str(tmp_path / "out.laz"), "--quiet"]
     args += [f"--param={k}={v}" for k, v in {**BLOCK, "workers": 2}.items()]
-    out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr
     assert "start method fork" in out.stderr
     labels = np.asarray(laspy.read(tmp_path / "out.laz").classification)

@@ -57,7 +57,9 @@ def test_classify_rotated_is_or_about_centroid():
         seen.append(p.copy())
         return p[:, 2] < np.median(p[:, 2])
 
-    res = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0, steep_reach=None))
+    res = classify_rotated(
+        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0, steep_reach=None)
+    )
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
     expect = base.copy()
@@ -67,9 +69,13 @@ def test_classify_rotated_is_or_about_centroid():
         lab = p[:, 2] < np.median(p[:, 2])
         expect |= lab
     assert np.array_equal(res.is_ground, expect)
-    assert res.added == [int(np.count_nonzero((p[:, 2] < np.median(p[:, 2])) & ~base)) for p in seen[1:]]
+    assert res.added == [
+        int(np.count_nonzero((p[:, 2] < np.median(p[:, 2])) & ~base)) for p in seen[1:]
+    ]
     # With an edge margin, rotated runs only add points inside the margin.
-    trimmed = classify_rotated(pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0))
+    trimmed = classify_rotated(
+        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0)
+    )
     assert np.all(trimmed.is_ground <= res.is_ground) and sum(trimmed.added) < sum(res.added)
     # A given unrotated labelling is used instead of running it again.
     seen.clear()
@@ -96,7 +102,9 @@ def test_cliff_truth_is_exact(cliffs):
     # The 2.5-D surface is the lowest ground: no ground point lies below it.
     from terrasift.synthetic.cliffs import PROFILE
 
-    corner = np.min(np.abs(cliffs.extra["u"][:, None] - np.array(PROFILE)[None, :, 0]), axis=1) < 0.2
+    corner = (
+        np.min(np.abs(cliffs.extra["u"][:, None] - np.array(PROFILE)[None, :, 0]), axis=1) < 0.2
+    )
     flatish = g & ~steep & ~corner
     zs = cliffs.surface(cliffs.xyz[flatish, 0], cliffs.xyz[flatish, 1])
     assert np.all(cliffs.xyz[flatish, 2] > zs - 0.2)
@@ -134,10 +142,14 @@ def test_birds_are_not_added_by_rotations(cliffs):
     # Tipping moves a bird 60 m up by 30 m sideways, alone in its cell: it must
     # not come back as ground from a rotated run.
     x0, y0, x1, y1 = cliffs.bounds
-    birds = np.column_stack([np.full(5, (x0 + x1) / 2), np.linspace(y0 + 20, y1 - 20, 5), np.full(5, 90.0)])
+    birds = np.column_stack(
+        [np.full(5, (x0 + x1) / 2), np.linspace(y0 + 20, y1 - 20, 5), np.full(5, 90.0)]
+    )
     xyz = np.vstack([cliffs.xyz, birds])
     conservative = PtdParams.preset("conservative")
-    res = classify_rotated(xyz, lambda p: classify_ground(p, conservative), RotationParams(edge_margin=0.0))
+    res = classify_rotated(
+        xyz, lambda p: classify_ground(p, conservative), RotationParams(edge_margin=0.0)
+    )
     assert not res.is_ground[-5:].any()
 
 
@@ -165,7 +177,11 @@ def test_lone_low_points_are_no_cliff():
     assert steepness(pts, SteepParams()).facet_share == 0.0
     # A real 25 m step keeps its steep facets: its foot is a floor of many points.
     cliff = _plane(25.0)
-    assert steepness(cliff, SteepParams()).facet_share == steepness(cliff, SteepParams(support=0)).facet_share > 0
+    assert (
+        steepness(cliff, SteepParams()).facet_share
+        == steepness(cliff, SteepParams(support=0)).facet_share
+        > 0
+    )
 
 
 def test_rotated_runs_see_only_the_faces(cliffs):
@@ -182,9 +198,23 @@ def test_rotated_runs_see_only_the_faces(cliffs):
     res = classify_rotated(cliffs.xyz, spy, RotationParams(context=6.0), unrotated=plain)
     assert len(sizes) == 8 and max(sizes) < 0.8 * cliffs.xyz.shape[0] and min(sizes) > 100
     steep = cliffs.extra["steep"]
-    assert np.count_nonzero(steep & res.is_ground) > np.count_nonzero(steep & plain) + 0.2 * steep.sum()
-    whole = classify_rotated(cliffs.xyz, lambda p: classify_ground(p, conservative), RotationParams(context=None), unrotated=plain)
-    assert abs(int(np.count_nonzero(steep & res.is_ground)) - int(np.count_nonzero(steep & whole.is_ground))) < 0.1 * steep.sum()
+    assert (
+        np.count_nonzero(steep & res.is_ground)
+        > np.count_nonzero(steep & plain) + 0.2 * steep.sum()
+    )
+    whole = classify_rotated(
+        cliffs.xyz,
+        lambda p: classify_ground(p, conservative),
+        RotationParams(context=None),
+        unrotated=plain,
+    )
+    assert (
+        abs(
+            int(np.count_nonzero(steep & res.is_ground))
+            - int(np.count_nonzero(steep & whole.is_ground))
+        )
+        < 0.1 * steep.sum()
+    )
 
 
 def test_rolling_ground_cut_by_the_data_edge_is_not_steep():
@@ -194,7 +224,12 @@ def test_rolling_ground_cut_by_the_data_edge_is_not_steep():
     for seed, width in [(0, 0.8), (1, 1.5), (2, 0.8), (3, 0.8)]:
         rng = np.random.default_rng(seed)
         xy = rng.uniform(0, [150 + width, 136.0], (30000, 2))
-        z = 0.05 * xy[:, 1] + 1.5 * np.sin(xy[:, 1] / 6.0) + 0.5 * np.sin(xy[:, 0] / 5) + rng.normal(0, 0.1, len(xy))
+        z = (
+            0.05 * xy[:, 1]
+            + 1.5 * np.sin(xy[:, 1] / 6.0)
+            + 0.5 * np.sin(xy[:, 0] / 5)
+            + rng.normal(0, 0.1, len(xy))
+        )
         test = steepness(np.column_stack([xy + [5e5, 5.4e6], z]), SteepParams())
         assert test.facet_share == 0.0, (seed, test)
 
@@ -236,7 +271,11 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
     real = rotation.classify_rotated
 
     def spy(xyz, ground, params, **kw):
-        seen["params"], seen["seeded"], seen["unrotated"] = params, kw.get("seeded"), kw.get("unrotated")
+        seen["params"], seen["seeded"], seen["unrotated"] = (
+            params,
+            kw.get("seeded"),
+            kw.get("unrotated"),
+        )
         return real(xyz, ground, params.model_copy(update={"directions": 1}), **kw)
 
     monkeypatch.setattr(rotation, "classify_rotated", spy)
@@ -246,7 +285,9 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
         block._ground(pts, {"ground": method, "rotation": "always"}, None, block._Timer())
         assert seen["params"].second_angle == second
         assert (seen["seeded"] is not None) == (method == "ptd")
-        assert (seen["unrotated"] is not None) == (method == "nist")  # nist keeps its default labels
+        assert (seen["unrotated"] is not None) == (
+            method == "nist"
+        )  # nist keeps its default labels
 
 
 def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
@@ -277,6 +318,8 @@ def test_second_angle_adds_a_run_per_direction():
         tips.append(float(np.ptp(p[:, 2])))
         return p[:, 2] < np.median(p[:, 2])
 
-    res = classify_rotated(pts, fake_ground, RotationParams(directions=2, angle=10, second_angle=40, steep_reach=None))
+    res = classify_rotated(
+        pts, fake_ground, RotationParams(directions=2, angle=10, second_angle=40, steep_reach=None)
+    )
     assert len(tips) == 5 and len(res.added) == 4
     assert max(tips[1:3]) < min(tips[3:])  # 10° runs first, then the steeper 40° ones

@@ -22,7 +22,12 @@ def test_job_survives_reopening(tmp_path: Path) -> None:
     s.close()
     job = JobStore(tmp_path / "db.sqlite").get_job("j1")
     assert job is not None
-    assert (job.status, job.tenant, job.params, job.inputs) == (ACCEPTED, "alice", {"resolution": 0.5}, ["/in/a.laz"])
+    assert (job.status, job.tenant, job.params, job.inputs) == (
+        ACCEPTED,
+        "alice",
+        {"resolution": 0.5},
+        ["/in/a.laz"],
+    )
     assert job.progress == 0 and job.started is None and job.created.endswith("Z")
 
 

@@ -22,7 +22,10 @@ def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
     assert np.abs(surface(gx, gy) - plane(gx, gy)).max() < 1e-6
     assert surface(gx, gy).shape == gx.shape
     # outside the hull: the nearest vertex's height
-    assert np.isclose(surface(np.array([5e5 + 210.0]), np.array([5.4e6 + 205.0]))[0], plane(5e5 + 200, 5.4e6 + 200))
+    assert np.isclose(
+        surface(np.array([5e5 + 210.0]), np.array([5.4e6 + 205.0]))[0],
+        plane(5e5 + 200, 5.4e6 + 200),
+    )
 
 
 def test_triangulate_gives_delaunay_triangles_numbered_as_the_input():
@@ -31,7 +34,9 @@ def test_triangulate_gives_delaunay_triangles_numbered_as_the_input():
     xy = xy[np.argsort(xy[:, 0])]  # cloud order: sorted by x
     tri, simplices = triangulate(xy)
     reference = Delaunay(xy)
-    assert {tuple(t) for t in np.sort(simplices, axis=1)} == {tuple(t) for t in np.sort(reference.simplices, axis=1)}
+    assert {tuple(t) for t in np.sort(simplices, axis=1)} == {
+        tuple(t) for t in np.sort(reference.simplices, axis=1)
+    }
     # find_simplex answers rows of ``simplices``: each query lies in its triangle
     q = rng.uniform(10, 190, (2000, 2))
     s = tri.find_simplex(q)

@@ -26,7 +26,9 @@ from terrasift.workers.terrain import (
 X0, Y0 = 500_000.0, 5_400_000.0
 
 
-def _cloud(surface, nx: int, ny: int, x0: float = X0, y0: float = Y0, density: float = 30.0, seed: int = 0):
+def _cloud(
+    surface, nx: int, ny: int, x0: float = X0, y0: float = Y0, density: float = 30.0, seed: int = 0
+):
     """Uniform points over nx × ny metres from (x0, y0); z from ``surface`` on local coordinates."""
     rng = np.random.default_rng(seed)
     n = int(nx * ny * density)
@@ -95,7 +97,10 @@ def test_two_planes_are_not_a_plane():
     # (gauge 0), the roof is not. The gauge says so.
     left = _cloud(AnalyticSurface(0.0, 0.4, 0.0), 20, 20)
     right = _cloud(AnalyticSurface(8.0, -0.4, 0.0), 20, 20, x0=X0 + 20)
-    rl, rr = roughness(left, Grid(X0, Y0, 1.0, 20, 20)), roughness(right, Grid(X0 + 20, Y0, 1.0, 20, 20))
+    rl, rr = (
+        roughness(left, Grid(X0, Y0, 1.0, 20, 20)),
+        roughness(right, Grid(X0 + 20, Y0, 1.0, 20, 20)),
+    )
     assert rl.roughness < 1e-9 and rr.roughness < 1e-9
     assert combine([rl, rr]).roughness == pytest.approx(0.4)
 
@@ -103,7 +108,7 @@ def test_two_planes_are_not_a_plane():
 def test_roughness_rejects_rough_and_sparse_bins():
     rng = np.random.default_rng(3)
     xyz = _cloud(AnalyticSurface(0.0, 0.1, 0.1), 10, 10)
-    spike = xyz[:: 50].copy()
+    spike = xyz[::50].copy()
     spike[:, 2] += rng.uniform(2, 5, spike.shape[0])  # vegetation on top: bins rejected by RMS
     r = roughness(np.vstack([xyz, spike]), Grid(X0, Y0, 1.0, 10, 10))
     assert r.n_bins < 100 and r.roughness < 1e-9
@@ -125,7 +130,9 @@ def test_slope_on_a_plane_is_exact_everywhere_with_holes():
     assert np.isnan(s[40:45, 30:33]).all() and np.isnan(s[0, 0])
     np.testing.assert_allclose(s[np.isfinite(dtm)], expect, atol=1e-9)
     for smooth in ("dtm", "gradient"):
-        np.testing.assert_allclose(slope_degrees(dtm, 0.5, 5, smooth)[np.isfinite(dtm)], expect, atol=1e-9)
+        np.testing.assert_allclose(
+            slope_degrees(dtm, 0.5, 5, smooth)[np.isfinite(dtm)], expect, atol=1e-9
+        )
 
 
 def test_slope_on_a_sinusoid_and_median_removes_a_spike():
@@ -138,7 +145,9 @@ def test_slope_on_a_sinusoid_and_median_removes_a_spike():
     assert np.abs(s - truth)[2:-2, 2:-2].max() < 0.5
     spiked = dtm.copy()
     spiked[60, 60] += 3.0
-    assert abs(median_smooth(spiked, 3)[60, 60] - dtm[60, 60]) < 0.1  # neighbours differ by up to 0.3 m
+    assert (
+        abs(median_smooth(spiked, 3)[60, 60] - dtm[60, 60]) < 0.1
+    )  # neighbours differ by up to 0.3 m
     assert np.abs(slope_degrees(spiked, 1.0) - truth)[2:-2, 2:-2].max() < 1.0
     assert np.abs(slope_degrees(spiked, 1.0, median_size=1) - truth)[2:-2, 2:-2].max() > 30
 
@@ -149,13 +158,17 @@ def test_slope_on_a_sinusoid_and_median_removes_a_spike():
 def _expected(surf, pp, line):
     seg = np.diff(line, axis=0)
     length = np.hypot(seg[:, 0], seg[:, 1])
-    k = np.clip(np.searchsorted(np.r_[0, np.cumsum(length)], pp.distance, "right") - 1, 0, len(seg) - 1)
+    k = np.clip(
+        np.searchsorted(np.r_[0, np.cumsum(length)], pp.distance, "right") - 1, 0, len(seg) - 1
+    )
     tx, ty = seg[k, 0] / length[k], seg[k, 1] / length[k]
     zx, zy = surf.gradient(pp.x - X0, pp.y - Y0)
     return np.degrees(np.arctan(tx * zx + ty * zy)), np.degrees(np.arctan(ty * zx - tx * zy))
 
 
-LINE = np.array([[X0 + 20, Y0 + 30], [X0 + 180, Y0 + 70], [X0 + 120, Y0 + 180], [X0 + 30, Y0 + 150]])
+LINE = np.array(
+    [[X0 + 20, Y0 + 30], [X0 + 180, Y0 + 70], [X0 + 120, Y0 + 180], [X0 + 30, Y0 + 150]]
+)
 
 
 @pytest.mark.parametrize(("surf", "tol"), [(tilted_plane(0.12, -0.07), 1e-9), (sinusoid(), 0.5)])
@@ -185,7 +198,9 @@ def test_profile_spacing_nodata_and_outputs():
     surf = tilted_plane()
     dtm, tr = raster_of(surf, 0.0, 40.0, 1.0, 40, 40)
     dtm[:, 20:22] = np.nan
-    line = np.array([[2.0, 2.0], [2.0, 2.0], [30.0, 2.0], [30.0, 60.0]])  # repeated vertex; leaves the DTM
+    line = np.array(
+        [[2.0, 2.0], [2.0, 2.0], [30.0, 2.0], [30.0, 60.0]]
+    )  # repeated vertex; leaves the DTM
     pp = path_profile(dtm, tr, line, 3.0)
     assert pp.distance[0] == 0 and pp.distance[-1] == pytest.approx(86.0)
     np.testing.assert_allclose(np.diff(pp.distance[:-1]), 3.0)
@@ -193,7 +208,14 @@ def test_profile_spacing_nodata_and_outputs():
     hole = (pp.x > 19) & (pp.x < 23) & (pp.y < 3)
     assert hole.any() and np.isnan(pp.z[hole]).all()
     recs = pp.to_records()
-    assert len(recs) == pp.distance.size and set(recs[0]) == {"distance", "x", "y", "z", "pitch_deg", "roll_deg"}
+    assert len(recs) == pp.distance.size and set(recs[0]) == {
+        "distance",
+        "x",
+        "y",
+        "z",
+        "pitch_deg",
+        "roll_deg",
+    }
     assert recs[-1]["z"] is None
     csv = pp.to_csv().splitlines()
     assert csv[0] == "distance,x,y,z,pitch_deg,roll_deg" and len(csv) == pp.distance.size + 1
@@ -210,13 +232,23 @@ def test_line_coordinates_from_wgs84():
 
     to_utm = Transformer.from_crs("EPSG:4326", "EPSG:32632", always_xy=True)
     lonlat = [[9.10, 48.70], [9.12, 48.71], [9.13, 48.69]]
-    feature = {"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat}, "properties": {}}
+    feature = {
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": lonlat},
+        "properties": {},
+    }
     xy = line_coordinates(feature, "EPSG:32632")
     ex, ey = to_utm.transform([p[0] for p in lonlat], [p[1] for p in lonlat])
     np.testing.assert_allclose(xy, np.column_stack([ex, ey]), atol=1e-6)
     native = {"type": "LineString", "coordinates": [[500000, 5400000, 3], [500100, 5400000, 4]]}
-    np.testing.assert_array_equal(line_coordinates(native, "EPSG:32632", src_crs="EPSG:32632"), [[500000, 5400000], [500100, 5400000]])
-    for bad in ({"type": "Point", "coordinates": [1, 2]}, {"type": "LineString", "coordinates": [[1, 2]]}):
+    np.testing.assert_array_equal(
+        line_coordinates(native, "EPSG:32632", src_crs="EPSG:32632"),
+        [[500000, 5400000], [500100, 5400000]],
+    )
+    for bad in (
+        {"type": "Point", "coordinates": [1, 2]},
+        {"type": "LineString", "coordinates": [[1, 2]]},
+    ):
         with pytest.raises(ParameterError):
             line_coordinates(bad, "EPSG:32632")
 

@@ -133,7 +133,9 @@ def test_dense_crown_without_ground_returns():
     assert seed_only.bin_class[CENTRE] == OPEN  # the seed's RMS test accepts the bin
     mask = np.zeros(grid.size, bool)
     mask[CENTRE] = True
-    masked = classify_bins(xyz, ground, grid, VegetationParams(support=1, screen_tol=None), mask=mask)
+    masked = classify_bins(
+        xyz, ground, grid, VegetationParams(support=1, screen_tol=None), mask=mask
+    )
     assert masked.bin_class[CENTRE] == TREE
 
 
@@ -201,7 +203,9 @@ def test_no_ground_points_falls_back_to_zmin(forest):
     assert (vb.bin_class == forest.truth_class).mean() >= 0.9
 
 
-@pytest.mark.skipif(not (DATA / "lidr" / "MixedConifer.laz").exists(), reason="shared data folder not present")
+@pytest.mark.skipif(
+    not (DATA / "lidr" / "MixedConifer.laz").exists(), reason="shared data folder not present"
+)
 def test_mixed_conifer_tree_coverage():
     import laspy
 

@@ -45,7 +45,9 @@ def create_app(
 
             return make_executor(settings.workers, settings.dask_scheduler)
 
-    auth = Auth(settings.auth_enabled, load_tokens(settings.token_file) if settings.token_file else {})
+    auth = Auth(
+        settings.auth_enabled, load_tokens(settings.token_file) if settings.token_file else {}
+    )
     if auth.enabled and not auth.tokens:
         log.warning("auth is on but no tokens are configured: every job request will get 401")
 
@@ -55,7 +57,11 @@ def create_app(
         settings.surveys_dir.mkdir(parents=True, exist_ok=True)
         store = JobStore(settings.db_path)
         scheduler = Scheduler(
-            store, settings.jobs_dir, executor_factory, settings.max_concurrent_jobs, pipeline=pipeline
+            store,
+            settings.jobs_dir,
+            executor_factory,
+            settings.max_concurrent_jobs,
+            pipeline=pipeline,
         )
         app.state.svc = Service(settings, store, scheduler)
         scheduler.start()
@@ -84,7 +90,12 @@ def create_app(
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             app.openapi_schema = add_problem_schema(
-                get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+                get_openapi(
+                    title=app.title,
+                    version=app.version,
+                    description=app.description,
+                    routes=app.routes,
+                )
             )
         return app.openapi_schema
 
@@ -92,12 +103,16 @@ def create_app(
     return app
 
 
-def serve(host: str | None = None, port: int | None = None, settings: Settings | None = None) -> None:
+def serve(
+    host: str | None = None, port: int | None = None, settings: Settings | None = None
+) -> None:
     """Run the API with embedded workers (``terrasift serve``)."""
     import uvicorn
 
     settings = settings or Settings()
     update = {k: v for k, v in (("host", host), ("port", port)) if v is not None}
     settings = settings.model_copy(update=update)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port)

@@ -32,9 +32,15 @@ def load_tokens(path: Path) -> dict[str, str]:
         try:
             tokens = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise ValueError(f"token file {path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-        if not all(isinstance(k, str) and isinstance(v, str) and k and v for k, v in tokens.items()):
-            raise ValueError(f"token file {path}: expected an object of token strings to tenant strings")
+            raise ValueError(
+                f"token file {path}: not valid JSON ({exc.msg}, line {exc.lineno})"
+            ) from None
+        if not all(
+            isinstance(k, str) and isinstance(v, str) and k and v for k, v in tokens.items()
+        ):
+            raise ValueError(
+                f"token file {path}: expected an object of token strings to tenant strings"
+            )
         return tokens
     tokens = {}
     for number, line in enumerate(text.splitlines(), start=1):

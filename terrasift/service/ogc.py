@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 from terrasift.service.outputs import media_type
-from terrasift.service.store import Job, SUCCESSFUL
+from terrasift.service.store import SUCCESSFUL, Job
 
 PROCESS_ID = "terrain"
 PROCESS_VERSION = "1.0.0"
@@ -65,11 +65,18 @@ def parameter_inputs() -> dict[str, dict[str, Any]]:
     for stage in stages():
         schema = stage.params.model_json_schema(by_alias=True)
         for field, prop in schema.get("properties", {}).items():
-            add(f"{stage.id}.{field}", prop, schema.get("$defs", {}), f"{stage.id} ({stage.description}): ")
+            add(
+                f"{stage.id}.{field}",
+                prop,
+                schema.get("$defs", {}),
+                f"{stage.id} ({stage.description}): ",
+            )
     return out
 
 
-def link(href: str, rel: str, type_: str = "application/json", title: str | None = None) -> dict[str, str]:
+def link(
+    href: str, rel: str, type_: str = "application/json", title: str | None = None
+) -> dict[str, str]:
     out = {"href": href, "rel": rel, "type": type_}
     if title:
         out["title"] = title
@@ -82,7 +89,12 @@ def landing(base: str) -> dict[str, Any]:
         "description": "LAS/LAZ tiles in; ground classification, DTM/DSM, vegetation and terrain objects out.",
         "links": [
             link(f"{base}/", "self", title="this document"),
-            link(f"{base}/openapi.json", "service-desc", "application/vnd.oai.openapi+json;version=3.0", "the API definition"),
+            link(
+                f"{base}/openapi.json",
+                "service-desc",
+                "application/vnd.oai.openapi+json;version=3.0",
+                "the API definition",
+            ),
             link(f"{base}/docs", "service-doc", "text/html", "the API documentation"),
             link(f"{base}/conformance", REL_CONFORMANCE, title="conformance classes"),
             link(f"{base}/processes", REL_PROCESSES, title="processes"),
@@ -127,7 +139,11 @@ def process_description(base: str, parameters: dict[str, dict[str, Any]]) -> dic
     for key, spec in parameters.items():
         inputs[key] = {"title": key, "minOccurs": 0, "maxOccurs": 1, **spec}
     outputs = {
-        name: {"title": name, "description": text, "schema": {"type": "string", "contentMediaType": media_type(name)}}
+        name: {
+            "title": name,
+            "description": text,
+            "schema": {"type": "string", "contentMediaType": media_type(name)},
+        }
         for name, text in OUTPUTS.items()
     }
     return {**process_summary(base), "inputs": inputs, "outputs": outputs}
@@ -160,4 +176,7 @@ def status_info(job: Job, base: str) -> dict[str, Any]:
 def results(job: Job, base: str) -> dict[str, Any]:
     """Results document: each output by reference, with its media type."""
     assert job.status == SUCCESSFUL
-    return {name: {"href": f"{base}/jobs/{job.id}/outputs/{name}", "type": media_type(name)} for name in job.outputs}
+    return {
+        name: {"href": f"{base}/jobs/{job.id}/outputs/{name}", "type": media_type(name)}
+        for name in job.outputs
+    }

@@ -80,7 +80,11 @@ def parse_range(header: str | None, size: int) -> ByteRange | None:
         return None
     first_s, dash, last_s = spec.strip().partition("-")
     first_s, last_s = first_s.strip(), last_s.strip()
-    if not dash or not (first_s.isdigit() or first_s == "") or not (last_s.isdigit() or last_s == ""):
+    if (
+        not dash
+        or not (first_s.isdigit() or first_s == "")
+        or not (last_s.isdigit() or last_s == "")
+    ):
         return None
     if first_s == "":
         if last_s == "":
@@ -107,12 +111,21 @@ def _etag_matches(header: str, etag: str) -> bool:
 class FileSliceResponse(Response):
     """Sends ``path`` (or one byte range of it) in chunks read off the event loop."""
 
-    def __init__(self, path: Path, headers: dict[str, str], status_code: int, rng: ByteRange | None, head: bool):
+    def __init__(
+        self,
+        path: Path,
+        headers: dict[str, str],
+        status_code: int,
+        rng: ByteRange | None,
+        head: bool,
+    ):
         super().__init__(status_code=status_code, headers=headers)
         self.path, self.rng, self.head = path, rng, head
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        await send({"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers})
+        await send(
+            {"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers}
+        )
         if self.head:
             await send({"type": "http.response.body", "body": b"", "more_body": False})
             return
@@ -136,7 +149,11 @@ def file_response(request: Request, path: Path, name: str) -> Response:
     except FileNotFoundError:
         raise Problem("no-such-output", f"output {name!r} does not exist") from None
     etag = etag_for(stat)
-    headers = {"ETag": etag, "Accept-Ranges": "bytes", "Cache-Control": "private, max-age=0, must-revalidate"}
+    headers = {
+        "ETag": etag,
+        "Accept-Ranges": "bytes",
+        "Cache-Control": "private, max-age=0, must-revalidate",
+    }
     inm = request.headers.get("if-none-match")
     if inm is not None and _etag_matches(inm, etag):
         return Response(status_code=304, headers=headers)

@@ -47,7 +47,9 @@ PROBLEM_TYPES: dict[str, ProblemType] = {
         ProblemType("invalid-parameter", 400, "A job parameter is unknown or out of range"),
         ProblemType("invalid-filter", 400, "A feature filter does not parse"),
         ProblemType("invalid-input", 422, "An input file cannot be processed"),
-        ProblemType("too-many-points", 422, "The inputs hold more points than this service accepts"),
+        ProblemType(
+            "too-many-points", 422, "The inputs hold more points than this service accepts"
+        ),
         ProblemType("unauthorized", 401, "A valid bearer token is required"),
         ProblemType("forbidden-path", 403, "The path is outside the configured input root"),
         ProblemType("not-found", 404, "No such resource"),
@@ -78,13 +80,20 @@ EXCEPTION_PROBLEMS: dict[type[BaseException], str] = {
     errors.TerrasiftError: "invalid-request",
 }
 
-_HTTP_STATUS_PROBLEMS = {404: "not-found", 405: "method-not-allowed", 413: "payload-too-large", 415: "unsupported-media-type"}
+_HTTP_STATUS_PROBLEMS = {
+    404: "not-found",
+    405: "method-not-allowed",
+    413: "payload-too-large",
+    415: "unsupported-media-type",
+}
 
 
 class Problem(Exception):
     """Raise from a route to answer with a problem of a registered type."""
 
-    def __init__(self, slug: str, detail: str, *, headers: dict[str, str] | None = None, **extra: Any):
+    def __init__(
+        self, slug: str, detail: str, *, headers: dict[str, str] | None = None, **extra: Any
+    ):
         super().__init__(detail)
         self.type = PROBLEM_TYPES[slug]
         self.detail = detail
@@ -109,7 +118,12 @@ def problem_response(
     **extra: Any,
 ) -> JSONResponse:
     """An ``application/problem+json`` response with the RFC 9457 members."""
-    body: dict[str, Any] = {"type": ptype.uri, "title": ptype.title, "status": ptype.status, "detail": detail}
+    body: dict[str, Any] = {
+        "type": ptype.uri,
+        "title": ptype.title,
+        "status": ptype.status,
+        "detail": detail,
+    }
     if request is not None:
         body["instance"] = request.url.path
     body.update(extra)
@@ -130,16 +144,27 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
         found = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", "")} for e in exc.errors()]
-        detail = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in found) or "invalid request"
+        detail = (
+            "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in found)
+            or "invalid request"
+        )
         return problem_response(request, PROBLEM_TYPES["invalid-request"], detail, errors=found)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         slug = _HTTP_STATUS_PROBLEMS.get(exc.status_code)
-        ptype = PROBLEM_TYPES[slug] if slug else ProblemType("http-error", exc.status_code, "HTTP error")
-        return problem_response(request, ptype, str(exc.detail), headers=getattr(exc, "headers", None))
+        ptype = (
+            PROBLEM_TYPES[slug]
+            if slug
+            else ProblemType("http-error", exc.status_code, "HTTP error")
+        )
+        return problem_response(
+            request, ptype, str(exc.detail), headers=getattr(exc, "headers", None)
+        )
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
         log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(request, PROBLEM_TYPES["internal-error"], "unexpected server error; it has been logged")
+        return problem_response(
+            request, PROBLEM_TYPES["internal-error"], "unexpected server error; it has been logged"
+        )

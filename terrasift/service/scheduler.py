@@ -116,7 +116,9 @@ class Scheduler:
         if resumed:
             log.info("resuming %d interrupted job(s): %s", len(resumed), ", ".join(resumed))
         self._stopping.clear()
-        self._loop = threading.Thread(target=self._dispatch_loop, name="terrasift-scheduler", daemon=True)
+        self._loop = threading.Thread(
+            target=self._dispatch_loop, name="terrasift-scheduler", daemon=True
+        )
         self._loop.start()
 
     def stop(self, timeout: float = 30.0) -> None:
@@ -205,7 +207,9 @@ class Scheduler:
                     return
                 if job.id in self._threads:
                     continue
-                thread = threading.Thread(target=self._run, args=(job.id,), name=f"job-{job.id[:8]}", daemon=True)
+                thread = threading.Thread(
+                    target=self._run, args=(job.id,), name=f"job-{job.id[:8]}", daemon=True
+                )
                 self._threads[job.id] = thread
                 self._active[job.id] = None
             thread.start()
@@ -234,7 +238,9 @@ class Scheduler:
             return
         with self._lock:
             self._active[job_id] = ex
-        if self.store.get_job(job_id).status == DISMISSED:  # dismissed between mark_running and here
+        if (
+            self.store.get_job(job_id).status == DISMISSED
+        ):  # dismissed between mark_running and here
             ex.cancel()
 
         last = [-1]

@@ -62,7 +62,9 @@ class ExecuteRequest(BaseModel):
 
     inputs: dict[str, Any] = Field(
         description="`files`: paths under the input root; `params`: object of parameters; any other key is a parameter",
-        examples=[{"files": ["survey-2024/tile_01.laz"], "params": {"ground": "nist", "resolution": 0.5}}],
+        examples=[
+            {"files": ["survey-2024/tile_01.laz"], "params": {"ground": "nist", "resolution": 0.5}}
+        ],
     )
     outputs: dict[str, Any] | None = None
     response: Literal["document"] | None = None
@@ -73,8 +75,12 @@ class SurveyRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    files: list[FileRef] = Field(min_length=1, description="paths under the input root; a directory means its LAS/LAZ files")
-    params: dict[str, Any] = Field(default_factory=dict, description="parameters every run starts from")
+    files: list[FileRef] = Field(
+        min_length=1, description="paths under the input root; a directory means its LAS/LAZ files"
+    )
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="parameters every run starts from"
+    )
 
 
 class RunRequest(BaseModel):
@@ -106,12 +112,19 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
 def add_problem_schema(spec: dict[str, Any]) -> dict[str, Any]:
     """Put ProblemDetails into the spec's components, where `problem_responses` points."""
     schemas = spec.setdefault("components", {}).setdefault("schemas", {})
-    schemas["ProblemDetails"] = ProblemDetails.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas["ProblemDetails"] = ProblemDetails.model_json_schema(
+        ref_template="#/components/schemas/{model}"
+    )
     # FastAPI documents request validation as 422 HTTPValidationError; this API answers 400 problem+json
     for operations in spec.get("paths", {}).values():
         for op in operations.values():
             responses = op.get("responses", {})
-            auto = responses.get("422", {}).get("content", {}).get("application/json", {}).get("schema", {})
+            auto = (
+                responses.get("422", {})
+                .get("content", {})
+                .get("application/json", {})
+                .get("schema", {})
+            )
             if auto.get("$ref", "").endswith("/HTTPValidationError"):
                 del responses["422"]
                 responses.setdefault("400", problem_responses(400)[400])
@@ -135,7 +148,10 @@ def multipart_body(description: str) -> dict[str, Any]:
                         "params": {"type": "string", "description": "JSON object of parameters"},
                     },
                 },
-                "encoding": {"file": {"contentType": "application/octet-stream"}, "params": {"contentType": "application/json"}},
+                "encoding": {
+                    "file": {"contentType": "application/octet-stream"},
+                    "params": {"contentType": "application/json"},
+                },
             }
         },
     }

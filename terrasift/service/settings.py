@@ -23,16 +23,35 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="job store (SQLite), uploads, job outputs")
     host: str = Field("127.0.0.1", description="bind address of `terrasift serve`")
     port: int = Field(8000, ge=1, le=65535, description="bind port of `terrasift serve`")
-    dask_scheduler: str | None = Field(None, description="tcp://host:port of a Dask scheduler; unset = local process pool")
-    workers: int | None = Field(None, ge=1, description="worker processes of the local pool; unset = one per core")
-    max_concurrent_jobs: int = Field(2, ge=1, description="jobs processed at once; later ones wait as `accepted`")
-    max_upload_bytes: int = Field(8 * 1024**3, ge=1, description="total bytes of one upload request (413 above)")
-    max_points: int = Field(2_000_000_000, ge=1, description="total points of one job, from the headers")
+    dask_scheduler: str | None = Field(
+        None, description="tcp://host:port of a Dask scheduler; unset = local process pool"
+    )
+    workers: int | None = Field(
+        None, ge=1, description="worker processes of the local pool; unset = one per core"
+    )
+    max_concurrent_jobs: int = Field(
+        2, ge=1, description="jobs processed at once; later ones wait as `accepted`"
+    )
+    max_upload_bytes: int = Field(
+        8 * 1024**3, ge=1, description="total bytes of one upload request (413 above)"
+    )
+    max_points: int = Field(
+        2_000_000_000, ge=1, description="total points of one job, from the headers"
+    )
     max_files: int = Field(1000, ge=1, description="tiles in one job or survey")
-    input_root: Path | None = Field(None, description="server directory whose files jobs may name by path; unset = paths refused")
-    token_file: Path | None = Field(None, description="lines `token tenant`; unset on a loopback bind = auth off")
-    auth: Literal["auto", "on", "off"] = Field("auto", description="auto: off only on a loopback bind without a token file")
-    public_url: str | None = Field(None, description="base URL used in links (e.g. behind a proxy); unset = from the request")
+    input_root: Path | None = Field(
+        None,
+        description="server directory whose files jobs may name by path; unset = paths refused",
+    )
+    token_file: Path | None = Field(
+        None, description="lines `token tenant`; unset on a loopback bind = auth off"
+    )
+    auth: Literal["auto", "on", "off"] = Field(
+        "auto", description="auto: off only on a loopback bind without a token file"
+    )
+    public_url: str | None = Field(
+        None, description="base URL used in links (e.g. behind a proxy); unset = from the request"
+    )
 
     @property
     def db_path(self) -> Path:

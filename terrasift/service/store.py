@@ -18,7 +18,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-ACCEPTED, RUNNING, SUCCESSFUL, FAILED, DISMISSED = "accepted", "running", "successful", "failed", "dismissed"
+ACCEPTED, RUNNING, SUCCESSFUL, FAILED, DISMISSED = (
+    "accepted",
+    "running",
+    "successful",
+    "failed",
+    "dismissed",
+)
 STATUSES = (ACCEPTED, RUNNING, SUCCESSFUL, FAILED, DISMISSED)
 ACTIVE = (ACCEPTED, RUNNING)
 
@@ -132,7 +138,17 @@ class JobStore:
             db.execute(
                 "INSERT INTO jobs (id, tenant, process_id, status, params, inputs, survey_id, created, updated)"
                 " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (job_id, tenant, process_id, ACCEPTED, json.dumps(params), json.dumps(inputs), survey_id, ts, ts),
+                (
+                    job_id,
+                    tenant,
+                    process_id,
+                    ACCEPTED,
+                    json.dumps(params),
+                    json.dumps(inputs),
+                    survey_id,
+                    ts,
+                    ts,
+                ),
             )
         job = self.get_job(job_id)
         assert job is not None
@@ -176,7 +192,9 @@ class JobStore:
         """Jobs in any of ``statuses``, oldest first (the scheduler's queue order)."""
         marks = ",".join("?" * len(statuses))
         with self._lock:
-            rows = self._db.execute(f"SELECT * FROM jobs WHERE status IN ({marks}) ORDER BY created, rowid", statuses).fetchall()
+            rows = self._db.execute(
+                f"SELECT * FROM jobs WHERE status IN ({marks}) ORDER BY created, rowid", statuses
+            ).fetchall()
         return [_job(r) for r in rows]
 
     def requeue_interrupted(self) -> list[str]:
@@ -210,7 +228,9 @@ class JobStore:
                 (progress, message, now(), job_id, RUNNING),
             )
 
-    def finish(self, job_id: str, status: str, message: str, outputs: list[str] | None = None) -> bool:
+    def finish(
+        self, job_id: str, status: str, message: str, outputs: list[str] | None = None
+    ) -> bool:
         """running/accepted → successful|failed|dismissed; False when already finished or dismissed."""
         if status not in (SUCCESSFUL, FAILED, DISMISSED):
             raise ValueError(f"not a final status: {status}")
@@ -237,7 +257,9 @@ class JobStore:
 
     # -- surveys ----------------------------------------------------------
 
-    def create_survey(self, survey_id: str, tenant: str, files: list[str], params: dict[str, Any]) -> Survey:
+    def create_survey(
+        self, survey_id: str, tenant: str, files: list[str], params: dict[str, Any]
+    ) -> Survey:
         ts = now()
         with self._tx() as db:
             db.execute(
@@ -251,11 +273,19 @@ class JobStore:
             row = self._db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
-        return Survey(row["id"], row["tenant"], json.loads(row["files"]), json.loads(row["params"]), row["created"])
+        return Survey(
+            row["id"],
+            row["tenant"],
+            json.loads(row["files"]),
+            json.loads(row["params"]),
+            row["created"],
+        )
 
     def survey_jobs(self, survey_id: str) -> list[Job]:
         with self._lock:
-            rows = self._db.execute("SELECT * FROM jobs WHERE survey_id = ? ORDER BY created, rowid", (survey_id,)).fetchall()
+            rows = self._db.execute(
+                "SELECT * FROM jobs WHERE survey_id = ? ORDER BY created, rowid", (survey_id,)
+            ).fetchall()
         return [_job(r) for r in rows]
 
 

@@ -37,9 +37,13 @@ def parse_params(text: str | None) -> dict[str, Any]:
     try:
         value = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ParameterError(f"params is not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+        raise ParameterError(
+            f"params is not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
+        ) from None
     if not isinstance(value, dict):
-        raise ParameterError(f"params must be a JSON object of parameters, not {type(value).__name__}")
+        raise ParameterError(
+            f"params must be a JSON object of parameters, not {type(value).__name__}"
+        )
     return value
 
 
@@ -47,7 +51,10 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
     """Paths a client named, checked to lie inside the input root; a directory means its LAS/LAZ files."""
     root = settings.input_root
     if root is None:
-        raise Problem("forbidden-path", "this service has no input root (TERRASIFT_INPUT_ROOT); upload the files to /jobs instead")
+        raise Problem(
+            "forbidden-path",
+            "this service has no input root (TERRASIFT_INPUT_ROOT); upload the files to /jobs instead",
+        )
     if not items:
         raise Problem("invalid-request", "`files` must name at least one file")
     root_real = root.resolve()
@@ -55,13 +62,17 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
     for item in items:
         text = item.get("href") if isinstance(item, Mapping) else item
         if not isinstance(text, str) or not text:
-            raise Problem("invalid-request", f"a file must be a path string or {{'href': path}}, not {item!r}")
+            raise Problem(
+                "invalid-request", f"a file must be a path string or {{'href': path}}, not {item!r}"
+            )
         text = text.removeprefix("file://")
         real = (root_real / text).resolve()  # an absolute `text` replaces the root, then is checked
         if not real.is_relative_to(root_real):
             raise Problem("forbidden-path", f"{text!r} is outside the input root")
         if real.is_dir():
-            found = sorted(p for p in real.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES)
+            found = sorted(
+                p for p in real.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES
+            )
             if not found:
                 raise Problem("invalid-request", f"directory {text!r} holds no .las/.laz files")
             out.extend(found)
@@ -74,7 +85,9 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
     return out
 
 
-def check_inputs(settings: Settings, inputs: list[Path], raw_params: Mapping[str, Any], pipeline: Any) -> dict[str, Any]:
+def check_inputs(
+    settings: Settings, inputs: list[Path], raw_params: Mapping[str, Any], pipeline: Any
+) -> dict[str, Any]:
     """Validated parameters after a header-only look at every input; raises on the first problem."""
     if not inputs:
         raise Problem("invalid-request", "no input files: send one or more `file` fields")
@@ -85,7 +98,10 @@ def check_inputs(settings: Settings, inputs: list[Path], raw_params: Mapping[str
         summary = pipeline.inspect_inputs(inputs, params)
     points = int(summary.get("points", 0)) if isinstance(summary, Mapping) else 0
     if points > settings.max_points:
-        raise Problem("too-many-points", f"the inputs hold {points} points; this service takes at most {settings.max_points}")
+        raise Problem(
+            "too-many-points",
+            f"the inputs hold {points} points; this service takes at most {settings.max_points}",
+        )
     return params
 
 
@@ -106,7 +122,11 @@ def create_job(
         job_dir.mkdir(parents=True, exist_ok=True)
         scheduler.pipeline.prepare_job(job_dir, inputs, params)
         job = store.create_job(
-            job_id, tenant, to_jsonable_python(params, fallback=str), [str(p) for p in inputs], survey_id=survey_id
+            job_id,
+            tenant,
+            to_jsonable_python(params, fallback=str),
+            [str(p) for p in inputs],
+            survey_id=survey_id,
         )
     except BaseException:
         shutil.rmtree(job_dir, ignore_errors=True)

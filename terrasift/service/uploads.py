@@ -34,7 +34,10 @@ class Upload:
 
 def safe_name(filename: str, index: int, taken: set[str]) -> str:
     """A file name for an upload: the client's base name made safe and unique."""
-    base = _UNSAFE.sub("_", Path(filename.replace("\\", "/")).name).strip("._") or f"upload-{index}.las"
+    base = (
+        _UNSAFE.sub("_", Path(filename.replace("\\", "/")).name).strip("._")
+        or f"upload-{index}.las"
+    )
     name, n = base, 1
     while name in taken:
         stem, dot, suffix = base.rpartition(".")
@@ -48,7 +51,12 @@ class _Receiver:
     """Callbacks for python-multipart: routes part data to files or text fields."""
 
     def __init__(self, dest: Path, file_fields: set[str], text_fields: set[str], max_files: int):
-        self.dest, self.file_fields, self.text_fields, self.max_files = dest, file_fields, text_fields, max_files
+        self.dest, self.file_fields, self.text_fields, self.max_files = (
+            dest,
+            file_fields,
+            text_fields,
+            max_files,
+        )
         self.upload = Upload()
         self._taken: set[str] = set()
         self._header_field = b""
@@ -85,7 +93,10 @@ class _Receiver:
     def headers_finished(self) -> None:
         disposition, options = parse_options_header(self._headers.get(b"content-disposition", b""))
         if disposition != b"form-data" or b"name" not in options:
-            raise Problem("invalid-request", "a multipart part lacks `Content-Disposition: form-data; name=...`")
+            raise Problem(
+                "invalid-request",
+                "a multipart part lacks `Content-Disposition: form-data; name=...`",
+            )
         self._name = options[b"name"].decode("utf-8", "replace")
         if self._name in self.file_fields:
             if len(self.upload.files) >= self.max_files:
@@ -109,7 +120,10 @@ class _Receiver:
         elif self._text is not None:
             self._text += data[start:end]
             if len(self._text) > MAX_FIELD_BYTES:
-                raise Problem("payload-too-large", f"field {self._name!r} is longer than {MAX_FIELD_BYTES} bytes")
+                raise Problem(
+                    "payload-too-large",
+                    f"field {self._name!r} is longer than {MAX_FIELD_BYTES} bytes",
+                )
 
     def part_end(self) -> None:
         if self._fh is not None:
@@ -119,7 +133,9 @@ class _Receiver:
             try:
                 self.upload.fields[self._name] = self._text.decode("utf-8")
             except UnicodeDecodeError:
-                raise Problem("invalid-request", f"field {self._name!r} is not UTF-8 text") from None
+                raise Problem(
+                    "invalid-request", f"field {self._name!r} is not UTF-8 text"
+                ) from None
             self._text = None
 
     def close(self) -> None:
@@ -144,10 +160,15 @@ async def receive_multipart(
     """
     ctype, options = parse_options_header(request.headers.get("content-type", ""))
     if ctype != b"multipart/form-data" or b"boundary" not in options:
-        raise Problem("unsupported-media-type", "send the files as multipart/form-data (curl -F file=@tile.laz)")
+        raise Problem(
+            "unsupported-media-type",
+            "send the files as multipart/form-data (curl -F file=@tile.laz)",
+        )
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
-        raise Problem("payload-too-large", f"the request declares {declared} bytes; the limit is {max_bytes}")
+        raise Problem(
+            "payload-too-large", f"the request declares {declared} bytes; the limit is {max_bytes}"
+        )
     dest.mkdir(parents=True, exist_ok=True)
     receiver = _Receiver(dest, set(file_fields), set(text_fields), max_files)
     parser = MultipartParser(options[b"boundary"], receiver.callbacks())
@@ -155,11 +176,16 @@ async def receive_multipart(
         async for chunk in request.stream():
             receiver.upload.bytes += len(chunk)
             if receiver.upload.bytes > max_bytes:
-                raise Problem("payload-too-large", f"the upload exceeds the limit of {max_bytes} bytes")
+                raise Problem(
+                    "payload-too-large", f"the upload exceeds the limit of {max_bytes} bytes"
+                )
             parser.write(chunk)
         parser.finalize()
         if parser.state != MultipartState.END:
-            raise Problem("invalid-request", "the multipart body ends before its closing boundary (upload cut short?)")
+            raise Problem(
+                "invalid-request",
+                "the multipart body ends before its closing boundary (upload cut short?)",
+            )
     except MultipartParseError as exc:
         raise Problem("invalid-request", f"malformed multipart body: {exc}") from None
     except ClientDisconnect:

@@ -91,9 +91,13 @@ def make_cliffs(
 
     # Vegetation on the flats, kept clear of steep segments by its crown radius.
     flat_ranges = [
-        (min(p[0], q[0]), max(p[0], q[0])) for p, q, s in zip(a, b, seg_angle, strict=True) if s < 15.0
+        (min(p[0], q[0]), max(p[0], q[0]))
+        for p, q, s in zip(a, b, seg_angle, strict=True)
+        if s < 15.0
     ]
-    steep_u = np.concatenate([[p[0], q[0]] for p, q, s in zip(a, b, seg_angle, strict=True) if s >= 15.0])
+    steep_u = np.concatenate(
+        [[p[0], q[0]] for p, q, s in zip(a, b, seg_angle, strict=True) if s >= 15.0]
+    )
     n_trees = rng.poisson(tree_density * width * length)
     n_bushes = rng.poisson(bush_density * width * length)
     k = n_trees + n_bushes
@@ -107,7 +111,9 @@ def make_cliffs(
     for lo, hi in flat_ranges:
         on_flat |= (su >= lo) & (su <= hi)
     rr = np.resize(radius, su.size)
-    good = np.flatnonzero(on_flat & (clear > rr + 2.0) & (_highest(prof, su) - _lowest(prof, su) < 0.5))[:k]
+    good = np.flatnonzero(
+        on_flat & (clear > rr + 2.0) & (_highest(prof, su) - _lowest(prof, su) < 0.5)
+    )[:k]
     stems = np.column_stack([su[good], sv[good]])
     top, radius, crown_base = top[: good.size], radius[: good.size], crown_base[: good.size]
     # Crowns over open ground only: the ground under the overhang stays bare.
@@ -118,7 +124,9 @@ def make_cliffs(
         dist, idx = cKDTree(stems).query(np.column_stack([u, v]), k=kk)
         dist, idx = dist.reshape(m, kk), idx.reshape(m, kk)
         rel = dist / radius[idx]
-        crown_h = np.where(rel < 1, crown_base[idx] + (top[idx] - crown_base[idx]) * (1 - rel**2), -np.inf)
+        crown_h = np.where(
+            rel < 1, crown_base[idx] + (top[idx] - crown_base[idx]) * (1 - rel**2), -np.inf
+        )
         best = np.argmax(crown_h, axis=1)
         canopy = crown_h[np.arange(m), best]
         base_of_hit = crown_base[idx[np.arange(m), best]]
@@ -126,7 +134,9 @@ def make_cliffs(
 
     parts: list[tuple] = []  # (u, v, z, class, return, returns, angle, covered)
     bare = ~in_crown
-    parts.append((u[bare], v[bare], zg[bare], np.full(bare.sum(), GROUND), 1, 1, angle[bare], covered[bare]))
+    parts.append(
+        (u[bare], v[bare], zg[bare], np.full(bare.sum(), GROUND), 1, 1, angle[bare], covered[bare])
+    )
     ci = np.flatnonzero(in_crown)
     g = zg[ci]
     first_h = np.maximum(canopy[ci] - rng.exponential(0.3, ci.size), 0.05)
@@ -138,9 +148,31 @@ def make_cliffs(
     no = np.zeros(ci.size, dtype=bool)
     parts.append((u[ci], v[ci], g + first_h, _veg_class(first_h), 1, count, nan, no))
     hm = has_mid
-    parts.append((u[ci[hm]], v[ci[hm]], g[hm] + mid_h[hm], _veg_class(mid_h[hm]), 2, count[hm], nan[hm], no[hm]))
+    parts.append(
+        (
+            u[ci[hm]],
+            v[ci[hm]],
+            g[hm] + mid_h[hm],
+            _veg_class(mid_h[hm]),
+            2,
+            count[hm],
+            nan[hm],
+            no[hm],
+        )
+    )
     hg = has_ground
-    parts.append((u[ci[hg]], v[ci[hg]], g[hg], np.full(hg.sum(), GROUND), count[hg], count[hg], angle[ci[hg]], no[hg]))
+    parts.append(
+        (
+            u[ci[hg]],
+            v[ci[hg]],
+            g[hg],
+            np.full(hg.sum(), GROUND),
+            count[hg],
+            count[hg],
+            angle[ci[hg]],
+            no[hg],
+        )
+    )
 
     def cat(i: int, dtype=None) -> NDArray:
         arrays = [np.broadcast_to(np.asarray(p[i]), p[0].shape) for p in parts]
@@ -158,7 +190,11 @@ def make_cliffs(
     if n_out:
         ou, ov = rng.uniform(0, width, n_out), rng.uniform(0, length, n_out)
         low = rng.random(n_out) < 0.7
-        oz = np.where(low, _lowest(prof, ou) - rng.uniform(1.0, 6.0, n_out), _highest(prof, ou) + rng.uniform(40, 80, n_out))
+        oz = np.where(
+            low,
+            _lowest(prof, ou) - rng.uniform(1.0, 6.0, n_out),
+            _highest(prof, ou) + rng.uniform(40, 80, n_out),
+        )
         uu, vv, zz = np.r_[uu, ou], np.r_[vv, ov], np.r_[zz, oz]
         truth = np.r_[truth, np.full(n_out, NOISE, np.uint8)]
         ret, nret = np.r_[ret, np.ones(n_out, np.uint8)], np.r_[nret, np.ones(n_out, np.uint8)]

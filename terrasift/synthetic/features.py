@@ -48,13 +48,15 @@ class FeatureScene:
         return sorted({t.kind for t in self.truth})
 
 
-def _distance_to_line(line: LineString, x: NDArray, y: NDArray, reach: float) -> tuple[NDArray, NDArray, NDArray]:
+def _distance_to_line(
+    line: LineString, x: NDArray, y: NDArray, reach: float
+) -> tuple[NDArray, NDArray, NDArray]:
     """Distance of points to a polyline, position along it (0..length) and a mask of points within ``reach``."""
     pts = np.asarray(line.coords)
     dist = np.full(x.shape, np.inf)
     along = np.zeros(x.shape)
     offset = 0.0
-    for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:]):
+    for (x0, y0), (x1, y1) in zip(pts[:-1], pts[1:], strict=True):
         dx, dy = x1 - x0, y1 - y0
         seg_len = np.hypot(dx, dy)
         t = np.clip(((x - x0) * dx + (y - y0) * dy) / (seg_len * seg_len), 0, 1)
@@ -66,14 +68,18 @@ def _distance_to_line(line: LineString, x: NDArray, y: NDArray, reach: float) ->
     return dist, along, dist <= reach
 
 
-def _winding(start: tuple[float, float], end: tuple[float, float], amplitude: float, wavelength: float) -> LineString:
+def _winding(
+    start: tuple[float, float], end: tuple[float, float], amplitude: float, wavelength: float
+) -> LineString:
     (x0, y0), (x1, y1) = start, end
     n = 200
     t = np.linspace(0, 1, n)
     length = np.hypot(x1 - x0, y1 - y0)
     ux, uy = (x1 - x0) / length, (y1 - y0) / length
     off = amplitude * np.sin(2 * np.pi * t * length / wavelength)
-    return LineString(np.column_stack([x0 + t * (x1 - x0) - uy * off, y0 + t * (y1 - y0) + ux * off]))
+    return LineString(
+        np.column_stack([x0 + t * (x1 - x0) - uy * off, y0 + t * (y1 - y0) + ux * off])
+    )
 
 
 def make_feature_scene(
@@ -96,7 +102,9 @@ def make_feature_scene(
     """
     for attempt in range(100):
         try:
-            return _build(size, cell, origin, seed, attempt, noise, vegetation_share, nodata_holes, jitter)
+            return _build(
+                size, cell, origin, seed, attempt, noise, vegetation_share, nodata_holes, jitter
+            )
         except _Overlap:
             continue
     raise RuntimeError("no layout with objects apart; lower jitter")
@@ -128,7 +136,9 @@ def _build(
     truth: list[TruthFeature] = []
 
     def bg(px: float, py: float) -> float:
-        return float(100.0 + gx * px + gy * py + 1.0 * np.sin(2 * np.pi * (px + 0.3 * py) / (300.0 * s)))
+        return float(
+            100.0 + gx * px + gy * py + 1.0 * np.sin(2 * np.pi * (px + 0.3 * py) / (300.0 * s))
+        )
 
     def P(px: float, py: float) -> tuple[float, float]:
         dx, dy = lay.uniform(-jitter, jitter, 2)
@@ -155,7 +165,11 @@ def _build(
     truth.append(TruthFeature("flat-area", box(fx0, fy0, fx0 + side, fy0 + side), side))
 
     # --- hills: cones, steep enough (≥ 0.35) that no flank levels out against the hillside
-    for (hx, hy), radius, height in ((P(260, 500), R(22), 8.0), (P(400, 470), R(20), 7.5), (P(540, 420), R(24), 9.0)):
+    for (hx, hy), radius, height in (
+        (P(260, 500), R(22), 8.0),
+        (P(400, 470), R(20), 7.5),
+        (P(540, 420), R(24), 9.0),
+    ):
         w_ = win((hx, hy, hx, hy), radius)
         r = np.hypot(x[w_] - hx, y[w_] - hy)
         zz = z[w_]
@@ -181,7 +195,9 @@ def _build(
         r = np.hypot(x[w_] - px, y[w_] - py)
         zz = z[w_]
         ang = np.linspace(0, 2 * np.pi, 72, endpoint=False)
-        rim = [bg(px + (floor_r + bank) * np.cos(t), py + (floor_r + bank) * np.sin(t)) for t in ang]
+        rim = [
+            bg(px + (floor_r + bank) * np.cos(t), py + (floor_r + bank) * np.sin(t)) for t in ang
+        ]
         zf = min(rim) - 2.0
         t = np.clip((r - floor_r) / bank, 0, 1)
         sel = r < floor_r + bank
@@ -232,7 +248,8 @@ def _build(
 
     transform = Affine(cell, 0, origin[0], 0, -cell, origin[1] + size)
     shifted = [
-        TruthFeature(t.kind, Polygon(_shift(t.polygon.exterior.coords, origin)), t.length_m) for t in truth
+        TruthFeature(t.kind, Polygon(_shift(t.polygon.exterior.coords, origin)), t.length_m)
+        for t in truth
     ]
     return FeatureScene(z, transform, cell, shifted)
 

@@ -66,11 +66,18 @@ def tilted_plane(gx: float = 0.12, gy: float = -0.07, z0: float = 100.0) -> Anal
 
 
 def sinusoid(
-    amp: float = 2.0, wavelength: float = 60.0, angle_deg: float = 30.0, gx: float = 0.02, gy: float = 0.0
+    amp: float = 2.0,
+    wavelength: float = 60.0,
+    angle_deg: float = 30.0,
+    gx: float = 0.02,
+    gy: float = 0.0,
 ) -> AnalyticSurface:
     """Two crossing sinusoids on a gentle trend: slopes up to about 15°, curved in both axes."""
     return AnalyticSurface(
-        100.0, gx, gy, ((amp, wavelength, angle_deg, 0.4), (0.6 * amp, 0.7 * wavelength, angle_deg + 100.0, 1.3))
+        100.0,
+        gx,
+        gy,
+        ((amp, wavelength, angle_deg, 0.4), (0.6 * amp, 0.7 * wavelength, angle_deg + 100.0, 1.3)),
     )
 
 
@@ -122,7 +129,9 @@ class Forest:
     def coverage(self) -> tuple[float, float]:
         """True (tree, bush) coverage over non-empty bins."""
         ne = self.truth_class != EMPTY
-        return float((self.truth_class == TREE).sum() / ne.sum()), float((self.truth_class == BUSH).sum() / ne.sum())
+        return float((self.truth_class == TREE).sum() / ne.sum()), float(
+            (self.truth_class == BUSH).sum() / ne.sum()
+        )
 
 
 def make_forest(
@@ -148,7 +157,9 @@ def make_forest(
     (slopes below about 6°).
     """
     rng = np.random.default_rng(seed)
-    surf = surface or Surface(z0=200.0, gx=0.03, gy=-0.02, waves=((1.0, 70.0, 20.0, 0.3), (0.5, 45.0, 110.0, 1.0)))
+    surf = surface or Surface(
+        z0=200.0, gx=0.03, gy=-0.02, waves=((1.0, 70.0, 20.0, 0.3), (0.5, 45.0, 110.0, 1.0))
+    )
     nb = int(round(size / cell))
     owner = np.full((nb, nb), -1, dtype=np.int64)  # [iy, ix]: crown id, -2 empty patch
     crowns: list[Crown] = []
@@ -189,16 +200,22 @@ def make_forest(
 
     # Canopy height of each pulse under its crown (−inf outside a round crown's disc).
     kinds = np.array([c.kind for c in crowns] + [OPEN])
-    geo = np.array([[c.ix, c.iy, c.w, c.h, c.top, c.base] for c in crowns] + [[0, 0, 1, 1, 0, 0]], float)
+    geo = np.array(
+        [[c.ix, c.iy, c.w, c.h, c.top, c.base] for c in crowns] + [[0, 0, 1, 1, 0, 0]], float
+    )
     g = geo[who]  # who == -1 picks the sentinel row
     cx, cy = (g[:, 0] + g[:, 2] / 2) * cell, (g[:, 1] + g[:, 3] / 2) * cell
     if round_crowns:
         r = np.hypot(px - cx, py - cy) / (g[:, 2] * cell / 2)
     else:
-        r = np.maximum(np.abs(px - cx) / (g[:, 2] * cell / 2), np.abs(py - cy) / (g[:, 3] * cell / 2))
+        r = np.maximum(
+            np.abs(px - cx) / (g[:, 2] * cell / 2), np.abs(py - cy) / (g[:, 3] * cell / 2)
+        )
     kind = kinds[who]
     canopy = np.where(
-        kind == TREE, g[:, 5] + (g[:, 4] - g[:, 5]) * (1 - r**2), g[:, 4] * (1 - 0.5 * np.minimum(r, 1) ** 2)
+        kind == TREE,
+        g[:, 5] + (g[:, 4] - g[:, 5]) * (1 - r**2),
+        g[:, 4] * (1 - 0.5 * np.minimum(r, 1) ** 2),
     )
     under = (who >= 0) & (r <= 1)
     ground = surf(px, py)
@@ -236,7 +253,11 @@ def make_forest(
             truth_class[sl] = c.kind
     truth_class[owner == -2] = EMPTY
     # A bin no pulse happened to hit holds no data, whatever stands on it.
-    hits = np.bincount(np.minimum((ys / cell).astype(np.int64), nb - 1) * nb + np.minimum((xs / cell).astype(np.int64), nb - 1), minlength=nb * nb)
+    hits = np.bincount(
+        np.minimum((ys / cell).astype(np.int64), nb - 1) * nb
+        + np.minimum((xs / cell).astype(np.int64), nb - 1),
+        minlength=nb * nb,
+    )
     truth_class[hits.reshape(nb, nb) == 0] = EMPTY
 
     order = rng.permutation(xs.size)

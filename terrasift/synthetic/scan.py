@@ -98,7 +98,9 @@ def make_scan(
     """
     rng = np.random.default_rng(seed)
     sensor = np.array([0.0, 0.0, mast_height])
-    boards, poles, walls = _place_objects(rng, n_boards, n_poles, azimuth_deg, object_range, wall_gap)
+    boards, poles, walls = _place_objects(
+        rng, n_boards, n_poles, azimuth_deg, object_range, wall_gap
+    )
     planes = boards + walls
 
     step = np.radians(step_deg)
@@ -147,7 +149,9 @@ def make_scan(
         rng_hit[rows], hit_id[rows] = sub_r, sub_i
 
     pole_ids = np.arange(1 + len(planes), 1 + len(planes) + len(poles))
-    ranges, ghost = _combine(rng_hit, hit_id, intensity, np.abs(ga) >= 0.5, pole_ids, max_mix_gap, min_share)
+    ranges, ghost = _combine(
+        rng_hit, hit_id, intensity, np.abs(ga) >= 0.5, pole_ids, max_mix_gap, min_share
+    )
     ok = np.isfinite(ranges)
     ranges = ranges[ok] + rng.normal(0.0, range_noise, ok.sum())
     pts = sensor + centre[ok] * ranges[:, None]
@@ -212,7 +216,12 @@ def _candidate_rays(A, E, sensor, obj, half_w, half_h) -> NDArray[np.intp]:
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
     m = half_w / max(np.cos(el).min(), 0.2) + pad + 1e-6
-    sel = (A >= az.min() - m) & (A <= az.max() + m) & (E >= el.min() - half_h - 1e-6) & (E <= el.max() + half_h + 1e-6)
+    sel = (
+        (az.min() - m <= A)
+        & (az.max() + m >= A)
+        & (el.min() - half_h - 1e-6 <= E)
+        & (el.max() + half_h + 1e-6 >= E)
+    )
     return np.flatnonzero(sel)
 
 

@@ -54,17 +54,26 @@ def buildings(size: float = 200.0, density: float = 8.0, *, seed: int = 2) -> Sc
 
 
 def steep_hillside(
-    size: float = 200.0, density: float = 8.0, *, angle_deg: float = 40.0, spread_deg: float = 5.0, seed: int = 3
+    size: float = 200.0,
+    density: float = 8.0,
+    *,
+    angle_deg: float = 40.0,
+    spread_deg: float = 5.0,
+    seed: int = 3,
 ) -> Scene:
     """Bare hillside whose slope swings between ``angle ± spread`` degrees (35–45° by default)."""
     g = np.tan(np.radians(angle_deg))
     # A sinusoid along the fall line with amplitude A and wavelength L adds a
     # slope of up to A·2π/L; choose A so the slope spans the requested range.
-    swing = 0.5 * (np.tan(np.radians(angle_deg + spread_deg)) - np.tan(np.radians(angle_deg - spread_deg)))
+    swing = 0.5 * (
+        np.tan(np.radians(angle_deg + spread_deg)) - np.tan(np.radians(angle_deg - spread_deg))
+    )
     wavelength = 60.0
     amp = swing * wavelength / (2 * np.pi)
     surface = Surface(z0=200.0, gx=g, gy=0.0, waves=((amp, wavelength, 0.0, 0.0),))
-    return make_scene(size, density, surface=surface, n_buildings=0, tree_density=0.0, bush_density=0.0, seed=seed)
+    return make_scene(
+        size, density, surface=surface, n_buildings=0, tree_density=0.0, bush_density=0.0, seed=seed
+    )
 
 
 def ground_based(
@@ -77,7 +86,9 @@ def ground_based(
     (near / r)² beyond (a scanner's fixed angular step), out to ``radius``.
     """
     size = 2 * radius
-    dense = make_scene(size, near_density, n_buildings=0, tree_density=0.004, bush_density=0.01, seed=seed)
+    dense = make_scene(
+        size, near_density, n_buildings=0, tree_density=0.004, bush_density=0.01, seed=seed
+    )
     xmin, ymin = dense.bounds[0], dense.bounds[1]
     cx, cy = xmin + radius, ymin + radius
     r = np.hypot(dense.xyz[:, 0] - cx, dense.xyz[:, 1] - cy)
@@ -96,4 +107,8 @@ def ground_based(
     return scene, origin
 
 
-SCENES = {"forest_on_slopes": forest_on_slopes, "buildings": buildings, "steep_hillside": steep_hillside}
+SCENES = {
+    "forest_on_slopes": forest_on_slopes,
+    "buildings": buildings,
+    "steep_hillside": steep_hillside,
+}

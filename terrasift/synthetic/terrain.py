@@ -28,7 +28,10 @@ class Surface:
     z0: float = 100.0
     gx: float = 0.05
     gy: float = -0.03
-    waves: tuple[tuple[float, float, float, float], ...] = ((2.0, 180.0, 0.0, 0.3), (1.0, 70.0, 90.0, 1.1))
+    waves: tuple[tuple[float, float, float, float], ...] = (
+        (2.0, 180.0, 0.0, 0.3),
+        (1.0, 70.0, 90.0, 1.1),
+    )
     hills: tuple[tuple[float, float, float, float], ...] = ()  # (cx, cy, height, sigma)
 
     def __call__(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
@@ -109,7 +112,9 @@ def make_scene(
     # Vegetation crowns: paraboloid tops; trees 6–25 m, bushes 0.8–2.5 m.
     n_trees = rng.poisson(tree_density * w * h)
     n_bushes = rng.poisson(bush_density * w * h)
-    stems = np.column_stack([rng.uniform(0, w, n_trees + n_bushes), rng.uniform(0, h, n_trees + n_bushes)])
+    stems = np.column_stack(
+        [rng.uniform(0, w, n_trees + n_bushes), rng.uniform(0, h, n_trees + n_bushes)]
+    )
     top = np.r_[rng.uniform(6, 25, n_trees), rng.uniform(0.8, 2.5, n_bushes)]
     radius = np.r_[rng.uniform(2, 5, n_trees), rng.uniform(0.8, 2.0, n_bushes)]
     crown_base = np.r_[top[:n_trees] * rng.uniform(0.2, 0.5, n_trees), np.full(n_bushes, 0.2)]
@@ -122,7 +127,9 @@ def make_scene(
         dist, idx = tree.query(np.column_stack([px, py]), k=k)
         dist, idx = dist.reshape(n_pulses, k), idx.reshape(n_pulses, k)
         rel = dist / radius[idx]
-        crown_h = np.where(rel < 1, crown_base[idx] + (top[idx] - crown_base[idx]) * (1 - rel**2), -np.inf)
+        crown_h = np.where(
+            rel < 1, crown_base[idx] + (top[idx] - crown_base[idx]) * (1 - rel**2), -np.inf
+        )
         best = np.argmax(crown_h, axis=1)
         canopy = crown_h[np.arange(n_pulses), best]
         base_of_hit = crown_base[idx[np.arange(n_pulses), best]]
@@ -130,7 +137,9 @@ def make_scene(
 
     xs, ys, zs, cls, rn, nr = [], [], [], [], [], []
 
-    def emit(mask: NDArray, z: NDArray, c: NDArray | int, r: NDArray | int, n: NDArray | int) -> None:
+    def emit(
+        mask: NDArray, z: NDArray, c: NDArray | int, r: NDArray | int, n: NDArray | int
+    ) -> None:
         xs.append(px[mask])
         ys.append(py[mask])
         zs.append(z)
@@ -198,7 +207,9 @@ def make_scene(
 
 
 def _veg_class(height: NDArray) -> NDArray[np.uint8]:
-    return np.where(height < 0.5, LOW_VEG, np.where(height < 2.0, MED_VEG, HIGH_VEG)).astype(np.uint8)
+    return np.where(height < 0.5, LOW_VEG, np.where(height < 2.0, MED_VEG, HIGH_VEG)).astype(
+        np.uint8
+    )
 
 
 def write_las(
@@ -233,7 +244,9 @@ def write_las(
     las.x, las.y, las.z = scene.xyz[:, 0], scene.xyz[:, 1], scene.xyz[:, 2]
     las.return_number = scene.return_number
     las.number_of_returns = scene.number_of_returns
-    las.classification = classification if classification is not None else np.ones(len(scene), np.uint8)
+    las.classification = (
+        classification if classification is not None else np.ones(len(scene), np.uint8)
+    )
     las.intensity = np.arange(len(scene), dtype=np.uint64) % 65535
     if extra_bytes:
         las.truth = scene.truth

@@ -127,7 +127,9 @@ def parse_block_name(name: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def assign_blocks(grid: BlockGrid, x: NDArray, y: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+def assign_blocks(
+    grid: BlockGrid, x: NDArray, y: NDArray
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
     """(point index, flat block id, is-core) for every block each point goes to.
 
     A point goes to its core block and to each neighbour (8-connected) whose
@@ -196,7 +198,7 @@ def shard_tile(
         rec["scan_id"] = chunk.scan_id[p]
         starts = np.flatnonzero(np.r_[True, bid[1:] != bid[:-1]])
         ends = np.r_[starts[1:], bid.size]
-        for s, e in zip(starts, ends):
+        for s, e in zip(starts, ends, strict=True):
             b = int(bid[s])
             name = block_name(b % grid.nx, b // grid.nx)
             with open(tmp / f"{name}.bin", "ab") as fh:
@@ -231,13 +233,19 @@ def shard_parts(point_counts: list[int], part_points: int = 2_500_000) -> list[S
     for tile, n in enumerate(point_counts):
         k = max(1, int(round(n / part_points)))
         bounds = [n * i // k for i in range(k + 1)]
-        parts += [ShardPart(tile, a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        parts += [
+            ShardPart(tile, a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a
+        ]
     return parts
 
 
 def read_block_points(shard_dirs: list[Path], name: str) -> NDArray:
     """All shard records of block ``name`` over every tile, as one structured array."""
-    parts = [np.fromfile(d / f"{name}.bin", dtype=SHARD_DTYPE) for d in shard_dirs if (d / f"{name}.bin").exists()]
+    parts = [
+        np.fromfile(d / f"{name}.bin", dtype=SHARD_DTYPE)
+        for d in shard_dirs
+        if (d / f"{name}.bin").exists()
+    ]
     if not parts:
         return np.empty(0, SHARD_DTYPE)
     return np.concatenate(parts)

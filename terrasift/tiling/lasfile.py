@@ -59,7 +59,9 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     with open(path, "rb") as fh:
         head = fh.read(LAS_HEADER_MIN)
     if len(head) < 4 or head[:4] != b"LASF":
-        raise InputError(f"{name}: not a LAS/LAZ file (signature is {head[:4]!r}, expected b'LASF')")
+        raise InputError(
+            f"{name}: not a LAS/LAZ file (signature is {head[:4]!r}, expected b'LASF')"
+        )
     if len(head) < LAS_HEADER_MIN:
         raise InputError(f"{name}: file is truncated inside the LAS header ({size} bytes)")
     major, minor = head[24], head[25]
@@ -94,13 +96,17 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
         _check_laz_chunk_table(path, name, offset, size)
 
     scales = tuple(float(s) for s in header.scales)
-    for axis, s in zip("xyz", scales):
+    for axis, s in zip("xyz", scales, strict=True):
         if not np.isfinite(s) or s <= 0 or s < 1e-9 or s > 10:
             raise InputError(f"{name}: absurd {axis} scale factor {s} in the header")
     mins = tuple(float(v) for v in header.mins)
     maxs = tuple(float(v) for v in header.maxs)
-    for axis, lo, hi in zip("xyz", mins, maxs):
-        if not (np.isfinite(lo) and np.isfinite(hi)) or abs(lo) > MAX_ABS_COORD or abs(hi) > MAX_ABS_COORD:
+    for axis, lo, hi in zip("xyz", mins, maxs, strict=True):
+        if (
+            not (np.isfinite(lo) and np.isfinite(hi))
+            or abs(lo) > MAX_ABS_COORD
+            or abs(hi) > MAX_ABS_COORD
+        ):
             raise InputError(f"{name}: absurd {axis} bounds in the header ({lo} to {hi})")
         if lo > hi:
             raise InputError(f"{name}: header {axis} minimum {lo} is above its maximum {hi}")
@@ -178,7 +184,12 @@ def iter_chunks(
     """
     try:
         sel = laspy.DecompressionSelection
-        wanted = sel.XY_RETURNS_CHANNEL | sel.Z | sel.POINT_SOURCE_ID | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+        wanted = (
+            sel.XY_RETURNS_CHANNEL
+            | sel.Z
+            | sel.POINT_SOURCE_ID
+            | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+        )
         reader = laspy.open(str(path), decompression_selection=wanted)
     except Exception as exc:
         raise InputError(f"{Path(path).name}: cannot open for reading: {exc}") from None
@@ -202,7 +213,11 @@ def iter_chunks(
                 xyz[:, 0] = pts.x
                 xyz[:, 1] = pts.y
                 xyz[:, 2] = pts.z
-                scan = np.asarray(pts[dim], dtype=np.uint16) if dim in names else np.zeros(n, np.uint16)
+                scan = (
+                    np.asarray(pts[dim], dtype=np.uint16)
+                    if dim in names
+                    else np.zeros(n, np.uint16)
+                )
                 yield PointChunk(
                     start=pos,
                     xyz=xyz,
@@ -214,6 +229,10 @@ def iter_chunks(
         except InputError:
             raise
         except Exception as exc:  # lazrs / laspy errors on corrupt or cut data
-            raise InputError(f"{Path(path).name}: point data unreadable after {pos} points: {exc}") from None
+            raise InputError(
+                f"{Path(path).name}: point data unreadable after {pos} points: {exc}"
+            ) from None
         if pos != stop:
-            raise InputError(f"{Path(path).name}: header claims {total} points but only {pos} could be read")
+            raise InputError(
+                f"{Path(path).name}: header claims {total} points but only {pos} could be read"
+            )

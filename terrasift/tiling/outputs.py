@@ -16,12 +16,12 @@ from typing import Any
 
 import laspy
 import numpy as np
-from numpy.typing import NDArray
 import pyproj
+from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
-from terrasift.tiling.blocks import BlockGrid
 from terrasift.params import stage_params
+from terrasift.tiling.blocks import BlockGrid
 from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, bounded_raster_cache, job_transform
 
 MEDIA_TYPES = {
@@ -71,7 +71,9 @@ def _write_raster(job: Path, name: str) -> str:
     if name == "coverage":
         params = _load(job, "job.json")["params"]
         cell = float(stage_params(params, "vegetation").cell)
-        f = int(round(cell / grid.resolution))  # DTM cells per coverage cell (the grid is aligned to it)
+        f = int(
+            round(cell / grid.resolution)
+        )  # DTM cells per coverage cell (the grid is aligned to it)
         mosaic = RasterMosaic(
             work / target.name,
             width=grid.width // f,
@@ -83,7 +85,13 @@ def _write_raster(job: Path, name: str) -> str:
         )
     else:
         transform = job_transform(grid.x0, grid.y_top, grid.resolution)
-        mosaic = RasterMosaic(work / target.name, width=grid.width, height=grid.height, transform=transform, crs=plan["crs_wkt"])
+        mosaic = RasterMosaic(
+            work / target.name,
+            width=grid.width,
+            height=grid.height,
+            transform=transform,
+            crs=plan["crs_wkt"],
+        )
     mosaic.fill_nodata()
     for path in _block_files(job):
         with np.load(path) as data:
@@ -94,16 +102,24 @@ def _write_raster(job: Path, name: str) -> str:
                 cov = data["raster_coverage"]
                 # cells outside the data reach are nodata, like the DTM's
                 reach = ~np.isnan(data["raster_dtm"][::f, ::f][: cov.shape[0], : cov.shape[1]])
-                mosaic.write(row_off // f, col_off // f, np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8))
+                mosaic.write(
+                    row_off // f,
+                    col_off // f,
+                    np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8),
+                )
             elif name == "chm":
-                mosaic.write(row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None))
+                mosaic.write(
+                    row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None)
+                )
             else:
                 mosaic.write(row_off, col_off, data[f"raster_{name}"])
     mosaic.close_as_cog(target, resampling="mode" if name == "coverage" else "average")
     return target.name
 
 
-BAND_CELLS = 1 << 19  # DTM cells per band for slope and categories: memory follows this, not the job
+BAND_CELLS = (
+    1 << 19
+)  # DTM cells per band for slope and categories: memory follows this, not the job
 
 
 def write_terrain(job_dir: str) -> list[str]:
@@ -133,10 +149,18 @@ def write_slope(job_dir: str) -> str:
         height, width, res = ds.height, ds.width, abs(ds.transform.a)
         band = max(1, BAND_CELLS // width)
         margin = tparams.median_size // 2 + 2
-        m = RasterMosaic(work / "slope.tif", width=width, height=height, transform=ds.transform, crs=plan["crs_wkt"])
+        m = RasterMosaic(
+            work / "slope.tif",
+            width=width,
+            height=height,
+            transform=ds.transform,
+            crs=plan["crs_wkt"],
+        )
         for r in range(0, height, band):
             lo, hi = max(0, r - margin), min(height, r + band + margin)
-            slope = terrain.slope_degrees(_read_rows(ds, lo, hi), res, tparams.median_size, tparams.smooth)
+            slope = terrain.slope_degrees(
+                _read_rows(ds, lo, hi), res, tparams.median_size, tparams.smooth
+            )
             m.write(r, 0, slope[r - lo : r - lo + min(band, height - r)])
         m.close_as_cog(out / "slope.tif")
     return "slope.tif"
@@ -145,7 +169,11 @@ def write_slope(job_dir: str) -> str:
 def _read_rows(ds: Any, r0: int, r1: int) -> NDArray:
     from rasterio.windows import Window
 
-    return ds.read(1, window=Window(0, r0, ds.width, r1 - r0), masked=True).filled(np.nan).astype(np.float64)
+    return (
+        ds.read(1, window=Window(0, r0, ds.width, r1 - r0), masked=True)
+        .filled(np.nan)
+        .astype(np.float64)
+    )
 
 
 def write_categories(job_dir: str) -> list[str]:
@@ -178,9 +206,15 @@ def _write_categories(job: Path) -> list[str]:
         res = abs(transform.a)
         k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
         band = max(k, BAND_CELLS // width // k * k)  # whole category tiles
-        parts = [cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams) for r in range(0, height, band)]
+        parts = [
+            cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
+            for r in range(0, height, band)
+        ]
     cats = cat.Categories(
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("inclination", "orientation", "state", "height10")),
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("inclination", "orientation", "state", "height10")
+        ),
         cells_per_tile=parts[0].cells_per_tile,
         tile_size=parts[0].tile_size,
     )
@@ -203,12 +237,17 @@ def _write_categories(job: Path) -> list[str]:
 
     filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
     if filters:
-        result = feat.detect_features(cats, filters, transform, cats.tile_size, stage_params(params, "features"))
+        result = feat.detect_features(
+            cats, filters, transform, cats.tile_size, stage_params(params, "features")
+        )
         crs = plan["crs_wkt"]
         native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
         if native is not None:
             _write_json(out / "features.native.geojson", native)
-            _write_json(out / "features.geojson", feat.features_geojson(result, crs, job.name, to_wgs84=True))
+            _write_json(
+                out / "features.geojson",
+                feat.features_geojson(result, crs, job.name, to_wgs84=True),
+            )
             names += ["features.geojson", "features.native.geojson"]
         for fname, marks in result.marked.items():
             m = RasterMosaic(
@@ -259,7 +298,9 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
             np.add.at(seen, idx, 1) if idx.size < 4096 else _count(seen, idx)
     if not (seen == 1).all():
         missing, twice = int((seen == 0).sum()), int((seen > 1).sum())
-        raise ProcessingError(f"{name}: {missing} points got no label and {twice} got more than one")
+        raise ProcessingError(
+            f"{name}: {missing} points got no label and {twice} got more than one"
+        )
     tmp = out.with_name(out.name + ".part")
     with laspy.open(tile["path"]) as reader:
         header = copy.deepcopy(reader.header)
@@ -286,7 +327,11 @@ def _count(seen: np.ndarray, idx: np.ndarray) -> None:
 
 
 def write_report_and_item(
-    job_dir: Path, plan: Mapping[str, Any], params: Mapping[str, Any], block_stats: list[dict], timings: Mapping[str, float]
+    job_dir: Path,
+    plan: Mapping[str, Any],
+    params: Mapping[str, Any],
+    block_stats: list[dict],
+    timings: Mapping[str, float],
 ) -> list[str]:
     """Write ``report.json`` and ``item.json``; return every output name of the job."""
     job = Path(job_dir)
@@ -307,7 +352,9 @@ def write_report_and_item(
         for k in bins:
             bins[k] += s.get("vegetation", {}).get(k, 0)
     tree_cov, bush_cov = vegetation.coverage_from_counts(bins)
-    rough = terrain.combine(terrain.Roughness(*s["roughness_sums"]) for s in block_stats if "roughness_sums" in s)
+    rough = terrain.combine(
+        terrain.Roughness(*s["roughness_sums"]) for s in block_stats if "roughness_sums" in s
+    )
     steep = [s for s in block_stats if s.get("steep", {}).get("rotated")]
     mixed = [s["mixed"] for s in block_stats if "mixed" in s]
     report = {
@@ -316,7 +363,9 @@ def write_report_and_item(
         "tiles": [Path(t["path"]).name for t in plan["tiles"]],
         "crs": plan["crs"],
         "blocks": len(block_stats),
-        "block_buffer": plan["grid"]["buffer"],  # metres; resolved when the buffer parameter is auto
+        "block_buffer": plan["grid"][
+            "buffer"
+        ],  # metres; resolved when the buffer parameter is auto
         "counts_per_class": dict(sorted(counts.items(), key=lambda kv: int(kv[0]))),
         "vegetation": {
             "tree_coverage": tree_cov,
@@ -324,9 +373,14 @@ def write_report_and_item(
             "bins": bins,
             "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
         },
-        "roughness": {**rough.to_dict(), "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None)},
+        "roughness": {
+            **rough.to_dict(),
+            "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None),
+        },
         "roughness_per_block": {
-            s["name"]: terrain.Roughness(*s["roughness_sums"]).to_dict() for s in block_stats if "roughness_sums" in s
+            s["name"]: terrain.Roughness(*s["roughness_sums"]).to_dict()
+            for s in block_stats
+            if "roughness_sums" in s
         },
         "steep_blocks": {
             "tested": sum(1 for s in block_stats if s.get("steep")),
@@ -355,7 +409,9 @@ def write_report_and_item(
     tmp = out / "report.json.part"
     tmp.write_text(json.dumps(report, indent=2))
     os.replace(tmp, out / "report.json")
-    names = sorted(p.name for p in out.iterdir() if not p.name.endswith(".part") and p.name != "item.json")
+    names = sorted(
+        p.name for p in out.iterdir() if not p.name.endswith(".part") and p.name != "item.json"
+    )
     item = stac_item(job.name, plan, names)
     tmp = out / "item.json.part"
     tmp.write_text(json.dumps(item, indent=2))
@@ -370,7 +426,9 @@ def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> di
     grid = BlockGrid(**plan["grid"])
     tf = None
     if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True)
+        tf = pyproj.Transformer.from_crs(
+            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
+        )
     feats = []
     for s in steep_stats:
         ix, iy = parse_block_name(s["name"])
@@ -402,7 +460,9 @@ def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[st
     geometry = None
     bbox = None
     if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True)
+        tf = pyproj.Transformer.from_crs(
+            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
+        )
         lon0, lat0, lon1, lat1 = tf.transform_bounds(xmin, ymin, xmax, ymax)
         bbox = [lon0, lat0, lon1, lat1]
         geometry = {
@@ -426,7 +486,11 @@ def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[st
     for name in names:
         suffix = Path(name).suffix
         role = "metadata" if suffix == ".json" else "data"
-        asset: dict[str, Any] = {"href": f"./{name}", "type": MEDIA_TYPES.get(suffix, "application/octet-stream"), "roles": [role]}
+        asset: dict[str, Any] = {
+            "href": f"./{name}",
+            "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
+            "roles": [role],
+        }
         if suffix == ".tif":
             asset["proj:shape"] = [grid.height, grid.width]
             asset["proj:transform"] = transform

@@ -80,7 +80,11 @@ class RasterMosaic:
     def write(self, row_off: int, col_off: int, data: NDArray) -> None:
         """Write ``data`` (rows × cols, or bands × rows × cols) at the window."""
         arr = data if data.ndim == 3 else data[None]
-        arr = np.where(np.isnan(arr), self.nodata, arr) if np.issubdtype(arr.dtype, np.floating) else arr
+        arr = (
+            np.where(np.isnan(arr), self.nodata, arr)
+            if np.issubdtype(arr.dtype, np.floating)
+            else arr
+        )
         window = Window(col_off, row_off, arr.shape[2], arr.shape[1])
         self._ds.write(arr.astype(self.dtype), window=window)
 

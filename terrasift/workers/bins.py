@@ -42,7 +42,9 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if x.size:
-        order = _cell_counting_sort(x.reshape(-1), y.reshape(-1), float(cell), 4 * x.size + (1 << 20))
+        order = _cell_counting_sort(
+            x.reshape(-1), y.reshape(-1), float(cell), 4 * x.size + (1 << 20)
+        )
         if order.size == x.size:
             return order
     ix = np.floor(x / cell).astype(np.int64)
@@ -60,7 +62,9 @@ def cell_order(x: NDArray[np.float64], y: NDArray[np.float64], cell: float) -> N
 
 
 @numba.njit(cache=True)
-def _cell_counting_sort(x: NDArray[np.float64], y: NDArray[np.float64], cell: float, max_keys: int) -> NDArray[np.int64]:
+def _cell_counting_sort(
+    x: NDArray[np.float64], y: NDArray[np.float64], cell: float, max_keys: int
+) -> NDArray[np.int64]:
     """Stable counting sort of the points by row-major cell key (the key of
     ``cell_order``); an empty array when a coordinate is not finite or the keys
     span more than ``max_keys`` cells (the caller falls back to a radix sort)."""
@@ -110,7 +114,9 @@ def bounds(x: NDArray, y: NDArray) -> tuple[np.floating, np.floating, np.floatin
 
 
 @numba.njit(cache=True)
-def _bounds_kernel(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[float, float, float, float]:
+def _bounds_kernel(
+    x: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[float, float, float, float]:
     """Min and max of ``x`` and of ``y`` (same length: one pass over the rows);
     NaN for both of an array holding a NaN, as numpy's."""
     xmin, xmax, ymin, ymax = np.inf, -np.inf, np.inf, -np.inf
@@ -133,7 +139,14 @@ def _bounds_kernel(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[floa
 
 @numba.njit(cache=True)
 def _index_kernel(
-    x: NDArray[np.float64], y: NDArray[np.float64], x0: float, y0: float, cell: float, nx: int, ny: int, out: NDArray[np.int64]
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    out: NDArray[np.int64],
 ) -> None:
     """``out[i]`` = row-major bin of point i, -1 outside (and for NaN).
 
@@ -150,7 +163,9 @@ def _index_kernel(
 
 
 @numba.njit(cache=True, inline="always")
-def _keep_lower(zmin: NDArray[np.float64], low: NDArray[np.int64], b: int, zi: float, i: int) -> None:
+def _keep_lower(
+    zmin: NDArray[np.float64], low: NDArray[np.int64], b: int, zi: float, i: int
+) -> None:
     """Fold point ``i`` of value ``zi`` into bin ``b``'s running minimum: a
     smaller value wins, a tie keeps the earlier point (the first one at +inf
     fills an empty slot), and a NaN poisons the bin as ``np.minimum`` does."""
@@ -174,7 +189,9 @@ def _forget_nan_lows(zmin: NDArray[np.float64], low: NDArray[np.int64]) -> None:
 
 
 @numba.njit(cache=True)
-def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+def _min_argmin(
+    flat: NDArray[np.int64], z: NDArray[np.float64], size: int
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Per bin: minimum of ``z`` (+inf when empty, NaN as ``np.minimum`` propagates it)
     and the smallest index of a point holding it (-1 when none). Points with flat < 0 are skipped."""
     zmin = np.full(size, np.inf)
@@ -192,7 +209,13 @@ def _min_argmin(flat: NDArray[np.int64], z: NDArray[np.float64], size: int) -> t
 @numba.njit(cache=True)
 def _level_sums(
     flat: NDArray[np.int64], z: NDArray[np.float64], size: int
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+) -> tuple[
+    NDArray[np.int64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.int64],
+]:
     """Per bin: count, sum of z (in point order, as ``np.bincount``), min, max
     (NaN-propagating like ``np.minimum.at``) and the lowest point (as ``_min_argmin``)."""
     n = np.zeros(size, dtype=np.int64)
@@ -215,7 +238,9 @@ def _level_sums(
 
 
 @numba.njit(cache=True)
-def _squared_deviations(flat: NDArray[np.int64], z: NDArray[np.float64], mean: NDArray[np.float64]) -> NDArray[np.float64]:
+def _squared_deviations(
+    flat: NDArray[np.int64], z: NDArray[np.float64], mean: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Per bin: sum of (z - mean[bin])² in point order."""
     out = np.zeros(mean.size)
     for i in range(flat.size):
@@ -326,7 +351,9 @@ class Grid:
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         out = np.empty(x.size, dtype=np.int64)
-        _index_kernel(x.reshape(-1), y.reshape(-1), self.x0, self.y0, self.cell, self.nx, self.ny, out)
+        _index_kernel(
+            x.reshape(-1), y.reshape(-1), self.x0, self.y0, self.cell, self.nx, self.ny, out
+        )
         return out.reshape(x.shape)
 
     def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -363,7 +390,9 @@ def lowest_per_bin(flat: NDArray[np.int64], z: NDArray, size: int) -> NDArray[np
     return _min_argmin(flat, np.asarray(z, dtype=np.float64), size)[1]
 
 
-def bin_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> BinStats:
+def bin_statistics(
+    xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None
+) -> BinStats:
     """Count, min, max, mean, RMS and lowest point of every bin of ``grid``.
 
     ``flat`` is ``grid.index`` of the points when the caller has it already.
@@ -401,7 +430,9 @@ class PlaneStats:
     lowest: NDArray[np.int64]  # index of the point with the most negative residual
 
 
-def plane_fit_statistics(xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None) -> PlaneStats:
+def plane_fit_statistics(
+    xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None
+) -> PlaneStats:
     """Fit a least-squares plane in every bin at once via per-bin normal equations.
 
     The sums are one compiled pass over the points; the 3 × 3 systems are

@@ -118,7 +118,9 @@ def classify_block(
     if vparams.support is None:
         # One support window for the whole job, from its mean density, so
         # neighbouring blocks judge bins alike.
-        support = vegetation.support_for_density(float(params.get("_density", 1.0)), vparams.cell, vparams.min_points)
+        support = vegetation.support_for_density(
+            float(params.get("_density", 1.0)), vparams.cell, vparams.min_points
+        )
         vparams = vparams.model_copy(update={"support": support})
     c = vparams.cell
     vgrid = Grid(xmin, ymin, c, int(round((xmax - xmin) / c)), int(round((ymax - ymin) / c)))
@@ -130,7 +132,9 @@ def classify_block(
     with timer("dtm"):
         surface = dem.ground_tin(sub[is_ground_sub], max(grid.resolution, 1.0))
     with timer("vegetation"):
-        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams, surface=surface).crop(vgrid)
+        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams, surface=surface).crop(
+            vgrid
+        )
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
             in_veg = (flat >= 0) & (veg.bin_class[np.maximum(flat, 0)] >= vegetation.BUSH)
@@ -147,7 +151,9 @@ def classify_block(
     # Sparse clouds get whole multiples of the cell, so a bin expects twice
     # min_points and the gauge does not go empty (same for every block).
     density = float(params.get("_density", 1.0))
-    rcell = tparams.cell * max(1, int(np.ceil(np.sqrt(2 * tparams.min_points / max(density, 1e-6)) / tparams.cell)))
+    rcell = tparams.cell * max(
+        1, int(np.ceil(np.sqrt(2 * tparams.min_points / max(density, 1e-6)) / tparams.cell))
+    )
     rgrid = Grid(xmin, ymin, rcell, int((xmax - xmin) // rcell), int((ymax - ymin) // rcell))
     with timer("roughness"):
         rough = terrain.roughness(sub[is_ground_sub], rgrid, tparams)
@@ -193,7 +199,7 @@ def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
         return np.zeros(0, dtype=np.int64)
     offsets = [v - v.min() for v in (x, y, z)]
     q = [np.round(d * 1000.0).astype(np.int64) for d in offsets]
-    on_lattice = all(np.abs(k * 0.001 - d).max() < 1e-5 for k, d in zip(q, offsets))
+    on_lattice = all(np.abs(k * 0.001 - d).max() < 1e-5 for k, d in zip(q, offsets, strict=True))
     bits = [max(int(k.max()).bit_length(), 1) for k in q]
     if not on_lattice or sum(bits) > 63:
         return np.lexsort((z, y, x))
@@ -205,7 +211,9 @@ def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
     tie = np.flatnonzero(ks[1:] == ks[:-1])
     if tie.size:
         pos = np.union1d(tie, tie + 1)
-        run = np.cumsum(np.r_[True, ks[pos[1:]] != ks[pos[:-1]]] | np.r_[True, pos[1:] != pos[:-1] + 1])
+        run = np.cumsum(
+            np.r_[True, ks[pos[1:]] != ks[pos[:-1]]] | np.r_[True, pos[1:] != pos[:-1] + 1]
+        )
         order[pos] = order[pos][np.lexsort((order[pos], run))]
     return order
 
@@ -256,10 +264,16 @@ def _ground(
     # walls would make most urban blocks "steep".
     with timer("steep_test"):
         test = rotation.steepness(xyz[is_ground], stage_params(params, "ground.steep"))
-    steep_info = {"facet_share": float(test.facet_share), "steep": bool(test.steep), "facets": int(test.n_facets)}
+    steep_info = {
+        "facet_share": float(test.facet_share),
+        "steep": bool(test.steep),
+        "facets": int(test.n_facets),
+    }
     if not (test.steep or mode == "always"):
         return is_ground, low, steep_info
-    rparams = stage_params(params, "ground.rotation", stage.id)  # per-method preset (RotationParams.presets)
+    rparams = stage_params(
+        params, "ground.rotation", stage.id
+    )  # per-method preset (RotationParams.presets)
     cparams = stage_params(params, stage.id, rparams.ground_preset)
     # Seeded rotated runs where the method can grow from the labels found so far (ptd).
     ground, seeded = rotation.bind_ground(stage, cparams, **kwargs)
@@ -300,7 +314,10 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
     plan = load_json(job_dir_p / "plan.json")
     params = {**load_json(job_dir_p / "job.json")["params"], "_density": plan.get("density", 1.0)}
     grid = BlockGrid(**plan["grid"])
-    shard_dirs = [job_dir_p / "shards" / p.name for p in shard_parts([t["point_count"] for t in plan["tiles"]])]
+    shard_dirs = [
+        job_dir_p / "shards" / p.name
+        for p in shard_parts([t["point_count"] for t in plan["tiles"]])
+    ]
     points = read_block_points(shard_dirs, name)
     ix, iy = parse_block_name(name)
     t0 = time.perf_counter()

@@ -49,7 +49,16 @@ ORIENTATIONS: tuple[int, ...] = (0, *EDGES, *EXTREMES)
 
 
 #: boundary points in tile units (tile spans [-1, 1]²), numbered as in DESIGN §5.7
-_POINTS = {1: (1, 0), 2: (1, 1), 3: (0, 1), 4: (-1, 1), 5: (-1, 0), 6: (-1, -1), 7: (0, -1), 8: (1, -1)}
+_POINTS = {
+    1: (1, 0),
+    2: (1, 1),
+    3: (0, 1),
+    4: (-1, 1),
+    5: (-1, 0),
+    6: (-1, -1),
+    7: (0, -1),
+    8: (1, -1),
+}
 
 
 class CategoryParams(StageParams):
@@ -133,8 +142,14 @@ def _direction_code(gx: NDArray, gy: NDArray) -> NDArray[np.uint8]:
     return (np.round(ang / (np.pi / 4)).astype(np.int64) % 8 + 1).astype(np.uint8)
 
 
-@register("categories", CategoryParams, "Terrain categories on a 2 m tile grid: inclination, edge, state, height")
-def compute_categories(dtm: NDArray, cell: float, params: CategoryParams | None = None) -> Categories:
+@register(
+    "categories",
+    CategoryParams,
+    "Terrain categories on a 2 m tile grid: inclination, edge, state, height",
+)
+def compute_categories(
+    dtm: NDArray, cell: float, params: CategoryParams | None = None
+) -> Categories:
     """Fit one or two planes to every tile of ``dtm`` (north-up, NaN nodata, ``cell`` m)."""
     params = params or CategoryParams()
     k = max(2, int(round(params.tile_size / cell)))

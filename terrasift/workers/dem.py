@@ -34,7 +34,9 @@ class Window:
         ys = self.ymax - (np.arange(self.rows) + 0.5) * self.resolution
         return np.meshgrid(xs, ys)
 
-    def cell_of(self, x: NDArray, y: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+    def cell_of(
+        self, x: NDArray, y: NDArray
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
         """Row, column and inside-flag of each point."""
         col = np.floor((x - self.xmin) / self.resolution).astype(np.int64)
         row = np.floor((self.ymax - y) / self.resolution).astype(np.int64)
@@ -70,7 +72,9 @@ def data_reach_mask(xyz: NDArray[np.float64], window: Window, reach: float) -> N
     return dist[k : k + window.rows, k : k + window.cols] <= reach
 
 
-def ground_vertices(ground_xyz: NDArray[np.float64], cell: float, band: float = 0.5) -> NDArray[np.float64]:
+def ground_vertices(
+    ground_xyz: NDArray[np.float64], cell: float, band: float = 0.5
+) -> NDArray[np.float64]:
     """One TIN vertex per occupied ``cell``: the centroid of the cell's ground
     points within ``band`` of its lowest one.
 
@@ -110,7 +114,9 @@ def sample_window(surface: TinSurface | None, window: Window) -> NDArray[np.floa
     return surface(gx, gy).astype(np.float32)
 
 
-def dtm_window(ground_xyz: NDArray[np.float64], window: Window, vertex_cell: float | None = None) -> NDArray[np.float32]:
+def dtm_window(
+    ground_xyz: NDArray[np.float64], window: Window, vertex_cell: float | None = None
+) -> NDArray[np.float32]:
     """Ground TIN sampled at the window's cell centres (NaN when there is no ground).
 
     The TIN's vertices are ``ground_vertices`` on cells of ``vertex_cell``
@@ -124,7 +130,9 @@ def dsm_window(xyz: NDArray[np.float64], window: Window) -> NDArray[np.float32]:
     row, col, inside = window.cell_of(xyz[:, 0], xyz[:, 1])
     out = np.full(window.rows * window.cols, -np.inf)
     flat = row[inside] * window.cols + col[inside]
-    np.maximum.at(out, flat, xyz[inside, 2]) if flat.size < 4096 else _max_sorted(out, flat, xyz[inside, 2])
+    np.maximum.at(out, flat, xyz[inside, 2]) if flat.size < 4096 else _max_sorted(
+        out, flat, xyz[inside, 2]
+    )
     out = out.reshape(window.rows, window.cols)
     empty = ~np.isfinite(out)
     if empty.all():

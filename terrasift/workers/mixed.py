@@ -50,7 +50,9 @@ from terrasift.errors import InputError, ParameterError
 from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
 from terrasift.workers.registry import StageParams, register
 
-Variant = Literal["naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"]
+Variant = Literal[
+    "naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"
+]
 Trigger = Literal["surfaceness", "normal", "both"]
 
 
@@ -177,7 +179,9 @@ def mark_mixed(
     )
 
 
-def _scan_layout(n: int, sensor_origin, scan_id) -> tuple[NDArray[np.float64], NDArray[np.intp] | None]:
+def _scan_layout(
+    n: int, sensor_origin, scan_id
+) -> tuple[NDArray[np.float64], NDArray[np.intp] | None]:
     origins = np.asarray(sensor_origin, dtype=np.float64)
     if origins.shape == (3,):
         origins = origins[None, :]
@@ -218,13 +222,25 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     ie = np.minimum(((el + np.pi / 2) / beta).astype(np.int64), n_el - 1)
     cell = ia * n_el + ie
     order = np.lexsort((r, cell))
-    q, r, cell, ia, ie, az, el = q[order], r[order], cell[order], ia[order], ie[order], az[order], el[order]
+    q, r, cell, ia, ie, az, el = (
+        q[order],
+        r[order],
+        cell[order],
+        ia[order],
+        ie[order],
+        az[order],
+        el[order],
+    )
     big = float(2 ** int(np.ceil(np.log2(r.max() + p.box_depth + 2.0))))
     key = cell * big + r
 
     # Lateral support: the surface through the neighbours across azimuth (elevation) continues through the point.
     sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=0)
-    sup_el = _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=1) if p.cross_box else sup_az
+    sup_el = (
+        _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=1)
+        if p.cross_box
+        else sup_az
+    )
 
     # Interest voxels: runs of one cell within one range step; the nearest point is the interest point.
     rbin = np.floor(r / p.voxel_size).astype(np.int64) if p.voxel_size > 0 else np.arange(r.size)
@@ -244,7 +260,9 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     candidate = np.zeros(r.size, dtype=bool)
     decided = np.zeros(r.size, dtype=bool)  # a box holding enough content judged the point
     n_regions = n_triggered = 0
-    rolls = [p.box_roll] + ([p.box_roll + 90.0 if p.box_roll <= 0 else p.box_roll - 90.0] if p.cross_box else [])
+    rolls = [p.box_roll] + (
+        [p.box_roll + 90.0 if p.box_roll <= 0 else p.box_roll - 90.0] if p.cross_box else []
+    )
     for roll in rolls:
         # Box content: the points not supported across the box's width axis.
         across_az = abs(roll) < 45.0
@@ -260,8 +278,18 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
             img = np.bincount(cell[cand], minlength=n_az * n_el).reshape(n_az, n_el)
             look = np.flatnonzero(_window_count(img, ia0, ie0, na, ne) > 0)
             it, pc = window_pairs(
-                r0[look], ia0[look], ie0[look], na[look], ne[look], frames[look],
-                p.box_width, p.box_height, beta, n_az, n_el, img.ravel() > 0,
+                r0[look],
+                ia0[look],
+                ie0[look],
+                na[look],
+                ne[look],
+                frames[look],
+                p.box_width,
+                p.box_height,
+                beta,
+                n_az,
+                n_el,
+                img.ravel() > 0,
             )
             it = look[it]
             lo = np.searchsorted(kc, pc * big + r0[it], side="left")
@@ -271,11 +299,21 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
 
             # Box moments of the content from prefix sums.
             x, y, z = q[cand, 0], q[cand, 1], q[cand, 2]
-            bg = _background(key[sup], cell[cand], r[cand], n_el if across_az else 1, big, p.box_depth)
+            bg = _background(
+                key[sup], cell[cand], r[cand], n_el if across_az else 1, big, p.box_depth
+            )
             mom = np.zeros((cand.size + 1, 11))
-            np.cumsum(np.column_stack([np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z, bg]), axis=0, out=mom[1:])
+            np.cumsum(
+                np.column_stack(
+                    [np.ones_like(x), x, y, z, x * x, x * y, x * z, y * y, y * z, z * z, bg]
+                ),
+                axis=0,
+                out=mom[1:],
+            )
             diff = mom[hi] - mom[lo]
-            S = np.column_stack([np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(11)])
+            S = np.column_stack(
+                [np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(11)]
+            )
             counted = S[:, 0] >= p.min_points
             ci = np.flatnonzero(counted)
             if ci.size:
@@ -283,10 +321,20 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
 
             # Marking through difference arrays over the sorted content.
             sel = fired[it]
-            box_c = np.cumsum(np.bincount(lo[sel], minlength=cand.size + 1) - np.bincount(hi[sel], minlength=cand.size + 1))
+            box_c = np.cumsum(
+                np.bincount(lo[sel], minlength=cand.size + 1)
+                - np.bincount(hi[sel], minlength=cand.size + 1)
+            )
             box_votes[cand] += box_c[:-1]
-            lo_w = np.searchsorted(kc, pc[sel] * big + r0[it[sel]] + blind, side="left") if blind > 0 else lo[sel]
-            win_c = np.cumsum(np.bincount(lo_w, minlength=cand.size + 1) - np.bincount(hi[sel], minlength=cand.size + 1))
+            lo_w = (
+                np.searchsorted(kc, pc[sel] * big + r0[it[sel]] + blind, side="left")
+                if blind > 0
+                else lo[sel]
+            )
+            win_c = np.cumsum(
+                np.bincount(lo_w, minlength=cand.size + 1)
+                - np.bincount(hi[sel], minlength=cand.size + 1)
+            )
             win_votes[cand] += win_c[:-1]
             behind = r[cand] - r0[item_of[cand]] >= blind
             f_own = fired[item_of[cand]]
@@ -386,7 +434,12 @@ def _continued(
 
 
 def _background(
-    ksup: NDArray[np.float64], cell: NDArray[np.int64], r: NDArray[np.float64], step: int, big: float, depth: float
+    ksup: NDArray[np.float64],
+    cell: NDArray[np.int64],
+    r: NDArray[np.float64],
+    step: int,
+    big: float,
+    depth: float,
 ) -> NDArray[np.float64]:
     """1 where a supported point (a surface) lies behind the point within ``depth``,
     in its own cell or the next one either side across the box (``step`` cells)."""
@@ -401,7 +454,11 @@ def _background(
 
 
 def _window_count(
-    img: NDArray[np.int64], ia: NDArray[np.int64], ie: NDArray[np.int64], na: NDArray[np.int64], ne: NDArray[np.int64]
+    img: NDArray[np.int64],
+    ia: NDArray[np.int64],
+    ie: NDArray[np.int64],
+    na: NDArray[np.int64],
+    ne: NDArray[np.int64],
 ) -> NDArray[np.int64]:
     """Points of ``img`` (azimuth × elevation counts) in each window; windows across the azimuth seam count as full."""
     n_az, n_el = img.shape
@@ -415,7 +472,9 @@ def _window_count(
     return np.where(wrap, 1, cnt)
 
 
-def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], r0: NDArray[np.float64], p: MixedParams) -> NDArray[np.bool_]:
+def _trigger(
+    S: NDArray[np.float64], frames: NDArray[np.float64], r0: NDArray[np.float64], p: MixedParams
+) -> NDArray[np.bool_]:
     """Saliency of each box from its moment sums; which boxes fire."""
     n = S[:, 0]
     mean = S[:, 1:4] / n[:, None]
@@ -447,7 +506,11 @@ def _trigger(S: NDArray[np.float64], frames: NDArray[np.float64], r0: NDArray[np
     thin = mu <= p.thinness**2 * fill
     # The content must reach along the ray (at least half as far, in rms, as across
     # it): a row of ground points across the ray lies in such a plane too.
-    perp = thin & (along >= 0.25 * mu_max) & (mu - lam2 <= np.tan(np.radians(p.normal_angle)) ** 2 * along)
+    perp = (
+        thin
+        & (along >= 0.25 * mu_max)
+        & (mu - lam2 <= np.tan(np.radians(p.normal_angle)) ** 2 * along)
+    )
     # surfaceness: saliency in box units (each axis over the box's extent), so a
     # box filled at random is isotropic; the sheet must be the box's long plane
     # (normal along the width axis), which roll turns about the ray.

@@ -42,7 +42,10 @@ def window_extent(
     # Angle between the box's height axis and the local elevation direction.
     t = frames[:, 0]
     horiz = np.hypot(t[:, 0], t[:, 1])
-    e_el = np.column_stack([-t[:, 2] * t[:, 0], -t[:, 2] * t[:, 1], horiz * horiz]) / np.maximum(horiz, 1e-12)[:, None]
+    e_el = (
+        np.column_stack([-t[:, 2] * t[:, 0], -t[:, 2] * t[:, 1], horiz * horiz])
+        / np.maximum(horiz, 1e-12)[:, None]
+    )
     roll_c = np.clip(np.abs(np.einsum("ij,ij->i", frames[:, 2], e_el)), 0.0, 1.0)
     roll_s = np.sqrt(1 - roll_c**2)
     hu = roll_c * width / 2 + roll_s * height / 2
@@ -82,8 +85,10 @@ def window_pairs(
     out_c: list[NDArray] = []
     # Chunks over boxes keep the candidate arrays bounded in memory.
     cum = np.cumsum(counts)
-    edges = np.unique(np.r_[0, np.searchsorted(cum, np.arange(chunk, cum[-1], chunk), side="right"), counts.size])
-    for start, stop in zip(edges[:-1], edges[1:]):
+    edges = np.unique(
+        np.r_[0, np.searchsorted(cum, np.arange(chunk, cum[-1], chunk), side="right"), counts.size]
+    )
+    for start, stop in zip(edges[:-1], edges[1:], strict=True):
         sl = slice(int(start), int(stop))
         c = counts[sl]
         item = np.repeat(np.arange(sl.start, sl.stop), c)
@@ -105,7 +110,9 @@ def window_pairs(
         with np.errstate(divide="ignore", invalid="ignore"):
             u = r0[item] * np.einsum("ij,ij->i", d, f[:, 1]) / s
             v = r0[item] * np.einsum("ij,ij->i", d, f[:, 2]) / s
-        keep = ((s > 0) & (np.abs(u) <= width / 2) & (np.abs(v) <= height / 2)) | ((da == 0) & (de == 0))
+        keep = ((s > 0) & (np.abs(u) <= width / 2) & (np.abs(v) <= height / 2)) | (
+            (da == 0) & (de == 0)
+        )
         out_i.append(item[keep])
         out_c.append(cell[keep])
     return np.concatenate(out_i), np.concatenate(out_c)

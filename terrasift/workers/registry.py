@@ -39,9 +39,13 @@ class StageParams(BaseModel):
         # "none"/"null" from the command line or a form switch an optional field off.
         for key, value in values.items():
             field = cls.model_fields.get(key)
-            if isinstance(value, str) and value.lower() in ("none", "null") and field is not None:
-                if type(None) in get_args(field.annotation):
-                    values[key] = None
+            if (
+                isinstance(value, str)
+                and value.lower() in ("none", "null")
+                and field is not None
+                and type(None) in get_args(field.annotation)
+            ):
+                values[key] = None
         try:
             return cls(**values)
         except ValidationError as exc:

@@ -3,10 +3,10 @@
 # Stage modules are imported for their registration side effect.
 import terrasift.workers.categories  # noqa: F401
 import terrasift.workers.features  # noqa: F401
-import terrasift.workers.vegetation  # noqa: F401
-import terrasift.workers.mixed  # noqa: F401
-import terrasift.workers.terrain  # noqa: F401
+import terrasift.workers.ground.lowpoints  # noqa: F401
 import terrasift.workers.ground.nist  # noqa: F401
 import terrasift.workers.ground.ptd  # noqa: F401
 import terrasift.workers.ground.rotation  # noqa: F401
-import terrasift.workers.ground.lowpoints  # noqa: F401
+import terrasift.workers.mixed  # noqa: F401
+import terrasift.workers.terrain  # noqa: F401
+import terrasift.workers.vegetation  # noqa: F401

@@ -102,7 +102,9 @@ class TinSurface:
         self._dt: startinpy.DT | None = None
         if xyz.shape[0] >= 3:
             local = np.column_stack([self.xy, self.z])
-            cell = float(np.sqrt(4.0 * max(float(np.prod(np.ptp(self.xy, axis=0))), 1e-6) / xyz.shape[0]))
+            cell = float(
+                np.sqrt(4.0 * max(float(np.prod(np.ptp(self.xy, axis=0))), 1e-6) / xyz.shape[0])
+            )
             dt = startinpy.DT()
             dt.duplicates_handling = "Lowest"
             dt.insert(local[spatial_order(self.xy, max(cell, 1e-3))], insertionstrategy="AsIs")

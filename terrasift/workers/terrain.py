@@ -84,8 +84,27 @@ def median_smooth(dtm: NDArray, size: int = 3) -> NDArray[np.float64]:
 
 
 # Exchanges of a median-of-9 sorting network (Paeth): after them, v[4] is the median.
-_MEDIAN9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3),
-            (5, 8), (4, 7), (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
+_MEDIAN9 = (
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 1),
+    (3, 4),
+    (6, 7),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 3),
+    (5, 8),
+    (4, 7),
+    (3, 6),
+    (1, 4),
+    (2, 5),
+    (4, 7),
+    (4, 2),
+    (6, 4),
+    (4, 2),
+)
 
 
 def _median9(z: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -122,7 +141,11 @@ def _diff(z: NDArray, axis: int) -> NDArray:
 
 
 def smoothed_gradient(
-    dtm: NDArray, cell_x: float, cell_y: float | None = None, median_size: int = 3, smooth: Smooth = "gradient"
+    dtm: NDArray,
+    cell_x: float,
+    cell_y: float | None = None,
+    median_size: int = 3,
+    smooth: Smooth = "gradient",
 ) -> tuple[NDArray, NDArray]:
     """(∂z/∂x, ∂z/∂y) with median smoothing (seed §5.1: derivatives from the smoothed grid).
 
@@ -139,7 +162,9 @@ def smoothed_gradient(
     return median_smooth(gx, median_size), median_smooth(gy, median_size)
 
 
-def slope_degrees(dtm: NDArray, cell: float, median_size: int = 3, smooth: Smooth = "gradient") -> NDArray[np.float64]:
+def slope_degrees(
+    dtm: NDArray, cell: float, median_size: int = 3, smooth: Smooth = "gradient"
+) -> NDArray[np.float64]:
     """Slope in degrees of a north-up DTM after median smoothing; NaN on nodata and isolated cells."""
     gx, gy = smoothed_gradient(dtm, cell, cell, median_size, smooth)
     return np.degrees(np.arctan(np.hypot(gx, gy)))
@@ -216,8 +241,14 @@ def combine(parts: Iterable[Roughness]) -> Roughness:
     return Roughness(n, mx, my, m2x, m2y)
 
 
-@register("terrain", TerrainParams, "Terrain roughness from least-squares planes of accepted bins (NIST §5.2)")
-def roughness(xyz: NDArray[np.float64], grid: Grid, params: TerrainParams | None = None) -> Roughness:
+@register(
+    "terrain",
+    TerrainParams,
+    "Terrain roughness from least-squares planes of accepted bins (NIST §5.2)",
+)
+def roughness(
+    xyz: NDArray[np.float64], grid: Grid, params: TerrainParams | None = None
+) -> Roughness:
     """Roughness over the bins of ``grid``.
 
     Pass the ground points and, per block, the block's core grid so each bin
@@ -255,7 +286,10 @@ class PathProfile:
         """One dict per point, NaN as None (JSON-ready)."""
         cols = [getattr(self, f) for f in self.FIELDS]
         return [
-            {f: (None if math.isnan(v) else float(v)) for f, v in zip(self.FIELDS, row, strict=True)}
+            {
+                f: (None if math.isnan(v) else float(v))
+                for f, v in zip(self.FIELDS, row, strict=True)
+            }
             for row in zip(*cols, strict=True)
         ]
 
@@ -265,7 +299,12 @@ class PathProfile:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(self.FIELDS)
         for rec in self.to_records():
-            w.writerow(["" if v is None else f"{v:.6g}" if abs(v) < 1e5 else f"{v:.3f}" for v in rec.values()])
+            w.writerow(
+                [
+                    "" if v is None else f"{v:.6g}" if abs(v) < 1e5 else f"{v:.3f}"
+                    for v in rec.values()
+                ]
+            )
         return buf.getvalue()
 
 
@@ -322,7 +361,9 @@ def path_profile(
     return PathProfile(d, x, y, z, pitch, roll)
 
 
-def sample_bilinear(raster: NDArray, transform: Affine, x: NDArray, y: NDArray) -> NDArray[np.float64]:
+def sample_bilinear(
+    raster: NDArray, transform: Affine, x: NDArray, y: NDArray
+) -> NDArray[np.float64]:
     """Bilinear value between cell centres of a north-up raster; NaN outside it
     or next to nodata. Within half a cell of the border the edge value holds."""
     a = np.asarray(raster, dtype=np.float64)
@@ -345,7 +386,9 @@ def sample_bilinear(raster: NDArray, transform: Affine, x: NDArray, y: NDArray) 
     return np.where(inside, v, np.nan)
 
 
-def line_coordinates(geometry: dict, dst_crs: str | None = None, src_crs: str = "EPSG:4326") -> NDArray[np.float64]:
+def line_coordinates(
+    geometry: dict, dst_crs: str | None = None, src_crs: str = "EPSG:4326"
+) -> NDArray[np.float64]:
     """(m, 2) vertices of a GeoJSON LineString (or a Feature holding one) in ``dst_crs``.
 
     GeoJSON is lon/lat WGS 84 (RFC 7946), the default ``src_crs``; pass the

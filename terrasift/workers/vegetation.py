@@ -136,7 +136,9 @@ class VegetationBins:
             raise ValueError("crop grid is not an aligned window of the bin grid")
 
         def cut(a: NDArray) -> NDArray:
-            return a.reshape(self.grid.ny, self.grid.nx)[iy0 : iy0 + sub.ny, ix0 : ix0 + sub.nx].ravel()
+            return a.reshape(self.grid.ny, self.grid.nx)[
+                iy0 : iy0 + sub.ny, ix0 : ix0 + sub.nx
+            ].ravel()
 
         return VegetationBins(
             sub, cut(self.bin_class), cut(self.nogo), cut(self.n), cut(self.height), self.support
@@ -146,7 +148,12 @@ class VegetationBins:
 def class_counts(bin_class: NDArray) -> dict[str, int]:
     """Number of empty, open, bush and tree bins; sum these over blocks to combine."""
     c = np.bincount(np.ravel(bin_class).astype(np.int64), minlength=4)
-    return {"empty": int(c[EMPTY]), "open": int(c[OPEN]), "bush": int(c[BUSH]), "tree": int(c[TREE])}
+    return {
+        "empty": int(c[EMPTY]),
+        "open": int(c[OPEN]),
+        "bush": int(c[BUSH]),
+        "tree": int(c[TREE]),
+    }
 
 
 def coverage_from_counts(counts: dict[str, int]) -> tuple[float, float]:
@@ -197,7 +204,9 @@ def support_for_density(density: float, cell: float, min_points: int = 20) -> in
 def _window_sum(n2: NDArray, k: int) -> NDArray[np.int64]:
     if k == 1:
         return n2.astype(np.int64)
-    return ndimage.correlate(n2.astype(np.int64), np.ones((k, k), np.int64), mode="constant", cval=0)
+    return ndimage.correlate(
+        n2.astype(np.int64), np.ones((k, k), np.int64), mode="constant", cval=0
+    )
 
 
 @dataclass(frozen=True)
@@ -240,12 +249,18 @@ def _judge(
         enough = n_support > params.min_points
         above_max = st.zmax - zground
         above_mean = st.zmean - zground
-        tree = rejected & enough & (above_max > params.tree_height) & (above_mean >= params.tree_mean)
+        tree = (
+            rejected & enough & (above_max > params.tree_height) & (above_mean >= params.tree_mean)
+        )
         bush = rejected & enough & ~tree & (above_mean >= params.bush_mean)
     return _Pass(tree, bush, above_max), st, k
 
 
-@register("vegetation", VegetationParams, "Tree/bush bins and vegetation coverage from select/reject statistics (NIST §4)")
+@register(
+    "vegetation",
+    VegetationParams,
+    "Tree/bush bins and vegetation coverage from select/reject statistics (NIST §4)",
+)
 def classify_bins(
     xyz: NDArray[np.float64],
     is_ground: NDArray[np.bool_],

@@ -14,7 +14,13 @@ from terrasift.service.auth import tenant
 from terrasift.service.context import base_url, service
 from terrasift.service.outputs import file_response
 from terrasift.service.problems import Problem
-from terrasift.service.schemas import JobList, OutputReference, StatusInfo, multipart_body, problem_responses
+from terrasift.service.schemas import (
+    JobList,
+    OutputReference,
+    StatusInfo,
+    multipart_body,
+    problem_responses,
+)
 from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, RUNNING, STATUSES, Job
 from terrasift.service.submit import create_job, new_id, parse_params
 
@@ -28,7 +34,11 @@ router = APIRouter(tags=["Jobs"])
     response_model=StatusInfo,
     response_model_exclude_none=True,
     responses=problem_responses(400, 401, 413, 415, 422),
-    openapi_extra={"requestBody": multipart_body("one or more `file` fields (LAS/LAZ) and an optional `params` JSON object")},
+    openapi_extra={
+        "requestBody": multipart_body(
+            "one or more `file` fields (LAS/LAZ) and an optional `params` JSON object"
+        )
+    },
 )
 async def submit_upload(request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
     """`curl -F file=@tile.laz -F 'params={"resolution": 0.5}' .../jobs` → 201 statusInfo + Location."""
@@ -39,10 +49,15 @@ async def submit_upload(request: Request, who: Annotated[str, Depends(tenant)]) 
     job_dir = svc.scheduler.job_dir(job_id)
     try:
         upload = await receive_multipart(
-            request, job_dir / "inputs", max_bytes=svc.settings.max_upload_bytes, max_files=svc.settings.max_files
+            request,
+            job_dir / "inputs",
+            max_bytes=svc.settings.max_upload_bytes,
+            max_files=svc.settings.max_files,
         )
         raw = parse_params(upload.fields.get("params"))
-        job = await run_in_threadpool(create_job, svc.settings, svc.store, svc.scheduler, who, job_id, upload.files, raw)
+        job = await run_in_threadpool(
+            create_job, svc.settings, svc.store, svc.scheduler, who, job_id, upload.files, raw
+        )
     except BaseException:
         await run_in_threadpool(shutil.rmtree, job_dir, True)
         raise
@@ -62,21 +77,31 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, le=1000)] = 10,
     offset: Annotated[int, Query(ge=0)] = 0,
     status: Annotated[list[str] | None, Query(description="filter by status (repeatable)")] = None,
-    processID: Annotated[list[str] | None, Query(description="filter by process (repeatable)")] = None,  # noqa: N803 - OGC name
+    processID: Annotated[
+        list[str] | None, Query(description="filter by process (repeatable)")
+    ] = None,  # noqa: N803 - OGC name
 ) -> dict[str, Any]:
     """Newest first; `next` link while more remain."""
     bad = sorted(set(status or []) - set(STATUSES))
     if bad:
-        raise Problem("invalid-request", f"unknown status {', '.join(bad)} (known: {', '.join(STATUSES)})")
+        raise Problem(
+            "invalid-request", f"unknown status {', '.join(bad)} (known: {', '.join(STATUSES)})"
+        )
     svc = service(request)
     process = processID[0] if processID and len(processID) == 1 else None
-    jobs = svc.store.list_jobs(who, statuses=status, process_id=process, limit=limit + 1, offset=offset)
+    jobs = svc.store.list_jobs(
+        who, statuses=status, process_id=process, limit=limit + 1, offset=offset
+    )
     if processID and len(processID) > 1:
         jobs = [j for j in jobs if j.process_id in processID]
     base = base_url(request)
     links = [ogc.link(str(request.url), "self")]
     if len(jobs) > limit:
-        links.append(ogc.link(str(request.url.include_query_params(offset=offset + limit, limit=limit)), "next"))
+        links.append(
+            ogc.link(
+                str(request.url.include_query_params(offset=offset + limit, limit=limit)), "next"
+            )
+        )
     return {"jobs": [ogc.status_info(j, base) for j in jobs[:limit]], "links": links}
 
 
@@ -114,7 +139,9 @@ def dismiss(job_id: str, request: Request, who: Annotated[str, Depends(tenant)])
     response_model=dict[str, OutputReference],
     responses=problem_responses(401, 404, 410, 422),
 )
-def job_results(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> dict[str, Any]:
+def job_results(
+    job_id: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> dict[str, Any]:
     """Each output by reference (href and media type) once the job is successful."""
     job = _finished(_job(request, job_id, who))
     return ogc.results(job, base_url(request))
@@ -132,13 +159,17 @@ _OUTPUT_DOC = dict(
 
 
 @router.get("/jobs/{job_id}/outputs/{name}", summary="Download an output", **_OUTPUT_DOC)
-def get_output(job_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]) -> Response:
+def get_output(
+    job_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> Response:
     """The file, or one `Range` of it (206); `ETag`/`If-None-Match` for revalidation."""
     return _output(request, job_id, name, who)
 
 
 @router.head("/jobs/{job_id}/outputs/{name}", summary="Output size and ETag", **_OUTPUT_DOC)
-def head_output(job_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]) -> Response:
+def head_output(
+    job_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> Response:
     """Headers of the GET, without the body."""
     return _output(request, job_id, name, who)
 
@@ -146,7 +177,9 @@ def head_output(job_id: str, name: str, request: Request, who: Annotated[str, De
 def created(request: Request, job: Job) -> JSONResponse:
     """201 with the statusInfo and `Location` of a new job."""
     base = base_url(request)
-    return JSONResponse(ogc.status_info(job, base), status_code=201, headers={"Location": f"{base}/jobs/{job.id}"})
+    return JSONResponse(
+        ogc.status_info(job, base), status_code=201, headers={"Location": f"{base}/jobs/{job.id}"}
+    )
 
 
 def _job(request: Request, job_id: str, who: str) -> Job:
@@ -158,7 +191,10 @@ def _job(request: Request, job_id: str, who: str) -> Job:
 
 def _finished(job: Job) -> Job:
     if job.status in (ACCEPTED, RUNNING):
-        raise Problem("result-not-ready", f"job {job.id} is {job.status} ({job.progress} %); poll /jobs/{job.id}")
+        raise Problem(
+            "result-not-ready",
+            f"job {job.id} is {job.status} ({job.progress} %); poll /jobs/{job.id}",
+        )
     if job.status == FAILED:
         raise Problem("job-failed", job.message or "the job failed")
     if job.status == DISMISSED:
@@ -169,6 +205,11 @@ def _finished(job: Job) -> Job:
 def _output(request: Request, job_id: str, name: str, who: str) -> Response:
     job = _finished(_job(request, job_id, who))
     if name not in job.outputs:
-        raise Problem("no-such-output", f"job {job_id} has no output {name!r} (it has: {', '.join(job.outputs)})")
+        raise Problem(
+            "no-such-output",
+            f"job {job_id} has no output {name!r} (it has: {', '.join(job.outputs)})",
+        )
     svc = service(request)
-    return file_response(request, svc.scheduler.pipeline.output_path(svc.scheduler.job_dir(job_id), name), name)
+    return file_response(
+        request, svc.scheduler.pipeline.output_path(svc.scheduler.job_dir(job_id), name), name
+    )

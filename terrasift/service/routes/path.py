@@ -9,8 +9,8 @@ from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from terrasift.service.auth import tenant
-from terrasift.service.routes.jobs import _finished, _job
 from terrasift.service.context import service
+from terrasift.service.routes.jobs import _finished, _job
 from terrasift.service.schemas import problem_responses
 
 router = APIRouter(tags=["Jobs"])
@@ -22,7 +22,10 @@ _EXAMPLE = {"type": "LineString", "coordinates": [[8.501, 48.751], [8.503, 48.75
     "/jobs/{job_id}/path",
     summary="Pitch and roll profile along a GeoJSON LineString",
     responses={
-        200: {"content": {"application/json": {}, "text/csv": {}}, "description": "distance, x, y, z, pitch and roll"},
+        200: {
+            "content": {"application/json": {}, "text/csv": {}},
+            "description": "distance, x, y, z, pitch and roll",
+        },
         **problem_responses(400, 401, 404),
     },
 )
@@ -30,11 +33,20 @@ async def path_profile(
     job_id: str,
     request: Request,
     who: Annotated[str, Depends(tenant)],
-    line: Annotated[dict[str, Any], Body(description="GeoJSON LineString or a Feature holding one", examples=[_EXAMPLE])],
+    line: Annotated[
+        dict[str, Any],
+        Body(description="GeoJSON LineString or a Feature holding one", examples=[_EXAMPLE]),
+    ],
     crs: Annotated[
-        str | None, Query(description="CRS of the line: omit for WGS 84 lon/lat, `native` for the tile CRS, or e.g. EPSG:32632")
+        str | None,
+        Query(
+            description="CRS of the line: omit for WGS 84 lon/lat, `native` for the tile CRS, or e.g. EPSG:32632"
+        ),
     ] = None,
-    spacing: Annotated[float | None, Query(gt=0, le=10_000, description="metres between samples (default terrain.spacing)")] = None,
+    spacing: Annotated[
+        float | None,
+        Query(gt=0, le=10_000, description="metres between samples (default terrain.spacing)"),
+    ] = None,
     f: Annotated[Literal["json", "csv"], Query(description="response format")] = "json",
 ) -> Response:
     """Samples every `spacing` m along the line: distance, x, y (tile CRS), z, pitch and roll in degrees."""

@@ -34,10 +34,18 @@ def conformance() -> dict[str, Any]:
 def processes(request: Request) -> dict[str, Any]:
     """The one process this service offers, `terrain`."""
     base = base_url(request)
-    return {"processes": [ogc.process_summary(base)], "links": [ogc.link(f"{base}/processes", "self")]}
+    return {
+        "processes": [ogc.process_summary(base)],
+        "links": [ogc.link(f"{base}/processes", "self")],
+    }
 
 
-@router.get("/processes/{process_id}", summary="Process description", tags=["Processes"], responses=problem_responses(404))
+@router.get(
+    "/processes/{process_id}",
+    summary="Process description",
+    tags=["Processes"],
+    responses=problem_responses(404),
+)
 def process_description(process_id: str, request: Request) -> dict[str, Any]:
     """Inputs (files and every parameter, with its schema) and outputs of the process."""
     _check_process(process_id)
@@ -57,7 +65,9 @@ def execute(
     process_id: str,
     request: Request,
     body: ExecuteRequest = Body(...),
-    prefer: str | None = Header(None, description="`respond-async`: the only mode; honoured and echoed"),
+    prefer: str | None = Header(
+        None, description="`respond-async`: the only mode; honoured and echoed"
+    ),
     who: str = Depends(tenant),
 ) -> JSONResponse:
     """Start a job on LAS/LAZ files under the input root; always asynchronous (201 + Location)."""
@@ -66,7 +76,10 @@ def execute(
     inputs = dict(body.inputs)
     files = inputs.pop("files", None)
     if files is None:
-        raise Problem("invalid-request", "inputs.files is required: paths of LAS/LAZ files under the input root")
+        raise Problem(
+            "invalid-request",
+            "inputs.files is required: paths of LAS/LAZ files under the input root",
+        )
     if not isinstance(files, list):
         files = [files]
     params = inputs.pop("params", None) or {}
@@ -85,7 +98,12 @@ def execute(
     return JSONResponse(ogc.status_info(job, base), status_code=201, headers=headers)
 
 
-@router.get("/problems/{slug}", summary="Problem type", tags=["Capabilities"], responses=problem_responses(404))
+@router.get(
+    "/problems/{slug}",
+    summary="Problem type",
+    tags=["Capabilities"],
+    responses=problem_responses(404),
+)
 def problem_type(slug: str) -> dict[str, Any]:
     """What a problem `type` of this service means."""
     ptype = PROBLEM_TYPES.get(slug)
@@ -96,4 +114,6 @@ def problem_type(slug: str) -> dict[str, Any]:
 
 def _check_process(process_id: str) -> None:
     if process_id != ogc.PROCESS_ID:
-        raise Problem("no-such-process", f"no process {process_id!r}; this service offers {ogc.PROCESS_ID!r}")
+        raise Problem(
+            "no-such-process", f"no process {process_id!r}; this service offers {ogc.PROCESS_ID!r}"
+        )

@@ -26,12 +26,20 @@ from terrasift.service.schemas import (
     problem_responses,
 )
 from terrasift.service.store import Survey
-from terrasift.service.submit import check_inputs, create_job, new_id, parse_params, resolve_server_paths
+from terrasift.service.submit import (
+    check_inputs,
+    create_job,
+    new_id,
+    parse_params,
+    resolve_server_paths,
+)
 
 router = APIRouter(tags=["Surveys"])
 
 # The same multipart form as POST /jobs, or JSON naming files under the input root.
-_SURVEY_BODY = multipart_body("one or more `file` fields (LAS/LAZ) and an optional `params` JSON object")
+_SURVEY_BODY = multipart_body(
+    "one or more `file` fields (LAS/LAZ) and an optional `params` JSON object"
+)
 _SURVEY_BODY["content"]["application/json"] = {"schema": SurveyRequest.model_json_schema()}
 
 
@@ -54,7 +62,10 @@ async def create_survey(request: Request, who: Annotated[str, Depends(tenant)]) 
     try:
         if ctype == "multipart/form-data":
             upload = await receive_multipart(
-                request, survey_dir / "inputs", max_bytes=svc.settings.max_upload_bytes, max_files=svc.settings.max_files
+                request,
+                survey_dir / "inputs",
+                max_bytes=svc.settings.max_upload_bytes,
+                max_files=svc.settings.max_files,
             )
             files, raw = upload.files, parse_params(upload.fields.get("params"))
         elif ctype == "application/json":
@@ -65,7 +76,10 @@ async def create_survey(request: Request, who: Annotated[str, Depends(tenant)]) 
             files = await run_in_threadpool(resolve_server_paths, svc.settings, body.files)
             raw = body.params
         else:
-            raise Problem("unsupported-media-type", "send JSON (server paths) or multipart/form-data (uploads)")
+            raise Problem(
+                "unsupported-media-type",
+                "send JSON (server paths) or multipart/form-data (uploads)",
+            )
         survey = await run_in_threadpool(_register, svc, who, survey_id, files, raw)
     except BaseException:
         await run_in_threadpool(shutil.rmtree, survey_dir, True)
@@ -74,8 +88,15 @@ async def create_survey(request: Request, who: Annotated[str, Depends(tenant)]) 
     return JSONResponse(doc, status_code=201, headers={"Location": doc["links"][0]["href"]})
 
 
-@router.get("/surveys/{survey_id}", summary="A survey and its runs", response_model=SurveyInfo, responses=problem_responses(401, 404))
-def get_survey(survey_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> dict[str, Any]:
+@router.get(
+    "/surveys/{survey_id}",
+    summary="A survey and its runs",
+    response_model=SurveyInfo,
+    responses=problem_responses(401, 404),
+)
+def get_survey(
+    survey_id: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> dict[str, Any]:
     """The survey's files, parameters and the jobs it ran."""
     svc = service(request)
     return _survey_doc(svc, _survey(svc, survey_id, who), base_url(request))
@@ -102,12 +123,19 @@ def run_survey(
     files = [Path(f) for f in survey.files]
     missing = [f.name for f in files if not f.is_file()]
     if missing:
-        raise Problem("invalid-input", f"tiles of this survey are gone from the server: {', '.join(missing[:10])}")
-    job = create_job(svc.settings, svc.store, svc.scheduler, who, new_id(), files, params, survey_id=survey.id)
+        raise Problem(
+            "invalid-input",
+            f"tiles of this survey are gone from the server: {', '.join(missing[:10])}",
+        )
+    job = create_job(
+        svc.settings, svc.store, svc.scheduler, who, new_id(), files, params, survey_id=survey.id
+    )
     return created(request, job)
 
 
-def _register(svc: Service, who: str, survey_id: str, files: list[Path], raw: dict[str, Any]) -> Survey:
+def _register(
+    svc: Service, who: str, survey_id: str, files: list[Path], raw: dict[str, Any]
+) -> Survey:
     check_inputs(svc.settings, files, raw, svc.scheduler.pipeline)
     # the client's own parameters are kept: each run validates them again merged with its own
     return svc.store.create_survey(survey_id, who, [str(f) for f in files], dict(raw))
@@ -129,6 +157,8 @@ def _survey_doc(svc: Service, survey: Survey, base: str) -> dict[str, Any]:
         "jobs": [ogc.status_info(j, base) for j in svc.store.survey_jobs(survey.id)],
         "links": [
             ogc.link(f"{base}/surveys/{survey.id}", "self"),
-            ogc.link(f"{base}/surveys/{survey.id}/runs", "runs", title="POST here to run the survey"),
+            ogc.link(
+                f"{base}/surveys/{survey.id}/runs", "runs", title="POST here to run the survey"
+            ),
         ],
     }

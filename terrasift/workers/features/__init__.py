@@ -77,7 +77,9 @@ def load_filter(name: str) -> Filter:
     """A built-in filter by name; unknown names raise ParameterError."""
     if name not in _BUILTIN:
         raise ParameterError(f"unknown filter {name!r} (built-in: {', '.join(_BUILTIN)})")
-    text = resources.files(__package__).joinpath("filters", f"{name}.flt").read_text(encoding="utf-8")
+    text = (
+        resources.files(__package__).joinpath("filters", f"{name}.flt").read_text(encoding="utf-8")
+    )
     return parse_filter(text, name)
 
 
@@ -88,7 +90,9 @@ def resolve_filters(spec: str = "all", user: dict[str, str] | None = None) -> li
     spec = spec.strip()
     if spec == "none":
         return []
-    names = [*_BUILTIN, *parsed] if spec == "all" else [n.strip() for n in spec.split(",") if n.strip()]
+    names = (
+        [*_BUILTIN, *parsed] if spec == "all" else [n.strip() for n in spec.split(",") if n.strip()]
+    )
     return [parsed[n] if n in parsed else load_filter(n) for n in names]
 
 
@@ -98,10 +102,16 @@ def _tile_transform(cats: Categories, transform: Affine, tile_size: float) -> Af
         return transform
     if np.isclose(step * cats.cells_per_tile, tile_size, rtol=1e-6):
         return cats.transform(transform)
-    raise ParameterError(f"transform cell {step} fits neither the tile size {tile_size} nor its DTM cell")
+    raise ParameterError(
+        f"transform cell {step} fits neither the tile size {tile_size} nor its DTM cell"
+    )
 
 
-@register("features", FeatureParams, "Terrain objects (ditch, ridge, hill, pond, road, flat areas) from categories")
+@register(
+    "features",
+    FeatureParams,
+    "Terrain objects (ditch, ridge, hill, pond, road, flat areas) from categories",
+)
 def detect_features(
     categories: Categories,
     filters: list[Filter],
@@ -140,7 +150,9 @@ def detect_features(
             else:
                 labels = _connect.edges(categories, h, v, marks)
             limits = (c.min_length, c.max_length, c.min_width, c.max_width)
-            result.objects += objects_from_labels(labels, flt.name, tt, tile_size, limits, params.simplify_tiles)
+            result.objects += objects_from_labels(
+                labels, flt.name, tt, tile_size, limits, params.simplify_tiles
+            )
         else:
             result.marked[flt.name] = marks
     return result
@@ -157,7 +169,9 @@ def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32
             continue
         sub = labels[box] == lab_id
         rows, cols = sub.any(axis=1), sub.any(axis=0)
-        present, span = (rows.sum(), rows.size) if rows.size >= cols.size else (cols.sum(), cols.size)
+        present, span = (
+            (rows.sum(), rows.size) if rows.size >= cols.size else (cols.sum(), cols.size)
+        )
         keep[lab_id] = (span - present) <= max_error / 100 * span
     return np.where(keep[labels], labels, 0).astype(np.int32)
 
@@ -166,7 +180,9 @@ def _round_mm(xy: NDArray) -> NDArray:
     return np.round(xy, 3)
 
 
-def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: str | None, to_wgs84: bool) -> dict:
+def features_geojson(
+    result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: str | None, to_wgs84: bool
+) -> dict:
     """RFC 7946 FeatureCollection of ``result.objects``: lon/lat WGS 84 when ``to_wgs84``, else native coordinates."""
     project = None
     if to_wgs84:
@@ -174,12 +190,18 @@ def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: 
 
         src = CRS.from_user_input(crs_wkt_or_epsg)
         tr = Transformer.from_crs(src, CRS.from_epsg(4326), always_xy=True)
+
         def project(xy: NDArray) -> NDArray:
             return np.round(np.column_stack(tr.transform(xy[:, 0], xy[:, 1])), 7)  # ~1 cm
+
     feats = []
     for i, f in enumerate(result.objects):
         geom = orient(f.geometry, 1.0) if f.geometry.geom_type == "Polygon" else f.geometry
-        geom = shapely.transform(geom, project) if project is not None else shapely.transform(geom, _round_mm)
+        geom = (
+            shapely.transform(geom, project)
+            if project is not None
+            else shapely.transform(geom, _round_mm)
+        )
         props = {
             "kind": f.kind,
             "length_m": round(f.length_m, 2),
@@ -188,5 +210,7 @@ def features_geojson(result: FeatureResult, crs_wkt_or_epsg: str | int, job_id: 
         }
         if job_id is not None:
             props["job_id"] = job_id
-        feats.append({"type": "Feature", "id": i + 1, "geometry": mapping(geom), "properties": props})
+        feats.append(
+            {"type": "Feature", "id": i + 1, "geometry": mapping(geom), "properties": props}
+        )
     return {"type": "FeatureCollection", "features": feats}

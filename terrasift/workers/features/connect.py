@@ -31,7 +31,9 @@ _QUARTER = np.pi / 4
 _STEPS = ((0, 1, 0.0), (-1, 1, _QUARTER), (-1, 0, 2 * _QUARTER), (-1, -1, 3 * _QUARTER))
 
 
-def _components(shape: tuple[int, int], a: NDArray[np.int64], b: NDArray[np.int64], nodes: NDArray[np.bool_]) -> NDArray[np.int32]:
+def _components(
+    shape: tuple[int, int], a: NDArray[np.int64], b: NDArray[np.int64], nodes: NDArray[np.bool_]
+) -> NDArray[np.int32]:
     """Label image of the components of the graph with edges a–b over ``nodes`` (0 = not a node)."""
     n = shape[0] * shape[1]
     graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n, n))
@@ -44,7 +46,9 @@ def _components(shape: tuple[int, int], a: NDArray[np.int64], b: NDArray[np.int6
     return out.reshape(shape)
 
 
-def _pairs(mask_a: NDArray[np.bool_], mask_b: NDArray[np.bool_], dr: int, dc: int) -> tuple[NDArray, NDArray]:
+def _pairs(
+    mask_a: NDArray[np.bool_], mask_b: NDArray[np.bool_], dr: int, dc: int
+) -> tuple[NDArray, NDArray]:
     """Flat index pairs (t, t + (dr, dc)) where mask_a at t and mask_b at the neighbour."""
     rows, cols = mask_a.shape
     r0, r1 = max(0, -dr), rows - max(0, dr)
@@ -98,7 +102,11 @@ def _angle_diff(a: NDArray, b: NDArray | float) -> NDArray:
 
 
 def edges(
-    cats: Categories, h: NDArray[np.bool_], v: NDArray[np.bool_], marks: NDArray[np.bool_], reach: int = 2
+    cats: Categories,
+    h: NDArray[np.bool_],
+    v: NDArray[np.bool_],
+    marks: NDArray[np.bool_],
+    reach: int = 2,
 ) -> NDArray[np.int32]:
     """The seed's edge-connect: follow edges and inclinations through marked tiles.
 
@@ -117,7 +125,9 @@ def edges(
             ta, tb = axis.ravel()[a], axis.ravel()[b]
             step = (_angle_diff(ta, phi) < _QUARTER - eps) | (_angle_diff(tb, phi) < _QUARTER - eps)
             agree = _angle_diff(ta, tb) <= _QUARTER + eps
-            ok = step & agree  # NaN compares False: tiles without an axis only join via their segment
+            ok = (
+                step & agree
+            )  # NaN compares False: tiles without an axis only join via their segment
             edges_a.append(a[ok])
             edges_b.append(b[ok])
     for mask, (dr, dc) in ((h & marks, (0, 1)), (v & marks, (1, 0))):
@@ -132,7 +142,9 @@ def h_and_v(h: NDArray[np.bool_], v: NDArray[np.bool_]) -> NDArray[np.bool_]:
     return h & v
 
 
-def find_rectangles(marks: NDArray[np.bool_], width: int, height: int, error: float) -> list[tuple[int, int, int, int]]:
+def find_rectangles(
+    marks: NDArray[np.bool_], width: int, height: int, error: float
+) -> list[tuple[int, int, int, int]]:
     """Rectangles (row0, col0, rows, cols) of ``height`` × ``width`` tiles with at most ``error`` % unmarked.
 
     Scanned left to right, top to bottom; the first fit is taken and its area is
@@ -143,7 +155,12 @@ def find_rectangles(marks: NDArray[np.bool_], width: int, height: int, error: fl
         return []
     sat = np.zeros((rows + 1, cols + 1), dtype=np.int64)
     sat[1:, 1:] = marks.astype(np.int64).cumsum(0).cumsum(1)
-    count = sat[height:, width:] - sat[:-height, width:] - sat[height:, :-width] + sat[:-height, :-width]
+    count = (
+        sat[height:, width:]
+        - sat[:-height, width:]
+        - sat[height:, :-width]
+        + sat[:-height, :-width]
+    )
     need = int(np.ceil(width * height * (1 - error / 100.0) - 1e-9))
     ok = count >= need
     found = []

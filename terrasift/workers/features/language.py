@@ -227,7 +227,9 @@ class _Parser:
         lo = hi = None
         if args:
             if len(args) != 2:
-                raise self.error("beginsegment takes no parameters or min and max total length", start)
+                raise self.error(
+                    "beginsegment takes no parameters or min and max total length", start
+                )
             lo, hi = self.ints(args, start, "beginsegment", lo=1)
             if lo > hi:
                 raise self.error(f"beginsegment: min {lo} exceeds max {hi}", start)
@@ -246,7 +248,9 @@ class _Parser:
                 if seg.longest > MAX_SEGMENT_TILES:
                     raise self.error(f"a segment may span at most {MAX_SEGMENT_TILES} tiles", start)
                 if lo is not None and lo > sum(s.max_len for s in subs):
-                    raise self.error("beginsegment minimum exceeds what the subsegments can match", start)
+                    raise self.error(
+                        "beginsegment minimum exceeds what the subsegments can match", start
+                    )
                 return seg
             if rest and key in ("invert", "horizontal", "vertical"):
                 raise self.error(f"{key} takes no parameters", no)
@@ -366,14 +370,21 @@ def format_filter(f: Filter) -> str:
     """The filter as text that parses back to an equal Filter."""
     out: list[str] = []
     for seg in f.segments:
-        head = "beginsegment" if seg.min_total is None else f"beginsegment {seg.min_total} {seg.max_total}"
+        head = (
+            "beginsegment"
+            if seg.min_total is None
+            else f"beginsegment {seg.min_total} {seg.max_total}"
+        )
         out.append(head)
         if seg.invert:
             out.append("  invert")
         if seg.direction != "both":
             out.append(f"  {seg.direction}")
         for sub in seg.subsegments:
-            out.append(f"  beginsubsegment {sub.min_len} {sub.max_len}" + (" exclude" if sub.exclude else ""))
+            out.append(
+                f"  beginsubsegment {sub.min_len} {sub.max_len}"
+                + (" exclude" if sub.exclude else "")
+            )
             if sub.max_errors:
                 out.append(f"    maxerrors {sub.max_errors}")
             for cat in sub.categories:
@@ -389,7 +400,10 @@ def format_filter(f: Filter) -> str:
             out.append("h-and-v")
         elif step == "connect" and f.connect is not None:
             c = f.connect
-            lims = " ".join(str(-1 if v is None else v) for v in (c.min_length, c.max_length, c.min_width, c.max_width))
+            lims = " ".join(
+                str(-1 if v is None else v)
+                for v in (c.min_length, c.max_length, c.min_width, c.max_width)
+            )
             tail = f" {c.max_error:g}" if c.method == "segment" and c.max_error else ""
             out.append(f"connect {c.method} {lims}{tail}")
         elif step == "findrectangle" and f.rectangle is not None:
@@ -429,7 +443,12 @@ def transform_segment(seg: Segment, quarter_turns: int = 0) -> Segment:
         replace(
             sub,
             categories=tuple(
-                replace(c, inclination=c.inclination.map(inc), state=c.state.map(state), orientation=c.orientation.map(ori))
+                replace(
+                    c,
+                    inclination=c.inclination.map(inc),
+                    state=c.state.map(state),
+                    orientation=c.orientation.map(ori),
+                )
                 for c in sub.categories
             ),
         )

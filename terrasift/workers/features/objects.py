@@ -69,7 +69,9 @@ def moment_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
         sxy += (cr * (x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0)).sum() / 24
     if area == 0:
         return 0.0, 0.0
-    cov = np.array([[syy, sxy], [sxy, sxx]]) / area  # signed sums over signed area: orientation-free
+    cov = (
+        np.array([[syy, sxy], [sxy, sxx]]) / area
+    )  # signed sums over signed area: orientation-free
     lam = np.sort(np.linalg.eigvalsh(cov))[::-1]
     return float(4 * np.sqrt(max(lam[0], 0))), float(4 * np.sqrt(max(lam[1], 0)))
 
@@ -109,7 +111,9 @@ def _smoothed(poly: Polygon | MultiPolygon, tile_size: float) -> Polygon | Multi
     return smooth
 
 
-def polygons(labels: NDArray[np.int32], transform: Affine, simplify: float) -> dict[int, Polygon | MultiPolygon]:
+def polygons(
+    labels: NDArray[np.int32], transform: Affine, simplify: float
+) -> dict[int, Polygon | MultiPolygon]:
     """Polygon per label (union of its tiles), corners merged, simplified by ``simplify`` metres."""
     pieces: dict[int, list] = {}
     for geom, value in shapes(labels, mask=labels > 0, transform=transform, connectivity=8):
@@ -133,7 +137,12 @@ def objects_from_labels(
     kind: str,
     transform: Affine,
     tile_size: float,
-    limits: tuple[float | None, float | None, float | None, float | None] = (None, None, None, None),
+    limits: tuple[float | None, float | None, float | None, float | None] = (
+        None,
+        None,
+        None,
+        None,
+    ),
     simplify_tiles: float = 0.5,
 ) -> list[Feature]:
     """Features for every label whose length/width (in tiles) lie within ``limits``."""
@@ -166,7 +175,9 @@ def objects_from_labels(
     return feats
 
 
-def rectangle_features(rects: list[tuple[int, int, int, int]], kind: str, transform: Affine, tile_size: float) -> list[Feature]:
+def rectangle_features(
+    rects: list[tuple[int, int, int, int]], kind: str, transform: Affine, tile_size: float
+) -> list[Feature]:
     """Features for rectangles (row0, col0, rows, cols) on the tile grid."""
     feats = []
     for r, c, h, w in rects:

@@ -19,7 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from terrasift.workers.categories import NODATA, Categories
-from terrasift.workers.features.language import CategorySpec, Filter, Segment, SubSegment, ValueSet, transform_segment
+from terrasift.workers.features.language import (
+    CategorySpec,
+    Filter,
+    Segment,
+    SubSegment,
+    ValueSet,
+    transform_segment,
+)
 
 
 def _lut(vs: ValueSet) -> NDArray[np.bool_]:
@@ -29,9 +36,13 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
     return lut
 
 
-def category_mask(cats: Categories | tuple[NDArray, NDArray, NDArray], spec: CategorySpec) -> NDArray[np.bool_]:
+def category_mask(
+    cats: Categories | tuple[NDArray, NDArray, NDArray], spec: CategorySpec
+) -> NDArray[np.bool_]:
     """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
-    inc, ori, st = (cats.inclination, cats.orientation, cats.state) if isinstance(cats, Categories) else cats
+    inc, ori, st = (
+        (cats.inclination, cats.orientation, cats.state) if isinstance(cats, Categories) else cats
+    )
     m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
     if spec.negate:
         m = ~m
@@ -46,7 +57,9 @@ def class_mask(cats, sub: SubSegment) -> NDArray[np.bool_]:
     return out
 
 
-def search_rows(cats: tuple[NDArray, NDArray, NDArray], seg: Segment, band: int = 512) -> NDArray[np.bool_]:
+def search_rows(
+    cats: tuple[NDArray, NDArray, NDArray], seg: Segment, band: int = 512
+) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
     Rows are independent, so they go through in bands of ``band`` rows to bound
@@ -55,7 +68,9 @@ def search_rows(cats: tuple[NDArray, NDArray, NDArray], seg: Segment, band: int 
     nrows = cats[0].shape[0]
     if nrows <= band:
         return _search_band(cats, seg)
-    return np.concatenate([_search_band(tuple(a[r : r + band] for a in cats), seg) for r in range(0, nrows, band)])
+    return np.concatenate(
+        [_search_band(tuple(a[r : r + band] for a in cats), seg) for r in range(0, nrows, band)]
+    )
 
 
 def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArray[np.bool_]:
@@ -72,8 +87,10 @@ def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArra
         mism.append(cm)
 
     one = np.uint64(1)
-    prefix = [np.ones((nrows, nb), dtype=np.uint64)]  # E_0: the empty match, length 0, at every boundary
-    for sub, cm in zip(subs, mism):
+    prefix = [
+        np.ones((nrows, nb), dtype=np.uint64)
+    ]  # E_0: the empty match, length 0, at every boundary
+    for sub, cm in zip(subs, mism, strict=True):
         prev = prefix[-1]
         cur = np.zeros_like(prev)
         for length in range(sub.min_len, sub.max_len + 1):
@@ -83,7 +100,9 @@ def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArra
             if length >= nb:
                 break
             ok = (cm[:, length:] - cm[:, : nb - length]) <= sub.max_errors
-            cur[:, length:] |= np.where(ok, prev[:, : nb - length] << np.uint64(length), np.uint64(0))
+            cur[:, length:] |= np.where(
+                ok, prev[:, : nb - length] << np.uint64(length), np.uint64(0)
+            )
         prefix.append(cur)
 
     lo = max(1, seg.min_total or 1)

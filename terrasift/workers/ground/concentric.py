@@ -38,10 +38,14 @@ class ConcentricGrid:
     r_inner: float
     r_outer: float
     n_sectors: int
-    radii: NDArray[np.float64] = field(repr=False)  # ring boundaries, radii[0] = r_inner, radii[-1] = r_outer
+    radii: NDArray[np.float64] = field(
+        repr=False
+    )  # ring boundaries, radii[0] = r_inner, radii[-1] = r_outer
 
     @classmethod
-    def build(cls, cx: float, cy: float, r_inner: float, r_outer: float, step_deg: float) -> ConcentricGrid:
+    def build(
+        cls, cx: float, cy: float, r_inner: float, r_outer: float, step_deg: float
+    ) -> ConcentricGrid:
         """Grid with sectors of about ``step_deg`` degrees (rounded so they tile the circle)."""
         if not (0 < r_inner < r_outer):
             raise ValueError("need 0 < r_inner < r_outer")

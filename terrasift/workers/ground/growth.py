@@ -85,7 +85,9 @@ def grow_ground(
     limit = tol + bend
     # Going down, the slope may bend faster: over a crest it turns from rising
     # to falling within one edge, while objects stand above terrain.
-    bend_below = bend if bend_below_deg is None else np.tan(np.radians(max(bend_below_deg, bend_deg))) * dist
+    bend_below = (
+        bend if bend_below_deg is None else np.tan(np.radians(max(bend_below_deg, bend_deg))) * dist
+    )
     limit_below = (tol if tol_below is None else tol_below) + bend_below
     all_edges = (own, nbr, dz)
     # Edges that may ever carry growth: not a rise steeper than max_rise.
@@ -127,10 +129,13 @@ def _without_peaks(
         # Groups: grown nodes joined by edges level within the margin.
         level = grown[own] & grown[nbr] & (np.abs(dz) <= margin)
         _, group = connected_components(
-            coo_matrix((np.ones(np.count_nonzero(level)), (own[level], nbr[level])), shape=(n, n)), directed=False
+            coo_matrix((np.ones(np.count_nonzero(level)), (own[level], nbr[level])), shape=(n, n)),
+            directed=False,
         )
         # A group is held by a ground neighbour outside it that is not lower by more than the margin.
-        holds = ground[own] & ground[nbr] & (dz >= -margin) & ((group[own] != group[nbr]) | ~grown[nbr])
+        holds = (
+            ground[own] & ground[nbr] & (dz >= -margin) & ((group[own] != group[nbr]) | ~grown[nbr])
+        )
         held = np.zeros(n, dtype=bool)
         held[group[own[holds]]] = True
         small = np.bincount(group, minlength=n) <= max_nodes

@@ -79,7 +79,9 @@ def isolated_low_points(
         # In key order, each offset's queries rise monotonically: searchsorted
         # then starts each search where the last ended.
         cand = cand[np.argsort(key[cand])]
-        below, level, above = _neighbourhood_counts(local[cand], cell[cand], grid, sorted_key, cell_start, span, params.depth)
+        below, level, above = _neighbourhood_counts(
+            local[cand], cell[cand], grid, sorted_key, cell_start, span, params.depth
+        )
         # The point itself sits in its own band; points already dropped still
         # count (they are few, and lie below the surface anyway).
         others = below + level + above - 1

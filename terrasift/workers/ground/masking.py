@@ -46,7 +46,14 @@ def extremes_per_cell(xyz: NDArray[np.float64], cell: float) -> NDArray[np.int64
 
 @numba.njit(cache=True)
 def _extremes(
-    x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64], x0: float, y0: float, cell: float, nx: int, ny: int
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    z: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
 ) -> NDArray[np.int64]:
     """Increasing indices of the points whose z is the min or max of their cell
     (NaN propagating into a cell's min and max as with ``np.minimum.at``)."""
@@ -145,15 +152,21 @@ def mask_points(
     return verts[np.unique(s[small])]
 
 
-def _worst_per_triangle(ti: NDArray[np.int64], score: NDArray[np.float64], n_tri: int, k: int) -> NDArray[np.int64]:
+def _worst_per_triangle(
+    ti: NDArray[np.int64], score: NDArray[np.float64], n_tri: int, k: int
+) -> NDArray[np.int64]:
     """Indices of the up-to-``k`` highest positive scores per triangle: the
     best of every triangle (by triangle), then the second best, and so on; ties
     go to the smaller index. One compiled pass keeping each triangle's top ``k``."""
-    return _top_k_per_group(np.asarray(ti, dtype=np.int64), np.asarray(score, dtype=np.float64), n_tri, k)
+    return _top_k_per_group(
+        np.asarray(ti, dtype=np.int64), np.asarray(score, dtype=np.float64), n_tri, k
+    )
 
 
 @numba.njit(cache=True)
-def _top_k_per_group(group: NDArray[np.int64], score: NDArray[np.float64], n_groups: int, k: int) -> NDArray[np.int64]:
+def _top_k_per_group(
+    group: NDArray[np.int64], score: NDArray[np.float64], n_groups: int, k: int
+) -> NDArray[np.int64]:
     """Rank by rank, in group order, the indices of the ``k`` largest positive
     scores of each group (equal scores: smaller index first)."""
     val = np.empty((n_groups, k))

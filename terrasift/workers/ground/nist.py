@@ -315,10 +315,15 @@ def _mask(xyz: NDArray[np.float64], params: NistParams, spacing: float) -> NDArr
     pool_cell = params.mask_pool_cell or max(2.0 * spacing, 1.0)
     edge = params.mask_edge or 2.5 * spacing
     pool = extremes_per_cell(xyz, pool_cell)
-    return xyz[pool[mask_points(np.take(xyz, pool, axis=0), params.mask_fraction, edge, params.mask_rule)], :2]
+    return xyz[
+        pool[mask_points(np.take(xyz, pool, axis=0), params.mask_fraction, edge, params.mask_rule)],
+        :2,
+    ]
 
 
-def _screen_points(xyz: NDArray[np.float64], params: NistParams, spacing: float) -> NDArray[np.int64]:
+def _screen_points(
+    xyz: NDArray[np.float64], params: NistParams, spacing: float
+) -> NDArray[np.int64]:
     """Screening of a point file (§6.1 "screen the mowed file"), in grid form.
 
     A full TIN of millions of mowed points costs more than the whole stage;
@@ -366,13 +371,19 @@ def _grids(
     r_outer = float(r.max()) * (1 + 1e-9) + 1e-6
     r_inner = min(params.ring_inner, 0.5 * r_outer)
     return [
-        ConcentricGrid.build(origin[0], origin[1], r_inner, r_outer, params.ring_step_deg * c / cells[2])
+        ConcentricGrid.build(
+            origin[0], origin[1], r_inner, r_outer, params.ring_step_deg * c / cells[2]
+        )
         for c in cells
     ]
 
 
 def _surface(
-    xyz: NDArray[np.float64], sr: SelectReject, params: NistParams, origin_xy: NDArray, scale: float = 1.0
+    xyz: NDArray[np.float64],
+    sr: SelectReject,
+    params: NistParams,
+    origin_xy: NDArray,
+    scale: float = 1.0,
 ) -> Tin:
     """Mesh the candidates of ``sr`` and screen them until stable (tolerance × ``scale``)."""
     cand = xyz[sr.candidates]
@@ -381,8 +392,12 @@ def _surface(
     slopes = None
     if sr.plane is not None:
         b = sr.grid.index(cand[:, 0], cand[:, 1])
-        slopes = _vote_slopes(np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]), params.screen_slope_cap)
-    keep, tin = screen(cand, params.screen_tol * scale, params.screen_low_tol * scale, slopes=slopes)
+        slopes = _vote_slopes(
+            np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]), params.screen_slope_cap
+        )
+    keep, tin = screen(
+        cand, params.screen_tol * scale, params.screen_low_tol * scale, slopes=slopes
+    )
     if tin is not None:
         return tin
     if keep.size < 3:
@@ -413,7 +428,9 @@ def _cell_of(g: Grid | ConcentricGrid) -> float:
     return float(np.median(g.cell)) if isinstance(g, ConcentricGrid) else g.cell
 
 
-def _mow(tin: Tin, xyz: NDArray[np.float64], tol: float, cell: float, params: NistParams) -> NDArray[np.int64]:
+def _mow(
+    tin: Tin, xyz: NDArray[np.float64], tol: float, cell: float, params: NistParams
+) -> NDArray[np.int64]:
     """Indices of the points that survive mowing against ``tin``.
 
     The tolerance is ``tol`` plus ``mow_slope`` × facet slope × bin size: a
@@ -446,7 +463,9 @@ def classify_ground(
         return np.zeros(n, dtype=bool)
 
 
-def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None) -> NDArray[np.bool_]:
+def _classify(
+    xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None
+) -> NDArray[np.bool_]:
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
     # Anchored origin: bins line up between neighbouring blocks.
@@ -457,7 +476,9 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     # np.take: several times faster than fancy indexing of rows (here and below), same values.
     local = np.take(xyz[:, :3], order, axis=0)
     local[:, :2] -= shift
-    origin = None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
+    origin = (
+        None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
+    )
     spacing = point_spacing(local[:, :2])
     g1, g2, g3 = _grids(local, params, spacing, origin)
     # Screening tolerances grow with the bin size of a pass: with vertices
@@ -468,7 +489,9 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
 
     # Pass 1: mask, bin, mesh/screen; mow the original points.
     mask1 = _mask(local, params, spacing) if params.mask else none
-    tin1 = _surface(local, select_reject(local, params, g1, mask_xy=mask1), params, centre, scales[0])
+    tin1 = _surface(
+        local, select_reject(local, params, g1, mask_xy=mask1), params, centre, scales[0]
+    )
     mowed = _mow(tin1, local, params.mow_tol_1, _cell_of(g1), params)
 
     # Pass 2: screen the mowed points, mask them, bin, mesh/screen; mow the originals again.
@@ -477,7 +500,9 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     if params.mask:
         mowed_pts = mowed_pts[_screen_points(mowed_pts, params, spacing)]
         mask2 = _mask(mowed_pts, params, spacing)
-    tin2 = _surface(mowed_pts, select_reject(mowed_pts, params, g2, mask_xy=mask2), params, centre, scales[1])
+    tin2 = _surface(
+        mowed_pts, select_reject(mowed_pts, params, g2, mask_xy=mask2), params, centre, scales[1]
+    )
     mowed = _mow(tin2, local, params.mow_tol_2, _cell_of(g2), params)
 
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
@@ -486,8 +511,12 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     # Repeats of mow → bin → mesh/screen at the final cell size let the
     # surface climb back onto convex breaks that the coarser passes cut.
     for _ in range(params.repeats):
-        mowed_pts = np.take(local, _mow(tin3, local, params.mow_tol_2, _cell_of(g3), params), axis=0)
-        tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
+        mowed_pts = np.take(
+            local, _mow(tin3, local, params.mow_tol_2, _cell_of(g3), params), axis=0
+        )
+        tin3 = _surface(
+            mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre
+        )
     raised = None
     if params.raised_step > 0:
         tin3, raised = _without_raised(tin3, params)
@@ -495,7 +524,10 @@ def _classify(xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArr
     # are further apart: on sparse data the label tolerances grow with the cell.
     widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
     params = params.model_copy(
-        update={"ground_tol": widen * params.ground_tol, "ground_tol_below": widen * params.ground_tol_below}
+        update={
+            "ground_tol": widen * params.ground_tol,
+            "ground_tol_below": widen * params.ground_tol_below,
+        }
     )
     if params.grow:
         tin3 = _grown(local, tin3, g3, params, centre, raised)
@@ -521,9 +553,13 @@ def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np
     return _band(tin, xyz, params)[0]
 
 
-def _band(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+def _band(
+    tin: Tin, xyz: NDArray[np.float64], params: NistParams
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Points in the ground band of ``tin`` (see ``_label``), and points above it."""
-    code = tin.band(xyz, params.ground_tol, params.ground_tol_below, params.ground_slope, params.slope_cap)
+    code = tin.band(
+        xyz, params.ground_tol, params.ground_tol_below, params.ground_slope, params.slope_cap
+    )
     return code == IN_BAND, code == ABOVE
 
 

@@ -193,7 +193,9 @@ def _lowest_per_cell(local: NDArray[np.float64], cell: float) -> NDArray[np.int6
 # --------------------------------------------------------------------- seeds
 
 
-def _seeds(local: NDArray[np.float64], params: PtdParams) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+def _seeds(
+    local: NDArray[np.float64], params: PtdParams
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Lowest point per cell of ``local`` (the candidates: lowest point per
     ``min_spacing`` cell), repeated after removing isolated low outliers.
 
@@ -385,7 +387,9 @@ class _Tin:
         """Perpendicular distance of each point to the plane of its facet ``s``."""
         return np.abs(np.einsum("ij,ij->i", pts, self.unit[s]) - self.offset[s])
 
-    def nearest_vertex(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    def nearest_vertex(
+        self, s: NDArray[np.int64], pts: NDArray[np.float64]
+    ) -> tuple[NDArray, NDArray]:
         """Distance to the nearest vertex of facet ``s`` and that vertex, per point."""
         vs = self.verts[self.simplices[s]]  # (m, 3, 3)
         d2 = ((vs - pts[:, None, :]) ** 2).sum(axis=2)
@@ -572,7 +576,9 @@ def _islands(tin: _Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]
     is_step = (np.abs(dz) >= step) & (np.abs(dz) >= np.tan(np.radians(slope)) * h)
     to_frame = (e < nf).any(axis=1)
     gentle = ~is_step & ~to_frame
-    g = coo_matrix((np.ones(np.count_nonzero(gentle)), (e[gentle, 0], e[gentle, 1])), shape=(nv, nv))
+    g = coo_matrix(
+        (np.ones(np.count_nonzero(gentle)), (e[gentle, 0], e[gentle, 1])), shape=(nv, nv)
+    )
     ncomp, comp = connected_components(g, directed=False)
     size = np.bincount(comp[nf:], minlength=ncomp)
     fixed = np.zeros(ncomp, dtype=bool)

@@ -91,7 +91,11 @@ def raised_segments(
 
 
 def _lift(
-    xyz: NDArray[np.float64], seg: NDArray[np.int64], n_seg: int, s: NDArray[np.int64], foot: NDArray[np.int64]
+    xyz: NDArray[np.float64],
+    seg: NDArray[np.int64],
+    n_seg: int,
+    s: NDArray[np.int64],
+    foot: NDArray[np.int64],
 ) -> NDArray[np.float64]:
     """Mean height of each segment's vertices above the least-squares plane through
     the feet of its steps (pairs ``s``: segment, ``foot``: vertex beyond a step);
@@ -108,12 +112,17 @@ def _lift(
         return np.bincount(ss, a, n_seg)
 
     cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
-    m = np.stack([np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)], -2)
+    m = np.stack(
+        [np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)],
+        -2,
+    )
     r = np.stack([b(z), b(u * z), b(v * z)], -1)
     coef = np.zeros((n_seg, 3))
     coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
     ok = (cnt >= 3) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
     if ok.any():
         coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
-    plane = coef[seg, 0] + coef[seg, 1] * (xyz[:, 0] - cx[seg]) + coef[seg, 2] * (xyz[:, 1] - cy[seg])
+    plane = (
+        coef[seg, 0] + coef[seg, 1] * (xyz[:, 0] - cx[seg]) + coef[seg, 2] * (xyz[:, 1] - cy[seg])
+    )
     return np.bincount(seg, xyz[:, 2] - plane, n_seg) / size

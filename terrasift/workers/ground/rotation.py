@@ -152,7 +152,11 @@ class RotatedResult:
     unrotated: int = 0
 
 
-@register("ground.steep", SteepParams, "per-block steepness test: share of steep facets of the lowest-point TIN")
+@register(
+    "ground.steep",
+    SteepParams,
+    "per-block steepness test: share of steep facets of the lowest-point TIN",
+)
 def steepness(xyz: NDArray[np.float64], params: SteepParams) -> SteepTest:
     """Share of facets steeper than ``facet_angle`` in the TIN of the lowest
     point of every ``cell``; a few sorts and one small Delaunay."""
@@ -207,7 +211,9 @@ def _steep_facets(pts: NDArray[np.float64], params: SteepParams) -> tuple[NDArra
     # collinear lowest points, as along cell borders on rolling ground) tilts
     # its normal by any small height difference across it; it counts as steep
     # only when one of its sides is.
-    thin = np.abs(normal[good, 2]) / edge[good] < params.thin_facet * params.cell  # |normal_z| = 2 * plan area
+    thin = (
+        np.abs(normal[good, 2]) / edge[good] < params.thin_facet * params.cell
+    )  # |normal_z| = 2 * plan area
     if thin.any():
         q = p[good[thin]]
         d = q[:, [1, 2, 0]] - q
@@ -225,7 +231,11 @@ def _supported(cloud: NDArray[np.float64], v: NDArray[np.float64], params: Steep
     a, b = np.searchsorted(cloud[:, 0], [v[0] - r, v[0] + r])
     c = cloud[a:b]
     dz = c[:, 2] - v[2]
-    near = (np.hypot(c[:, 0] - v[0], c[:, 1] - v[1]) <= r) & (np.abs(dz) <= params.support_gap) & (dz != 0)
+    near = (
+        (np.hypot(c[:, 0] - v[0], c[:, 1] - v[1]) <= r)
+        & (np.abs(dz) <= params.support_gap)
+        & (dz != 0)
+    )
     return int(np.count_nonzero(near)) >= params.support
 
 
@@ -244,7 +254,9 @@ def can_seed(stage: Stage) -> bool:
     return "seed_mask" in inspect.signature(stage.run).parameters
 
 
-def bind_ground(stage: Stage, params: StageParams, **kwargs: Any) -> tuple[GroundFn, SeededFn | None]:
+def bind_ground(
+    stage: Stage, params: StageParams, **kwargs: Any
+) -> tuple[GroundFn, SeededFn | None]:
     """The ground stage bound to ``params`` (and ``kwargs``, e.g. ``sensor_origin``)
     for ``classify_rotated``: the plain run and, when the stage can seed
     (``can_seed``), the run seeded with the labels found so far; else None."""
@@ -261,7 +273,11 @@ def bind_ground(stage: Stage, params: StageParams, **kwargs: Any) -> tuple[Groun
     return ground, seeded
 
 
-@register("ground.rotation", RotationParams, "ground on the block and on copies tipped toward 8 directions, OR'ed")
+@register(
+    "ground.rotation",
+    RotationParams,
+    "ground on the block and on copies tipped toward 8 directions, OR'ed",
+)
 def classify_rotated(
     xyz: NDArray[np.float64],
     ground: GroundFn,
@@ -295,7 +311,11 @@ def classify_rotated(
     near = None
     work = slice(None)
     if (params.max_lift is not None or params.steep_reach is not None) and base.any():
-        wide = None if params.steep_reach is None or params.context is None else params.steep_reach + params.context
+        wide = (
+            None
+            if params.steep_reach is None or params.context is None
+            else params.steep_reach + params.context
+        )
         near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
         if seen is not None:
             work = np.flatnonzero(seen)
@@ -310,7 +330,9 @@ def classify_rotated(
         if isinstance(work, slice) or work.size >= 3:
             part = turned[work]
             labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
-        margin = height * np.sin(np.radians(angle)) if params.edge_margin is None else params.edge_margin
+        margin = (
+            height * np.sin(np.radians(angle)) if params.edge_margin is None else params.edge_margin
+        )
         if margin > 0 and labels.any():
             xy = turned[:, :2]
             inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)

@@ -104,7 +104,9 @@ def _dilate(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
 
 
 @numba.njit(cache=True)
-def _top_of_ground(cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int) -> NDArray[np.float64]:
+def _top_of_ground(
+    cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int
+) -> NDArray[np.float64]:
     """Highest z of the ground points of each cell (-inf when none; NaN propagates as in ``np.maximum.at``)."""
     top = np.full(size, -np.inf)
     for i in range(cell.size):
@@ -118,7 +120,11 @@ def _top_of_ground(cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDAr
 
 @numba.njit(cache=True)
 def _under_top(
-    todo: NDArray[np.bool_], z: NDArray[np.float64], top: NDArray[np.float64], cell: NDArray[np.int64], tol: float
+    todo: NDArray[np.bool_],
+    z: NDArray[np.float64],
+    top: NDArray[np.float64],
+    cell: NDArray[np.int64],
+    tol: float,
 ) -> NDArray[np.int64]:
     """Indices of the ``todo`` points with ``z <= top[cell] + tol``."""
     out = np.empty(cell.size, dtype=np.int64)
@@ -131,7 +137,9 @@ def _under_top(
 
 
 @numba.njit(cache=True)
-def _flagged_in(points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArray[np.int64]) -> NDArray[np.int64]:
+def _flagged_in(
+    points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArray[np.int64]
+) -> NDArray[np.int64]:
     """Indices of the flagged ``points`` lying in flagged ``cells``."""
     out = np.empty(cell.size, dtype=np.int64)
     m = 0
@@ -144,7 +152,10 @@ def _flagged_in(points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArr
 
 @numba.njit(cache=True)
 def _still_todo(
-    may: NDArray[np.bool_], ground: NDArray[np.bool_], near: NDArray[np.bool_], cell: NDArray[np.int64]
+    may: NDArray[np.bool_],
+    ground: NDArray[np.bool_],
+    near: NDArray[np.bool_],
+    cell: NDArray[np.int64],
 ) -> NDArray[np.bool_]:
     """``may & ~ground & near[cell]``."""
     out = np.empty(cell.size, dtype=np.bool_)

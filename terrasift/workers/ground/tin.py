@@ -55,7 +55,9 @@ def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Del
             lead[1:] = (xy[o[1:]] != xy[o[:-1]]).any(axis=1)
             keep = np.sort(o[lead])
             s = _startin(xy[keep]) if keep.size >= 3 else None
-            mesh = None if s is None else Mesh.from_simplices(keep.astype(np.int32)[s], n, keep.size)
+            mesh = (
+                None if s is None else Mesh.from_simplices(keep.astype(np.int32)[s], n, keep.size)
+            )
         if mesh is not None:
             return mesh
     return Delaunay(xy)
@@ -68,7 +70,9 @@ def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
     order = _insertion_order(xy)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
-    dt.insert(np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox")
+    dt.insert(
+        np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox"
+    )
     if dt.number_of_vertices() != n:
         return None
     s = np.asarray(dt.triangles)
@@ -129,23 +133,37 @@ class Tin:
     """Delaunay TIN through ``xyz``, linear inside the hull, nearest corner outside it."""
 
     def __init__(
-        self, xyz: NDArray[np.float64], origin: NDArray[np.float64] | None = None, *, coincident: bool = False
+        self,
+        xyz: NDArray[np.float64],
+        origin: NDArray[np.float64] | None = None,
+        *,
+        coincident: bool = False,
     ):
         """``coincident``: points may share a position (see ``delaunay``)."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.shape[0] < 3:
             raise ValueError("a TIN needs at least three points")
-        self.origin = xyz[:, :2].mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+        self.origin = (
+            xyz[:, :2].mean(axis=0) if origin is None else np.asarray(origin, dtype=np.float64)
+        )
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
-        self.tri = delaunay(self.xy, coincident=coincident)  # QhullError (collinear input) propagates to the caller
+        self.tri = delaunay(
+            self.xy, coincident=coincident
+        )  # QhullError (collinear input) propagates to the caller
         self._slopes: NDArray[np.float64] | None = None
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
         self._zt: NDArray[np.float64] | None = None
 
     @classmethod
-    def _from_mesh(cls, xy: NDArray[np.float64], z: NDArray[np.float64], origin: NDArray[np.float64], mesh: Mesh) -> Tin:
+    def _from_mesh(
+        cls,
+        xy: NDArray[np.float64],
+        z: NDArray[np.float64],
+        origin: NDArray[np.float64],
+        mesh: Mesh,
+    ) -> Tin:
         tin = cls.__new__(cls)
         tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
         tin._slopes = tin._trans = tin._guess = tin._zt = None
@@ -206,7 +224,9 @@ class Tin:
 
     def _rebuilt(self, keepv: NDArray[np.bool_]) -> Tin:
         """A fresh TIN of the vertices in ``keepv`` (the fallback of ``without``)."""
-        return Tin(np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]]), origin=self.origin)
+        return Tin(
+            np.column_stack([self.xy[keepv] + self.origin, self.z[keepv]]), origin=self.origin
+        )
 
     def neighbours(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """CSR adjacency (indptr, indices) of TIN vertices."""
@@ -234,7 +254,9 @@ class Tin:
             raster[iy, ix] = np.arange(simp.shape[0])
             empty = raster < 0
             if empty.any():
-                idx = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
+                idx = ndimage.distance_transform_edt(
+                    empty, return_distances=False, return_indices=True
+                )
                 raster = raster[idx[0], idx[1]]
             self._guess = (float(lo[0]), float(lo[1]), h, nx, ny, raster.ravel())
         return self._guess
@@ -274,7 +296,9 @@ class Tin:
         x0, y0, h, nx, ny, raster = self._start_raster()
         return x0, y0, h, nx, ny, raster, self._transform(), self._nbr()
 
-    def _located(self, q: NDArray[np.float64], mode: int, want_slope: bool = False) -> tuple[NDArray, ...]:
+    def _located(
+        self, q: NDArray[np.float64], mode: int, want_slope: bool = False
+    ) -> tuple[NDArray, ...]:
         """One compiled pass over the local points ``q`` (see ``_surface_kernel``):
         triangles and the first two barycentric coordinates (``_LOCATE``), or
         triangles, heights and facet slopes (if ``want_slope``)."""
@@ -296,7 +320,12 @@ class Tin:
         return t, z, sl
 
     def band(
-        self, xyz: NDArray[np.float64], up: float, down: float, gain: float = 0.0, cap: float = np.inf
+        self,
+        xyz: NDArray[np.float64],
+        up: float,
+        down: float,
+        gain: float = 0.0,
+        cap: float = np.inf,
     ) -> NDArray[np.int8]:
         """Where each point of ``xyz`` (absolute coordinates) lies against the surface:
         ``ABOVE`` more than ``up`` over it, ``IN_BAND`` down to ``down`` under it,
@@ -379,7 +408,9 @@ def _bits(v: float) -> np.uint64:
 
 
 @numba.njit(cache=True, inline="always")
-def _walk_one(qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: NDArray) -> tuple[int, float, float]:
+def _walk_one(
+    qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: NDArray
+) -> tuple[int, float, float]:
     """Walk one query from triangle ``tt`` across the edge facing it until it
     is inside a triangle (returned) or leaves the hull (-(exit triangle + 1)),
     with its first two coordinates in the last triangle.
@@ -411,9 +442,7 @@ def _walk_one(qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: ND
                     if v > best:
                         best = v
                         j = k
-        elif np.isnan(c2):
-            j = 0
-        elif c0 <= c1 and c0 <= c2:
+        elif np.isnan(c2) or c0 <= c1 and c0 <= c2:
             j = 0
         elif c1 <= c2:
             j = 1
@@ -427,7 +456,9 @@ def _walk_one(qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: ND
 
 
 @numba.njit(cache=True, inline="always")
-def _start(qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny: int, raster: NDArray) -> int:
+def _start(
+    qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny: int, raster: NDArray
+) -> int:
     """The start triangle of a query: its cell of the raster of ``Tin._start_raster``."""
     ix = min(max(int((qx - x0) / cell), 0), nx - 1)
     iy = min(max(int((qy - y0) / cell), 0), ny - 1)
@@ -436,7 +467,15 @@ def _start(qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny:
 
 @numba.njit(cache=True, inline="always")
 def _height(
-    tt: int, c0: float, c1: float, qx: float, qy: float, zt: NDArray, xy: NDArray, simplices: NDArray, nearest: bool
+    tt: int,
+    c0: float,
+    c1: float,
+    qx: float,
+    qy: float,
+    zt: NDArray,
+    xy: NDArray,
+    simplices: NDArray,
+    nearest: bool,
 ) -> float:
     """Height at a located query: the corner heights ``zt`` of its triangle
     interpolated, or outside the hull (``tt`` < 0) with ``nearest`` the height
@@ -720,7 +759,9 @@ class Mesh:
 
 
 @numba.njit(cache=True, nogil=True)
-def _adjacency(simplices: NDArray, neighbors: NDArray, n: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+def _adjacency(
+    simplices: NDArray, neighbors: NDArray, n: int
+) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
     """CSR adjacency (indptr, indices) of the vertices of a mesh, each row in
     ascending order, as scipy's ``vertex_neighbor_vertices``: every undirected
     edge taken once (from the lower triangle id, or the hull), counted, then
