@@ -391,6 +391,7 @@ def write_report_and_item(
             {
                 "marked": sum(m["marked"] for m in mixed),
                 "unclassified": sum(m["unclassified"] for m in mixed),
+                "geometry": _scan_geometry(mixed),
             }
             if mixed
             else "not run: no sensor_origin given"
@@ -507,3 +508,19 @@ def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[st
         "links": [],
         "assets": assets,
     }
+
+
+def _scan_geometry(mixed: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per scan position: the median over blocks of each measured or derived value."""
+    per: dict[str, list[dict[str, Any]]] = {}
+    for m in mixed:
+        for g in m.get("geometry", []):
+            per.setdefault(str(g["scan"]), []).append(g)
+    out: dict[str, dict[str, Any]] = {}
+    for scan, gs in sorted(per.items()):
+        flat = [{**g, **g.get("measured", {})} for g in gs]
+        keys = [k for k, v in flat[0].items() if isinstance(v, (int, float)) and k != "scan"]
+        out[scan] = {"blocks": len(gs)}
+        out[scan].update({k: float(np.median([f.get(k, np.nan) for f in flat])) for k in keys})
+        out[scan]["how"] = gs[0].get("measured", {}).get("how", "stated parameters")
+    return out

@@ -96,6 +96,7 @@ def classify_block(
             "marked": int(mixed.marked[core].sum()),
             "unclassified": int(mixed.unclassified[core].sum()),
             "loss_rate": float(mixed.unclassified[core].mean()) if core.any() else 0.0,
+            "geometry": mixed.geometry,
         }
     act = np.flatnonzero(active)
     sub = xyz[act]

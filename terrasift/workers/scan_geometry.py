@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 MAX_SAMPLE = 150_000  # points used for the neighbour statistics (a contiguous azimuth sector)
+REGULAR = 0.5  # share of neighbour spacings within 25 % of the step for a scan grid
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,7 @@ class ScanGeometry:
 
     def to_dict(self) -> dict[str, object]:
         d = asdict(self)
+        d["step"] = self.step
         for k, v in d.items():
             if isinstance(v, float):
                 d[k] = float(f"{v:.6g}")
@@ -107,7 +109,11 @@ def measure_scan_geometry(
     if las_scale > 0:
         ok = las_scale / np.sqrt(12.0) / r < 0.1 * min(sa, se)
         if np.count_nonzero(ok) >= 50:
-            sa, se = _steps(az[ok], el[ok])
+            sa2, se2 = _steps(az[ok], el[ok])
+            if np.isfinite(sa2) and np.isfinite(se2):
+                sa, se = sa2, se2
+        else:
+            ok = far
     else:
         ok = np.ones(r.size, dtype=bool)
     how["step"] = (
@@ -115,16 +121,21 @@ def measure_scan_geometry(
         f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step"
     )
 
-    sigma = _range_sigma(az[ok], el[ok], r[ok], sa, se)
+    sigma = _range_sigma(az[ok], el[ok], r[ok], sa, se)  # NaN when no line shows
     q2 = las_scale**2 / 12.0
-    noise = float(np.sqrt(max(sigma**2 - q2, 0.0)))
+    noise = float(np.sqrt(max(sigma**2 - q2, 0.0))) if np.isfinite(sigma) else float("nan")
     how["range_noise"] = (
         "robust sd of range residuals against the line through the two azimuth neighbours, "
         "LAS quantisation (scale²/12) removed"
     )
 
-    if footprint is None:
-        steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, max(6.0 * sigma, 0.03), max_gap)
+    if footprint is not None:
+        fp = float(footprint)
+        steps = fp / np.degrees(sa)
+        how["footprint"] = "stated"
+    else:
+        jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
+        steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, jump, max_gap)
         if np.isfinite(steps):
             how["footprint"] = (
                 f"mean ramp of blended returns at range edges closer than {max_gap:g} m, in steps"
@@ -134,10 +145,6 @@ def measure_scan_geometry(
             how["footprint"] = "no mixing edge measured: one step assumed"
         steps = max(steps, 1.0)
         fp = steps * np.degrees(sa)
-    else:
-        fp = float(footprint)
-        steps = fp / np.degrees(sa)
-        how["footprint"] = "stated"
     return ScanGeometry(
         step_az=float(np.degrees(sa)),
         step_el=float(np.degrees(se)),
@@ -209,11 +216,19 @@ def _steps(az, el) -> tuple[float, float]:
     sa, se = sa[np.isfinite(sa) & (sa > 0)], se[np.isfinite(se) & (se > 0)]
     if sa.size < 10 or se.size < 10:
         return np.nan, np.nan
-    return float(np.median(sa)), float(np.median(se))
+    ma, me = float(np.median(sa)), float(np.median(se))
+    # Beams on scan lines: most spacings sit at the step. Scattered points (no
+    # scanner grid, e.g. merged or resampled clouds) spread widely: no step.
+    regular = min(np.mean(np.abs(sa / ma - 1) < 0.25), np.mean(np.abs(se / me - 1) < 0.25))
+    if regular < REGULAR:
+        return np.nan, np.nan
+    return ma, me
 
 
 def _range_sigma(az, el, r, sa, se) -> float:
     """Robust sd of range about the line through the azimuth neighbours either side."""
+    if az.size < 20:
+        return float("nan")
     j, da, de = _neighbours(az, el, k=8)
     same_line = np.abs(de) < 0.25 * se
     left = np.where(same_line & (da < 0) & (da > -1.6 * sa), -da, np.inf)
