@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from terrasift.errors import FilterSyntaxError, ParameterError
-from terrasift.params import (
+from terrasift.jobs.params import (
     DEFAULT_BUFFER,
     effective_stage_params,
     grid_alignment,

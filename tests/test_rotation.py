@@ -252,7 +252,7 @@ def test_bind_ground_seeds_only_stages_that_take_a_seed_mask():
 
 
 def test_rotation_preset_follows_the_ground_method():
-    from terrasift.params import stage_params
+    from terrasift.jobs.params import stage_params
 
     assert stage_params({}, "ground.rotation", "ground.ptd") == RotationParams()
     nist = stage_params({}, "ground.rotation", "ground.nist")
@@ -293,7 +293,7 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
 def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
     # Tipped by 30° only, the overhang stays steeper than ground.nist follows;
     # the rerun conservative unrotated run drops terrain the default run keeps.
-    from terrasift.params import stage_params
+    from terrasift.jobs.params import stage_params
     from terrasift.workers.ground.rotation import bind_ground
     from terrasift.workers.registry import get_stage
 

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
-from terrasift.params import stage_params
+from terrasift.jobs.params import stage_params
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers import dem
 from terrasift.workers.bins import Grid
@@ -303,7 +303,7 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
 
     Skips the work when the block's result already exists (resumed jobs).
     """
-    from terrasift.pipeline import check_cancel, load_json  # local: pipeline imports this module
+    from terrasift.jobs import check_cancel, load_json  # local: pipeline imports this module
 
     job_dir_p = Path(job_dir)
     out = block_result_path(job_dir_p, name)

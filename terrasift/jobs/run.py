@@ -24,10 +24,9 @@ import numpy as np
 import pyproj
 
 from terrasift.errors import InputError, JobCancelled
-from terrasift.params import grid_alignment, resolve_buffer, validate_params
+from terrasift.jobs.params import grid_alignment, resolve_buffer, validate_params
 from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
 from terrasift.tiling.lasfile import TileInfo, read_tile_info
-from terrasift.workers.block import run_block
 from terrasift.workers.executors import Executor, Future
 
 __all__ = [
@@ -167,7 +166,8 @@ def run_job(
     grid = BlockGrid(**plan["grid"])
     n_tiles = len(plan["tiles"])
 
-    from terrasift.tiling import outputs
+    from terrasift.jobs import finish as outputs
+    from terrasift.workers.block import run_block
 
     # Finishing tasks: one classified point cloud per tile, and (all products)
     # the rasters, then slope/categories/features from the mosaicked DTM. The
@@ -358,7 +358,7 @@ def job_path_profile(
     spacing: float | None = None,
 ) -> Any:
     """Pitch and roll along a GeoJSON LineString over a finished job's DTM (see ``dtm_path_profile``)."""
-    from terrasift.params import stage_params
+    from terrasift.jobs.params import stage_params
 
     params = load_json(Path(job_dir) / "job.json")["params"]
     tparams = stage_params(params, "terrain")

@@ -20,7 +20,7 @@ import pyproj
 from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
-from terrasift.params import stage_params
+from terrasift.jobs.params import stage_params
 from terrasift.tiling.blocks import BlockGrid
 from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, bounded_raster_cache, job_transform
 
@@ -344,7 +344,7 @@ def write_report_and_item(
         for k, v in s.get("timings", {}).items():
             stage_times[k] = stage_times.get(k, 0.0) + v
     points = sum(int(t["point_count"]) for t in plan["tiles"])
-    from terrasift.params import effective_stage_params
+    from terrasift.jobs.params import effective_stage_params
     from terrasift.workers import terrain, vegetation
 
     bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
