@@ -45,8 +45,13 @@ def single_threaded_blas() -> None:
         os.environ.setdefault(var, "1")
 
 
-# Modules every task needs: a forked worker inherits them already imported.
-TASK_MODULES = ("terrasift.workers.block", "terrasift.jobs.finish")
+# The heavy modules every task needs (the stages, raster and LAS writing): a
+# forked worker inherits them already imported.
+TASK_MODULES = (
+    "terrasift.workers.stages",
+    "terrasift.tiling.rasters",
+    "terrasift.tiling.classified",
+)
 
 
 def _os_thread_count() -> int:
