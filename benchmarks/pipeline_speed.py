@@ -53,9 +53,10 @@ def median_time(fn, runs: int) -> float:
 def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]:
     """Points/s of read, shard, and ground + DTM over all blocks, in this process."""
     from terrasift import jobs
+    from terrasift.jobs.block import run_block
+    from terrasift.jobs.plan import plan_job
     from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
     from terrasift.tiling.lasfile import iter_chunks
-    from terrasift.workers.block import run_block
 
     def read() -> None:
         for _ in iter_chunks(tile):
@@ -66,7 +67,7 @@ def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]
     job = work / "job"
     validated = jobs.validate_params(params)
     jobs.prepare_job(job, [tile], validated)
-    plan = jobs.run._plan(job, jobs.load_json(job / "job.json"))
+    plan = plan_job(job, jobs.load_json(job / "job.json"))
     grid = BlockGrid(**plan["grid"])
     parts = shard_parts([n])
 
