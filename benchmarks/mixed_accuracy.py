@@ -118,7 +118,7 @@ def run_job(tile: ScanTile, info: dict, overrides: dict, workdir: Path) -> np.nd
     """The whole path: write the tile as LAZ, run the job, read classification 7."""
     import laspy
 
-    from terrasift import pipeline
+    from terrasift import jobs
     from terrasift.workers.executors import InlineExecutor
 
     header = laspy.LasHeader(point_format=6, version="1.4")
@@ -133,7 +133,7 @@ def run_job(tile: ScanTile, info: dict, overrides: dict, workdir: Path) -> np.nd
     path = workdir / f"scene{info['seed']}.laz"
     las.write(str(path))
     job = workdir / f"job{info['seed']}"
-    params = pipeline.validate_params(
+    params = jobs.validate_params(
         {
             "sensor_origin": ";".join(",".join(f"{v:.4f}" for v in o) for o in tile.origins),
             "features": "none",
@@ -142,9 +142,9 @@ def run_job(tile: ScanTile, info: dict, overrides: dict, workdir: Path) -> np.nd
             **{f"mixed.{k}": v for k, v in overrides.items()},
         }
     )
-    pipeline.prepare_job(job, [path], params)
-    pipeline.run_job(job, InlineExecutor(), products="classified")
-    out = laspy.read(pipeline.output_path(job, "classified.laz"))
+    jobs.prepare_job(job, [path], params)
+    jobs.run_job(job, InlineExecutor(), products="classified")
+    out = laspy.read(jobs.output_path(job, "classified.laz"))
     return np.asarray(out.classification) == 7
 
 

@@ -7,7 +7,7 @@ import json
 import laspy
 import numpy as np
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.scan import make_scan
 from terrasift.synthetic.terrain import Scene, write_las
 from terrasift.workers.executors import InlineExecutor
@@ -26,12 +26,12 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
     # the mixed filter's angles and distances follow from the scan measured in each block
-    params = pipeline.validate_params(
+    params = jobs.validate_params(
         {"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4}
     )
-    pipeline.prepare_job(job, [path], params)
-    pipeline.run_job(job, InlineExecutor())
-    classes = np.asarray(laspy.read(pipeline.output_path(job, "classified.laz")).classification)
+    jobs.prepare_job(job, [path], params)
+    jobs.run_job(job, InlineExecutor())
+    classes = np.asarray(laspy.read(jobs.output_path(job, "classified.laz")).classification)
     marked = classes == 7
     assert marked.any()
     # most marked points are real mixed or ghost returns, and few correct points are lost
@@ -42,7 +42,7 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     # footprint under one step (1° cells from the measured step; fixed 0.5° cells:
     # 0.42, 0.60, 0.009): coarse scans are where the filter is weakest
     assert tpr > 0.4 and precision > 0.4 and fpr < 0.025, (tpr, precision, fpr)
-    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"]["marked"] == int(marked.sum())
     geo = report["mixed_measurements"]["geometry"]["0"]
     assert abs(geo["step_az"] - 0.4) < 0.02 and abs(geo["cell_angle"] - 2.5 * geo["step"]) < 1e-3
@@ -54,11 +54,11 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
 def test_without_origin_the_report_says_mixed_did_not_run(tmp_path):
     _, path = _scan_tile(tmp_path)
     job = tmp_path / "job"
-    pipeline.prepare_job(
-        job, [path], pipeline.validate_params({"features": "none", "block_size": 40, "buffer": 4})
+    jobs.prepare_job(
+        job, [path], jobs.validate_params({"features": "none", "block_size": 40, "buffer": 4})
     )
-    pipeline.run_job(job, InlineExecutor(), products="classified")
-    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    jobs.run_job(job, InlineExecutor(), products="classified")
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"].startswith("not run")
     assert "7" not in report["counts_per_class"]
 

@@ -1,0 +1,287 @@
+"""Finishing tasks of a job: mosaics to COGs, slope, categories and features over the mosaic, classified LAZ.
+
+Each writes to a temporary name and renames, and is skipped when its output
+already exists, so a resumed job repeats only what is missing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from terrasift.errors import ProcessingError
+from terrasift.files import load_json, write_json
+from terrasift.jobs.dirs import block_results
+from terrasift.jobs.params import stage_params
+from terrasift.tiling.blocks import BlockGrid
+from terrasift.tiling.classified import write_classified_copy
+from terrasift.tiling.rasters import RasterMosaic, bounded_raster_cache, job_transform
+
+#: the float rasters every job writes; name -> how to make it from a block's arrays
+FLOAT_RASTERS = ("dtm", "dsm", "chm")
+COVERAGE_NODATA = 255
+
+
+RASTERS = (*FLOAT_RASTERS, "coverage")
+
+
+def write_raster(job_dir: str, name: str) -> str:
+    """Task: mosaic every block's window of raster ``name`` (one of ``RASTERS``) into its COG.
+
+    One task per raster, so a job's workers write them side by side and the
+    terrain tasks start as soon as the DTM is out.
+    """
+    with bounded_raster_cache():
+        return _write_raster(Path(job_dir), name)
+
+
+def _write_raster(job: Path, name: str) -> str:
+    if name not in RASTERS:
+        raise ValueError(f"unknown raster {name!r}")
+    target = job / "outputs" / f"{name}.tif"
+    if target.exists():
+        return target.name
+    plan = load_json(job / "plan.json")
+    grid = BlockGrid(**plan["grid"])
+    work = job / "work"
+    work.mkdir(exist_ok=True)
+    f = 1
+    if name == "coverage":
+        params = load_json(job / "job.json")["params"]
+        cell = float(stage_params(params, "vegetation").cell)
+        f = int(
+            round(cell / grid.resolution)
+        )  # DTM cells per coverage cell (the grid is aligned to it)
+        mosaic = RasterMosaic(
+            work / target.name,
+            width=grid.width // f,
+            height=grid.height // f,
+            transform=job_transform(grid.x0, grid.y_top, cell),
+            crs=plan["crs_wkt"],
+            dtype="uint8",
+            nodata=COVERAGE_NODATA,
+        )
+    else:
+        transform = job_transform(grid.x0, grid.y_top, grid.resolution)
+        mosaic = RasterMosaic(
+            work / target.name,
+            width=grid.width,
+            height=grid.height,
+            transform=transform,
+            crs=plan["crs_wkt"],
+        )
+    mosaic.fill_nodata()
+    for path in block_results(job):
+        with np.load(path) as data:
+            row_off, col_off, rows, cols = (int(v) for v in data["window"])
+            if rows <= 0 or cols <= 0:
+                continue
+            if name == "coverage":
+                cov = data["raster_coverage"]
+                # cells outside the data reach are nodata, like the DTM's
+                reach = ~np.isnan(data["raster_dtm"][::f, ::f][: cov.shape[0], : cov.shape[1]])
+                mosaic.write(
+                    row_off // f,
+                    col_off // f,
+                    np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8),
+                )
+            elif name == "chm":
+                mosaic.write(
+                    row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None)
+                )
+            else:
+                mosaic.write(row_off, col_off, data[f"raster_{name}"])
+    mosaic.close_as_cog(target, resampling="mode" if name == "coverage" else "average")
+    return target.name
+
+
+BAND_CELLS = (
+    1 << 19
+)  # DTM cells per band for slope and categories: memory follows this, not the job
+
+
+def write_terrain(job_dir: str) -> list[str]:
+    """Slope, categories and terrain objects from the job's mosaicked DTM (both terrain tasks)."""
+    return [write_slope(job_dir), *write_categories(job_dir)]
+
+
+def write_slope(job_dir: str) -> str:
+    """Task: the slope raster from the job's mosaicked DTM.
+
+    Slope is local, so it runs over bands of DTM rows (with a margin for its
+    smoothing) and memory follows the band, not the job.
+    """
+    import rasterio
+
+    from terrasift.workers import terrain
+
+    job = Path(job_dir)
+    out = job / "outputs"
+    if (out / "slope.tif").exists():
+        return "slope.tif"
+    plan = load_json(job / "plan.json")
+    tparams = stage_params(load_json(job / "job.json")["params"], "terrain")
+    work = job / "work"
+    work.mkdir(exist_ok=True)
+    with bounded_raster_cache(), rasterio.open(out / "dtm.tif") as ds:
+        height, width, res = ds.height, ds.width, abs(ds.transform.a)
+        band = max(1, BAND_CELLS // width)
+        margin = tparams.median_size // 2 + 2
+        m = RasterMosaic(
+            work / "slope.tif",
+            width=width,
+            height=height,
+            transform=ds.transform,
+            crs=plan["crs_wkt"],
+        )
+        for r in range(0, height, band):
+            lo, hi = max(0, r - margin), min(height, r + band + margin)
+            slope = terrain.slope_degrees(
+                _read_rows(ds, lo, hi), res, tparams.median_size, tparams.smooth
+            )
+            m.write(r, 0, slope[r - lo : r - lo + min(band, height - r)])
+        m.close_as_cog(out / "slope.tif")
+    return "slope.tif"
+
+
+def _read_rows(ds: Any, r0: int, r1: int) -> NDArray:
+    from rasterio.windows import Window
+
+    return (
+        ds.read(1, window=Window(0, r0, ds.width, r1 - r0), masked=True)
+        .filled(np.nan)
+        .astype(np.float64)
+    )
+
+
+def write_categories(job_dir: str) -> list[str]:
+    """Task: categories and terrain objects from the job's mosaicked DTM.
+
+    Categories are local, so they are computed over bands of whole category
+    tiles and memory follows the band. Objects are found on the whole job's
+    category grid (one byte per 2 m tile per band), so an object crossing
+    block or tile borders comes out once.
+    """
+    with bounded_raster_cache():
+        return _write_categories(Path(job_dir))
+
+
+def _write_categories(job: Path) -> list[str]:
+    import rasterio
+
+    from terrasift.workers import categories as cat
+    from terrasift.workers import features as feat
+
+    out = job / "outputs"
+    plan = load_json(job / "plan.json")
+    params = load_json(job / "job.json")["params"]
+    cparams = stage_params(params, "categories")
+    names = []
+    work = job / "work"
+    work.mkdir(exist_ok=True)
+    with rasterio.open(out / "dtm.tif") as ds:
+        transform, height, width = ds.transform, ds.height, ds.width
+        res = abs(transform.a)
+        k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
+        band = max(k, BAND_CELLS // width // k * k)  # whole category tiles
+        parts = [
+            cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
+            for r in range(0, height, band)
+        ]
+    cats = cat.Categories(
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            for f in ("inclination", "orientation", "state", "height10")
+        ),
+        cells_per_tile=parts[0].cells_per_tile,
+        tile_size=parts[0].tile_size,
+    )
+    if not (out / "categories.tif").exists():
+        bands = cats.bands()
+        m = RasterMosaic(
+            work / "categories.tif",
+            width=bands.shape[2],
+            height=bands.shape[1],
+            transform=cats.transform(transform),
+            crs=plan["crs_wkt"],
+            dtype="uint8",
+            nodata=cat.NODATA,
+            count=4,
+            descriptions=("inclination", "orientation", "state", "height_x10"),
+        )
+        m.write(0, 0, bands)
+        m.close_as_cog(out / "categories.tif", resampling="nearest")
+    names.append("categories.tif")
+
+    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    if filters:
+        result = feat.detect_features(
+            cats, filters, transform, cats.tile_size, stage_params(params, "features")
+        )
+        crs = plan["crs_wkt"]
+        native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
+        if native is not None:
+            write_json(out / "features.native.geojson", native)
+            write_json(
+                out / "features.geojson",
+                feat.features_geojson(result, crs, job.name, to_wgs84=True),
+            )
+            names += ["features.geojson", "features.native.geojson"]
+        for fname, marks in result.marked.items():
+            m = RasterMosaic(
+                work / f"{fname}.tif",
+                width=marks.shape[1],
+                height=marks.shape[0],
+                transform=cats.transform(transform),
+                crs=crs,
+                dtype="uint8",
+                nodata=255,
+            )
+            m.write(0, 0, np.where(cats.nodata, 255, marks.astype(np.uint8)))
+            m.close_as_cog(out / f"{fname}.tif", resampling="nearest")
+            names.append(f"{fname}.tif")
+    return names
+
+
+def classified_name(plan: Mapping[str, Any], tile_index: int) -> str:
+    """``classified.laz`` for a one-tile job, ``classified-<stem>.laz`` per tile otherwise."""
+    if len(plan["tiles"]) == 1:
+        return "classified.laz"
+    return f"classified-{Path(plan['tiles'][tile_index]['path']).stem}.laz"
+
+
+def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000) -> str:
+    """Task: copy tile ``tile_index`` with the job's classes, every point in order, every dimension kept."""
+    job = Path(job_dir)
+    plan = load_json(job / "plan.json")
+    name = classified_name(plan, tile_index)
+    out = job / "outputs" / name
+    if out.exists():
+        return name
+    tile = plan["tiles"][tile_index]
+    n = int(tile["point_count"])
+    labels = np.zeros(n, np.uint8)
+    seen = np.zeros(n, np.uint8)
+    for path in block_results(job):
+        with np.load(path) as data:
+            mine = data["tile"] == tile_index
+            idx = data["index"][mine]
+            labels[idx] = data["classes"][mine]
+            np.add.at(seen, idx, 1) if idx.size < 4096 else _count(seen, idx)
+    if not (seen == 1).all():
+        missing, twice = int((seen == 0).sum()), int((seen > 1).sum())
+        raise ProcessingError(
+            f"{name}: {missing} points got no label and {twice} got more than one"
+        )
+    params = load_json(job / "job.json")["params"]
+    write_classified_copy(tile["path"], out, labels, crs=params.get("crs"), chunk_size=chunk_size)
+    return name
+
+
+def _count(seen: np.ndarray, idx: np.ndarray) -> None:
+    u, c = np.unique(idx, return_counts=True)
+    seen[u] += c.astype(np.uint8)
