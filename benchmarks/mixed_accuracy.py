@@ -24,6 +24,7 @@ against the previous fixed parameters on the same scan.
 from __future__ import annotations
 
 import argparse
+import pickle
 import sys
 import tempfile
 import time
@@ -187,13 +188,21 @@ def main() -> None:
     ap.add_argument("--no-job", action="store_true")
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--no-random", action="store_true")
+    ap.add_argument("--cache", help="folder keeping the drawn scenes between runs")
     args = ap.parse_args()
     overrides = parse_overrides(args.params)
     base = 0 if args.family == "report" else 1000
 
     scenes = []
     for i in range(args.scenes):
-        info, tile = draw_scene(base + i, args.family)
+        cached = Path(args.cache) / f"{args.family}{base + i}.pkl" if args.cache else None
+        if cached is not None and cached.exists():
+            info, tile = pickle.loads(cached.read_bytes())
+        else:
+            info, tile = draw_scene(base + i, args.family)
+            if cached is not None:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                cached.write_bytes(pickle.dumps((info, tile)))
         scenes.append((info, tile))
         print(
             f"scene {info['seed']}: step {info['step']:.3f}°, footprint {info['footprint']:.1f} steps, "

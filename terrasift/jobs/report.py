@@ -207,8 +207,11 @@ def _scan_geometry(mixed: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for scan, gs in sorted(per.items()):
         flat = [{**g, **g.get("measured", {})} for g in gs]
-        keys = [k for k, v in flat[0].items() if isinstance(v, (int, float)) and k != "scan"]
-        out[scan] = {"blocks": len(gs)}
-        out[scan].update({k: float(np.median([f.get(k, np.nan) for f in flat])) for k in keys})
+        vals: dict[str, list[float]] = {}
+        for f in flat:
+            for k, v in f.items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "scan":
+                    vals.setdefault(k, []).append(float(v))
+        out[scan] = {"blocks": len(gs), **{k: float(np.median(v)) for k, v in vals.items()}}
         out[scan]["how"] = gs[0].get("measured", {}).get("how", "stated parameters")
     return out
