@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-MAX_SAMPLE = 150_000  # points used for the neighbour statistics (a contiguous azimuth sector)
+MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
 REGULAR = 0.5  # share of neighbour spacings within 25 % of the step for a scan grid
 
 
