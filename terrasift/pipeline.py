@@ -137,14 +137,23 @@ def _crs_label(wkt: str | None) -> str | None:
     return f"EPSG:{code}" if code else crs.name
 
 
-def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
-    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters)."""
+def prepare_job(
+    job_dir: Path,
+    inputs: list[Path],
+    params: Mapping[str, Any],
+    outputs: list[str] | None = None,
+) -> None:
+    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters,
+    the selected outputs when not all)."""
     job_dir = Path(job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(
-        job_dir / "job.json",
-        {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)},
-    )
+    job: dict[str, Any] = {
+        "inputs": [str(Path(p).resolve()) for p in inputs],
+        "params": dict(params),
+    }
+    if outputs is not None:
+        job["outputs"] = list(outputs)
+    write_json_atomic(job_dir / "job.json", job)
 
 
 # ------------------------------------------------------------------ running
@@ -172,16 +181,26 @@ def run_job(
     # Finishing tasks: one classified point cloud per tile, and (all products)
     # the rasters, then slope/categories/features from the mosaicked DTM. The
     # list is in order of priority: the DTM first, since the terrain tasks
-    # wait on it, then the long tasks, so the workers finish together.
-    finish: list[Task] = [Task(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
-    if products == "all":
+    # wait on it, then the long tasks, so the workers finish together. A job
+    # that selected outputs runs only the tasks they need.
+    want = finishing_wanted(job.get("outputs"), products)
+    finish: list[Task] = []
+    if "classified" in want:
+        finish = [Task(outputs.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    if want - {"classified"}:
         dtm = Task(outputs.write_raster, (str(job_dir), "dtm"))
         terrain = [
             Task(fn, (str(job_dir),), after=(0,))
-            for fn in (outputs.write_categories, outputs.write_slope)
+            for key, fn in (
+                ("categories", outputs.write_categories),
+                ("slope", outputs.write_slope),
+            )
+            if key in want
         ]
         others = [
-            Task(outputs.write_raster, (str(job_dir), n)) for n in outputs.RASTERS if n != "dtm"
+            Task(outputs.write_raster, (str(job_dir), n))
+            for n in outputs.RASTERS
+            if n != "dtm" and n in want
         ]
         finish = [dtm, *finish, *terrain, *others]
 
@@ -240,7 +259,37 @@ def run_job(
     }
     names_out = outputs.write_report_and_item(job_dir, plan, params, block_stats, timings)
     tick(None)
+    if job.get("outputs") is not None:
+        keep = set(job["outputs"])
+        names_out = [
+            n
+            for n in names_out
+            if n in keep or (n.startswith("classified") and "classified.laz" in keep)
+        ]
     return names_out
+
+
+#: finishing work each selectable output needs (outputs not named need none beyond the report)
+OUTPUT_TASKS = {
+    "classified.laz": {"classified"},
+    "dtm.tif": {"dtm"},
+    "dsm.tif": {"dsm"},
+    "chm.tif": {"chm"},
+    "coverage.tif": {"coverage"},
+    "slope.tif": {"slope"},
+    "categories.tif": {"categories"},
+    "features.geojson": {"categories"},
+    "features.native.geojson": {"categories"},
+}
+
+
+def finishing_wanted(selected: list[str] | None, products: str = "all") -> set[str]:
+    """Finishing tasks for the selected outputs (None: every output of ``products``)."""
+    if products == "classified":
+        return {"classified"}
+    if selected is None:
+        return set().union(*OUTPUT_TASKS.values())
+    return set().union(set(), *(OUTPUT_TASKS.get(n, set()) for n in selected))
 
 
 def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:

@@ -23,10 +23,12 @@ CONFORMANCE = [
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/core",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/ogc-process-description",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/json",
-    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/oas30",
+    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/html",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list",
+    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/callback",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
 ]
+# Not claimed: conf/oas30 (the API definition served at /openapi.json is OpenAPI 3.1).
 
 OUTPUTS: dict[str, str] = {
     "classified.laz": "every input point, original order and dimensions, classes 1/2/3/4/5/7",
@@ -92,7 +94,7 @@ def landing(base: str) -> dict[str, Any]:
             link(
                 f"{base}/openapi.json",
                 "service-desc",
-                "application/vnd.oai.openapi+json;version=3.0",
+                "application/vnd.oai.openapi+json;version=3.1",
                 "the API definition",
             ),
             link(f"{base}/docs", "service-doc", "text/html", "the API documentation"),
@@ -109,7 +111,7 @@ def process_summary(base: str) -> dict[str, Any]:
         "title": "Terrain from LAS/LAZ tiles",
         "description": "Classify ground (and vegetation, noise), grid DTM/DSM and derived rasters, find terrain objects.",
         "version": PROCESS_VERSION,
-        "jobControlOptions": ["async-execute", "dismiss"],
+        "jobControlOptions": ["sync-execute", "async-execute", "dismiss"],
         "outputTransmission": ["reference"],
         "links": [
             link(f"{base}/processes/{PROCESS_ID}", "self", title="process description"),
@@ -122,9 +124,15 @@ def process_description(base: str, parameters: dict[str, dict[str, Any]]) -> dic
     inputs: dict[str, Any] = {
         "files": {
             "title": "tiles",
-            "description": "LAS/LAZ files: paths relative to the service's input root (or absolute inside it); "
-            "a directory stands for the .las/.laz files in it. To upload instead, POST multipart to /jobs.",
-            "schema": {"type": "string"},
+            "description": 'LAS/LAZ files: `{"href": ...}` as answered by POST /uploads, '
+            '`{"value": <base64>, "encoding": "base64"}`, or paths under the service\'s '
+            "input root (a directory stands for the .las/.laz files in it).",
+            "schema": {
+                "oneOf": [
+                    {"type": "string", "contentMediaType": "application/vnd.laszip"},
+                    {"type": "string", "format": "uri"},
+                ]
+            },
             "minOccurs": 1,
             "maxOccurs": "unbounded",
         },
