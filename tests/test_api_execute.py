@@ -215,3 +215,23 @@ def test_conformance_matches_what_is_served(tmp_path: Path) -> None:
         landing = c.get("/").json()
         (desc_link,) = [ln for ln in landing["links"] if ln["rel"] == "service-desc"]
         assert desc_link["type"].endswith("version=3.1")
+
+
+def test_events_stream_status_until_final(tmp_path: Path) -> None:
+    fake = FakePipeline(tasks=3, free_tasks=1)
+    with client_for(tmp_path, fake) as c:
+        href = post_upload(c, ("tile.las", las_bytes())).json()["href"]
+        job_id = c.post(EXECUTE, json={"inputs": {"files": [href]}}, headers=ASYNC).json()["jobID"]
+        events: list[dict] = []
+        with c.stream("GET", f"/jobs/{job_id}/events") as r:
+            assert r.headers["content-type"].startswith("text/event-stream")
+            for line in r.iter_lines():
+                if line.startswith("data: "):
+                    events.append(json.loads(line[6:]))
+                    if len(events) == 1:
+                        fake.gate.set()
+        statuses = [e["status"] for e in events]
+        assert statuses[-1] == "successful" and len(events) >= 2
+        progress = [e["progress"] for e in events]
+        assert progress == sorted(progress) and progress[-1] == 100
+        assert_problem(c.get("/jobs/nope/events"), 404, "no-such-job")

@@ -22,7 +22,7 @@ from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.callbacks import Notifier
 from terrasift.service.context import Service
-from terrasift.service.routes import jobs, path, processes, surveys, uploads
+from terrasift.service.routes import events, jobs, pages, path, processes, surveys, uploads
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
@@ -86,11 +86,13 @@ def create_app(
     app.state.settings = settings
     app.state.auth = auth
     problems.install(app)
+    app.include_router(pages.router)  # first: matches only requests that want HTML
     app.include_router(processes.router)
     app.include_router(jobs.router)
     app.include_router(path.router)
     app.include_router(surveys.router)
     app.include_router(uploads.router)
+    app.include_router(events.router)
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

@@ -43,6 +43,13 @@ OUTPUTS: dict[str, str] = {
     "steep_blocks.geojson": "blocks classified with rotations",
     "report.json": "counts per class, coverage, roughness, parameters, stage timings, warnings",
     "item.json": "STAC Item whose assets are the outputs",
+    "thumbnail.png": "quicklook: DTM hillshade, 256 px",
+    "hillshade.png": "quicklook: DTM hillshade",
+    "chm.png": "quicklook: canopy height",
+    "coverage.png": "quicklook: vegetation bins (legend in the job page)",
+    "categories.png": "quicklook: terrain categories (inclination, edges)",
+    "features.png": "quicklook: terrain objects over the hillshade",
+    "steep_blocks.png": "quicklook: blocks classified with rotations, over the hillshade",
 }
 
 
@@ -157,8 +164,9 @@ def process_description(base: str, parameters: dict[str, dict[str, Any]]) -> dic
     return {**process_summary(base), "inputs": inputs, "outputs": outputs}
 
 
-def status_info(job: Job, base: str) -> dict[str, Any]:
-    """statusInfo of OGC API – Processes Part 1, optional members only when known."""
+def status_info(job: Job, base: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """statusInfo of OGC API – Processes Part 1, optional members only when known;
+    ``extra`` adds terrasift's own members (stage, warnings, queuePosition)."""
     doc: dict[str, Any] = {
         "processID": job.process_id,
         "type": "process",
@@ -174,6 +182,7 @@ def status_info(job: Job, base: str) -> dict[str, Any]:
         doc["started"] = job.started
     if job.finished:
         doc["finished"] = job.finished
+    doc.update(extra or {})
     doc["links"] = [
         link(f"{base}/jobs/{job.id}", "self", title="job status"),
         link(f"{base}/jobs/{job.id}/results", REL_RESULTS, title="job results"),
