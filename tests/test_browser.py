@@ -104,10 +104,14 @@ def test_upload_watch_look_download(browser, server: str, tmp_path: Path) -> Non
     seen: list[int] = []
     end = time.monotonic() + 240
     status = ""
+    running_shot = (SHOTS or tmp_path) / "job-running.png"
+    running_shot.parent.mkdir(parents=True, exist_ok=True)
     while time.monotonic() < end:
         try:
             status = driver.find_element(By.ID, "status").text
             seen.append(int(driver.find_element(By.ID, "progress").text.split()[0]))
+            if status == "running" and 0 < seen[-1] < 100 and not running_shot.exists():
+                driver.save_screenshot(str(running_shot))
         except Exception:  # noqa: BLE001 - the page reloads itself at the end
             pass
         if status in ("successful", "failed", "dismissed") and driver.find_elements(

@@ -53,6 +53,7 @@ def test_owslib_cycle(server: tuple[str, Path], tmp_path: Path) -> None:
     assert status["status"] == "successful", status
     results = api._request(path=f"jobs/{job_id}/results")
     assert {"dtm.tif", "classified.laz", "report.json"} <= set(results)
+    assert {"thumbnail.png", "hillshade.png", "features.png", "coverage.png"} <= set(results)
     dtm = requests.get(results["dtm.tif"]["href"], timeout=30)
     assert dtm.status_code == 200
     (tmp_path / "dtm.tif").write_bytes(dtm.content)

@@ -43,10 +43,15 @@ def test_form_upload_goes_to_the_job_page(tmp_path: Path) -> None:
         poll(c, job_id, "successful")
         page = c.get(f"/jobs/{job_id}", headers=BROWSER).text
         assert 'id="status">successful<' in page
-        assert f'href="/jobs/{job_id}/outputs/dtm.tif"' in page and "10.2 kB" in page
+        assert f'href="jobs/{job_id}/outputs/dtm.tif"' in page and "10.2 kB" in page
+        assert '<base href="http://testserver/">' in page
         assert job_id[:12] in c.get("/jobs?f=html").text
         results = c.get(f"/jobs/{job_id}/results", headers=BROWSER).text
         assert f"/jobs/{job_id}/outputs/report.json" in results
+    # behind a proxy that serves the API under a path prefix, links follow the public URL
+    with client_for(tmp_path / "p", FakePipeline(tasks=1), public_url="https://x.example/ts") as c:
+        page = c.get("/jobs", headers=BROWSER).text
+        assert '<base href="https://x.example/ts/">' in page and 'action="jobs"' in page
 
 
 def test_queue_position_and_stage(tmp_path: Path) -> None:

@@ -76,22 +76,25 @@ button.danger{background:#b3261e}
 """
 
 
-def page(title: str, body: str, json_href: str) -> str:
-    """A whole HTML document with the site header and a link to the JSON of the same resource."""
+def page(title: str, body: str, json_href: str, base: str = "/") -> str:
+    """A whole HTML document with the site header and a link to the JSON of the same resource.
+
+    Links are relative to ``base`` (the service's base URL), so pages work behind
+    a proxy that serves the API under a path prefix."""
     return f"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8">
+<html lang="en"><head><meta charset="utf-8"><base href="{escape(base)}">
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <title>{escape(title)} · terrasift</title>
 <link rel="alternate" type="application/json" href="{escape(json_href)}">
 <style>{STYLE}</style></head>
-<body><header><strong><a href="/?f=html">terrasift</a></strong>
-<a href="/processes?f=html">processes</a><a href="/jobs?f=html">jobs</a>
-<a href="/docs">API docs</a><a href="{escape(json_href)}">JSON</a></header>
+<body><header><strong><a href="./?f=html">terrasift</a></strong>
+<a href="processes?f=html">processes</a><a href="jobs?f=html">jobs</a>
+<a href="docs">API docs</a><a href="{escape(json_href)}">JSON</a></header>
 <main>{body}</main></body></html>"""
 
 
 def upload_form() -> str:
-    return """<form class="upload" action="/jobs" method="post" enctype="multipart/form-data">
+    return """<form class="upload" action="jobs" method="post" enctype="multipart/form-data">
 <p><label>LAS/LAZ tiles <input type="file" name="file" id="file" multiple required
  accept=".las,.laz"></label></p>
 <p><label>Parameters (JSON, optional)<br><textarea name="params" id="params" rows="2"
@@ -122,17 +125,17 @@ def landing_page(doc: dict[str, Any], jobs_table: str) -> str:
         f"<h2>Process tiles</h2>{upload_form()}"
         f"<h2>Recent jobs</h2>{jobs_table}<h2>Links</h2>{links_list(doc['links'])}"
     )
-    return page("terrasift", body, "/?f=json")
+    return page("terrasift", body, "./?f=json")
 
 
 def processes_page(doc: dict[str, Any]) -> str:
     rows = "".join(
-        f'<tr><td><a href="/processes/{escape(p["id"])}?f=html">{escape(p["id"])}</a></td>'
+        f'<tr><td><a href="processes/{escape(p["id"])}?f=html">{escape(p["id"])}</a></td>'
         f"<td>{escape(p['title'])}</td><td>{escape(p['description'])}</td></tr>"
         for p in doc["processes"]
     )
     body = f"<h1>Processes</h1><table><tr><th>id</th><th>title</th><th>what</th></tr>{rows}</table>"
-    return page("Processes", body, "/processes?f=json")
+    return page("Processes", body, "processes?f=json")
 
 
 def process_page(doc: dict[str, Any]) -> str:
@@ -163,14 +166,14 @@ def process_page(doc: dict[str, Any]) -> str:
         f"<th>meaning</th></tr>{inputs}</table><h2>Outputs</h2><table><tr><th>id</th>"
         f"<th>media type</th><th>what</th></tr>{outputs}</table>"
     )
-    return page(doc["title"], body, f"/processes/{doc['id']}?f=json")
+    return page(doc["title"], body, f"processes/{doc['id']}?f=json")
 
 
 def jobs_table(jobs: list[dict[str, Any]]) -> str:
     if not jobs:
         return "<p class='muted'>No jobs yet.</p>"
     rows = "".join(
-        f'<tr><td><a href="/jobs/{escape(j["jobID"])}?f=html">{escape(j["jobID"][:12])}</a></td>'
+        f'<tr><td><a href="jobs/{escape(j["jobID"])}?f=html">{escape(j["jobID"][:12])}</a></td>'
         f'<td><span class="status {escape(j["status"])}">{escape(j["status"])}</span></td>'
         f"<td>{j.get('progress', 0)} %</td><td>{escape(j.get('message', ''))}</td>"
         f"<td>{escape((j.get('created') or '')[:19].replace('T', ' '))}</td></tr>"
@@ -186,7 +189,7 @@ def jobs_page(doc: dict[str, Any]) -> str:
     nxt = [ln for ln in doc["links"] if ln["rel"] == "next"]
     more = f'<p><a href="{escape(nxt[0]["href"])}&f=html">older jobs</a></p>' if nxt else ""
     body = f"<h1>Jobs</h1>{jobs_table(doc['jobs'])}{more}<h2>New job</h2>{upload_form()}"
-    return page("Jobs", body, "/jobs?f=json")
+    return page("Jobs", body, "jobs?f=json")
 
 
 LEGENDS = {
@@ -240,7 +243,6 @@ def job_page(status: dict[str, Any], outputs: list[tuple[str, int, str]], output
     final = status["status"] not in ("accepted", "running")
     body = f"""<h1>Job <code>{escape(job_id)}</code></h1>
 <p><span class="status {escape(status["status"])}" id="status">{escape(status["status"])}</span>
- <span id="stage" class="muted">{escape(status.get("stage", ""))}</span>
  <span id="queue" class="muted">{"" if queue is None else f"position {queue} in the queue"}</span></p>
 <div class="bar"><div id="bar" style="width:{int(status.get("progress", 0))}%"></div></div>
 <p><strong id="progress">{int(status.get("progress", 0))} %</strong> · <span id="message">{escape(status.get("message", ""))}</span></p>
@@ -253,7 +255,7 @@ def job_page(status: dict[str, Any], outputs: list[tuple[str, int, str]], output
 <h2>Outputs</h2>{f"<table id='outputs'><tr><th>file</th><th>size</th><th>type</th></tr>{rows}</table>" if rows else "<p class='muted' id='outputs'>Outputs appear when the job is successful.</p>"}
 <script>
 (function () {{
-  const url = "/jobs/{escape(job_id)}";
+  const url = "jobs/{escape(job_id)}";
   const initial = "{escape(status["status"])}";
   const active = s => s === "accepted" || s === "running";
   function text(id, value) {{ const el = document.getElementById(id); if (el) el.textContent = value; }}
@@ -263,7 +265,6 @@ def job_page(status: dict[str, Any], outputs: list[tuple[str, int, str]], output
     document.getElementById("bar").style.width = (s.progress || 0) + "%";
     text("progress", (s.progress || 0) + " %");
     text("message", s.message || "");
-    text("stage", s.stage || "");
     text("queue", s.queuePosition === undefined ? "" : "position " + s.queuePosition + " in the queue");
     const w = document.getElementById("warnings");
     if (s.warnings && s.warnings.length) {{
@@ -288,13 +289,13 @@ def job_page(status: dict[str, Any], outputs: list[tuple[str, int, str]], output
   if (d) d.onclick = () => fetch(url, {{method: "DELETE"}}).then(() => location.reload());
 }})();
 </script>"""
-    return page(f"Job {job_id[:12]}", body, f"/jobs/{job_id}?f=json")
+    return page(f"Job {job_id[:12]}", body, f"jobs/{job_id}?f=json")
 
 
 def conformance_page(doc: dict[str, Any]) -> str:
     items = "".join(f"<li><code>{escape(c)}</code></li>" for c in doc["conformsTo"])
     return page(
-        "Conformance", f"<h1>Conformance classes</h1><ul>{items}</ul>", "/conformance?f=json"
+        "Conformance", f"<h1>Conformance classes</h1><ul>{items}</ul>", "conformance?f=json"
     )
 
 
@@ -304,7 +305,7 @@ def results_page(job_id: str, doc: dict[str, Any]) -> str:
         for k, v in doc.items()
     )
     body = (
-        f'<h1>Results of job <a href="/jobs/{escape(job_id)}?f=html"><code>{escape(job_id)}</code></a></h1>'
+        f'<h1>Results of job <a href="jobs/{escape(job_id)}?f=html"><code>{escape(job_id)}</code></a></h1>'
         f"<table><tr><th>output</th><th>type</th></tr>{rows}</table>"
     )
-    return page("Results", body, f"/jobs/{job_id}/results?f=json")
+    return page("Results", body, f"jobs/{job_id}/results?f=json")

@@ -252,11 +252,16 @@ class Scheduler:
             pct = min(99, (100 * done) // total) if total > 0 else 0
             message = info.get("message") if info else f"{done} of {total} tasks done"
             now = time.monotonic()
-            if pct != last[0] or (message != last[1] and now - last[2] >= 1.0):
+            detail = (info.get("stage"), info.get("warnings")) if info else None
+            # counts change often: a new message alone is stored at most once a second,
+            # except when the stage changes, so message and stage agree
+            if pct != last[0] or (
+                message != last[1] and (now - last[2] >= 1.0 or detail != last[3])
+            ):
                 last[:3] = [pct, message, now]
                 self.store.set_progress(job_id, pct, message)
-            if info and (info.get("stage"), info.get("warnings")) != last[3]:
-                last[3] = (info.get("stage"), info.get("warnings"))
+            if info and detail != last[3]:
+                last[3] = detail
                 write_detail(job_dir, info)
 
         try:

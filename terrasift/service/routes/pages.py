@@ -8,6 +8,7 @@ on to the new job's page (303).
 
 from __future__ import annotations
 
+from html import escape
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Request
@@ -42,22 +43,30 @@ def landing(request: Request, who: Annotated[str, Depends(tenant)]) -> HTMLRespo
     doc = ogc.landing(base_url(request))
     recent = service(request).store.list_jobs(who, limit=10)
     table = html.jobs_table([job_routes.status_doc(request, j) for j in recent])
-    return HTMLResponse(html.landing_page(doc, table))
+    return _page(request, html.landing_page(doc, table))
+
+
+def _page(request: Request, text: str) -> HTMLResponse:
+    """The page with its links based on the service's base URL."""
+    base = escape(base_url(request) + "/")
+    return HTMLResponse(text.replace('<base href="/">', f'<base href="{base}">', 1))
 
 
 @router.get("/conformance")
-def conformance() -> HTMLResponse:
-    return HTMLResponse(html.conformance_page(process_routes.conformance()))
+def conformance(request: Request) -> HTMLResponse:
+    return _page(request, html.conformance_page(process_routes.conformance()))
 
 
 @router.get("/processes")
 def processes(request: Request) -> HTMLResponse:
-    return HTMLResponse(html.processes_page(process_routes.processes(request)))
+    return _page(request, html.processes_page(process_routes.processes(request)))
 
 
 @router.get("/processes/{process_id}")
 def process(process_id: str, request: Request) -> HTMLResponse:
-    return HTMLResponse(html.process_page(process_routes.process_description(process_id, request)))
+    return _page(
+        request, html.process_page(process_routes.process_description(process_id, request))
+    )
 
 
 @router.get("/jobs")
@@ -65,7 +74,7 @@ def jobs(
     request: Request, who: Annotated[str, Depends(tenant)], limit: int = 50, offset: int = 0
 ) -> HTMLResponse:
     doc = job_routes.list_jobs(request, who, min(max(limit, 1), 1000), max(offset, 0))
-    return HTMLResponse(html.jobs_page(doc))
+    return _page(request, html.jobs_page(doc))
 
 
 @router.get("/jobs/{job_id}")
@@ -79,12 +88,12 @@ def job(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> 
             if path.exists():
                 outputs.append((name, path.stat().st_size, media_type(name)))
     doc = job_routes.status_doc(request, j)
-    return HTMLResponse(html.job_page(doc, outputs, f"/jobs/{j.id}/outputs"))
+    return _page(request, html.job_page(doc, outputs, f"jobs/{j.id}/outputs"))
 
 
 @router.get("/jobs/{job_id}/results")
 def results(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> HTMLResponse:
-    return HTMLResponse(html.results_page(job_id, job_routes.job_results(job_id, request, who)))
+    return _page(request, html.results_page(job_id, job_routes.job_results(job_id, request, who)))
 
 
 @router.post("/jobs")
