@@ -104,6 +104,7 @@ class JobProgress:
         total = sum(shares.values()) or 1.0
         for key, share in shares.items():
             self.add(stage, key, kind, self.points * share / total)
+        self._stages[stage].reserved = 0.0  # now in the items (up to rounding)
 
     # -- reporting --------------------------------------------------------
 
@@ -141,9 +142,14 @@ class JobProgress:
         credit = min(rate * (now - self._last_done_at), 0.9 * outstanding)
         return self.done_work + max(credit, 0.0)
 
+    @property
+    def finished(self) -> bool:
+        return not any(s.pending or s.reserved for s in self._stages.values())
+
     def percent(self) -> float:
-        """Monotonic percentage, 0-100."""
-        self._reported = max(self._reported, min(100.0, 100.0 * self.estimate() / self.total))
+        """Monotonic percentage, 0-100; exactly 100 once every registered task is done."""
+        pct = 100.0 if self.finished else min(100.0, 100.0 * self.estimate() / self.total)
+        self._reported = max(self._reported, pct)
         return self._reported
 
     def message(self) -> str:
