@@ -25,7 +25,7 @@ from terrasift.workers.executors import single_threaded_blas  # noqa: E402
 
 single_threaded_blas()
 
-from terrasift import pipeline  # noqa: E402
+from terrasift import jobs as pipeline  # noqa: E402
 from terrasift.synthetic.terrain import make_scene, write_las  # noqa: E402
 from terrasift.workers.executors import InlineExecutor, make_executor  # noqa: E402
 

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from terrasift import pipeline
+from terrasift import jobs as pipeline
 from terrasift.cli import main
 from terrasift.progress import COST, JobProgress
 from terrasift.service.app import create_app

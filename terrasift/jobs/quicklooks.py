@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from terrasift.jobs.dirs import block_results
 from terrasift.tiling import quicklook as ql
 
 THUMBNAIL = "thumbnail.png"
@@ -50,7 +51,7 @@ def _read(path: Path, max_side: int) -> tuple[NDArray, object, float] | None:
             masked=not integer,
             resampling=Resampling.nearest,
         )
-        transform = ds.transform * ds.transform.scale(ds.width / shape[1], ds.height / shape[0])
+        transform = ds.transform @ ds.transform.scale(ds.width / shape[1], ds.height / shape[0])
     if not integer:
         data = data.astype(np.float64).filled(np.nan)
     return data, transform, abs(transform.a)
@@ -140,7 +141,7 @@ def _steep(job: Path, out: Path, shade: NDArray, transform: object) -> list[str]
     except (OSError, ValueError, KeyError):
         return []
     layer = np.zeros((*shade.shape, 4), np.uint8)
-    for stats_path in (job / "blocks").glob("*.json"):
+    for stats_path in (p.with_suffix(".json") for p in block_results(job)):
         try:
             stats = json.loads(stats_path.read_text())
         except (OSError, ValueError):
