@@ -49,3 +49,23 @@ def test_classes_and_ramp_colours() -> None:
     assert r[1, 1, 3] == 0
     legend = ql.legend(ql.COVERAGE_CLASSES)
     assert legend[3] == {"value": 3, "description": "tree", "color_hint": "1a6e2e"}
+
+
+def test_job_quicklooks_show_steep_blocks_and_features(tmp_path: Path) -> None:
+    from terrasift import jobs
+    from terrasift.synthetic.terrain import make_scene, write_las
+    from terrasift.workers.executors import InlineExecutor
+
+    tile = write_las(make_scene(size=60, density=4, seed=3), tmp_path / "t.laz")
+    job = tmp_path / "job"
+    params = {"block_size": 30, "buffer": 5, "resolution": 1.0, "rotation": "always"}
+    jobs.prepare_job(job, [tile], jobs.validate_params(params))
+    names = jobs.run_job(job, InlineExecutor())
+    assert {"features.png", "steep_blocks.png", "thumbnail.png"} <= set(names)
+    steep = read_png((job / "outputs" / "steep_blocks.png").read_bytes(), tmp_path)
+    plain = read_png((job / "outputs" / "hillshade.png").read_bytes(), tmp_path)
+    inside = plain[..., 3] == 255
+    # every block was rotated: the whole footprint is tinted red over the grey hillshade
+    red = steep[..., 0].astype(int) - steep[..., 1].astype(int)
+    assert inside.mean() > 0.8 and (red[inside] > 40).mean() > 0.95
+    assert (np.abs(plain[..., 0].astype(int) - plain[..., 1])[inside] == 0).all()
