@@ -24,9 +24,15 @@ def test_negotiation_by_accept_and_f(tmp_path: Path) -> None:
         assert c.get("/", headers={"Accept": "application/json, text/html;q=0.5"}).json()
         desc = c.get("/processes/terrain?f=html").text
         assert "resolution" in desc and "dtm.tif" in desc and 'name="file"' in desc
-        # problems stay problem+json for a browser too
+        # a problem is a page for a browser, problem+json for everyone else
         r = c.get("/jobs/nope", headers=BROWSER)
+        assert r.status_code == 404 and r.headers["content-type"].startswith("text/html")
+        assert "No such job" in r.text and "nope" in r.text
+        r = c.get("/jobs/nope")
         assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json"
+        r = c.post("/jobs", files=[("file", ("a.las", b"nonsense"))], headers=BROWSER)
+        assert r.status_code == 422 and "not a LAS/LAZ file" in r.text
+        assert r.headers["content-type"].startswith("text/html")
 
 
 def test_form_upload_goes_to_the_job_page(tmp_path: Path) -> None:

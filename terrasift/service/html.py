@@ -309,3 +309,11 @@ def results_page(job_id: str, doc: dict[str, Any]) -> str:
         f"<table><tr><th>output</th><th>type</th></tr>{rows}</table>"
     )
     return page("Results", body, f"jobs/{job_id}/results?f=json")
+
+
+def problem_page(status: int, title: str, detail: str) -> str:
+    body = (
+        f"<h1>{status} · {escape(title)}</h1><p>{escape(detail)}</p>"
+        '<p><a href="./?f=html">back to the start page</a></p>'
+    )
+    return page(title, body, "./?f=json")

@@ -8,8 +8,9 @@ on to the new job's page (303).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Coroutine
 from html import escape
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -17,22 +18,47 @@ from fastapi.routing import APIRoute
 from starlette.routing import Match
 from starlette.types import Scope
 
+from terrasift.errors import TerrasiftError
 from terrasift.service import html, ogc
 from terrasift.service.auth import tenant
 from terrasift.service.context import base_url, service
 from terrasift.service.outputs import media_type
+from terrasift.service.problems import Problem, ProblemType, problem_for
 from terrasift.service.routes import jobs as job_routes
 from terrasift.service.routes import processes as process_routes
 from terrasift.service.store import SUCCESSFUL
 
 
 class HtmlRoute(APIRoute):
-    """A route that matches only when the request wants HTML."""
+    """A route that matches only when the request wants HTML; its problems are pages too."""
 
     def matches(self, scope: Scope) -> tuple[Match, Scope]:
         if scope.get("type") == "http" and not html.wants_html(scope):
             return Match.NONE, {}
         return super().matches(scope)
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        inner = super().get_route_handler()
+
+        async def handler(request: Request) -> Response:
+            try:
+                return await inner(request)
+            except Problem as exc:
+                return _error(request, exc.type, exc.detail, exc.headers)
+            except TerrasiftError as exc:
+                return _error(request, problem_for(exc), str(exc), None)
+
+        return handler
+
+
+def _error(
+    request: Request, ptype: ProblemType, detail: str, headers: dict[str, str] | None
+) -> HTMLResponse:
+    """The problem as a page, with the same status and headers as its JSON."""
+    page = _page(request, html.problem_page(ptype.status, ptype.title, detail))
+    page.status_code = ptype.status
+    page.headers.update(headers or {})
+    return page
 
 
 router = APIRouter(route_class=HtmlRoute, include_in_schema=False)
