@@ -104,6 +104,7 @@ def test_upload_watch_look_download(browser, server: str, tmp_path: Path) -> Non
     seen: list[int] = []
     end = time.monotonic() + 240
     status = ""
+    pushed = False  # the page listens to server-sent events
     running_shot = (SHOTS or tmp_path) / "job-running.png"
     running_shot.parent.mkdir(parents=True, exist_ok=True)
     while time.monotonic() < end:
@@ -112,6 +113,9 @@ def test_upload_watch_look_download(browser, server: str, tmp_path: Path) -> Non
             seen.append(int(driver.find_element(By.ID, "progress").text.split()[0]))
             if status == "running" and 0 < seen[-1] < 100 and not running_shot.exists():
                 driver.save_screenshot(str(running_shot))
+            if status == "running":
+                live = driver.execute_script("return document.body.dataset.live")
+                pushed = pushed or live == "events"
         except Exception:  # noqa: BLE001 - the page reloads itself at the end
             pass
         if status in ("successful", "failed", "dismissed") and driver.find_elements(
@@ -120,6 +124,7 @@ def test_upload_watch_look_download(browser, server: str, tmp_path: Path) -> Non
             break
         time.sleep(0.3)
     assert status == "successful", (status, seen)
+    assert pushed, "the job page got no server-sent event from /jobs/{id}/events"
     seen.append(int(driver.find_element(By.ID, "progress").text.split()[0]))  # the final page
     assert seen == sorted(seen) and seen[-1] == 100 and len(set(seen)) >= 2, seen
     warnings = driver.find_element(By.ID, "warnings").text

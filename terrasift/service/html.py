@@ -275,13 +275,19 @@ def job_page(status: dict[str, Any], outputs: list[tuple[str, int, str]], output
   }}
   function poll() {{
     fetch(url + "?f=json", {{headers: {{Accept: "application/json"}}}})
-      .then(r => r.json()).then(s => {{ if (show(s)) setTimeout(poll, 1000); }})
+      .then(r => r.json()).then(s => {{
+        document.body.dataset.live = "polling";
+        if (show(s)) setTimeout(poll, 1000);
+      }})
       .catch(() => setTimeout(poll, 3000));
   }}
   if (active(initial)) {{
     if (window.EventSource) {{
       const es = new EventSource(url + "/events");
-      es.addEventListener("status", e => {{ if (!show(JSON.parse(e.data))) es.close(); }});
+      es.addEventListener("status", e => {{
+        document.body.dataset.live = "events";
+        if (!show(JSON.parse(e.data))) es.close();
+      }});
       es.onerror = () => {{ es.close(); poll(); }};
     }} else {{ poll(); }}
   }}
