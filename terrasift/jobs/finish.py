@@ -192,11 +192,15 @@ def _write_categories(job: Path) -> list[str]:
             cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
             for r in range(0, height, band)
         ]
+    inclination, orientation, state, height10 = (
+        np.concatenate([getattr(p, f) for p in parts])
+        for f in ("inclination", "orientation", "state", "height10")
+    )
     cats = cat.Categories(
-        *(
-            np.concatenate([getattr(p, f) for p in parts])
-            for f in ("inclination", "orientation", "state", "height10")
-        ),
+        inclination,
+        orientation,
+        state,
+        height10,
         cells_per_tile=parts[0].cells_per_tile,
         tile_size=parts[0].tile_size,
     )

@@ -128,7 +128,7 @@ def dtm_window(
 def dsm_window(xyz: NDArray[np.float64], window: Window) -> NDArray[np.float32]:
     """Highest point per cell; empty cells take the nearest filled cell's value."""
     row, col, inside = window.cell_of(xyz[:, 0], xyz[:, 1])
-    out = np.full(window.rows * window.cols, -np.inf)
+    out: NDArray = np.full(window.rows * window.cols, -np.inf)
     flat = row[inside] * window.cols + col[inside]
     np.maximum.at(out, flat, xyz[inside, 2]) if flat.size < 4096 else _max_sorted(
         out, flat, xyz[inside, 2]

@@ -373,7 +373,7 @@ class Tin:
 
     def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
         """Gradient magnitude (rise over run) of the facet under each local point."""
-        return self.height_and_slope(q)[1]
+        return self._located(q, _NEAREST, True)[2]
 
     def facet_slopes(self) -> NDArray[np.float64]:
         """Gradient magnitude of each triangle."""
