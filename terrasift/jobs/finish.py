@@ -104,11 +104,6 @@ BAND_CELLS = (
 )  # DTM cells per band for slope and categories: memory follows this, not the job
 
 
-def write_terrain(job_dir: str) -> list[str]:
-    """Slope, categories and terrain objects from the job's mosaicked DTM (both terrain tasks)."""
-    return [write_slope(job_dir), *write_categories(job_dir)]
-
-
 def write_slope(job_dir: str) -> str:
     """Task: the slope raster from the job's mosaicked DTM.
 
