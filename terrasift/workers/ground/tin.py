@@ -17,6 +17,9 @@ coordinates of 5e6 m).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
+
 import numba
 import numpy as np
 import startinpy
@@ -141,6 +144,16 @@ def hilbert_key(xy: NDArray[np.float64]) -> NDArray[np.int64]:
     return d
 
 
+@dataclass(frozen=True)
+class FacetPlanes:
+    """Per facet: unit normal, |n_z| (the cosine of its slope), offset n · corner, horizontal area."""
+
+    unit: NDArray[np.float64]
+    nz: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    area: NDArray[np.float64]
+
+
 class Tin:
     """Delaunay TIN through ``xyz``, linear inside the hull, nearest corner outside it."""
 
@@ -167,6 +180,7 @@ class Tin:
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
         self._zt: NDArray[np.float64] | None = None
+        self._planes: FacetPlanes | None = None
 
     @classmethod
     def _from_mesh(
@@ -178,7 +192,7 @@ class Tin:
     ) -> Tin:
         tin = cls.__new__(cls)
         tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
-        tin._slopes = tin._trans = tin._guess = tin._zt = None
+        tin._slopes = tin._trans = tin._guess = tin._zt = tin._planes = None
         return tin
 
     @property
@@ -382,6 +396,53 @@ class Tin:
         if self._zt is None:
             self._zt = self.z[self.tri.simplices]
         return self._zt
+
+    @cached_property
+    def simplices(self) -> NDArray[np.int64]:
+        """Corner vertices of every facet."""
+        return np.asarray(self.tri.simplices, dtype=np.int64)
+
+    @cached_property
+    def local_xyz(self) -> NDArray[np.float64]:
+        """The vertices in local coordinates (x, y less ``origin``; z as given)."""
+        return np.column_stack([self.xy, self.z])
+
+    def facet_of(self, q: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Facet under each local point of ``q``, -1 outside the hull; fastest when
+        consecutive points are close."""
+        t, _ = self.locate(np.asarray(q, dtype=np.float64))
+        return np.where(t >= 0, t, -1)
+
+    def facet_planes(self) -> FacetPlanes:
+        """The plane of every facet (cached): for distances of points to facets."""
+        if self._planes is None:
+            p = self.local_xyz[self.simplices]
+            normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            norm = np.linalg.norm(normal, axis=1)
+            norm[norm == 0] = np.inf
+            unit = normal / norm[:, None]
+            self._planes = FacetPlanes(
+                unit=unit,
+                nz=np.abs(unit[:, 2]),
+                offset=np.einsum("ij,ij->i", unit, p[:, 0]),
+                area=0.5 * np.abs(normal[:, 2]),
+            )
+        return self._planes
+
+    def plane_distance(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Perpendicular distance of each local point to the plane of its facet ``s``."""
+        planes = self.facet_planes()
+        return np.abs(np.einsum("ij,ij->i", pts, planes.unit[s]) - planes.offset[s])
+
+    def nearest_corner(
+        self, s: NDArray[np.int64], pts: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Distance to the nearest corner of facet ``s`` and that corner, per local point."""
+        vs = self.local_xyz[self.simplices[s]]  # (m, 3, 3)
+        d2 = ((vs - pts[:, None, :]) ** 2).sum(axis=2)
+        k = np.argmin(d2, axis=1)
+        r = np.arange(s.size)
+        return np.sqrt(d2[r, k]), vs[r, k]
 
     def facet_slopes(self) -> NDArray[np.float64]:
         """Gradient magnitude of each triangle."""
