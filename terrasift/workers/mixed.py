@@ -225,8 +225,8 @@ class Derived:
     def report(self) -> dict[str, Any]:
         p = self.params
         out: dict[str, Any] = {
-            "cell_angle": round(float(p.cell_angle), 6),
-            "support_tol": round(float(p.support_tol), 6),
+            "cell_angle": round(float(p.cell_angle or 0.0), 6),
+            "support_tol": round(float(p.support_tol or 0.0), 6),
             # box width across the ray: metres, or degrees (times each box's range)
             "box_width": p.box_width,
             "box_angle": None if self.box_angle is None else round(np.degrees(self.box_angle), 6),
@@ -295,6 +295,11 @@ def _mark_scan(
     ``p`` has its cell angle and support tolerance resolved; the box width is
     ``box_angle`` (radians) × each box's range, or ``p.box_width`` when it is None.
     """
+    if p.cell_angle is None or p.support_tol is None:
+        raise ValueError("cell_angle and support_tol must be resolved first (derive_params)")
+    if box_angle is None and p.box_width is None:
+        raise ValueError("a box width or a box angle is needed")
+    cell_angle, support_tol = p.cell_angle, p.support_tol
     n = rel.shape[0]
     marked = np.zeros(n, dtype=bool)
     unclassified = np.ones(n, dtype=bool)
@@ -305,7 +310,7 @@ def _mark_scan(
     q, r = rel[valid], r[valid]
 
     # Sparse hash of angular cells; points sorted by (cell, range).
-    beta = np.radians(p.cell_angle)
+    beta = np.radians(cell_angle)
     n_az = int(np.ceil(2 * np.pi / beta))
     n_el = int(np.ceil(np.pi / beta)) + 1
     az = np.arctan2(q[:, 1], q[:, 0])
@@ -327,9 +332,9 @@ def _mark_scan(
     key = cell * big + r
 
     # Lateral support: the surface through the neighbours across azimuth (elevation) continues through the point.
-    sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=0)
+    sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, support_tol, axis=0)
     sup_el = (
-        _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=1)
+        _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, support_tol, axis=1)
         if p.cross_box
         else sup_az
     )
@@ -349,7 +354,7 @@ def _mark_scan(
     item_of = np.cumsum(new) - 1
     n_items = first.size
     P, r0, ia0, ie0 = q[first], r[first], ia[first], ie[first]
-    bw = r0 * box_angle if box_angle is not None else np.full(n_items, float(p.box_width))
+    bw = r0 * box_angle if box_angle is not None else np.full(n_items, float(p.box_width or 0.0))
 
     blind = p.blind_depth if "blind" in p.variant else 0.0
     box_votes = np.zeros(r.size, dtype=np.int64)  # boxes whose region holds the point
@@ -411,7 +416,7 @@ def _mark_scan(
                 out=mom[1:],
             )
             diff = mom[hi] - mom[lo]
-            S = np.column_stack(
+            S: NDArray = np.column_stack(
                 [np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(11)]
             )
             counted = S[:, 0] >= p.min_points
