@@ -107,7 +107,7 @@ def _write_raster(job: Path, name: str) -> str:
                     col_off // f,
                     np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8),
                 )
-            elif name == "chm":
+            elif name == "chm" and "raster_chm" not in data:
                 mosaic.write(
                     row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None)
                 )
@@ -347,7 +347,7 @@ def write_report_and_item(
     from terrasift.params import effective_stage_params
     from terrasift.workers import terrain, vegetation
 
-    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
+    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0, "building": 0}
     for s in block_stats:
         for k in bins:
             bins[k] += s.get("vegetation", {}).get(k, 0)

@@ -26,7 +26,7 @@ from terrasift.workers.bins import Grid
 from terrasift.workers.ground import lowpoints, rotation
 from terrasift.workers.registry import get_stage
 
-UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
+UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, BUILDING, NOISE = 1, 2, 3, 4, 5, 6, 7
 
 
 @dataclass
@@ -131,16 +131,22 @@ def classify_block(
     window = dem.Window(xmin, ymax, grid.resolution, rows, cols)
     with timer("dtm"):
         surface = dem.ground_tin(sub[is_ground_sub], max(grid.resolution, 1.0))
+    # Buildings and noise first: vegetation bins, the DSM and the CHM do without them.
+    with timer("objects"):
+        obj, hag = _objects(sub, is_ground_sub, low_sub, surface, points, order[act], params)
+    labels[act[obj.building]] = BUILDING
+    labels[act[obj.noise]] = NOISE
+    plant = ~obj.building & ~obj.noise & ~low_sub
     with timer("vegetation"):
-        veg = vegetation.classify_bins(sub, is_ground_sub, hgrid, vparams, surface=surface).crop(
-            vgrid
-        )
+        veg = vegetation.classify_bins(
+            sub[plant], is_ground_sub[plant], hgrid, vparams, surface=surface
+        ).crop(vgrid)
+        veg = vegetation.mark_buildings(veg, sub[obj.building])
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
             in_veg = (flat >= 0) & (veg.bin_class[np.maximum(flat, 0)] >= vegetation.BUSH)
-            pick = in_veg & ~is_ground_sub & ~low_sub
-            hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
-            labels[act[pick]] = vegetation.height_classes(hag)
+            pick = in_veg & ~is_ground_sub & plant
+            labels[act[pick]] = vegetation.height_classes(hag[pick])
     stats["vegetation"] = veg.counts
     stats["vegetation_nogo"] = int(veg.nogo.sum())
 
@@ -170,9 +176,21 @@ def classify_block(
         valid = dem.data_reach_mask(sub, window, reach)
         dtm = dem.sample_window(surface, window)
         dtm[~valid] = np.nan
-        dsm = dem.dsm_window(sub, window)
+        dsm = dem.dsm_window(sub[labels[act] != NOISE], window)
         dsm[~valid] = np.nan
         dsm = np.fmax(dsm, dtm)
+    with timer("chm"):
+        rn, nr = points["return_number"][order[act]], points["number_of_returns"][order[act]]
+        first = (rn <= 1) | (nr <= 1)
+        chm = _chm(sub, labels[act], is_ground_sub, hag, surface, window, params, first)
+        chm[~valid] = np.nan
+
+    # Input classes kept as they are (water by default).
+    keep = stage_params(params, "objects").keep
+    if keep and "classification" in (points.dtype.names or ()):
+        given = points["classification"][order]
+        kept = np.isin(given, keep)
+        labels[kept] = given[kept]
 
     counts = np.bincount(labels[core], minlength=32)
     stats["counts"] = {str(c): int(v) for c, v in enumerate(counts) if v}
@@ -182,7 +200,7 @@ def classify_block(
         index=points["index"][order[core]],
         classes=labels[core],
         window=(row_off, col_off, rows, cols),
-        rasters={"dtm": dtm, "dsm": dsm, "coverage": veg.raster()},
+        rasters={"dtm": dtm, "dsm": dsm, "chm": chm, "coverage": veg.raster()},
         stats=stats,
     )
 
@@ -216,6 +234,57 @@ def canonical_order(x: NDArray, y: NDArray, z: NDArray) -> NDArray[np.int64]:
         )
         order[pos] = order[pos][np.lexsort((order[pos], run))]
     return order
+
+
+def _objects(
+    sub: NDArray,
+    is_ground: NDArray[np.bool_],
+    low: NDArray[np.bool_],
+    surface: Any,
+    points: NDArray,
+    rows: NDArray[np.int64],
+    params: Mapping[str, Any],
+) -> tuple[Any, NDArray[np.float64]]:
+    """Buildings and noise among the active points ``sub`` (rows ``rows`` of
+    ``points``), and every point's height above the ground surface."""
+    from terrasift.workers import objects
+
+    hag = np.full(sub.shape[0], np.nan)
+    if surface is not None:
+        hag = sub[:, 2] - surface(sub[:, 0], sub[:, 1])
+    found = objects.label_objects(
+        sub,
+        is_ground | low,
+        hag,
+        stage_params(params, "objects"),
+        float(params.get("_density", 1.0)),
+        points["return_number"][rows],
+        points["number_of_returns"][rows],
+    )
+    return found, hag
+
+
+def _chm(
+    sub: NDArray,
+    labels: NDArray[np.uint8],
+    is_ground: NDArray[np.bool_],
+    hag: NDArray[np.float64],
+    surface: Any,
+    window: dem.Window,
+    params: Mapping[str, Any],
+    first: NDArray[np.bool_],
+) -> NDArray[np.float32]:
+    """Pit-free CHM of the vegetation points (layered TINs of first returns), ground at 0."""
+    from terrasift.workers import chm
+
+    if surface is None:
+        return np.full((window.rows, window.cols), np.nan, np.float32)
+    plant = np.isin(labels, (LOW_VEG, MED_VEG, HIGH_VEG)) & first
+    floor = surface.xy + surface.origin
+    xy = np.concatenate([sub[plant, :2], floor])
+    h = np.concatenate([hag[plant], np.zeros(floor.shape[0])])
+    density = float(params.get("_density", 1.0))
+    return chm.layered_chm(xy, h, window, chm.max_edge_for(density, window.resolution))
 
 
 def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[str, Any]) -> Any:
