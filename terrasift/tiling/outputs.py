@@ -7,7 +7,6 @@ already exists, so a resumed job repeats only what is missing.
 from __future__ import annotations
 
 import copy
-import datetime as dt
 import json
 import os
 from collections.abc import Mapping
@@ -22,14 +21,12 @@ from numpy.typing import NDArray
 from terrasift.errors import ProcessingError
 from terrasift.params import stage_params
 from terrasift.tiling.blocks import BlockGrid
-from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, bounded_raster_cache, job_transform
-
-MEDIA_TYPES = {
-    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-    ".laz": "application/vnd.laszip",
-    ".geojson": "application/geo+json",
-    ".json": "application/json",
-}
+from terrasift.tiling.rasters import (
+    RasterMosaic,
+    band_metadata,
+    bounded_raster_cache,
+    job_transform,
+)
 
 #: the float rasters every job writes; name -> how to make it from a block's arrays
 FLOAT_RASTERS = ("dtm", "dsm", "chm")
@@ -82,6 +79,7 @@ def _write_raster(job: Path, name: str) -> str:
             crs=plan["crs_wkt"],
             dtype="uint8",
             nodata=COVERAGE_NODATA,
+            **band_metadata("coverage"),
         )
     else:
         transform = job_transform(grid.x0, grid.y_top, grid.resolution)
@@ -91,6 +89,7 @@ def _write_raster(job: Path, name: str) -> str:
             height=grid.height,
             transform=transform,
             crs=plan["crs_wkt"],
+            **band_metadata(name),
         )
     mosaic.fill_nodata()
     for path in _block_files(job):
@@ -155,6 +154,7 @@ def write_slope(job_dir: str) -> str:
             height=height,
             transform=ds.transform,
             crs=plan["crs_wkt"],
+            **band_metadata("slope"),
         )
         for r in range(0, height, band):
             lo, hi = max(0, r - margin), min(height, r + band + margin)
@@ -229,7 +229,7 @@ def _write_categories(job: Path) -> list[str]:
             dtype="uint8",
             nodata=cat.NODATA,
             count=4,
-            descriptions=("inclination", "orientation", "state", "height_x10"),
+            **band_metadata("categories"),
         )
         m.write(0, 0, bands)
         m.close_as_cog(out / "categories.tif", resampling="nearest")
@@ -241,14 +241,23 @@ def _write_categories(job: Path) -> list[str]:
             cats, filters, transform, cats.tile_size, stage_params(params, "features")
         )
         crs = plan["crs_wkt"]
-        native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
-        if native is not None:
-            _write_json(out / "features.native.geojson", native)
+        # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its
+        # CRS; WGS 84 (RFC 7946) only when the CRS is known.
+        from terrasift.tiling.vectors import crs_member, write_geopackage
+
+        native = feat.features_geojson(result, crs or 0, job.name, to_wgs84=False)
+        write_geopackage(out / "features.gpkg", native, crs)
+        member = crs_member(crs)
+        _write_json(
+            out / "features.native.geojson", {**native, **({"crs": member} if member else {})}
+        )
+        names += ["features.gpkg", "features.native.geojson"]
+        if crs:
             _write_json(
                 out / "features.geojson",
                 feat.features_geojson(result, crs, job.name, to_wgs84=True),
             )
-            names += ["features.geojson", "features.native.geojson"]
+            names.append("features.geojson")
         for fname, marks in result.marked.items():
             m = RasterMosaic(
                 work / f"{fname}.tif",
@@ -412,7 +421,9 @@ def write_report_and_item(
     names = sorted(
         p.name for p in out.iterdir() if not p.name.endswith(".part") and p.name != "item.json"
     )
-    item = stac_item(job.name, plan, names)
+    from terrasift.tiling.stac import stac_item
+
+    item = stac_item(job.name, out, plan, names)
     tmp = out / "item.json.part"
     tmp.write_text(json.dumps(item, indent=2))
     os.replace(tmp, out / "item.json")
@@ -449,61 +460,3 @@ def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> di
             }
         )
     return {"type": "FeatureCollection", "features": feats}
-
-
-def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[str, Any]:
-    """A STAC 1.0 Item with the projection extension describing the job's outputs."""
-    grid = BlockGrid(**plan["grid"])
-    xmin, ymin = grid.x0, grid.y0
-    xmax, ymax = grid.x0 + grid.width * grid.resolution, grid.y_top
-    bbox_native = [xmin, ymin, xmax, ymax]
-    geometry = None
-    bbox = None
-    if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(
-            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
-        )
-        lon0, lat0, lon1, lat1 = tf.transform_bounds(xmin, ymin, xmax, ymax)
-        bbox = [lon0, lat0, lon1, lat1]
-        geometry = {
-            "type": "Polygon",
-            "coordinates": [[[lon0, lat0], [lon1, lat0], [lon1, lat1], [lon0, lat1], [lon0, lat0]]],
-        }
-    transform = [grid.resolution, 0.0, grid.x0, 0.0, -grid.resolution, grid.y_top]
-    props: dict[str, Any] = {
-        "datetime": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
-        "proj:bbox": bbox_native,
-        "proj:shape": [grid.height, grid.width],
-        "proj:transform": transform,
-    }
-    code = plan.get("crs")
-    if code and code.startswith("EPSG:"):
-        props["proj:code"] = code
-    elif plan.get("crs_wkt"):
-        props["proj:code"] = None
-        props["proj:wkt2"] = plan["crs_wkt"]
-    assets = {}
-    for name in names:
-        suffix = Path(name).suffix
-        role = "metadata" if suffix == ".json" else "data"
-        asset: dict[str, Any] = {
-            "href": f"./{name}",
-            "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
-            "roles": [role],
-        }
-        if suffix == ".tif":
-            asset["proj:shape"] = [grid.height, grid.width]
-            asset["proj:transform"] = transform
-            asset["nodata"] = FLOAT_NODATA
-        assets[name] = asset
-    return {
-        "type": "Feature",
-        "stac_version": "1.0.0",
-        "stac_extensions": ["https://stac-extensions.github.io/projection/v2.0.0/schema.json"],
-        "id": job_id,
-        "bbox": bbox,
-        "geometry": geometry,
-        "properties": props,
-        "links": [],
-        "assets": assets,
-    }
