@@ -274,14 +274,17 @@ def _chm(
     params: Mapping[str, Any],
     first: NDArray[np.bool_],
 ) -> NDArray[np.float32]:
-    """Pit-free CHM of the vegetation points (layered TINs of first returns), ground at 0."""
+    """Pit-free CHM of the vegetation points (layered TINs of first returns); every
+    other point (ground, roofs, unclassified; one per cell) at 0, so a roof reads 0
+    and no layer bridges over it."""
     from terrasift.workers import chm
 
     if surface is None:
         return np.full((window.rows, window.cols), np.nan, np.float32)
-    plant = np.isin(labels, (LOW_VEG, MED_VEG, HIGH_VEG)) & first
-    floor = surface.xy + surface.origin
-    xy = np.concatenate([sub[plant, :2], floor])
+    is_plant = np.isin(labels, (LOW_VEG, MED_VEG, HIGH_VEG))
+    plant = is_plant & first
+    floor = dem.lowest_per_cell(sub[~is_plant & (labels != NOISE)], window.resolution)
+    xy = np.concatenate([sub[plant, :2], floor[:, :2]])
     h = np.concatenate([hag[plant], np.zeros(floor.shape[0])])
     density = float(params.get("_density", 1.0))
     return chm.layered_chm(xy, h, window, chm.max_edge_for(density, window.resolution))
