@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from terrasift import pipeline  # noqa: E402
+from terrasift import jobs  # noqa: E402
 from terrasift.synthetic.terrain import write_las  # noqa: E402
 from terrasift.synthetic.town import make_town, town_family  # noqa: E402
 from terrasift.workers.executors import InlineExecutor  # noqa: E402
@@ -44,8 +44,8 @@ VEG = (3, 4, 5)
 
 def run_job(tile: Path, work: Path, params: dict) -> Path:
     job = work / tile.stem
-    pipeline.prepare_job(job, [tile], pipeline.validate_params(params))
-    pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, [tile], jobs.validate_params(params))
+    jobs.run_job(job, InlineExecutor())
     return job
 
 

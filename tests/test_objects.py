@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.terrain import make_scene, write_las
 from terrasift.synthetic.town import make_town
 from terrasift.workers.chm import layered_chm
@@ -112,8 +112,8 @@ def test_job_keeps_water_and_keeps_spikes_out_of_dsm_and_chm(tmp_path):
     given[pond] = 9
     tile = write_las(scene, tmp_path / "pond.laz", classification=given)
     job = tmp_path / "job"
-    pipeline.prepare_job(job, [tile], pipeline.validate_params({}))
-    pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, [tile], jobs.validate_params({}))
+    jobs.run_job(job, InlineExecutor())
     out = np.asarray(laspy.read(job / "outputs" / "classified.laz").classification)
     assert np.all(out[pond] == 9)
     assert out[-1] == 7

@@ -13,7 +13,7 @@ from rasterio.transform import from_origin
 
 from terrasift.cli import main
 from terrasift.errors import ParameterError
-from terrasift.pipeline import dtm_path_profile
+from terrasift.jobs import dtm_path_profile
 from terrasift.synthetic.terrain import make_scene, write_las
 
 X0, Y0 = 500_000.0, 5_400_000.0

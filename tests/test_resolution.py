@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import rasterio
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.errors import ParameterError
 from terrasift.synthetic.terrain import make_scene, write_las
 from terrasift.workers.executors import InlineExecutor
@@ -21,14 +21,14 @@ def tiny_tile(tmp_path_factory):
 
 @pytest.mark.parametrize("resolution", RESOLUTIONS)
 def test_resolution_alone_runs_a_whole_job(tmp_path, tiny_tile, resolution):
-    params = pipeline.validate_params({"resolution": resolution})
+    params = jobs.validate_params({"resolution": resolution})
     cells = {k: params[k] / resolution for k in ("vegetation.cell", "terrain.cell")}
     assert all(abs(c - round(c)) < 1e-6 and round(c) >= 1 for c in cells.values())
     tiles = params["categories.tile_size"] / resolution
     assert abs(tiles - round(tiles)) < 1e-6 and round(tiles) >= 2
     job = tmp_path / "job"
-    pipeline.prepare_job(job, [tiny_tile], params)
-    names = pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, [tiny_tile], params)
+    names = jobs.run_job(job, InlineExecutor())
     assert {"dtm.tif", "coverage.tif", "categories.tif", "slope.tif"} <= set(names)
     with rasterio.open(job / "outputs" / "dtm.tif") as ds:
         assert ds.res == pytest.approx((resolution, resolution))
@@ -39,7 +39,7 @@ def test_resolution_alone_runs_a_whole_job(tmp_path, tiny_tile, resolution):
 
 
 def test_explicit_sizes_that_follow_the_resolution_are_kept():
-    params = pipeline.validate_params(
+    params = jobs.validate_params(
         {"resolution": 2, "vegetation.cell": 4, "categories.tile_size": 8}
     )
     assert params["vegetation.cell"] == 4
@@ -49,7 +49,7 @@ def test_explicit_sizes_that_follow_the_resolution_are_kept():
 
 def test_every_contradiction_is_named_at_once():
     with pytest.raises(ParameterError) as err:
-        pipeline.validate_params(
+        jobs.validate_params(
             {
                 "resolution": 2,
                 "vegetation.cell": 1,
@@ -64,5 +64,5 @@ def test_every_contradiction_is_named_at_once():
 
 def test_fixed_parameter_errors_are_reported_together():
     with pytest.raises(ParameterError) as err:
-        pipeline.validate_params({"resolution": -1, "block_size": 1})
+        jobs.validate_params({"resolution": -1, "block_size": 1})
     assert "resolution" in str(err.value) and "block_size" in str(err.value)

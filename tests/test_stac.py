@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import rasterio
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.terrain import make_scene, write_las
 from terrasift.workers.executors import InlineExecutor
 
@@ -52,8 +52,8 @@ def _job(tmp_path, crs):
     tile = write_las(scene, tmp_path / "t.laz", crs=crs)
     job = tmp_path / "job"
     params = {"features": "none"} if crs is None else {}
-    pipeline.prepare_job(job, [tile], pipeline.validate_params(params))
-    pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, [tile], jobs.validate_params(params))
+    jobs.run_job(job, InlineExecutor())
     return job, json.loads((job / "outputs" / "item.json").read_text())
 
 

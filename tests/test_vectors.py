@@ -8,7 +8,7 @@ import pyogrio
 import pyproj
 import pytest
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.terrain import Surface, make_scene, write_las
 from terrasift.workers.executors import InlineExecutor
 
@@ -19,8 +19,8 @@ def _job(tmp_path, crs):
     scene = make_scene(size=100, density=2, seed=7, n_buildings=1, surface=surface)
     tile = write_las(scene, tmp_path / "f.laz", crs=crs)
     job = tmp_path / "job"
-    pipeline.prepare_job(job, [tile], pipeline.validate_params({}))
-    names = pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, [tile], jobs.validate_params({}))
+    names = jobs.run_job(job, InlineExecutor())
     return job / "outputs", names
 
 
