@@ -150,7 +150,15 @@ def surface_step(block: Block, models: BlockModels) -> None:
         block.surface = dem.ground_tin(block.sub[block.ground], max(block.grid.resolution, 1.0))
 
 
-@block_step("objects", order=35)
+def _objects_halo(models: BlockModels, density: float) -> float:
+    # the isolation radius and two rounds of roof growth (two spacings each);
+    # a third round, rare, may reach a little beyond
+    s = objects.spacing(density)
+    radius = models.objects.noise_radius or max(5.0, 4.0 * s)
+    return float(radius + 2 * max(1.0, 2.0 * s))
+
+
+@block_step("objects", order=35, halo=_objects_halo)
 def objects_step(block: Block, models: BlockModels) -> None:
     """Buildings (6) and noise (7): vegetation bins, the DSM and the CHM do without them."""
     sub = block.sub
