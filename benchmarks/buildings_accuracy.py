@@ -182,17 +182,22 @@ def chm_pits(work: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="4 seeds x 3 densities")
+    ap.add_argument("--quick", action="store_true", help="4 seeds x 3 densities (1, 4, 16)")
     ap.add_argument("--only", choices=["town", "isprs", "chm"])
     ap.add_argument("--seeds", type=int, default=6)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--densities", type=str, default=None, help="comma list, pulses/m²")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         if args.only in (None, "town"):
-            if args.quick:
-                town(work, list(range(4)), (1.0, 4.0, 16.0))
-            else:
-                town(work, list(range(args.seeds)), (1.0, 2.0, 4.0, 8.0, 16.0))
+            seeds = list(
+                range(args.first_seed, args.first_seed + (4 if args.quick else args.seeds))
+            )
+            densities = (1.0, 4.0, 16.0) if args.quick else (1.0, 2.0, 4.0, 8.0, 16.0)
+            if args.densities:
+                densities = tuple(float(d) for d in args.densities.split(","))
+            town(work, seeds, densities)
         if args.only in (None, "isprs"):
             isprs(work)
         if args.only in (None, "chm"):
