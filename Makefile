@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +40,9 @@ bench-rotation: $(STAMP)
 
 bench-buildings: $(STAMP)
 	$(PY) benchmarks/buildings_accuracy.py
+
+bench-progress: $(STAMP)
+	$(PY) benchmarks/progress_trace.py
 
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py

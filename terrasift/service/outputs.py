@@ -25,6 +25,8 @@ MEDIA_TYPES = {
     ".geojson": "application/geo+json",
     ".gpkg": "application/geopackage+sqlite3",
     ".json": "application/json",
+    ".png": "image/png",
+    ".html": "text/html; charset=utf-8",
 }
 # a STAC Item is a GeoJSON Feature
 MEDIA_TYPE_BY_NAME = {"item.json": "application/geo+json"}

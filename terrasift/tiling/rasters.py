@@ -139,12 +139,12 @@ def job_transform(x0: float, y_top: float, resolution: float) -> Affine:
 
 
 COVERAGE_CLASSES = {0: "empty", 1: "open", 2: "bush", 3: "tree", 4: "building"}
-#: colours of the coverage classes (RGBA); 255 (outside the data) is transparent
+#: colours of the coverage classes (RGBA, as the quicklook draws them); 255 (outside the data) is transparent
 COVERAGE_COLOURS = {
-    0: (255, 255, 255, 255),
-    1: (230, 220, 170, 255),
-    2: (150, 200, 90, 255),
-    3: (30, 110, 40, 255),
+    0: (235, 235, 235, 255),
+    1: (237, 222, 160, 255),
+    2: (134, 190, 90, 255),
+    3: (26, 110, 46, 255),
     4: (200, 60, 60, 255),
     255: (0, 0, 0, 0),
 }

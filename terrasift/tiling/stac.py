@@ -46,6 +46,14 @@ ROLES = {
 }
 
 
+def _default_role(name: str, suffix: str) -> list[str]:
+    if suffix == ".json":
+        return ["metadata"]
+    if suffix == ".png":  # quicklooks
+        return ["thumbnail"] if name == "thumbnail.png" else ["overview"]
+    return ["data"]
+
+
 def _iso(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
@@ -204,7 +212,7 @@ def stac_item(
         asset: dict[str, Any] = {
             "href": f"./{name}",
             "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
-            "roles": ROLES.get(name, ["metadata"] if suffix == ".json" else ["data"]),
+            "roles": ROLES.get(name, _default_role(name, suffix)),
         }
         path = out_dir / name
         if suffix == ".tif" and path.exists():
