@@ -158,3 +158,30 @@ def test_preflight_names_the_worker_without_the_data_directory(tmp_path: Path, s
         executor.shutdown()
         for proc in (good, bad):
             _stop(proc)
+
+
+def test_service_job_fails_with_the_no_workers_message(
+    tmp_path: Path, small_tile, scheduler, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Through the API: the job ends `failed` with the reason, not as an internal error;
+    a relative data directory reaches the job as an absolute path."""
+    from fastapi.testclient import TestClient
+
+    from terrasift.service.app import create_app
+    from terrasift.service.settings import Settings
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("TERRASIFT_DASK_NO_WORKERS_TIMEOUT", "0.5")
+    settings = Settings(_env_file=None, data_dir=Path("data"), dask_scheduler=scheduler)
+    assert settings.dask_no_workers_timeout == 0.5
+    assert settings.data_dir == tmp_path / "data"
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        posted = client.post("/jobs", files=[("file", ("t.laz", small_tile.read_bytes()))])
+        assert posted.status_code == 201, posted.text
+        job_id = posted.json()["jobID"]
+        deadline = time.monotonic() + 60
+        while (info := client.get(f"/jobs/{job_id}").json())["status"] in ("accepted", "running"):
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+    assert info["status"] == "failed"
+    assert "no Dask worker joined" in info["message"] and "0.5 s" in info["message"]
