@@ -3,12 +3,15 @@ and the no-workers timeout, on a real scheduler with workers as separate process
 
 from __future__ import annotations
 
+import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 from terrasift import cli, jobs
@@ -39,6 +42,12 @@ def _start_worker(address: str, *prefix: str, nworkers: int = 1) -> subprocess.P
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def _wait_workers(client, n: int, timeout: float = 60.0) -> dict:
@@ -185,3 +194,100 @@ def test_service_job_fails_with_the_no_workers_message(
             time.sleep(0.2)
     assert info["status"] == "failed"
     assert "no Dask worker joined" in info["message"] and "0.5 s" in info["message"]
+
+
+def test_compose_topology_as_processes_runs_a_survey(tmp_path: Path, small_scene) -> None:
+    """docker-compose.yml's topology as separate processes on loopback: a Dask
+    scheduler, two `terrasift worker`s and `terrasift serve` with a relative data
+    directory (the workers run elsewhere, so it must reach them absolute); the
+    survey CLI's job gives the same labels as the same tiles run in-process."""
+    import laspy
+    import numpy as np
+
+    from terrasift.synthetic.terrain import Scene, write_las
+    from terrasift.workers.executors import InlineExecutor
+
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    mid = (small_scene.bounds[0] + small_scene.bounds[2]) / 2
+    for i, sel in enumerate([small_scene.xyz[:, 0] < mid, small_scene.xyz[:, 0] >= mid]):
+        part = Scene(
+            small_scene.xyz[sel],
+            small_scene.truth[sel],
+            small_scene.return_number[sel],
+            small_scene.number_of_returns[sel],
+            small_scene.surface,
+            small_scene.bounds,
+        )
+        write_las(part, tiles / f"part{i}.laz", extra_bytes=True)
+    params = {"block_size": 80, "buffer": 15}
+
+    sched_port, api_port = _free_port(), _free_port()
+    address = f"tcp://127.0.0.1:{sched_port}"
+    (tmp_path / "api").mkdir()
+    (tmp_path / "w").mkdir()
+    env = {
+        **os.environ,
+        "TERRASIFT_DATA_DIR": "data",  # relative to the API's folder
+        "TERRASIFT_DASK_SCHEDULER": address,
+        "TERRASIFT_DASK_NO_WORKERS_TIMEOUT": "60",
+    }
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1"]
+            + ["--port", str(sched_port), "--no-dashboard"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
+    try:
+        for _ in range(2):
+            procs.append(
+                subprocess.Popen(
+                    [*TERRASIFT, "worker", "--nthreads", "1"],  # scheduler from the environment
+                    cwd=tmp_path / "w",
+                    env=env,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        procs.append(
+            subprocess.Popen(
+                [*TERRASIFT, "serve", "--port", str(api_port)],
+                cwd=tmp_path / "api",
+                env=env,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
+        with distributed.Client(address, set_as_default=False, timeout=60) as client:
+            _wait_workers(client, 2)
+        server = f"http://127.0.0.1:{api_port}"
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{server}/", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "the API did not start"
+            time.sleep(0.2)
+        from terrasift.survey import run_survey
+
+        assert run_survey(tiles, server, params, poll=0.2) == 0
+    finally:
+        for proc in reversed(procs):
+            _stop(proc)
+    outs = [p for p in tiles.rglob("classified-part0.laz")]
+    assert len(outs) == 1, sorted(str(p) for p in tiles.rglob("*"))
+    out = outs[0].parent
+    assert (out / "dtm.tif").exists()
+
+    job = tmp_path / "inline"
+    jobs.prepare_job(job, sorted(tiles.glob("*.laz")), jobs.validate_params(params))
+    jobs.run_job(job, InlineExecutor())
+    for i in range(2):
+        name = f"classified-part{i}.laz"
+        got = np.asarray(laspy.read(out / name).classification)
+        want = np.asarray(laspy.read(jobs.output_path(job, name)).classification)
+        assert np.array_equal(got, want)
