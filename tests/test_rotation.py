@@ -323,3 +323,31 @@ def test_second_angle_adds_a_run_per_direction():
     )
     assert len(tips) == 5 and len(res.added) == 4
     assert max(tips[1:3]) < min(tips[3:])  # 10° runs first, then the steeper 40° ones
+
+
+def test_landform_tile_truth():
+    from terrasift.synthetic.landforms import House, LandformSpec, Mesa, make_landforms
+
+    spec = LandformSpec(
+        size=60.0,
+        density=3.0,
+        slope=(0.05, 0.0),
+        mesas=[Mesa(20.0, 30.0, 8.0, 15.0, angle=85.0, talus=0.2)],
+        houses=[House(45.0, 30.0, 10.0, 12.0, 30.0, 8.0, 3.0)],
+        face_stems=10,
+        max_scan_angle=30.0,
+    )
+    scene = make_landforms(spec, seed=3)
+    e = scene.extra
+    xy = scene.xyz[:, :2] - scene.bounds[:2]
+    assert np.all((xy >= -0.2) & (xy <= 60.2))  # noise of 3 cm about the edges
+    # Oblique beams sample the mesa's faces: steep ground, all of it on the landform's flanks.
+    r = np.hypot(xy[:, 0] - 20.0, xy[:, 1] - 30.0)
+    assert e["steep"].sum() > 30 and np.all(r[e["steep"]] < 8.0 * 1.15 + 3.0)
+    top = e["landform"] & (scene.xyz[:, 2] > 100.0 + 0.05 * 20.0 + 14.0)
+    assert top.sum() > 0.5 * 3.0 * np.pi * 6.8**2
+    # Roof and wall points are buildings, never ground or landform.
+    bldg = scene.truth == 6
+    assert bldg.sum() > 0.5 * 3.0 * 120 and not np.any(e["landform"] & bldg)
+    assert np.all(np.abs(scene.xyz[bldg, 0] - scene.bounds[0] - 45.0) < 9.0)
+    assert np.any(e["near_face"])
