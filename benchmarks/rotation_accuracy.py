@@ -170,8 +170,16 @@ def make_family_scene(seed: int):
         )
         return kind, a, scene
 
+    placed: list[tuple[float, float, float]] = []
+
     def spot(r: float) -> tuple[float, float]:
-        return tuple(rng.uniform(r + 5, TILE - r - 5, 2))
+        """A centre whose landform keeps 10 m from the others (the last try otherwise)."""
+        for _ in range(200):
+            x, y = (float(v) for v in rng.uniform(r + 5, TILE - r - 5, 2))
+            if all(np.hypot(x - a, y - b) > r + q + 10.0 for a, b, q in placed):
+                break
+        placed.append((x, y, r))
+        return x, y
 
     mesas, hills = [], []
     n_mesa = 1 if kind == "band" else 3

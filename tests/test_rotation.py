@@ -351,3 +351,35 @@ def test_landform_tile_truth():
     assert bldg.sum() > 0.5 * 3.0 * 120 and not np.any(e["landform"] & bldg)
     assert np.all(np.abs(scene.xyz[bldg, 0] - scene.bounds[0] - 45.0) < 9.0)
     assert np.any(e["near_face"])
+
+
+def test_landform_rule_keeps_mesas_and_hills_and_drops_buildings():
+    from terrasift.synthetic.landforms import Hill, House, LandformSpec, Mesa, make_landforms
+    from terrasift.workers.ground.landforms import LandformParams, restore_landforms
+    from terrasift.workers.ground.nist import NistParams
+    from terrasift.workers.ground.nist import classify_ground as nist
+
+    spec = LandformSpec(
+        size=120.0,
+        density=2.0,
+        slope=(0.08, -0.05),
+        mesas=[Mesa(35.0, 40.0, 12.0, 20.0, angle=80.0, talus=0.3)],
+        hills=[Hill(35.0, 95.0, 14.0, 16.0)],
+        houses=[
+            House(90.0, 40.0, 24.0, 16.0, 20.0, 10.0),
+            House(90.0, 90.0, 18.0, 14.0, 0.0, 7.0, 3.0),
+        ],
+        tree_density=0.0,
+        bush_density=0.0,
+        face_stems=0,
+    )
+    scene = make_landforms(spec, seed=5)
+    before = nist(scene.xyz, NistParams())
+    after = restore_landforms(scene.xyz, before, LandformParams())
+    land, bldg = scene.extra["landform"], scene.truth == 6
+    # The filter takes the mesa and the hill for buildings; the rule gives them back.
+    assert np.mean(before[land]) < 0.3 and np.mean(after[land]) > 0.8
+    assert not np.any(after[bldg])
+    assert (
+        not restore_landforms(scene.xyz, before, LandformParams(enabled=False))[land].mean() > 0.6
+    )

@@ -23,7 +23,7 @@ from terrasift.params import stage_params
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers import dem
 from terrasift.workers.bins import Grid
-from terrasift.workers.ground import lowpoints, rotation
+from terrasift.workers.ground import landforms, lowpoints, rotation
 from terrasift.workers.registry import get_stage
 
 UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
@@ -255,6 +255,10 @@ def _ground(
 
     with timer("ground"):
         is_ground = np.asarray(stage.run(xyz, gparams, **kwargs), dtype=bool)
+        # Mesas, buttes and steep hills the filter removed as if buildings.
+        is_ground = landforms.restore_landforms(
+            xyz, is_ground, stage_params(params, "ground.landforms")
+        )
     is_ground, low = without_low(is_ground)
     mode = params.get("rotation", "auto")
     if mode == "off":

@@ -1,0 +1,181 @@
+"""Steep-sided landforms that a ground filter took for buildings, given back.
+
+Ground filters remove compact raised bodies: screening deletes a coarse-bin
+vertex that stands far above the median of its neighbours, and mowing then
+drops everything on it. That is how they remove buildings, and also how they
+lose mesas, buttes and small steep hills 15–60 m across.
+
+The rule that tells them apart: **terrain reaches its surroundings through
+steep ground, a building through a wall onto level ground.** Around a hill
+the flanks keep rising toward it; around a mesa or butte the talus apron
+rises to the foot of its faces; around a building the ground is level (on
+a regional slope it rises on the uphill side and falls on the downhill side
+by the same amount).
+
+Steps, on a raster of the lowest point per ``cell`` (metres; 0: 1.5 mean
+point spacings, at least 1 m):
+
+1. heights above the ground labels' surface (a TIN of their lowest point per
+   cell); cells ``min_height`` or more above it are raised;
+2. raised cells joined 8-wise are bodies; a body must be opaque and smooth
+   like a rock top or a roof — its lowest points differ from the median of
+   their neighbours by less than ``rough`` (median over the body) — which tree crowns,
+   whose lowest returns jump between crown and ground, are not;
+3. the ring of cells within ``ring`` metres outside the body is cut into
+   ``sectors`` compass sectors; in each, the rise toward the body is the
+   median height of the ring's inner half minus that of its outer half over
+   the distance between them. At least ``flank_share`` of the sectors with
+   data must rise at ``flank_deg`` or more: all around a hill, mesa or butte,
+   only on the downhill side of a building on a slope, nowhere around one
+   on level ground.
+
+A body that passes is ground: its points within ``tol`` of its cell's lowest
+point, and in the cells along its edge the points of the face (between that
+cell's lowest point and the body's top next to it). The ring's own points
+are the filter's business. A mesa with a vertical face straight onto level
+ground and no talus has a building's border and is removed like one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy import ndimage
+
+from terrasift.workers.bins import Grid, lowest_per_bin
+from terrasift.workers.registry import StageParams, register
+
+
+class LandformParams(StageParams):
+    """Parameters of the steep-landform rule (lengths in metres)."""
+
+    enabled: bool = True
+    cell: float = Field(0.0, ge=0.0, le=20.0)
+    """Raster cell (0: 1.5 mean point spacings, at least 1 m)."""
+    min_height: float = Field(2.0, gt=0.0, le=100.0)
+    """A cell is raised when its lowest point stands this high over the ground surface."""
+    min_area: float = Field(30.0, ge=0.0, le=1e6)
+    """m²: smaller bodies are left alone (boulders, bushes)."""
+    rough: float = Field(0.5, gt=0.0, le=10.0)
+    """Median |lowest point − median of its 3 × 3 neighbours| above which a body is vegetation."""
+    ring: float = Field(4.0, gt=0.0, le=50.0)
+    """Width of the ring outside a body whose rise toward it is measured."""
+    flank_deg: float = Field(15.0, gt=0.0, lt=90.0)
+    """Mean rise of the ring toward the body (degrees) that makes it terrain."""
+    sectors: int = Field(8, ge=1, le=64)
+    """Compass sectors of the ring, judged each on its own."""
+    flank_share: float = Field(1.0, gt=0.0, le=1.0)
+    """Share of the sectors (with data) that must rise at ``flank_deg``."""
+    min_sectors: int = Field(5, ge=1, le=64)
+    """A body must have ring data in this many sectors: free-standing, not hemmed in
+    by other raised cells or cut off by the data's edge."""
+    tol: float = Field(0.5, gt=0.0, le=10.0)
+    """Points this close above their cell's lowest point (in a terrain body) are ground."""
+
+
+def _cell_size(xyz: NDArray[np.float64], params: LandformParams) -> float:
+    if params.cell > 0:
+        return params.cell
+    span = np.ptp(xyz[:, :2], axis=0)
+    area = max(float(span[0] * span[1]), 1.0)
+    spacing = np.sqrt(area / max(xyz.shape[0], 1))
+    return max(1.5 * spacing, 1.0)
+
+
+@register(
+    "ground.landforms",
+    LandformParams,
+    "mesas, buttes and steep hills a filter removed, given back when steep ground leads up to them",
+)
+def restore_landforms(
+    xyz: NDArray[np.float64], ground: NDArray[np.bool_], params: LandformParams
+) -> NDArray[np.bool_]:
+    """``ground`` plus the points of raised bodies that pass the landform rule (module doc)."""
+    from terrasift.workers.surface import TinSurface
+
+    ground = np.asarray(ground, dtype=bool)
+    if not params.enabled or xyz.shape[0] < 16 or np.count_nonzero(ground) < 3:
+        return ground
+    c = _cell_size(xyz, params)
+    lo = xyz[:, :2].min(axis=0)
+    grid = Grid.covering(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1], c)
+    flat = grid.index(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1])
+    low = lowest_per_bin(flat, xyz[:, 2], grid.size)
+    zlo = np.full(grid.size, np.nan)
+    zlo[low >= 0] = xyz[low[low >= 0], 2]
+    glow = lowest_per_bin(flat[ground], xyz[ground, 2], grid.size)
+    gi = np.flatnonzero(ground)[glow[glow >= 0]]
+    if gi.size < 3:
+        return ground
+    gx, gy = grid.centers()
+    g = TinSurface(xyz[gi])(gx + lo[0], gy + lo[1])
+    height = (zlo - g).reshape(grid.ny, grid.nx)
+    z = zlo.reshape(grid.ny, grid.nx)
+    raised = np.nan_to_num(height, nan=-np.inf) >= params.min_height
+    if not raised.any():
+        return ground
+    labels, n_body = ndimage.label(raised, structure=np.ones((3, 3)))
+    # Roughness: |z − median of the 3 × 3 neighbours| over the body's cells.
+    filled = np.where(np.isfinite(z), z, g.reshape(z.shape))
+    med = ndimage.median_filter(filled, size=3, mode="nearest")
+    dev = np.abs(filled - med)
+    # Rise toward each body over its ring: median height of the ring's inner half
+    # minus that of its outer half, over the distance between them. The first
+    # cell out is left aside (it may hold the foot of a wall or a face).
+    dist, (iy, ix) = ndimage.distance_transform_edt(~raised, return_indices=True)
+    dist = dist * c
+    owner = labels[iy, ix]
+    mid = 1.5 * c + 0.5 * params.ring
+    inner = (dist > 1.5 * c) & (dist <= mid)
+    outer = (dist > mid) & (dist <= 1.5 * c + params.ring)
+    idx = np.arange(1, n_body + 1)
+    area = ndimage.sum(np.ones_like(dev), labels, idx) * c * c
+    rough = np.asarray(ndimage.median(dev, labels, idx), dtype=np.float64)
+
+    # Per body and compass sector of its ring (seen from its centroid): a
+    # building on a hillside has ground rising to it only on its downhill side.
+    sectors = params.sectors
+    cy, cx = (
+        np.asarray(v, dtype=np.float64)
+        for v in zip(*ndimage.center_of_mass(raised, labels, idx), strict=True)
+    )
+    yy, xx = np.mgrid[0 : grid.ny, 0 : grid.nx]
+    own = np.maximum(owner - 1, 0)
+    ang = np.arctan2(yy - cy[own], xx - cx[own])
+    sec = np.minimum(((ang + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+    key = owner * sectors + sec
+    keys = np.arange(sectors, (n_body + 1) * sectors)
+
+    def ring_median(part: NDArray[np.bool_], v: NDArray[np.float64]) -> NDArray[np.float64]:
+        lab = np.where(part & np.isfinite(z), key, 0)
+        out = np.full(keys.size, np.nan)
+        if lab.any():
+            present = np.isin(keys, np.unique(lab[lab > 0]))
+            out[present] = ndimage.median(v, lab, keys[present])
+        return out.reshape(n_body, sectors)
+
+    rise_z = ring_median(inner, filled) - ring_median(outer, filled)
+    run = ring_median(outer, dist) - ring_median(inner, dist)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = rise_z / run
+    seen = np.isfinite(slope)
+    up = np.count_nonzero(seen & (slope >= np.tan(np.radians(params.flank_deg))), axis=1)
+    rising = up >= params.flank_share * np.maximum(np.count_nonzero(seen, axis=1), 1)
+    rising &= np.count_nonzero(seen, axis=1) >= params.min_sectors
+    keep = (area >= params.min_area) & (rough < params.rough) & rising
+    if not keep.any():
+        return ground
+    terrain = np.zeros(n_body + 1, dtype=bool)
+    terrain[1:] = keep
+    body = terrain[labels]
+    # Faces: body cells on its edge, where a near-vertical face splits the cell.
+    edge = body & ~ndimage.binary_erosion(body, structure=np.ones((3, 3)))
+    top = ndimage.maximum_filter(np.where(body, filled, -np.inf), size=3)
+    ok = flat >= 0
+    cell_of = np.where(ok, flat, 0)
+    b = body.ravel()[cell_of] & ok
+    zc = zlo[cell_of]
+    on_top = b & (xyz[:, 2] <= zc + params.tol)
+    on_face = b & edge.ravel()[cell_of] & (xyz[:, 2] <= top.ravel()[cell_of] + params.tol)
+    return ground | on_top | on_face
