@@ -80,10 +80,13 @@ class RotationParams(StageParams):
     it. None: one tip, as the seed."""
     edge_margin: float | None = Field(None, ge=0.0, le=1000.0)
     """Metres: a rotated run's labels count only this far inside the rotated
-    block's footprint. Tipping pushes tall objects sideways by height·sin(angle),
-    so near the footprint's edge tree tops and birds stand alone and become TIN
-    seeds. None: the block's height range (2nd–98th percentile) × sin(angle).
-    The unrotated run still labels the margin."""
+    block's footprint. None (default): per point instead. Tipping moves a point
+    sideways by its own height above the local ground × sin(angle), so near
+    the data's edge tree tops and birds come to stand beyond the ground and
+    become TIN seeds; a rotated label counts only where the point, so moved,
+    still lies over the footprint of the tipped ground (``_over_ground``).
+    Rock faces at the data's edge sit on the ground surface, move by little
+    and keep their labels. The unrotated run still labels every point."""
     max_lift: float | None = Field(30.0, gt=0.0, le=1000.0)
     """Metres: a rotated run may add only points within this height of the
     unrotated ground surface (a TIN of its lowest ground per 2 m cell); tipping
@@ -304,10 +307,9 @@ def classify_rotated(
     combined = base.copy()
     added: list[int] = []
     centroid = xyz.mean(axis=0)
-    height = 0.0
-    if params.edge_margin is None and xyz.shape[0]:
-        lo, hi = np.percentile(xyz[:, 2], [2, 98])
-        height = float(hi - lo)
+    footing = None
+    if params.edge_margin is None and base.any():
+        footing = _ground_level(xyz, base)
     near = None
     work = slice(None)
     if (params.max_lift is not None or params.steep_reach is not None) and base.any():
@@ -330,10 +332,11 @@ def classify_rotated(
         if isinstance(work, slice) or work.size >= 3:
             part = turned[work]
             labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
-        margin = (
-            height * np.sin(np.radians(angle)) if params.edge_margin is None else params.edge_margin
-        )
-        if margin > 0 and labels.any():
+        if labels.any() and footing is not None:
+            feet = footing @ rot.T + (centroid - rot @ centroid)
+            labels &= _over_ground(turned[:, :2], feet[:, :2])
+        elif labels.any() and params.edge_margin:
+            margin = params.edge_margin
             xy = turned[:, :2]
             inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
             labels &= inner
@@ -343,6 +346,42 @@ def classify_rotated(
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
+
+
+def _ground_level(xyz: NDArray[np.float64], ground: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Every point dropped onto the surface through the lowest ``ground`` point per
+    2 m cell (points below it stay): its foot, which tipping does not move sideways
+    relative to the ground."""
+    from terrasift.workers.surface import TinSurface
+
+    g = np.flatnonzero(ground)
+    lo = xyz[g, :2].min(axis=0)
+    grid = Grid.covering(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1], 2.0)
+    low = lowest_per_bin(grid.index(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1]), xyz[g, 2], grid.size)
+    surf = TinSurface(xyz[g[low[low >= 0]]])
+    foot = xyz.copy()
+    foot[:, 2] = np.minimum(xyz[:, 2], surf(xyz[:, 0], xyz[:, 1]))
+    return foot
+
+
+def _over_ground(
+    xy: NDArray[np.float64], foot_xy: NDArray[np.float64], cell: float = 2.0
+) -> NDArray[np.bool_]:
+    """Which tipped points (``xy``) lie over the footprint of the tipped feet
+    (``foot_xy``): cells of ``cell`` metres holding a foot, gaps of a cell closed,
+    less the outermost cell (a foot at the rim has no ground beyond it)."""
+    from scipy import ndimage
+
+    lo = np.minimum(xy.min(axis=0), foot_xy.min(axis=0)) - 2 * cell
+    shape = (np.maximum(xy.max(axis=0), foot_xy.max(axis=0)) - lo) // cell + 3
+    nx, ny = int(shape[0]), int(shape[1])
+    occ = np.zeros((ny, nx), dtype=bool)
+    fi = ((foot_xy - lo) // cell).astype(np.int64)
+    occ[fi[:, 1], fi[:, 0]] = True
+    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3)))
+    occ = ndimage.binary_erosion(occ, structure=np.ones((3, 3)))
+    pi = ((xy - lo) // cell).astype(np.int64)
+    return occ[pi[:, 1], pi[:, 0]]
 
 
 def _near_surface(
