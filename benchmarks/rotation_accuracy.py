@@ -51,6 +51,7 @@ from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.params import DEFAULT_GROUND, stage_params  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
+from terrasift.workers.ground.landforms import LandformParams, restore_landforms  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
     RotationParams,
     SteepParams,
@@ -87,6 +88,7 @@ def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
     of the first), with the method's rotation preset and ``rotation`` on top."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
+    g = restore_landforms(xyz, g, LandformParams())
     t1 = time.perf_counter()
     test = steepness(xyz[g], SteepParams())
     t2 = time.perf_counter()
@@ -299,6 +301,9 @@ def scene_scores(scene, pred: np.ndarray) -> dict[str, float]:
         "wall_recall": share(pred, steep & (face <= 110.0)),
         "ceiling_recall": share(pred, steep & (face > 110.0)),
         "type2": sc["type2"],
+        # Vegetation 0.5 m or more above the ground (classes 4, 5) called ground:
+        # class 3 returns (< 0.5 m, bush edges) lie within any filter's ground band.
+        "type2_tall": share(pred, (scene.truth == 4) | (scene.truth == 5)),
         "kappa": sc["kappa"],
         "near_face_veg": share(pred, e["near_face"]),
         "landform_recall": share(pred, e["landform"]) if "landform" in e else float("nan"),
@@ -323,6 +328,7 @@ def family(seeds, params: dict) -> list[dict[str, float]]:
         "wall_recall",
         "ceiling_recall",
         "type2",
+        "type2_tall",
         "kappa",
         "near_face_veg",
         "landform_recall",
@@ -354,6 +360,7 @@ def family(seeds, params: dict) -> list[dict[str, float]]:
         ("landform_recall", "min"),
         ("covered_recall", "min"),
         ("type2", "max"),
+        ("type2_tall", "max"),
         ("near_face_veg", "max"),
         ("kappa", "min"),
     ):

@@ -58,7 +58,9 @@ def test_classify_rotated_is_or_about_centroid():
         return p[:, 2] < np.median(p[:, 2])
 
     res = classify_rotated(
-        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0, steep_reach=None)
+        pts,
+        fake_ground,
+        RotationParams(directions=4, angle=20, edge_margin=0.0, context=None, face_evidence=False),
     )
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
@@ -74,7 +76,9 @@ def test_classify_rotated_is_or_about_centroid():
     ]
     # With an edge margin, rotated runs only add points inside the margin.
     trimmed = classify_rotated(
-        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0)
+        pts,
+        fake_ground,
+        RotationParams(directions=4, angle=20, edge_margin=20.0, context=None, face_evidence=False),
     )
     assert np.all(trimmed.is_ground <= res.is_ground) and sum(trimmed.added) < sum(res.added)
     # A given unrotated labelling is used instead of running it again.
@@ -172,9 +176,9 @@ def test_lone_low_points_are_no_cliff():
     rng = np.random.default_rng(3)
     sunk = rng.choice(pts.shape[0], 12, replace=False)
     pts[sunk, 2] -= rng.uniform(3.0, 5.0, 12)
-    plain = steepness(pts, SteepParams(support=0))
+    plain = steepness(pts, SteepParams(support=0, cell=15.0))
     assert plain.steep
-    assert steepness(pts, SteepParams()).facet_share == 0.0
+    assert steepness(pts, SteepParams(cell=15.0)).facet_share == 0.0
     # A real 25 m step keeps its steep facets: its foot is a floor of many points.
     cliff = _plane(25.0)
     assert (
@@ -301,8 +305,10 @@ def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
     default = stage.run(cliffs.xyz, stage.params.preset("default"))
     plain, _ = bind_ground(stage, stage.params.preset("conservative"))
     steep = cliffs.extra["steep"]
-    seed = classify_rotated(cliffs.xyz, plain, RotationParams())
-    rp = stage_params({}, "ground.rotation", "ground.nist")
+    # The angles alone: both with the 4 m reach and no face evidence.
+    old = {"face_evidence": False, "steep_reach": 4.0, "context": 6.0}
+    seed = classify_rotated(cliffs.xyz, plain, RotationParams(**old))
+    rp = stage_params({}, "ground.rotation", "ground.nist").model_copy(update=old)
     own = classify_rotated(cliffs.xyz, plain, rp, unrotated=default)
     missed_seed = np.mean(~seed.is_ground[steep])  # 0.94 measured
     missed_own = np.mean(~own.is_ground[steep])
@@ -319,7 +325,9 @@ def test_second_angle_adds_a_run_per_direction():
         return p[:, 2] < np.median(p[:, 2])
 
     res = classify_rotated(
-        pts, fake_ground, RotationParams(directions=2, angle=10, second_angle=40, steep_reach=None)
+        pts,
+        fake_ground,
+        RotationParams(directions=2, angle=10, second_angle=40, context=None, face_evidence=False),
     )
     assert len(tips) == 5 and len(res.added) == 4
     assert max(tips[1:3]) < min(tips[3:])  # 10° runs first, then the steeper 40° ones
@@ -383,3 +391,27 @@ def test_landform_rule_keeps_mesas_and_hills_and_drops_buildings():
     assert (
         not restore_landforms(scene.xyz, before, LandformParams(enabled=False))[land].mean() > 0.6
     )
+
+
+def test_face_evidence_keeps_faces_and_drops_crowns_beside_them():
+    from terrasift.workers.ground.rotation import _on_faces
+
+    rng = np.random.default_rng(7)
+    # Level ground (x < 20), a vertical face at x = 20 up to 15 m, a crown at its foot.
+    floor = np.column_stack([rng.uniform(0, 20, 3000), rng.uniform(0, 30, 3000), np.zeros(3000)])
+    face = np.column_stack(
+        [np.full(2000, 20.0), rng.uniform(0, 30, 2000), rng.uniform(0.2, 15, 2000)]
+    )
+    crown = rng.normal([15.0, 15.0, 5.0], [1.5, 1.5, 1.5], (600, 3))
+    xyz = np.vstack([floor, face, crown]) + rng.normal(0, 0.02, (5600, 3))
+    base = np.r_[np.ones(3000, bool), np.zeros(2600, bool)]
+    cand = ~base
+    foot = xyz.copy()
+    foot[:, 2] = np.minimum(xyz[:, 2], 0.0)
+    kept = _on_faces(xyz, base, cand, foot, RotationParams())
+    assert kept[3000:5000].mean() > 0.8  # 0.83: its foot and top mix with the floor and the rim
+    assert kept[5000:].mean() < 0.1
+    # A face standing apart from any ground (a wall's top half floating) is not linked.
+    lifted = xyz.copy()
+    lifted[3000:5000, 2] += 20.0
+    assert _on_faces(lifted, base, cand, foot, RotationParams())[3000:5000].mean() < 0.1

@@ -102,7 +102,8 @@ def classify_block(
 
     # Ground, rotated on steep blocks.
     check_cancel()
-    is_ground_sub, low_sub, stats["steep"] = _ground(sub, params, origins, timer)
+    last = points["return_number"][order][act] >= points["number_of_returns"][order][act]
+    is_ground_sub, low_sub, stats["steep"] = _ground(sub, params, origins, timer, last)
     is_ground = np.zeros(n, dtype=bool)
     is_ground[act] = is_ground_sub
     labels[is_ground] = GROUND
@@ -235,7 +236,11 @@ def _mark_mixed(xyz: NDArray, scan_id: NDArray, origins: list, params: Mapping[s
 
 
 def _ground(
-    xyz: NDArray, params: Mapping[str, Any], origins: list | None, timer: _Timer
+    xyz: NDArray,
+    params: Mapping[str, Any],
+    origins: list | None,
+    timer: _Timer,
+    last_return: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
     """Ground labels and isolated low points (taken out of the ground), with the
     steepness test and rotated classification of DESIGN §5.3."""
@@ -288,6 +293,7 @@ def _ground(
             rparams,
             unrotated=None if rparams.rerun_unrotated else is_ground,
             seeded=seeded,
+            last_return=last_return,
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

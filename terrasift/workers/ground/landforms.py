@@ -38,6 +38,8 @@ ground and no talus has a building's border and is removed like one.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
@@ -61,13 +63,13 @@ class LandformParams(StageParams):
     """Median |lowest point − median of its 3 × 3 neighbours| above which a body is vegetation."""
     ring: float = Field(4.0, gt=0.0, le=50.0)
     """Width of the ring outside a body whose rise toward it is measured."""
-    flank_deg: float = Field(15.0, gt=0.0, lt=90.0)
+    flank_deg: float = Field(5.0, gt=0.0, lt=90.0)
     """Mean rise of the ring toward the body (degrees) that makes it terrain."""
     sectors: int = Field(8, ge=1, le=64)
     """Compass sectors of the ring, judged each on its own."""
-    flank_share: float = Field(1.0, gt=0.0, le=1.0)
+    flank_share: float = Field(0.75, gt=0.0, le=1.0)
     """Share of the sectors (with data) that must rise at ``flank_deg``."""
-    min_sectors: int = Field(5, ge=1, le=64)
+    min_sectors: int = Field(6, ge=1, le=64)
     """A body must have ring data in this many sectors: free-standing, not hemmed in
     by other raised cells or cut off by the data's edge."""
     tol: float = Field(0.5, gt=0.0, le=10.0)
@@ -92,11 +94,39 @@ def restore_landforms(
     xyz: NDArray[np.float64], ground: NDArray[np.bool_], params: LandformParams
 ) -> NDArray[np.bool_]:
     """``ground`` plus the points of raised bodies that pass the landform rule (module doc)."""
-    from terrasift.workers.surface import TinSurface
-
     ground = np.asarray(ground, dtype=bool)
     if not params.enabled or xyz.shape[0] < 16 or np.count_nonzero(ground) < 3:
         return ground
+    found = bodies(xyz, ground, params)
+    if found is None or not found["keep"].any():
+        return ground
+    flat, zlo, filled = found["flat"], found["zlo"], found["filled"]
+    labels, n_body, keep = found["labels"], found["keep"].size, found["keep"]
+    terrain = np.zeros(n_body + 1, dtype=bool)
+    terrain[1:] = keep
+    body = terrain[labels]
+    # Faces: body cells on its edge, where a near-vertical face splits the cell.
+    edge = body & ~ndimage.binary_erosion(body, structure=np.ones((3, 3)))
+    top = ndimage.maximum_filter(np.where(body, filled, -np.inf), size=3)
+    ok = flat >= 0
+    cell_of = np.where(ok, flat, 0)
+    b = body.ravel()[cell_of] & ok
+    zc = zlo[cell_of]
+    on_top = b & (xyz[:, 2] <= zc + params.tol)
+    on_face = b & edge.ravel()[cell_of] & (xyz[:, 2] <= top.ravel()[cell_of] + params.tol)
+    return ground | on_top | on_face
+
+
+def bodies(
+    xyz: NDArray[np.float64], ground: NDArray[np.bool_], params: LandformParams
+) -> dict[str, Any] | None:
+    """The raised bodies of the block and the figures the rule judges them by:
+    ``labels`` (raster of body ids), per body ``area`` (m²), ``rough``,
+    ``slope`` (rise toward it per sector, NaN without data), ``centre`` (x, y)
+    and ``keep``; None when nothing stands raised."""
+
+    from terrasift.workers.surface import TinSurface
+
     c = _cell_size(xyz, params)
     lo = xyz[:, :2].min(axis=0)
     grid = Grid.covering(xyz[:, 0] - lo[0], xyz[:, 1] - lo[1], c)
@@ -107,14 +137,14 @@ def restore_landforms(
     glow = lowest_per_bin(flat[ground], xyz[ground, 2], grid.size)
     gi = np.flatnonzero(ground)[glow[glow >= 0]]
     if gi.size < 3:
-        return ground
+        return None
     gx, gy = grid.centers()
     g = TinSurface(xyz[gi])(gx + lo[0], gy + lo[1])
     height = (zlo - g).reshape(grid.ny, grid.nx)
     z = zlo.reshape(grid.ny, grid.nx)
     raised = np.nan_to_num(height, nan=-np.inf) >= params.min_height
     if not raised.any():
-        return ground
+        return None
     labels, n_body = ndimage.label(raised, structure=np.ones((3, 3)))
     # Roughness: |z − median of the 3 × 3 neighbours| over the body's cells.
     filled = np.where(np.isfinite(z), z, g.reshape(z.shape))
@@ -147,8 +177,15 @@ def restore_landforms(
     key = owner * sectors + sec
     keys = np.arange(sectors, (n_body + 1) * sectors)
 
+    # Ring cells next to the data's edge see a truncated ring: left out.
+    # (Empty cells between sparse points are no edge: gaps of a few cells are closed first.)
+    data = ndimage.binary_fill_holes(
+        ndimage.binary_closing(np.isfinite(z), structure=np.ones((3, 3)), iterations=2)
+    )
+    inside = ndimage.binary_erosion(data, structure=np.ones((3, 3)), iterations=2, border_value=0)
+
     def ring_median(part: NDArray[np.bool_], v: NDArray[np.float64]) -> NDArray[np.float64]:
-        lab = np.where(part & np.isfinite(z), key, 0)
+        lab = np.where(part & inside, key, 0)
         out = np.full(keys.size, np.nan)
         if lab.any():
             present = np.isin(keys, np.unique(lab[lab > 0]))
@@ -158,24 +195,23 @@ def restore_landforms(
     rise_z = ring_median(inner, filled) - ring_median(outer, filled)
     run = ring_median(outer, dist) - ring_median(inner, dist)
     with np.errstate(invalid="ignore", divide="ignore"):
-        slope = rise_z / run
+        # A sector whose halves lie side by side rather than one beyond the other
+        # (a sliver of ring at the data's edge) says nothing.
+        slope = np.where(run >= 0.25 * params.ring, rise_z / run, np.nan)
     seen = np.isfinite(slope)
     up = np.count_nonzero(seen & (slope >= np.tan(np.radians(params.flank_deg))), axis=1)
     rising = up >= params.flank_share * np.maximum(np.count_nonzero(seen, axis=1), 1)
     rising &= np.count_nonzero(seen, axis=1) >= params.min_sectors
     keep = (area >= params.min_area) & (rough < params.rough) & rising
-    if not keep.any():
-        return ground
-    terrain = np.zeros(n_body + 1, dtype=bool)
-    terrain[1:] = keep
-    body = terrain[labels]
-    # Faces: body cells on its edge, where a near-vertical face splits the cell.
-    edge = body & ~ndimage.binary_erosion(body, structure=np.ones((3, 3)))
-    top = ndimage.maximum_filter(np.where(body, filled, -np.inf), size=3)
-    ok = flat >= 0
-    cell_of = np.where(ok, flat, 0)
-    b = body.ravel()[cell_of] & ok
-    zc = zlo[cell_of]
-    on_top = b & (xyz[:, 2] <= zc + params.tol)
-    on_face = b & edge.ravel()[cell_of] & (xyz[:, 2] <= top.ravel()[cell_of] + params.tol)
-    return ground | on_top | on_face
+    return {
+        "cell": c,
+        "flat": flat,
+        "zlo": zlo,
+        "filled": filled,
+        "labels": labels,
+        "area": area,
+        "rough": rough,
+        "slope": slope,
+        "centre": np.column_stack([lo[0] + (cx + 0.5) * c, lo[1] + (cy + 0.5) * c]),
+        "keep": keep,
+    }

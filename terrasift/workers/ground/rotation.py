@@ -39,8 +39,11 @@ SeededFn = Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]]
 class SteepParams(StageParams):
     """Parameters of the per-block steepness test (seed step 2)."""
 
-    cell: float = Field(15.0, ge=1.0, le=1000.0)
-    """Metres: cell of the lowest-point TIN."""
+    cell: float = Field(7.5, ge=1.0, le=1000.0)
+    """Metres: cell of the lowest-point TIN. A face shows as a facet steeper than
+    ``facet_angle`` only when it rises more than cell × tan(facet_angle): 13 m at
+    7.5 m cells, 26 m at the seed's 15 m (which missed the 20–34 m cliff bands
+    of the steep family: share 0.0 and 0.4 %)."""
     facet_angle: float = Field(60.0, gt=0.0, lt=90.0)
     """Degrees: a facet steeper than this counts as steep."""
     steep_share: float = Field(0.01, ge=0.0, le=1.0)
@@ -93,16 +96,41 @@ class RotationParams(StageParams):
     isolates birds, which then seed a rotated TIN. High, since a cliff's upper
     face and an overhang's roof stand far above that surface at their foot
     (``steep_reach`` keeps crowns out). None: no limit."""
-    steep_reach: float | None = Field(4.0, gt=0.0, le=1000.0)
+    steep_reach: float | None = Field(None, gt=0.0, le=1000.0)
     """Metres: a rotated run may add only points this close (horizontally) to a
-    steep facet (> 50°) of the unrotated ground surface. A rotation exists for
-    faces; on the flats it only isolates crowns, which its TIN then takes.
-    None: no limit."""
-    context: float | None = Field(6.0, ge=0.0, le=1000.0)
-    """Metres: with ``steep_reach``, a rotated run sees only the points within
-    ``steep_reach`` + this of the steep facets: the faces with their foot and
-    rim as context for the TIN, not the flats it may not add to anyway. This
-    is what keeps a steep block's cost near a flat one's. None: whole block."""
+    steep facet (> 50°) of the unrotated ground surface. None (default): no
+    such cap; what a run adds is judged by the face itself (``face_*``). A cap
+    of 4 m missed overhang fronts whose lowest surface steps up at the back of
+    a cave, well behind the face."""
+    context: float | None = Field(20.0, ge=0.0, le=1000.0)
+    """Metres: a rotated run sees only the points within this (+ ``steep_reach``
+    when set) of the steep facets of the unrotated ground: the faces with their
+    foot, rim and an overhang's depth, not the flats far from any face. This
+    keeps a steep block's cost near a flat one's. None: whole block."""
+    face_evidence: bool = True
+    """Keep only the added points that lie on a surface (see ``face_rough``),
+    connected to the unrotated ground through such points (``face_link``)."""
+    face_radius: float = Field(1.5, gt=0.0, le=20.0)
+    """Metres: an added point's plane is fitted to its nearest neighbours (3-D),
+    as many as the block's density puts in a disc of this radius (10–64): at
+    1.5 m a bush 1.6–4 m across bends away from any plane."""
+    face_rough: float = Field(0.15, gt=0.0, le=10.0)
+    """Metres: RMS of those neighbours about their plane above which the point is
+    in vegetation (crowns and bushes scatter in depth or bend away; a face with
+    a bush in front of it, too), not on a surface. Holds for faces planar to a
+    few cm over the neighbourhood (the synthetic family: 3 cm noise); rougher
+    rock needs more."""
+    face_tilt: float = Field(50.0, ge=0.0, le=90.0)
+    """Degrees: an added point whose plane is tilted less than this from level is
+    no face: it counts only within ``face_ground`` of the ground surface (the
+    2.5-D lowest ground: talus, rims, ground under a lip), not on a roof."""
+    face_ground: float = Field(1.0, ge=0.0, le=100.0)
+    """Metres: see ``face_tilt``."""
+    face_link: float = Field(5.0, gt=0.0, le=100.0)
+    """Point spacings (the larger of the block's mean spacing and the median
+    distance between the added points that passed): added points join each
+    other and the unrotated ground within this distance (3-D); a group joined to
+    no ground (a crown top, a bird) is dropped."""
     rerun_unrotated: bool = True
     """Steep blocks: run the unrotated cloud again with ``ground_preset``, as
     the seed does (nine conservative runs OR'ed), instead of keeping the
@@ -288,6 +316,7 @@ def classify_rotated(
     *,
     unrotated: NDArray[np.bool_] | None = None,
     seeded: Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]] | None = None,
+    last_return: NDArray[np.bool_] | None = None,
 ) -> RotatedResult:
     """Boolean OR of ``ground`` on the block as it is and on ``directions``
     copies tipped by ``angle`` about the centroid (and ``directions`` more
@@ -301,6 +330,10 @@ def classify_rotated(
     and rim, and the tipped face between them is densified instead of being cut
     off under the rim (a tipped cliff top is a sharp ridge, which a TIN filter
     grown from cell minima cannot climb).
+
+    ``last_return`` (per point: the last or only return of its pulse), when
+    given, is echo evidence: a rotated run adds no point that a later return
+    of the same pulse lies behind (crowns and bushes; a rock face is opaque).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     base = np.asarray(ground(xyz) if unrotated is None else unrotated, dtype=bool)
@@ -312,12 +345,10 @@ def classify_rotated(
         footing = _ground_level(xyz, base)
     near = None
     work = slice(None)
-    if (params.max_lift is not None or params.steep_reach is not None) and base.any():
-        wide = (
-            None
-            if params.steep_reach is None or params.context is None
-            else params.steep_reach + params.context
-        )
+    if (
+        params.max_lift is not None or params.steep_reach is not None or params.context is not None
+    ) and base.any():
+        wide = None if params.context is None else (params.steep_reach or 0.0) + params.context
         near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
         if seen is not None:
             work = np.flatnonzero(seen)
@@ -345,7 +376,73 @@ def classify_rotated(
         del turned
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
+    if last_return is not None:
+        combined &= base | np.asarray(last_return, dtype=bool)
+    if params.face_evidence and (combined & ~base).any():
+        combined = base | _on_faces(xyz, base, combined & ~base, footing, params)
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
+
+
+def _on_faces(
+    xyz: NDArray[np.float64],
+    base: NDArray[np.bool_],
+    cand: NDArray[np.bool_],
+    footing: NDArray[np.float64] | None,
+    params: RotationParams,
+) -> NDArray[np.bool_]:
+    """Which of the points ``cand`` (added by rotated runs) lie on a face: on a
+    smooth surface (``face_rough``), steep (``face_tilt``) or else within
+    ``face_ground`` of the ground surface, and linked to ``base`` ground through
+    such points within ``face_link`` spacings."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    ci = np.flatnonzero(cand)
+    tree = cKDTree(xyz)
+    span = np.ptp(xyz[:, :2], axis=0)
+    density = xyz.shape[0] / max(float(span[0] * span[1]), 1.0)
+    k = int(np.clip(round(np.pi * params.face_radius**2 * density), 10, 64))
+    k = min(k, xyz.shape[0])
+    _, nb = tree.query(xyz[ci], k=k)
+    pts = xyz[nb]  # (m, k, 3)
+    pts = pts - pts.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", pts, pts) / k
+    val, vec = np.linalg.eigh(cov)
+    rough = np.sqrt(np.maximum(val[:, 0], 0.0))
+    tilt = np.degrees(np.arccos(np.clip(np.abs(vec[:, 2, 0]), 0.0, 1.0)))
+    ok = rough <= params.face_rough
+    gentle = tilt < params.face_tilt
+    if footing is not None:
+        ok &= ~gentle | (xyz[ci, 2] - footing[ci, 2] <= params.face_ground)
+    else:
+        ok &= ~gentle
+    good = ci[ok]
+    out = np.zeros(xyz.shape[0], dtype=bool)
+    if good.size == 0:
+        return out
+    # Link: the good points and the base ground near them, joined within face_link spacings.
+    # A face is sampled more thinly than the ground below near-vertical beams:
+    # the spacing is the larger of the block's and the good points' own.
+    spacing = float(1.0 / np.sqrt(density))
+    if good.size >= 3:
+        own, _ = cKDTree(xyz[good]).query(xyz[good], k=2)
+        spacing = max(spacing, float(np.median(own[:, 1])))
+    r = params.face_link * spacing
+    gi = np.flatnonzero(base)
+    if gi.size == 0:
+        return out
+    d, _ = cKDTree(xyz[good]).query(xyz[gi], distance_upper_bound=r)
+    gi = gi[np.isfinite(d)]
+    nodes = np.concatenate([good, gi])
+    pairs = cKDTree(xyz[nodes]).query_pairs(r, output_type="ndarray")
+    n = nodes.size
+    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    grounded = np.zeros(comp.max() + 1, dtype=bool)
+    grounded[comp[good.size :]] = True
+    out[good[grounded[comp[: good.size]]]] = True
+    return out
 
 
 def _ground_level(xyz: NDArray[np.float64], ground: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -407,7 +504,7 @@ def _near_surface(
     if lift is not None:
         surf = TinSurface(verts + [lo[0], lo[1], 0.0])
         ok &= np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
-    if reach is not None:
+    if reach is not None or wide is not None:
         try:
             tri = Delaunay(verts[:, :2])
         except (QhullError, ValueError):
@@ -417,11 +514,12 @@ def _near_surface(
         slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
         if not slope.any():
             none = np.zeros(xyz.shape[0], dtype=bool)
-            return none, (none if wide is not None else None)
+            return (ok if reach is None else none), (none if wide is not None else None)
         anchors = np.unique(tri.simplices[slope])
-        far = reach if wide is None else max(wide, reach)
+        far = max(wide or 0.0, reach or 0.0)
         dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
-        ok &= dist <= reach
+        if reach is not None:
+            ok &= dist <= reach
         if wide is not None:
             return ok, np.isfinite(dist)
     return ok, None
