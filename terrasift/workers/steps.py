@@ -104,7 +104,8 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
         is_ground = np.asarray(stage.run(xyz, models.ground_params, **kwargs), dtype=bool)
         if models.landforms is not None:
             # Mesas, buttes and steep hills the filter removed as if buildings.
-            is_ground = landforms.restore_landforms(xyz, is_ground, models.landforms)
+            last = None if block.last_return is None else block.last_return[block.act]
+            is_ground = landforms.restore_landforms(xyz, is_ground, models.landforms, last)
     is_ground, low = without_low(is_ground)
     if models.rotation_mode == "off":
         return is_ground, low, steep_info

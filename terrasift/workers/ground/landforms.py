@@ -29,10 +29,11 @@ point spacings, at least 1 m):
    only on the downhill side of a building on a slope, nowhere around one
    on level ground.
 
-A body that passes is ground: its points within ``tol`` of its cell's lowest
-point, and in the cells along its edge the points of the face (between that
-cell's lowest point and the body's top next to it). The ring's own points
-are the filter's business. A mesa with a vertical face straight onto level
+A body that passes is ground, with its ring (the flanks and talus leading up
+to it, which the filter cut with it): the points within ``tol`` of their
+cell's lowest point (widened by the slope across the cell), and in the cells
+along the body's edge the points of the face (between that cell's lowest
+point and the body's top next to it). A mesa with a vertical face straight onto level
 ground and no talus has a building's border and is removed like one.
 """
 
@@ -91,9 +92,15 @@ def _cell_size(xyz: NDArray[np.float64], params: LandformParams) -> float:
     "mesas, buttes and steep hills a filter removed, given back when steep ground leads up to them",
 )
 def restore_landforms(
-    xyz: NDArray[np.float64], ground: NDArray[np.bool_], params: LandformParams
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    params: LandformParams,
+    last_return: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
-    """``ground`` plus the points of raised bodies that pass the landform rule (module doc)."""
+    """``ground`` plus the points of raised bodies that pass the landform rule
+    (module doc); with ``last_return`` (per point: last or only return of its
+    pulse) only such points are given back (a crown lets later returns through,
+    rock does not)."""
     ground = np.asarray(ground, dtype=bool)
     if not params.enabled or xyz.shape[0] < 16 or np.count_nonzero(ground) < 3:
         return ground
@@ -104,17 +111,27 @@ def restore_landforms(
     labels, n_body, keep = found["labels"], found["keep"].size, found["keep"]
     terrain = np.zeros(n_body + 1, dtype=bool)
     terrain[1:] = keep
-    body = terrain[labels]
+    core = terrain[labels]
+    # The ring that rose to a kept body is the steep ground leading up to it:
+    # its lower flanks and talus, which the filter cut with the body.
+    body = core | (terrain[found["owner"]] & (found["dist"] > 0) & (found["dist"] <= params.ring))
     # Faces: body cells on its edge, where a near-vertical face splits the cell.
-    edge = body & ~ndimage.binary_erosion(body, structure=np.ones((3, 3)))
-    top = ndimage.maximum_filter(np.where(body, filled, -np.inf), size=3)
+    edge = core & ~ndimage.binary_erosion(core, structure=np.ones((3, 3)))
+    top = ndimage.maximum_filter(np.where(core, filled, -np.inf), size=3)
+    # On a steep flank a cell spans height: the tolerance grows with the slope
+    # across it (up to 2 cells of rise, 63°), as a ground band does.
+    gy, gx = np.gradient(filled, found["cell"])
+    rise = np.minimum(np.hypot(gx, gy), 2.0) * found["cell"]
     ok = flat >= 0
     cell_of = np.where(ok, flat, 0)
     b = body.ravel()[cell_of] & ok
     zc = zlo[cell_of]
-    on_top = b & (xyz[:, 2] <= zc + params.tol)
+    on_top = b & (xyz[:, 2] <= zc + params.tol + rise.ravel()[cell_of])
     on_face = b & edge.ravel()[cell_of] & (xyz[:, 2] <= top.ravel()[cell_of] + params.tol)
-    return ground | on_top | on_face
+    back = on_top | on_face
+    if last_return is not None:
+        back &= np.asarray(last_return, dtype=bool)
+    return ground | back
 
 
 def bodies(
@@ -209,6 +226,8 @@ def bodies(
         "zlo": zlo,
         "filled": filled,
         "labels": labels,
+        "owner": owner,
+        "dist": dist,
         "area": area,
         "rough": rough,
         "slope": slope,
