@@ -54,6 +54,7 @@ class LandformParams(StageParams):
     """Parameters of the steep-landform rule (lengths in metres)."""
 
     enabled: bool = True
+    """Run the rule after the ground stage (false: the filter's labels as they are)."""
     cell: float = Field(0.0, ge=0.0, le=20.0)
     """Raster cell (0: 1.5 mean point spacings, at least 1 m)."""
     min_height: float = Field(2.0, gt=0.0, le=100.0)
