@@ -18,6 +18,7 @@ serve: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check terrasift tests benchmarks scripts
 	$(VENV)/bin/ruff format --check terrasift tests benchmarks scripts
+	$(VENV)/bin/mypy terrasift
 	$(PY) -m pytest
 
 bench: $(STAMP)

@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from terrasift.errors import ParameterError, TerrasiftError
 from terrasift.jobs.params import parse_cli_params
@@ -187,7 +189,7 @@ class _progress_bar:
 
         self._bar = tqdm(total=100, unit="%", desc="terrasift", file=sys.stderr)
 
-    def update(self, done: int, total: int, info: dict | None = None) -> None:
+    def update(self, done: int, total: int, info: Mapping[str, Any] | None = None) -> None:
         pct = int(100 * done / total) if total else 0
         self._bar.n = min(pct, 100)
         if info:

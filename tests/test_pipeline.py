@@ -282,7 +282,8 @@ def test_banded_slope_and_categories_equal_whole_dtm(tmp_path, small_tile, monke
     for name in ("slope.tif", "categories.tif"):
         jobs.output_path(job, name).unlink()
     monkeypatch.setattr(outputs, "BAND_CELLS", 24 * 324)  # bands of 24 rows over the 324 × 324 DTM
-    outputs.write_terrain(str(job))
+    outputs.write_slope(str(job))
+    outputs.write_categories(str(job))
     params = jobs.load_json(job / "job.json")["params"]
     with rasterio.open(jobs.output_path(job, "dtm.tif")) as ds:
         dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)

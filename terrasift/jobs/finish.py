@@ -104,11 +104,6 @@ BAND_CELLS = (
 )  # DTM cells per band for slope and categories: memory follows this, not the job
 
 
-def write_terrain(job_dir: str) -> list[str]:
-    """Slope, categories and terrain objects from the job's mosaicked DTM (both terrain tasks)."""
-    return [write_slope(job_dir), *write_categories(job_dir)]
-
-
 def write_slope(job_dir: str) -> str:
     """Task: the slope raster from the job's mosaicked DTM.
 
@@ -192,11 +187,15 @@ def _write_categories(job: Path) -> list[str]:
             cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
             for r in range(0, height, band)
         ]
+    inclination, orientation, state, height10 = (
+        np.concatenate([getattr(p, f) for p in parts])
+        for f in ("inclination", "orientation", "state", "height10")
+    )
     cats = cat.Categories(
-        *(
-            np.concatenate([getattr(p, f) for p in parts])
-            for f in ("inclination", "orientation", "state", "height10")
-        ),
+        inclination,
+        orientation,
+        state,
+        height10,
         cells_per_tile=parts[0].cells_per_tile,
         tile_size=parts[0].tile_size,
     )

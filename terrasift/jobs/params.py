@@ -20,8 +20,6 @@ from terrasift.workers.block import BlockModels
 from terrasift.workers.registry import block_steps, get_stage, ground_methods, stages
 
 DEFAULT_GROUND = "nist"
-#: the registered ground methods (``ground.nist`` -> ``nist``): the values of ``ground``
-GroundMethod = Literal[tuple(ground_methods())]  # type: ignore[valid-type]
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
 
 
@@ -30,7 +28,11 @@ class JobParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
-    ground: GroundMethod = Field(DEFAULT_GROUND, description="ground method")
+    ground: str = Field(
+        DEFAULT_GROUND,
+        description="ground method",
+        json_schema_extra={"enum": [*ground_methods()]},
+    )
     ground_preset: Literal["default", "conservative", "aggressive"] = Field(
         "default", alias="ground.preset", description="named parameter set of the ground method"
     )
@@ -78,6 +80,14 @@ class JobParams(BaseModel):
             and all(isinstance(c, (int, float)) for c in v)
         ):
             return [tuple(v)]
+        return v
+
+    @field_validator("ground")
+    @classmethod
+    def _registered_method(cls, v: str) -> str:
+        # the registry's ground.* methods are the choices (JSON schema: enum)
+        if v not in ground_methods():
+            raise ValueError(f"Input should be {' or '.join(map(repr, ground_methods()))}")
         return v
 
     @field_validator("buffer", mode="before")
@@ -233,7 +243,9 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         vegetation=stage_params(params, "vegetation"),
         terrain=stage_params(params, "terrain"),
         mixed=stage_params(params, "mixed"),
-        sensor_origin=tuple(tuple(float(c) for c in o) for o in origins) if origins else None,
+        sensor_origin=tuple((float(x), float(y), float(z)) for x, y, z in origins)
+        if origins
+        else None,
         landforms=stage_params(params, "ground.landforms"),
     )
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from terrasift.files import load_json
 from terrasift.jobs.dirs import output_path
+from terrasift.workers.terrain import Smooth
 
 
 def job_path_profile(
@@ -41,7 +42,7 @@ def dtm_path_profile(
     crs: str | None = None,
     spacing: float = 1.0,
     median_size: int = 3,
-    smooth: str = "gradient",
+    smooth: Smooth = "gradient",
 ) -> Any:
     """Pitch and roll along a GeoJSON LineString over a DTM GeoTIFF.
 

@@ -324,22 +324,24 @@ def make_landforms(
         sx += list(fx)
         sy += list(fy)
         kind_tree += list(rng.random(fx.size) < 0.4)
-    sx, sy = np.asarray(sx), np.asarray(sy)
-    kind_tree = np.asarray(kind_tree, dtype=bool)
-    keep = (at(slope_deg, sx, sy) < 40.0) & (at(obj, sx, sy) <= 0.0)
-    sx, sy, kind_tree = sx[keep], sy[keep], kind_tree[keep]
-    k = sx.size
-    tops = np.where(kind_tree, rng.uniform(6, 20, k), rng.uniform(0.8, 2.5, k))
-    radius = np.where(kind_tree, rng.uniform(2, 4.5, k), rng.uniform(0.8, 2.0, k))
-    cbase = np.where(kind_tree, tops * rng.uniform(0.2, 0.5, k), 0.2)
-    base_z = at(rock, sx, sy)
+    stem_x, stem_y = np.asarray(sx), np.asarray(sy)
+    is_tree = np.asarray(kind_tree, dtype=bool)
+    keep = (at(slope_deg, stem_x, stem_y) < 40.0) & (at(obj, stem_x, stem_y) <= 0.0)
+    stem_x, stem_y, is_tree = stem_x[keep], stem_y[keep], is_tree[keep]
+    k = stem_x.size
+    tops = np.where(is_tree, rng.uniform(6, 20, k), rng.uniform(0.8, 2.5, k))
+    radius = np.where(is_tree, rng.uniform(2, 4.5, k), rng.uniform(0.8, 2.0, k))
+    cbase = np.where(is_tree, tops * rng.uniform(0.2, 0.5, k), 0.2)
+    base_z = at(rock, stem_x, stem_y)
 
     in_crown = np.zeros(m, dtype=bool)
     canopy = np.zeros(m)
     crown_base = np.zeros(m)
     if k:
         kk = min(4, k)
-        dist, idx = cKDTree(np.column_stack([sx, sy])).query(np.column_stack([hx, hy]), k=kk)
+        dist, idx = cKDTree(np.column_stack([stem_x, stem_y])).query(
+            np.column_stack([hx, hy]), k=kk
+        )
         dist, idx = dist.reshape(m, kk), idx.reshape(m, kk)
         rel = dist / radius[idx]
         ch = np.where(
@@ -406,21 +408,22 @@ def make_landforms(
         ret, nret = np.r_[ret, np.ones(n_out, np.uint8)], np.r_[nret, np.ones(n_out, np.uint8)]
         face = np.r_[face, np.full(n_out, np.nan)]
     order = rng.permutation(x.size)
-    x, y, z, truth, ret, nret, face = (a[order] for a in (x, y, z, truth, ret, nret, face))
+    x, y, z, face = x[order], y[order], z[order], face[order]
+    truth, ret, nret = truth[order], ret[order], nret[order]
     ground = truth == GROUND
     veg = (truth >= 3) & (truth <= 5)
-    ox, oy = origin
+    x0, y0 = float(origin[0]), float(origin[1])
 
     def surface(px: NDArray, py: NDArray) -> NDArray[np.float64]:
-        return at(rock, np.asarray(px) - ox, np.asarray(py) - oy)
+        return at(rock, np.asarray(px) - x0, np.asarray(py) - y0)
 
     return Scene(
-        xyz=np.column_stack([x + ox, y + oy, z]),
+        xyz=np.column_stack([x + x0, y + y0, z]),
         truth=truth,
         return_number=ret,
         number_of_returns=nret,
         surface=surface,
-        bounds=(ox, oy, ox + s, oy + s),
+        bounds=(x0, y0, x0 + s, y0 + s),
         extra={
             "face_angle": face,
             "steep": ground & (np.nan_to_num(face) > 60.0),

@@ -8,6 +8,7 @@ deflate) into a temporary name and renamed, so a reader never sees half a file.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import rasterio
@@ -19,6 +20,9 @@ from rio_cogeo.cogeo import cog_translate
 from rio_cogeo.profiles import cog_profiles
 
 from terrasift.files import atomic_path
+
+#: overview resampling methods of a COG
+Resampling = Literal["nearest", "average", "mode"]
 
 FLOAT_NODATA = -9999.0
 RASTER_CACHE_MB = 64
@@ -97,7 +101,7 @@ class RasterMosaic:
             block = np.full((self.count, rows, w), self.nodata, dtype=self.dtype)
             self._ds.write(block, window=Window(0, r, w, rows))
 
-    def close_as_cog(self, out_path: Path, *, resampling: str = "average") -> Path:
+    def close_as_cog(self, out_path: Path, *, resampling: Resampling = "average") -> Path:
         """Close the mosaic and write it as a COG at ``out_path`` (atomically)."""
         self._ds.close()
         out_path = Path(out_path)

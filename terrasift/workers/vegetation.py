@@ -169,11 +169,6 @@ def north_up(flat: NDArray, grid: Grid) -> NDArray:
     return np.asarray(flat).reshape(grid.ny, grid.nx)[::-1]
 
 
-def from_north_up(raster: NDArray, grid: Grid) -> NDArray:
-    """Inverse of ``north_up``: a north-up raster as a flat array in grid order."""
-    return np.ascontiguousarray(np.asarray(raster)[::-1]).reshape(grid.size)
-
-
 def auto_support(n: NDArray, grid: Grid, min_points: int) -> int:
     """Smallest odd window width whose median non-empty window holds ≥ 2 (min_points + 1) points.
 

@@ -344,7 +344,7 @@ def classify_rotated(
     if params.edge_margin is None and base.any():
         footing = _ground_level(xyz, base)
     near = None
-    work = slice(None)
+    work: slice | NDArray[np.intp] = slice(None)
     if (
         params.max_lift is not None or params.steep_reach is not None or params.context is not None
     ) and base.any():
