@@ -225,5 +225,5 @@ def test_support_for_density_and_empty_input():
     assert support_for_density(5.0, 2.0) == 3
     g = Grid(0.0, 0.0, 1.0, 4, 3)
     vb = classify_bins(np.empty((0, 3)), np.empty(0, bool), g, VegetationParams(mow_height=3.0))
-    assert vb.counts == {"empty": 12, "open": 0, "bush": 0, "tree": 0}
+    assert vb.counts == {"empty": 12, "open": 0, "bush": 0, "tree": 0, "building": 0}
     assert vb.tree_coverage == 0.0 and not vb.nogo.any()

@@ -145,13 +145,15 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     try:
         job = JobParams.model_validate(fixed)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        # Union members show up in the location as tags such as "constrained-float".
-        loc = (
-            ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p))
-            or "params"
-        )
-        raise ParameterError(f"parameter {loc}: {err['msg']}") from None
+        msgs = []
+        for err in exc.errors():
+            # Union members show up in the location as tags such as "constrained-float".
+            loc = (
+                ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p))
+                or "params"
+            )
+            msgs.append(f"parameter {loc}: {err['msg']}")
+        raise ParameterError("; ".join(dict.fromkeys(msgs))) from None
     out = job.model_dump(by_alias=True, mode="json")
     overrides = _stage_overrides(rest)
     # Build each stage's model once with the overrides on top, so a bad value
@@ -165,6 +167,14 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
             raise ParameterError(f"parameter {stage_id}.{exc}") from None
         for k, v in values.items():
             out[f"{stage_id}.{k}"] = v
+    # Bin and tile sizes the job leaves out follow the resolution; given ones
+    # that contradict it are refused together.
+    from terrasift.workers.resolution import follow_resolution
+
+    derived, conflicts = follow_resolution(job.resolution, out)
+    if conflicts:
+        raise ParameterError("; ".join(conflicts))
+    out.update(derived)
     block_models(out)  # presets, the rotation's included, exist for the chosen method
     grid_alignment(out)
     from terrasift.workers.features import resolve_filters
@@ -243,6 +253,7 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         vegetation=stage_params(params, "vegetation"),
         terrain=stage_params(params, "terrain"),
         mixed=stage_params(params, "mixed"),
+        objects=stage_params(params, "objects"),
         sensor_origin=tuple((float(x), float(y), float(z)) for x, y, z in origins)
         if origins
         else None,

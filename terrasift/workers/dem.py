@@ -50,6 +50,15 @@ class Window:
         return Window(self.xmin - k * r, self.ymax + k * r, r, self.rows + 2 * k, self.cols + 2 * k)
 
 
+def lowest_per_cell(xyz: NDArray[np.float64], resolution: float) -> NDArray[np.float64]:
+    """The lowest point of each occupied ``resolution`` cell."""
+    if xyz.shape[0] == 0:
+        return xyz
+    grid = Grid.covering(xyz[:, 0], xyz[:, 1], resolution)
+    idx = lowest_per_bin(grid.index(xyz[:, 0], xyz[:, 1]), xyz[:, 2], grid.size)
+    return xyz[idx[idx >= 0]]
+
+
 def data_reach_mask(xyz: NDArray[np.float64], window: Window, reach: float) -> NDArray[np.bool_]:
     """True for cells within ``reach`` metres of some point (any class)."""
     margin = window.grown(reach)
