@@ -1,29 +1,33 @@
-"""Rotated classification on cliffs, its cost on flat blocks, and its effect on ISPRS.
+"""Steep ground found wherever it is: a family of steep tiles, a town, cost, ISPRS.
 
-    python benchmarks/rotation_accuracy.py [--method ground.nist] [--square 130] [--density 8]
-        [--no-isprs] [--no-cost]
+    python benchmarks/rotation_accuracy.py [--split tune|holdout|all] [--seeds N ...]
+        [--town 4] [--param KEY=VALUE ...] [--method ground.nist] [--no-family]
+        [--no-cost] [--no-isprs]
 
-``--method`` is the ground stage (``ground.ptd`` or ``ground.nist``; default the
-job default, ``terrasift.jobs.params.DEFAULT_GROUND``). Every run goes through the
-registry stage as a block does (``terrasift.workers.block._ground``): the
-method's default preset on the block, the steepness test on its ground, and on
-a steep block the rotation parameters of the method (``RotationParams.presets``,
-e.g. 45° and the default labels kept for ground.nist; the seed's settings for
-ground.ptd) with ``ground_preset`` for the rotated runs, seeded with the labels
-found so far only where the stage takes a ``seed_mask`` (ground.ptd). Isolated
-low points are not taken out here.
+Family (ROBUSTNESS.md): 180 m tiles, each written as LAS and processed alone
+through the whole job (blocks with halos, stages, classified output) and
+scored over the whole tile. Scene ``seed`` is drawn from ranges
+(``family_spec``): kind cycling through a cliff band crossing the tile with
+mesas and steep hills beside it (``band``), a field of mesas, buttes and
+steep hills (``buttes``; both ``terrasift.synthetic.landforms``), a deep
+overhang (lip 10 m out) and a cave (14 m deep) from the profile generator
+(``terrasift.synthetic.cliffs``), all with more than 50 m of relief; 2–16
+pulses/m² (log-uniform); beams oblique (scan ±25–35°) or near-vertical
+(±6–10°); regional slopes up to 15 %, 15–60 m landforms with 65–89° faces and
+talus, trees and bushes at the foot of faces. Seeds 0–5 are for tuning,
+100–113 are held out and reported.
 
-Cliff scene (``terrasift.synthetic.cliffs``): Type I on ground of faces steeper
-than 60°, Type I/II overall, share of covered ground found (under the lip),
-for the unrotated conservative/aggressive/default filters, rotation with the
-seed's settings (``RotationParams()``: 30°, nine conservative runs; seeded
-where the method can) and the block's flow (``auto``).
-Cost: steepness test vs a default run of the method on a flat block, and a
-steep block (steepness + rotation) vs a flat block of similar point count, for
-the ground alone and for the whole block task (``ground=<method>``). ISPRS:
-mean kappa of the method (default) with and without rotation=auto, where the
-steepness test runs on the unrotated ground (the seed's step 1 preliminary
-classification).
+Per tile: recall of ground steeper than 60° (all, walls up to 110°, ceilings
+beyond), Type II overall, kappa, vegetation within 5 m of faces called ground,
+recall of ground on mesas, buttes and hills (tops and flanks), recall of ground
+under the lip or in the cave. Worst case, 10th percentile and median, and the
+scenes where a figure fails. Town (counter-case): 15–30 buildings of 2–5
+storeys with flat or gabled roofs, walls sampled by the beams, no talus;
+share of building points called ground.
+
+Cost: steepness test vs a default run on a flat block, and a steep block vs a
+flat block (ground alone and the whole block task). ISPRS: mean kappa of the
+method with and without rotation=auto.
 """
 
 from __future__ import annotations
@@ -47,11 +51,11 @@ from terrasift.jobs.params import DEFAULT_GROUND, stage_params  # noqa: E402
 from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
+from terrasift.workers.ground.landforms import LandformParams, restore_landforms  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
     RotationParams,
     SteepParams,
     bind_ground,
-    can_seed,
     classify_rotated,
     steepness,
 )
@@ -84,6 +88,7 @@ def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
     of the first), with the method's rotation preset and ``rotation`` on top."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
+    g = restore_landforms(xyz, g, LandformParams())
     t1 = time.perf_counter()
     test = steepness(xyz[g], SteepParams())
     t2 = time.perf_counter()
@@ -103,60 +108,293 @@ def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
     return g, info
 
 
-def row(name: str, scene, pred: np.ndarray, seconds: float) -> None:
-    core = scene.extra["core"]
-    t = scene.is_ground[core]
-    pred = pred[core]
-    steep = scene.extra["steep"][core]
-    cov = scene.extra["covered"][core]
-    sc = ground_score(t, pred).as_percent()
-    t1_steep = 100.0 * np.count_nonzero(steep & ~pred) / max(np.count_nonzero(steep), 1)
-    found_cov = 100.0 * np.count_nonzero(cov & pred) / max(np.count_nonzero(cov), 1)
-    print(
-        f"{name:28} {t1_steep:10.2f} {sc['type1']:7.2f} {sc['type2']:8.2f} {sc['kappa']:7.2f} {found_cov:9.1f} {seconds:7.1f}"
-    )
+# ------------------------------------------------------------------ the family
+
+#: Cross-sections (u, z) of the profile scenes: a deep overhang (lip 10 m out,
+#: 117°) over a terrace, and a cave (ceiling 14 m deep over its floor), both
+#: with more than 50 m of relief and faces crossing the whole tile.
+OVERHANG = (
+    (0.0, 0.0),
+    (45.0, 4.0),
+    (55.0, 12.0),
+    (55.0, 42.0),
+    (112.0, 47.0),
+    (102.0, 27.0),
+    (132.0, 28.0),
+    (137.0, 12.0),
+    (147.0, 7.0),
+    (230.0, 10.0),
+)
+CAVE = (
+    (0.0, 0.0),
+    (40.0, 3.0),
+    (62.0, 3.5),
+    (62.0, 9.0),
+    (48.0, 10.0),
+    (49.0, 50.0),
+    (120.0, 55.0),
+    (125.0, 28.0),
+    (136.0, 21.0),
+    (225.0, 24.0),
+)
+TILE = 180.0
+TUNE_SEEDS = range(0, 6)
+HOLDOUT_SEEDS = range(100, 114)
 
 
-def cliffs(square: float, density: float, buffer: float) -> None:
-    """A block of side ``square`` plus a ``buffer`` halo, as the spine cuts it;
-    scores count the core only (the halo is another block's core)."""
-    scene = make_cliffs(length=200.0, density=density, seed=3, square=square + 2 * buffer)
-    xy = scene.xyz[:, :2]
-    centre = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
-    scene.extra["core"] = np.all(np.abs(xy - centre) <= square / 2, axis=1)
-    n_steep = int((scene.extra["steep"] & scene.extra["core"]).sum())
-    print(
-        f"cliff block: {len(scene)} points ({square:.0f} m core + {buffer:.0f} m halo), "
-        f"{int(scene.extra['core'].sum())} in the core, {n_steep} core ground points on faces > 60°"
-    )
-    print(
-        f"{'run':28} {'TypeI>60%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7} {'covered%':>9} {'s':>7}"
-    )
-    for preset in ("default", "conservative", "aggressive"):
-        t = time.perf_counter()
-        g = ground(preset)(scene.xyz)
-        row(f"unrotated {preset}", scene, g, time.perf_counter() - t)
-    t = time.perf_counter()
-    res = classify_rotated(scene.xyz, ground("conservative"), RotationParams())
-    row("rotated, all conservative", scene, res.is_ground, time.perf_counter() - t)
-    print(f"  added per direction N..NW: {res.added}")
-    if can_seed(get_stage(METHOD)):
-        t = time.perf_counter()
-        res = classify_rotated(
-            scene.xyz,
-            ground("conservative"),
-            RotationParams(),
-            seeded=ground("conservative", seeded=True),
+def family_spec(seed: int) -> tuple[str, dict]:
+    """Scene ``seed`` of the steep family: its kind and arguments, drawn from ranges."""
+    rng = np.random.default_rng(seed)
+    kinds = ("band", "buttes", "overhang", "cave")
+    kind = kinds[seed % len(kinds)]
+    density = float(np.exp(rng.uniform(np.log(2.0), np.log(16.0))))
+    scan = float(rng.uniform(6.0, 10.0) if (seed // 4) % 2 else rng.uniform(25.0, 35.0))
+    return kind, {"density": density, "scan": scan, "rng": int(rng.integers(1 << 30))}
+
+
+def make_family_scene(seed: int):
+    """The tile of scene ``seed`` (``family_spec``) with its truth."""
+    from terrasift.synthetic.landforms import Cliff, Hill, LandformSpec, Mesa, make_landforms
+
+    kind, a = family_spec(seed)
+    rng = np.random.default_rng(a["rng"])
+    if kind in ("overhang", "cave"):
+        scene = make_cliffs(
+            length=300.0,
+            density=a["density"],
+            profile=OVERHANG if kind == "overhang" else CAVE,
+            azimuth=float(rng.uniform(0, 360)),
+            max_scan_angle=a["scan"],
+            seed=int(rng.integers(1 << 30)),
+            square=TILE,
+            face_clear=float(rng.uniform(-1.0, 1.0)),
+            bush_density=0.01,
         )
-        row("rotated conservative, seeded", scene, res.is_ground, time.perf_counter() - t)
-        print(f"  added per direction N..NW: {res.added}")
-    else:
-        print(f"  ({METHOD} takes no seed_mask: no seeded rotated runs)")
-    g, info = auto(scene.xyz)
-    row("auto (the block's flow)", scene, g, info["total_s"])
-    print(f"  steep share {info['share']:.3f}, added {info.get('added')}")
-    g, info = auto(scene.xyz, rerun_unrotated=False)
-    row("auto, default labels kept", scene, g, info["total_s"])
+        return kind, a, scene
+
+    placed: list[tuple[float, float, float]] = []
+
+    def spot(r: float) -> tuple[float, float]:
+        """A centre whose landform keeps 10 m from the others (the last try otherwise)."""
+        for _ in range(200):
+            x, y = (float(v) for v in rng.uniform(r + 5, TILE - r - 5, 2))
+            if all(np.hypot(x - a, y - b) > r + q + 10.0 for a, b, q in placed):
+                break
+        placed.append((x, y, r))
+        return x, y
+
+    mesas, hills = [], []
+    n_mesa = 1 if kind == "band" else 3
+    for _ in range(n_mesa):
+        r = float(rng.uniform(7.5, 30.0))
+        mesas.append(
+            Mesa(
+                *spot(r),
+                r,
+                float(rng.uniform(10, 40)),
+                float(rng.uniform(65, 89)),
+                float(rng.uniform(0.1, 0.4)),
+            )
+        )
+    for _ in range(2):
+        r = float(rng.uniform(10.0, 30.0))  # 15–60 m across at its base's flanks
+        hills.append(Hill(*spot(r), r, float(rng.uniform(0.7, 1.5) * r)))
+    cliffs = []
+    if kind == "band":
+        cliffs.append(
+            Cliff(
+                height=float(rng.uniform(20, 45)),
+                angle=float(rng.uniform(65, 89.5)),
+                talus=float(rng.uniform(2, 10)),
+                offset=float(rng.uniform(0.35, 0.65)),
+                facing=float(rng.uniform(0, 360)),
+                wave=float(rng.uniform(0, 8)),
+            )
+        )
+    spec = LandformSpec(
+        size=TILE,
+        density=a["density"],
+        slope=(float(rng.uniform(-0.15, 0.15)), float(rng.uniform(-0.15, 0.15))),
+        cliffs=cliffs,
+        mesas=mesas,
+        hills=hills,
+        tree_density=float(rng.uniform(0.001, 0.005)),
+        bush_density=float(rng.uniform(0.002, 0.008)),
+        face_stems=int(rng.integers(30, 120)),
+        max_scan_angle=a["scan"],
+        heading=float(rng.uniform(0, 90)),
+    )
+    return kind, a, make_landforms(spec, seed=int(rng.integers(1 << 30)))
+
+
+def make_town(seed: int):
+    """A town tile: 15–30 buildings of 2–5 storeys, flat or gabled, on gentle ground."""
+    from terrasift.synthetic.landforms import House, LandformSpec, make_landforms
+
+    rng = np.random.default_rng(seed)
+    houses = []
+    for _ in range(int(rng.integers(15, 30))):
+        w, d = rng.uniform(8, 40, 2)
+        houses.append(
+            House(
+                *rng.uniform(20, TILE - 20, 2),
+                float(w),
+                float(d),
+                float(rng.uniform(0, 180)),
+                float(rng.uniform(6, 16)),
+                float(rng.uniform(2, 5) if rng.random() < 0.5 else 0.0),
+            )
+        )
+    density = float(np.exp(rng.uniform(np.log(2.0), np.log(16.0))))
+    spec = LandformSpec(
+        size=TILE,
+        density=density,
+        slope=tuple(float(v) for v in rng.uniform(-0.04, 0.04, 2)),
+        houses=houses,
+        tree_density=0.002,
+        bush_density=0.003,
+        face_stems=0,
+        max_scan_angle=float(rng.uniform(8, 30)),
+        heading=float(rng.uniform(0, 90)),
+    )
+    return {"density": density, "scan": spec.max_scan_angle}, make_landforms(spec, seed=seed)
+
+
+def run_job(scene, params: dict) -> tuple[np.ndarray, float]:
+    """Ground labels of ``scene`` written as one LAS tile and processed alone
+    through the whole job (blocks, halos, stages, classified output), and the
+    job's seconds."""
+    import tempfile
+
+    import laspy
+
+    from terrasift import jobs as pipeline
+    from terrasift.synthetic.terrain import write_las
+    from terrasift.workers.executors import InlineExecutor
+
+    with tempfile.TemporaryDirectory(prefix="bench-steep-") as tmp:
+        tile = write_las(scene, Path(tmp) / "tile.las")
+        job = Path(tmp) / "job"
+        validated = pipeline.validate_params({"crs": "EPSG:32632", **params})
+        pipeline.prepare_job(job, [tile], validated)
+        t = time.perf_counter()
+        pipeline.run_job(job, InlineExecutor(), products="classified")
+        seconds = time.perf_counter() - t
+        out = laspy.read(pipeline.output_path(job, "classified.laz"))
+        return np.asarray(out.classification) == 2, seconds
+
+
+def share(mask: np.ndarray, of: np.ndarray) -> float:
+    """Percent of ``of`` that ``mask`` holds (NaN when ``of`` is empty)."""
+    n = np.count_nonzero(of)
+    return float("nan") if n == 0 else 100.0 * np.count_nonzero(mask & of) / n
+
+
+def scene_scores(scene, pred: np.ndarray) -> dict[str, float]:
+    """Figures of one tile, scored over the whole tile."""
+    e = scene.extra
+    sc = ground_score(scene.is_ground, pred).as_percent()
+    face = np.nan_to_num(e["face_angle"])
+    steep = e["steep"]
+    out = {
+        "steep_recall": share(pred, steep),
+        "wall_recall": share(pred, steep & (face <= 110.0)),
+        "ceiling_recall": share(pred, steep & (face > 110.0)),
+        "type2": sc["type2"],
+        # Vegetation 0.5 m or more above the ground (classes 4, 5) called ground:
+        # class 3 returns (< 0.5 m, bush edges) lie within any filter's ground band.
+        "type2_tall": share(pred, (scene.truth == 4) | (scene.truth == 5)),
+        "kappa": sc["kappa"],
+        "near_face_veg": share(pred, e["near_face"]),
+        "landform_recall": share(pred, e["landform"]) if "landform" in e else float("nan"),
+        "covered_recall": share(pred, e["covered"]) if "covered" in e else float("nan"),
+    }
+    return out
+
+
+def summary(rows: list[dict[str, float]], key: str, worst: str = "min") -> str:
+    v = np.array([r[key] for r in rows], dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return f"{key:16} (none)"
+    w = v.min() if worst == "min" else v.max()
+    p10 = np.percentile(v, 10 if worst == "min" else 90)
+    return f"{key:16} worst {w:7.2f}  p10 {p10:7.2f}  median {np.median(v):7.2f}  (n={v.size})"
+
+
+def family(seeds, params: dict) -> list[dict[str, float]]:
+    cols = [
+        "steep_recall",
+        "wall_recall",
+        "ceiling_recall",
+        "type2",
+        "type2_tall",
+        "kappa",
+        "near_face_veg",
+        "landform_recall",
+        "covered_recall",
+    ]
+    print(
+        f"{'seed':>4} {'kind':9} {'pts/m2':>6} {'scan':>5} {'points':>8} "
+        + " ".join(f"{c[:11]:>11}" for c in cols)
+        + f" {'s':>6}"
+    )
+    rows = []
+    for seed in seeds:
+        kind, a, scene = make_family_scene(seed)
+        pred, secs = run_job(scene, params)
+        r = scene_scores(scene, pred)
+        r.update(seed=seed, kind=kind)
+        rows.append(r)
+        print(
+            f"{seed:4d} {kind:9} {a['density']:6.1f} {a['scan']:5.1f} {len(scene):8d} "
+            + " ".join(f"{r[c]:11.2f}" for c in cols)
+            + f" {secs:6.1f}",
+            flush=True,
+        )
+    print("steep family, whole tiles processed alone (worst case / 10th percentile / median):")
+    for key, w in (
+        ("steep_recall", "min"),
+        ("wall_recall", "min"),
+        ("ceiling_recall", "min"),
+        ("landform_recall", "min"),
+        ("covered_recall", "min"),
+        ("type2", "max"),
+        ("type2_tall", "max"),
+        ("near_face_veg", "max"),
+        ("kappa", "min"),
+    ):
+        print("  " + summary(rows, key, w))
+    fails = [
+        f"{r['seed']} {r['kind']}"
+        for r in rows
+        if r["steep_recall"] < 90 or r["type2"] > 3 or (r["landform_recall"] < 90)
+    ]
+    print(
+        f"  fails (steep recall < 90 %, Type II > 3 % or landform recall < 90 %): {fails or 'none'}"
+    )
+    return rows
+
+
+def town(seeds, params: dict) -> None:
+    print(
+        f"{'town':>4} {'pts/m2':>6} {'scan':>5} {'points':>8} {'bldg->gnd%':>10} {'TypeI%':>7} {'TypeII%':>8} {'kappa%':>7}"
+    )
+    worst = []
+    for seed in seeds:
+        a, scene = make_town(seed)
+        pred, _ = run_job(scene, params)
+        bldg = scene.truth == 6
+        sc = ground_score(scene.is_ground, pred).as_percent()
+        b = share(pred, bldg)
+        worst.append(b)
+        print(
+            f"{seed:4d} {a['density']:6.1f} {a['scan']:5.1f} {len(scene):8d} {b:10.2f} {sc['type1']:7.2f} {sc['type2']:8.2f} {sc['kappa']:7.2f}",
+            flush=True,
+        )
+    print(
+        f"  town: building points called ground worst {max(worst):.2f} %, median {np.median(worst):.2f} %"
+    )
 
 
 def cost() -> None:
@@ -265,12 +503,18 @@ def main() -> None:
     global METHOD
     ap = argparse.ArgumentParser()
     ap.add_argument(
-        "--square", type=float, default=130.0, help="side of the block cut from the cliff scene"
+        "--split",
+        default="holdout",
+        choices=["tune", "holdout", "all"],
+        help=f"scenes: tune (seeds {TUNE_SEEDS.start}-{TUNE_SEEDS.stop - 1}), held out "
+        f"({HOLDOUT_SEEDS.start}-{HOLDOUT_SEEDS.stop - 1}) or both",
     )
-    ap.add_argument("--density", type=float, default=8.0)
+    ap.add_argument("--seeds", type=int, nargs="*", help="these family seeds instead of --split")
+    ap.add_argument("--town", type=int, default=4, help="town scenes (0: none)")
     ap.add_argument(
-        "--buffer", type=float, default=20.0, help="halo around the block (spine default 20 m)"
+        "--param", action="append", default=[], metavar="KEY=VALUE", help="job parameter"
     )
+    ap.add_argument("--no-family", action="store_true")
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
     ap.add_argument(
@@ -281,8 +525,18 @@ def main() -> None:
     )
     args = ap.parse_args()
     METHOD = args.method
-    print(f"ground method {METHOD}")
-    cliffs(args.square, args.density, args.buffer)
+    params = {"ground": METHOD.removeprefix("ground."), **dict(p.split("=", 1) for p in args.param)}
+    print(f"ground method {METHOD}; job parameters {params}")
+    if not args.no_family:
+        if args.seeds:
+            seeds = args.seeds
+        else:
+            seeds = {"tune": list(TUNE_SEEDS), "holdout": list(HOLDOUT_SEEDS)}.get(
+                args.split, [*TUNE_SEEDS, *HOLDOUT_SEEDS]
+            )
+        family(seeds, params)
+    if args.town:
+        town(range(200, 200 + args.town), params)
     if not args.no_cost:
         cost()
     if not args.no_isprs:

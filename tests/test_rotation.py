@@ -58,7 +58,9 @@ def test_classify_rotated_is_or_about_centroid():
         return p[:, 2] < np.median(p[:, 2])
 
     res = classify_rotated(
-        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=0.0, steep_reach=None)
+        pts,
+        fake_ground,
+        RotationParams(directions=4, angle=20, edge_margin=0.0, context=None, face_evidence=False),
     )
     assert len(seen) == 5
     base = seen[0][:, 2] < np.median(seen[0][:, 2])
@@ -74,7 +76,9 @@ def test_classify_rotated_is_or_about_centroid():
     ]
     # With an edge margin, rotated runs only add points inside the margin.
     trimmed = classify_rotated(
-        pts, fake_ground, RotationParams(directions=4, angle=20, edge_margin=20.0)
+        pts,
+        fake_ground,
+        RotationParams(directions=4, angle=20, edge_margin=20.0, context=None, face_evidence=False),
     )
     assert np.all(trimmed.is_ground <= res.is_ground) and sum(trimmed.added) < sum(res.added)
     # A given unrotated labelling is used instead of running it again.
@@ -172,9 +176,9 @@ def test_lone_low_points_are_no_cliff():
     rng = np.random.default_rng(3)
     sunk = rng.choice(pts.shape[0], 12, replace=False)
     pts[sunk, 2] -= rng.uniform(3.0, 5.0, 12)
-    plain = steepness(pts, SteepParams(support=0))
+    plain = steepness(pts, SteepParams(support=0, cell=15.0))
     assert plain.steep
-    assert steepness(pts, SteepParams()).facet_share == 0.0
+    assert steepness(pts, SteepParams(cell=15.0)).facet_share == 0.0
     # A real 25 m step keeps its steep facets: its foot is a floor of many points.
     cliff = _plane(25.0)
     assert (
@@ -315,8 +319,10 @@ def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
     default = stage.run(cliffs.xyz, stage.params.preset("default"))
     plain, _ = bind_ground(stage, stage.params.preset("conservative"))
     steep = cliffs.extra["steep"]
-    seed = classify_rotated(cliffs.xyz, plain, RotationParams())
-    rp = stage_params({}, "ground.rotation", "ground.nist")
+    # The angles alone: both with the 4 m reach and no face evidence.
+    old = {"face_evidence": False, "steep_reach": 4.0, "context": 6.0}
+    seed = classify_rotated(cliffs.xyz, plain, RotationParams(**old))
+    rp = stage_params({}, "ground.rotation", "ground.nist").model_copy(update=old)
     own = classify_rotated(cliffs.xyz, plain, rp, unrotated=default)
     missed_seed = np.mean(~seed.is_ground[steep])  # 0.94 measured
     missed_own = np.mean(~own.is_ground[steep])
@@ -333,7 +339,93 @@ def test_second_angle_adds_a_run_per_direction():
         return p[:, 2] < np.median(p[:, 2])
 
     res = classify_rotated(
-        pts, fake_ground, RotationParams(directions=2, angle=10, second_angle=40, steep_reach=None)
+        pts,
+        fake_ground,
+        RotationParams(directions=2, angle=10, second_angle=40, context=None, face_evidence=False),
     )
     assert len(tips) == 5 and len(res.added) == 4
     assert max(tips[1:3]) < min(tips[3:])  # 10° runs first, then the steeper 40° ones
+
+
+def test_landform_tile_truth():
+    from terrasift.synthetic.landforms import House, LandformSpec, Mesa, make_landforms
+
+    spec = LandformSpec(
+        size=60.0,
+        density=3.0,
+        slope=(0.05, 0.0),
+        mesas=[Mesa(20.0, 30.0, 8.0, 15.0, angle=85.0, talus=0.2)],
+        houses=[House(45.0, 30.0, 10.0, 12.0, 30.0, 8.0, 3.0)],
+        face_stems=10,
+        max_scan_angle=30.0,
+    )
+    scene = make_landforms(spec, seed=3)
+    e = scene.extra
+    xy = scene.xyz[:, :2] - scene.bounds[:2]
+    assert np.all((xy >= -0.2) & (xy <= 60.2))  # noise of 3 cm about the edges
+    # Oblique beams sample the mesa's faces: steep ground, all of it on the landform's flanks.
+    r = np.hypot(xy[:, 0] - 20.0, xy[:, 1] - 30.0)
+    assert e["steep"].sum() > 30 and np.all(r[e["steep"]] < 8.0 * 1.15 + 3.0)
+    top = e["landform"] & (scene.xyz[:, 2] > 100.0 + 0.05 * 20.0 + 14.0)
+    assert top.sum() > 0.5 * 3.0 * np.pi * 6.8**2
+    # Roof and wall points are buildings, never ground or landform.
+    bldg = scene.truth == 6
+    assert bldg.sum() > 0.5 * 3.0 * 120 and not np.any(e["landform"] & bldg)
+    assert np.all(np.abs(scene.xyz[bldg, 0] - scene.bounds[0] - 45.0) < 9.0)
+    assert np.any(e["near_face"])
+
+
+def test_landform_rule_keeps_mesas_and_hills_and_drops_buildings():
+    from terrasift.synthetic.landforms import Hill, House, LandformSpec, Mesa, make_landforms
+    from terrasift.workers.ground.landforms import LandformParams, restore_landforms
+    from terrasift.workers.ground.nist import NistParams
+    from terrasift.workers.ground.nist import classify_ground as nist
+
+    spec = LandformSpec(
+        size=120.0,
+        density=2.0,
+        slope=(0.08, -0.05),
+        mesas=[Mesa(35.0, 40.0, 12.0, 20.0, angle=80.0, talus=0.3)],
+        hills=[Hill(35.0, 95.0, 14.0, 16.0)],
+        houses=[
+            House(90.0, 40.0, 24.0, 16.0, 20.0, 10.0),
+            House(90.0, 90.0, 18.0, 14.0, 0.0, 7.0, 3.0),
+        ],
+        tree_density=0.0,
+        bush_density=0.0,
+        face_stems=0,
+    )
+    scene = make_landforms(spec, seed=5)
+    before = nist(scene.xyz, NistParams())
+    after = restore_landforms(scene.xyz, before, LandformParams())
+    land, bldg = scene.extra["landform"], scene.truth == 6
+    # The filter takes the mesa and the hill for buildings; the rule gives them back.
+    assert np.mean(before[land]) < 0.3 and np.mean(after[land]) > 0.8
+    assert not np.any(after[bldg])
+    assert (
+        not restore_landforms(scene.xyz, before, LandformParams(enabled=False))[land].mean() > 0.6
+    )
+
+
+def test_face_evidence_keeps_faces_and_drops_crowns_beside_them():
+    from terrasift.workers.ground.rotation import _on_faces
+
+    rng = np.random.default_rng(7)
+    # Level ground (x < 20), a vertical face at x = 20 up to 15 m, a crown at its foot.
+    floor = np.column_stack([rng.uniform(0, 20, 3000), rng.uniform(0, 30, 3000), np.zeros(3000)])
+    face = np.column_stack(
+        [np.full(2000, 20.0), rng.uniform(0, 30, 2000), rng.uniform(0.2, 15, 2000)]
+    )
+    crown = rng.normal([15.0, 15.0, 5.0], [1.5, 1.5, 1.5], (600, 3))
+    xyz = np.vstack([floor, face, crown]) + rng.normal(0, 0.02, (5600, 3))
+    base = np.r_[np.ones(3000, bool), np.zeros(2600, bool)]
+    cand = ~base
+    foot = xyz.copy()
+    foot[:, 2] = np.minimum(xyz[:, 2], 0.0)
+    kept = _on_faces(xyz, base, cand, foot, RotationParams())
+    assert kept[3000:5000].mean() > 0.8  # 0.83: its foot and top mix with the floor and the rim
+    assert kept[5000:].mean() < 0.1
+    # A face standing apart from any ground (a wall's top half floating) is not linked.
+    lifted = xyz.copy()
+    lifted[3000:5000, 2] += 20.0
+    assert _on_faces(lifted, base, cand, foot, RotationParams())[3000:5000].mean() < 0.1

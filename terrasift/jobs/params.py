@@ -257,6 +257,7 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         sensor_origin=tuple((float(x), float(y), float(z)) for x, y, z in origins)
         if origins
         else None,
+        landforms=stage_params(params, "ground.landforms"),
     )
 
 

@@ -57,13 +57,18 @@ def make_cliffs(
     noise_sigma: float = 0.03,
     seed: int = 0,
     square: float | None = None,
+    face_clear: float = 2.0,
+    veg_slope: float = 15.0,
 ) -> Scene:
     """A cliff scene ``profile``-wide across and ``length`` m along strike, at
     ``density`` pulses per m². ``azimuth`` (degrees, counter-clockwise from east)
     is the direction of increasing u, so the vertical cliff faces azimuth + 180°
     and the overhang and the 70° face face ``azimuth``. ``square``: keep only the
     axis-aligned square of that side about the scene's centre, as a block of
-    the tiling grid would see it."""
+    the tiling grid would see it. ``face_clear``: metres between a crown's
+    edge and the nearest steep (≥ 15°) segment's end (negative: crowns reach
+    over the foot of faces); ``veg_slope``: degrees, the steepest ground that
+    takes stems and crowns."""
     rng = np.random.default_rng(seed)
     prof = np.asarray(profile, dtype=np.float64)
     a, b = prof[:-1], prof[1:]
@@ -93,7 +98,7 @@ def make_cliffs(
     flat_ranges = [
         (min(p[0], q[0]), max(p[0], q[0]))
         for p, q, s in zip(a, b, seg_angle, strict=True)
-        if s < 15.0
+        if s < veg_slope
     ]
     steep_u = np.concatenate(
         [[p[0], q[0]] for p, q, s in zip(a, b, seg_angle, strict=True) if s >= 15.0]
@@ -112,7 +117,7 @@ def make_cliffs(
         on_flat |= (su >= lo) & (su <= hi)
     rr = np.resize(radius, su.size)
     good = np.flatnonzero(
-        on_flat & (clear > rr + 2.0) & (_highest(prof, su) - _lowest(prof, su) < 0.5)
+        on_flat & (clear > rr + face_clear) & (_highest(prof, su) - _lowest(prof, su) < 0.5)
     )[:k]
     stems = np.column_stack([su[good], sv[good]])
     top, radius, crown_base = top[: good.size], radius[: good.size], crown_base[: good.size]
@@ -130,7 +135,7 @@ def make_cliffs(
         best = np.argmax(crown_h, axis=1)
         canopy = crown_h[np.arange(m), best]
         base_of_hit = crown_base[idx[np.arange(m), best]]
-    in_crown = np.isfinite(canopy) & (angle < 15.0) & ~covered
+    in_crown = np.isfinite(canopy) & (angle < veg_slope) & ~covered
 
     parts: list[tuple] = []  # (u, v, z, class, return, returns, angle, covered)
     bare = ~in_crown
@@ -238,6 +243,8 @@ def make_cliffs(
             "steep": ground & (np.nan_to_num(face) > 60.0),
             "covered": cov[order] & ground,
             "u": uu[order],
+            "near_face": ((truth[order] >= 3) & (truth[order] <= 5))
+            & (np.min(np.abs(uu[order][:, None] - steep_u[None, :]), axis=1) < 5.0),
         },
     )
 

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from terrasift.tiling.blocks import BlockGrid
+from terrasift.workers.ground.landforms import LandformParams
 from terrasift.workers.ground.lowpoints import LowPointParams
 from terrasift.workers.ground.rotation import RotationParams, SteepParams
 from terrasift.workers.mixed import MixedParams
@@ -49,6 +50,8 @@ class BlockModels:
     """Buildings, noise and the input classes kept."""
     sensor_origin: tuple[tuple[float, float, float], ...] | None = None
     """Scan positions of a ground-based scan; None for airborne data."""
+    landforms: LandformParams | None = None
+    """The steep-landform rule after the ground stage (None: not run)."""
 
 
 @dataclass

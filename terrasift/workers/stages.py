@@ -3,6 +3,7 @@
 # Stage modules are imported for their registration side effect.
 import terrasift.workers.categories  # noqa: F401
 import terrasift.workers.features  # noqa: F401
+import terrasift.workers.ground.landforms  # noqa: F401
 import terrasift.workers.ground.lowpoints  # noqa: F401
 import terrasift.workers.ground.nist  # noqa: F401
 import terrasift.workers.ground.ptd  # noqa: F401

@@ -28,7 +28,7 @@ from terrasift.workers.block import (
     Block,
     BlockModels,
 )
-from terrasift.workers.ground import lowpoints, rotation
+from terrasift.workers.ground import landforms, lowpoints, rotation
 from terrasift.workers.registry import block_step
 
 #: bins of the widest vegetation support window (15) reach this far beyond the core
@@ -96,6 +96,13 @@ def ground_step(block: Block, models: BlockModels) -> None:
     block.stats["low_points"] = int(np.count_nonzero(low[block.core[block.act]]))
 
 
+def _last_return(block: Block) -> NDArray[np.bool_] | None:
+    """Per point still in the pipeline: the last (or only) return of its pulse; None when unknown."""
+    if block.return_number is None or block.number_of_returns is None:
+        return None
+    return np.asarray(block.return_number >= block.number_of_returns)[block.act]
+
+
 def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArray[np.bool_], dict]:
     xyz, timer = block.sub, block.timer
     stage = models.ground
@@ -113,6 +120,10 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
 
     with timer("ground"):
         is_ground = np.asarray(stage.run(xyz, models.ground_params, **kwargs), dtype=bool)
+        if models.landforms is not None:
+            # Mesas, buttes and steep hills the filter removed as if buildings.
+            last = _last_return(block)
+            is_ground = landforms.restore_landforms(xyz, is_ground, models.landforms, last)
     is_ground, low = without_low(is_ground)
     if models.rotation_mode == "off":
         return is_ground, low, steep_info
@@ -138,6 +149,7 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
             rparams,
             unrotated=None if rparams.rerun_unrotated else is_ground,
             seeded=seeded,
+            last_return=_last_return(block),
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

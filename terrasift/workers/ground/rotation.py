@@ -39,8 +39,11 @@ SeededFn = Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]]
 class SteepParams(StageParams):
     """Parameters of the per-block steepness test (seed step 2)."""
 
-    cell: float = Field(15.0, ge=1.0, le=1000.0)
-    """Metres: cell of the lowest-point TIN."""
+    cell: float = Field(7.5, ge=1.0, le=1000.0)
+    """Metres: cell of the lowest-point TIN. A face shows as a facet steeper than
+    ``facet_angle`` only when it rises more than cell × tan(facet_angle): 13 m at
+    7.5 m cells, 26 m at the seed's 15 m (which missed the 20–34 m cliff bands
+    of the steep family: share 0.0 and 0.4 %)."""
     facet_angle: float = Field(60.0, gt=0.0, lt=90.0)
     """Degrees: a facet steeper than this counts as steep."""
     steep_share: float = Field(0.01, ge=0.0, le=1.0)
@@ -80,26 +83,54 @@ class RotationParams(StageParams):
     it. None: one tip, as the seed."""
     edge_margin: float | None = Field(None, ge=0.0, le=1000.0)
     """Metres: a rotated run's labels count only this far inside the rotated
-    block's footprint. Tipping pushes tall objects sideways by height·sin(angle),
-    so near the footprint's edge tree tops and birds stand alone and become TIN
-    seeds. None: the block's height range (2nd–98th percentile) × sin(angle).
-    The unrotated run still labels the margin."""
+    block's footprint. None (default): per point instead. Tipping moves a point
+    sideways by its own height above the local ground × sin(angle), so near
+    the data's edge tree tops and birds come to stand beyond the ground and
+    become TIN seeds; a rotated label counts only where the point, so moved,
+    still lies over the footprint of the tipped ground (``_over_ground``).
+    Rock faces at the data's edge sit on the ground surface, move by little
+    and keep their labels. The unrotated run still labels every point."""
     max_lift: float | None = Field(30.0, gt=0.0, le=1000.0)
     """Metres: a rotated run may add only points within this height of the
     unrotated ground surface (a TIN of its lowest ground per 2 m cell); tipping
     isolates birds, which then seed a rotated TIN. High, since a cliff's upper
     face and an overhang's roof stand far above that surface at their foot
     (``steep_reach`` keeps crowns out). None: no limit."""
-    steep_reach: float | None = Field(4.0, gt=0.0, le=1000.0)
+    steep_reach: float | None = Field(None, gt=0.0, le=1000.0)
     """Metres: a rotated run may add only points this close (horizontally) to a
-    steep facet (> 50°) of the unrotated ground surface. A rotation exists for
-    faces; on the flats it only isolates crowns, which its TIN then takes.
-    None: no limit."""
-    context: float | None = Field(6.0, ge=0.0, le=1000.0)
-    """Metres: with ``steep_reach``, a rotated run sees only the points within
-    ``steep_reach`` + this of the steep facets: the faces with their foot and
-    rim as context for the TIN, not the flats it may not add to anyway. This
-    is what keeps a steep block's cost near a flat one's. None: whole block."""
+    steep facet (> 50°) of the unrotated ground surface. None (default): no
+    such cap; what a run adds is judged by the face itself (``face_*``). A cap
+    of 4 m missed overhang fronts whose lowest surface steps up at the back of
+    a cave, well behind the face."""
+    context: float | None = Field(20.0, ge=0.0, le=1000.0)
+    """Metres: a rotated run sees only the points within this (+ ``steep_reach``
+    when set) of the steep facets of the unrotated ground: the faces with their
+    foot, rim and an overhang's depth, not the flats far from any face. This
+    keeps a steep block's cost near a flat one's. None: whole block."""
+    face_evidence: bool = True
+    """Keep only the added points that lie on a surface (see ``face_rough``),
+    connected to the unrotated ground through such points (``face_link``)."""
+    face_radius: float = Field(1.5, gt=0.0, le=20.0)
+    """Metres: an added point's plane is fitted to its nearest neighbours (3-D),
+    as many as the block's density puts in a disc of this radius (10–64): at
+    1.5 m a bush 1.6–4 m across bends away from any plane."""
+    face_rough: float = Field(0.15, gt=0.0, le=10.0)
+    """Metres: RMS of those neighbours about their plane above which the point is
+    in vegetation (crowns and bushes scatter in depth or bend away; a face with
+    a bush in front of it, too), not on a surface. Holds for faces planar to a
+    few cm over the neighbourhood (the synthetic family: 3 cm noise); rougher
+    rock needs more."""
+    face_tilt: float = Field(50.0, ge=0.0, le=90.0)
+    """Degrees: an added point whose plane is tilted less than this from level is
+    no face: it counts only within ``face_ground`` of the ground surface (the
+    2.5-D lowest ground: talus, rims, ground under a lip), not on a roof."""
+    face_ground: float = Field(1.0, ge=0.0, le=100.0)
+    """Metres: see ``face_tilt``."""
+    face_link: float = Field(5.0, gt=0.0, le=100.0)
+    """Point spacings (the larger of the block's mean spacing and the median
+    distance between the added points that passed): added points join each
+    other and the unrotated ground within this distance (3-D); a group joined to
+    no ground (a crown top, a bird) is dropped."""
     rerun_unrotated: bool = True
     """Steep blocks: run the unrotated cloud again with ``ground_preset``, as
     the seed does (nine conservative runs OR'ed), instead of keeping the
@@ -285,6 +316,7 @@ def classify_rotated(
     *,
     unrotated: NDArray[np.bool_] | None = None,
     seeded: Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]] | None = None,
+    last_return: NDArray[np.bool_] | None = None,
 ) -> RotatedResult:
     """Boolean OR of ``ground`` on the block as it is and on ``directions``
     copies tipped by ``angle`` about the centroid (and ``directions`` more
@@ -298,24 +330,25 @@ def classify_rotated(
     and rim, and the tipped face between them is densified instead of being cut
     off under the rim (a tipped cliff top is a sharp ridge, which a TIN filter
     grown from cell minima cannot climb).
+
+    ``last_return`` (per point: the last or only return of its pulse), when
+    given, is echo evidence: a rotated run adds no point that a later return
+    of the same pulse lies behind (crowns and bushes; a rock face is opaque).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     base = np.asarray(ground(xyz) if unrotated is None else unrotated, dtype=bool)
     combined = base.copy()
     added: list[int] = []
     centroid = xyz.mean(axis=0)
-    height = 0.0
-    if params.edge_margin is None and xyz.shape[0]:
-        lo, hi = np.percentile(xyz[:, 2], [2, 98])
-        height = float(hi - lo)
+    footing = None
+    if params.edge_margin is None and base.any():
+        footing = _ground_level(xyz, base)
     near = None
     work: slice | NDArray[np.intp] = slice(None)
-    if (params.max_lift is not None or params.steep_reach is not None) and base.any():
-        wide = (
-            None
-            if params.steep_reach is None or params.context is None
-            else params.steep_reach + params.context
-        )
+    if (
+        params.max_lift is not None or params.steep_reach is not None or params.context is not None
+    ) and base.any():
+        wide = None if params.context is None else (params.steep_reach or 0.0) + params.context
         near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
         if seen is not None:
             work = np.flatnonzero(seen)
@@ -330,10 +363,11 @@ def classify_rotated(
         if isinstance(work, slice) or work.size >= 3:
             part = turned[work]
             labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
-        margin = (
-            height * np.sin(np.radians(angle)) if params.edge_margin is None else params.edge_margin
-        )
-        if margin > 0 and labels.any():
+        if labels.any() and footing is not None:
+            feet = footing @ rot.T + (centroid - rot @ centroid)
+            labels &= _over_ground(turned[:, :2], feet[:, :2])
+        elif labels.any() and params.edge_margin:
+            margin = params.edge_margin
             xy = turned[:, :2]
             inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
             labels &= inner
@@ -342,7 +376,109 @@ def classify_rotated(
         del turned
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
+    if last_return is not None:
+        combined &= base | np.asarray(last_return, dtype=bool)
+    if params.face_evidence and (combined & ~base).any():
+        combined = base | _on_faces(xyz, base, combined & ~base, footing, params)
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
+
+
+def _on_faces(
+    xyz: NDArray[np.float64],
+    base: NDArray[np.bool_],
+    cand: NDArray[np.bool_],
+    footing: NDArray[np.float64] | None,
+    params: RotationParams,
+) -> NDArray[np.bool_]:
+    """Which of the points ``cand`` (added by rotated runs) lie on a face: on a
+    smooth surface (``face_rough``), steep (``face_tilt``) or else within
+    ``face_ground`` of the ground surface, and linked to ``base`` ground through
+    such points within ``face_link`` spacings."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    ci = np.flatnonzero(cand)
+    tree = cKDTree(xyz)
+    span = np.ptp(xyz[:, :2], axis=0)
+    density = xyz.shape[0] / max(float(span[0] * span[1]), 1.0)
+    k = int(np.clip(round(np.pi * params.face_radius**2 * density), 10, 64))
+    k = min(k, xyz.shape[0])
+    _, nb = tree.query(xyz[ci], k=k)
+    pts = xyz[nb]  # (m, k, 3)
+    pts = pts - pts.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", pts, pts) / k
+    val, vec = np.linalg.eigh(cov)
+    rough = np.sqrt(np.maximum(val[:, 0], 0.0))
+    tilt = np.degrees(np.arccos(np.clip(np.abs(vec[:, 2, 0]), 0.0, 1.0)))
+    ok = rough <= params.face_rough
+    gentle = tilt < params.face_tilt
+    if footing is not None:
+        ok &= ~gentle | (xyz[ci, 2] - footing[ci, 2] <= params.face_ground)
+    else:
+        ok &= ~gentle
+    good = ci[ok]
+    out = np.zeros(xyz.shape[0], dtype=bool)
+    if good.size == 0:
+        return out
+    # Link: the good points and the base ground near them, joined within face_link spacings.
+    # A face is sampled more thinly than the ground below near-vertical beams:
+    # the spacing is the larger of the block's and the good points' own.
+    spacing = float(1.0 / np.sqrt(density))
+    if good.size >= 3:
+        own, _ = cKDTree(xyz[good]).query(xyz[good], k=2)
+        spacing = max(spacing, float(np.median(own[:, 1])))
+    r = params.face_link * spacing
+    gi = np.flatnonzero(base)
+    if gi.size == 0:
+        return out
+    d, _ = cKDTree(xyz[good]).query(xyz[gi], distance_upper_bound=r)
+    gi = gi[np.isfinite(d)]
+    nodes = np.concatenate([good, gi])
+    pairs = cKDTree(xyz[nodes]).query_pairs(r, output_type="ndarray")
+    n = nodes.size
+    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    grounded = np.zeros(comp.max() + 1, dtype=bool)
+    grounded[comp[good.size :]] = True
+    out[good[grounded[comp[: good.size]]]] = True
+    return out
+
+
+def _ground_level(xyz: NDArray[np.float64], ground: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Every point dropped onto the surface through the lowest ``ground`` point per
+    2 m cell (points below it stay): its foot, which tipping does not move sideways
+    relative to the ground."""
+    from terrasift.workers.surface import TinSurface
+
+    g = np.flatnonzero(ground)
+    lo = xyz[g, :2].min(axis=0)
+    grid = Grid.covering(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1], 2.0)
+    low = lowest_per_bin(grid.index(xyz[g, 0] - lo[0], xyz[g, 1] - lo[1]), xyz[g, 2], grid.size)
+    surf = TinSurface(xyz[g[low[low >= 0]]])
+    foot = xyz.copy()
+    foot[:, 2] = np.minimum(xyz[:, 2], surf(xyz[:, 0], xyz[:, 1]))
+    return foot
+
+
+def _over_ground(
+    xy: NDArray[np.float64], foot_xy: NDArray[np.float64], cell: float = 2.0
+) -> NDArray[np.bool_]:
+    """Which tipped points (``xy``) lie over the footprint of the tipped feet
+    (``foot_xy``): cells of ``cell`` metres holding a foot, gaps of a cell closed,
+    less the outermost cell (a foot at the rim has no ground beyond it)."""
+    from scipy import ndimage
+
+    lo = np.minimum(xy.min(axis=0), foot_xy.min(axis=0)) - 2 * cell
+    shape = (np.maximum(xy.max(axis=0), foot_xy.max(axis=0)) - lo) // cell + 3
+    nx, ny = int(shape[0]), int(shape[1])
+    occ = np.zeros((ny, nx), dtype=bool)
+    fi = ((foot_xy - lo) // cell).astype(np.int64)
+    occ[fi[:, 1], fi[:, 0]] = True
+    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3)))
+    occ = ndimage.binary_erosion(occ, structure=np.ones((3, 3)))
+    pi = ((xy - lo) // cell).astype(np.int64)
+    return occ[pi[:, 1], pi[:, 0]]
 
 
 def _near_surface(
@@ -368,7 +504,7 @@ def _near_surface(
     if lift is not None:
         surf = TinSurface(verts + [lo[0], lo[1], 0.0])
         ok &= np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
-    if reach is not None:
+    if reach is not None or wide is not None:
         try:
             tri = Delaunay(verts[:, :2])
         except (QhullError, ValueError):
@@ -378,11 +514,12 @@ def _near_surface(
         slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
         if not slope.any():
             none = np.zeros(xyz.shape[0], dtype=bool)
-            return none, (none if wide is not None else None)
+            return (ok if reach is None else none), (none if wide is not None else None)
         anchors = np.unique(tri.simplices[slope])
-        far = reach if wide is None else max(wide, reach)
+        far = max(wide or 0.0, reach or 0.0)
         dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
-        ok &= dist <= reach
+        if reach is not None:
+            ok &= dist <= reach
         if wide is not None:
             return ok, np.isfinite(dist)
     return ok, None
