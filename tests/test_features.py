@@ -19,7 +19,12 @@ from terrasift.workers.features import (
     resolve_filters,
 )
 from terrasift.workers.features import connect as C
-from terrasift.workers.features.language import rotate_orientation, transform_segment
+from terrasift.workers.features.language import (
+    Metres,
+    resolve_lengths,
+    rotate_orientation,
+    transform_segment,
+)
 from terrasift.workers.features.objects import object_size, objects_from_labels
 from terrasift.workers.features.search import search_filter, search_rows
 
@@ -68,7 +73,33 @@ def test_every_builtin_filter_parses_and_round_trips():
         f = load_filter(name)
         assert parse_filter(format_filter(f), name) == f
     assert load_filter("flat").makes_objects is False
-    assert load_filter("flat-area").rectangle.width == 50
+    assert load_filter("flat-area").rectangle.width == Metres(100)
+    assert resolve_lengths(load_filter("flat-area"), 2.0).rectangle.width == 50
+
+
+def test_lengths_in_metres_become_tiles_of_the_tile_size():
+    text = (
+        "beginsegment 10m 24m\nbeginsubsegment 1 8m\nbegincategory\ninclination 1\nendcategory\n"
+        "endsubsegment\nbeginsubsegment 3m 5m\nbegincategory\ninclination 0\nendcategory\n"
+        "endsubsegment\nendsegment\nconnect simple 15m 81m 12.5m -1\n"
+    )
+    f = parse_filter(text, "m")
+    assert parse_filter(format_filter(f), "m") == f
+    assert f.connect.min_length == Metres(15) and f.connect.max_width is None
+    two = resolve_lengths(f, 2.0)
+    seg = two.segments[0]
+    # minima round down, maxima up: the range of objects sought is kept
+    assert (seg.min_total, seg.max_total) == (5, 12)
+    assert [(s.min_len, s.max_len) for s in seg.subsegments] == [(1, 4), (1, 3)]
+    assert (two.connect.min_length, two.connect.max_length, two.connect.min_width) == (7, 41, 6)
+    one = resolve_lengths(f, 1.0)
+    assert (one.connect.min_length, one.connect.max_length) == (15, 81)
+    assert [(s.min_len, s.max_len) for s in one.segments[0].subsegments] == [(1, 8), (3, 5)]
+    # a built-in filter keeps its size in metres on another tile size
+    assert resolve_lengths(load_filter("flat-area"), 4.0).rectangle.width == 25
+    # a segment that gets too long in tiles fails when resolved, naming the tile size
+    with pytest.raises(FilterSyntaxError, match="at 0.5 m tiles"):
+        resolve_lengths(load_filter("hill"), 0.5)
 
 
 def test_full_filter_round_trip_and_values():
@@ -146,6 +177,9 @@ def test_full_filter_round_trip_and_values():
             "findrectangle",
         ),
         ("beginsegment\nbeginsubsegment 1 x\n", 2, "whole number"),
+        ("beginsegment\nbeginsubsegment 1 -2m\n", 2, "above 0"),
+        ("beginsegment\nbeginsubsegment 1 xm\n", 2, "metres"),
+        ("beginsegment\nbeginsubsegment 6m 2m\n", 2, "bad length range"),
         (
             "beginsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nbeginsubsegment 1 40\nbegincategory\nendcategory\nendsubsegment\nendsegment",
             1,

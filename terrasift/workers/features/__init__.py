@@ -29,7 +29,12 @@ from shapely.geometry.polygon import orient
 from terrasift.errors import ParameterError
 from terrasift.workers.categories import Categories
 from terrasift.workers.features import connect as _connect
-from terrasift.workers.features.language import Filter, format_filter, parse_filter
+from terrasift.workers.features.language import (
+    Filter,
+    format_filter,
+    parse_filter,
+    resolve_lengths,
+)
 from terrasift.workers.features.objects import Feature, objects_from_labels, rectangle_features
 from terrasift.workers.features.search import search_filter
 from terrasift.workers.registry import StageParams, register
@@ -46,6 +51,7 @@ __all__ = [
     "load_filter",
     "parse_filter",
     "resolve_filters",
+    "resolve_lengths",
 ]
 
 _BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
@@ -129,6 +135,7 @@ def detect_features(
     tt = _tile_transform(categories, transform, tile_size)
     result = FeatureResult()
     for flt in filters:
+        flt = resolve_lengths(flt, tile_size)
         h, v = search_filter(categories, flt)
         if flt.h_and_v:
             marks = _connect.h_and_v(h, v)

@@ -25,6 +25,7 @@ from terrasift.workers.features.language import (
     Segment,
     SubSegment,
     ValueSet,
+    resolve_lengths,
     transform_segment,
 )
 
@@ -152,6 +153,7 @@ def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArra
 
 def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
+    flt = resolve_lengths(flt, cats.tile_size)
     arrays = (cats.inclination, cats.orientation, cats.state)
     arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
