@@ -17,11 +17,10 @@ numbered counter-clockwise from east: 1 E, 2 NE, 3 N, 4 NW, 5 W, 6 SW, 7 S, 8 SE
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
-
-import math
 
 from terrasift.errors import FilterSyntaxError
 from terrasift.workers.categories import ORIENTATIONS
