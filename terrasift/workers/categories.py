@@ -14,6 +14,17 @@ edge line|, so its gain over the plane follows from one more projection
 - state: 0 one plane, 1 convex edge (ridge-like), 2 concave edge (ditch-like);
 - height10: (max − min) inside the tile in decimetres.
 
+Noise. A DTM with a few centimetres of noise has tiles whose max − min is
+noise rather than relief (16 cells of 4 cm noise span ~14 cm), so flatness is
+judged on the fitted model where the model explains the tile up to the noise:
+the noise σ is measured from the DTM itself (the median one-plane residual
+of its tiles, corrected for the three fitted parameters, ``noise=None``), a
+tile whose chosen model leaves a residual RMS within ``flat_noise`` σ is flat
+when the model's own range is below ``flat_height``, others keep the raw
+max − min (a bump or a pit the planes cannot follow); two planes are tried
+only where the one-plane residual exceeds ``edge_noise`` σ too. With no noise
+the model's range is the raw range and the test is the seed's.
+
 Tiles with any nodata cell, and partial tiles at the right/bottom border, carry
 ``NODATA`` (255) in all four bands.
 """
@@ -78,6 +89,15 @@ class CategoryParams(StageParams):
     """Two planes are taken when their residual sum of squares is at most this share of one plane's."""
     extreme_ratio: float = Field(1.0, gt=0, le=10)
     """An E–W or N–S edge becomes an extreme point when the slope along it exceeds this times the slope across it."""
+    noise: float | None = Field(None, ge=0, le=1)
+    """DTM noise σ in metres; None measures it from the DTM (median one-plane residual of its tiles), 0 turns the noise tests off."""
+    flat_noise: float = Field(2.0, ge=0, le=10)
+    """A tile whose model leaves a residual RMS within this many σ is judged flat or not by the model's range."""
+    edge_noise: float = Field(1.5, ge=0, le=10)
+    """Two planes are tried only where the one-plane residual RMS exceeds this many σ (and edge_min_rms)."""
+
+#: fewest tiles with data for measuring the noise; below, it is taken as 0
+MIN_NOISE_TILES = 64
 
 
 @dataclass(frozen=True)
@@ -90,6 +110,7 @@ class Categories:
     height10: NDArray[np.uint8]
     cells_per_tile: int
     tile_size: float
+    noise: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -178,9 +199,25 @@ def compute_categories(
     best_gain = gain[idx, best]
     c3 = proj[idx, best] / hnorm[best]
     rms0 = np.sqrt(rss0 / (k * k))
-    two = (rms0 > params.edge_min_rms) & (rss0 - best_gain <= params.edge_ratio * rss0)
+    sigma = params.noise
+    if sigma is None:
+        valid = rms0[~nodata]
+        sigma = (
+            float(np.median(valid)) * np.sqrt(k * k / (k * k - 3))
+            if valid.size >= MIN_NOISE_TILES
+            else 0.0
+        )
+    gate = max(params.edge_min_rms, params.edge_noise * sigma)
+    two = (rms0 > gate) & (rss0 - best_gain <= params.edge_ratio * rss0)
 
-    flat = height < params.flat_height
+    # the height flatness is judged on: the model's range where it explains the tile
+    fitted = z - r0
+    if two.any():
+        fitted[two] += c3[two, None] * h[:, best[two]].T
+    rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
+    explained = rms_model <= params.flat_noise * sigma
+    model_height = fitted.max(axis=1) - fitted.min(axis=1)
+    flat = np.where(explained, model_height, height) < params.flat_height
     gx, gy = coef0[:, 1], coef0[:, 2]
     rise = np.hypot(gx, gy) * k * cell
     inclination = _direction_code(gx, gy)
@@ -228,4 +265,5 @@ def compute_categories(
         height10.reshape(shape),
         k,
         k * cell,
+        float(sigma),
     )
