@@ -21,12 +21,15 @@ Parts (``--part``):
 Scoring, per kind (ditch, ridge, hill, pond, road, flat-area). A detection
 *lies on* a truth object of its kind when at least half its area is inside the
 truth polygon grown by one tile (2 m); a truth object is *found* when the
-detections lying on it cover at least half of its area (grown by one tile);
+detections lying on it cover at least half of its area (grown by one tile)
+or one of them is at least half its length (a ridge's crest band, a hill's
+outline);
 its length error is that of the largest detection lying on it, so an object
 found in pieces scores the piece's length. A flat-area detection that lies on
 no field is still correct when the flat-area definition holds on the exact
-surface under it: at least 95 % of its 2 m tiles are flat in the categories of
-the noise-free surface (naturally flat ground). Recall = found / truth,
+surface under it: at least 90 % of its tiles lie in 100 m windows with at most
+5 % non-flat tiles of the noise-free surface's categories (naturally flat
+ground). Recall = found / truth,
 precision = correct detections / detections, per scene; the table gives the
 worst case, the 10th percentile and the median over scenes holding the kind
 (scenes with no detection of a kind have no precision for it).
@@ -69,6 +72,7 @@ from terrasift.synthetic.features import make_feature_scene  # noqa: E402
 from terrasift.workers.categories import CategoryParams, compute_categories  # noqa: E402
 from terrasift.workers.features import (  # noqa: E402
     builtin_filter_names,
+    categories_for,
     detect_features,
     load_filter,
 )
@@ -82,8 +86,14 @@ TILE = 2.0
 
 
 def _flat_tiles(surface: np.ndarray, cell: float) -> np.ndarray:
-    cats = compute_categories(surface, cell, CategoryParams())
-    return (cats.inclination == 0) & (cats.orientation == 0) & (cats.state == 0)
+    """Where the flat-area definition holds on the exact surface: tiles inside a
+    window of the flat-area filter passing on the noise-free categories."""
+    from terrasift.workers.features import connect, resolve_lengths
+
+    cats = compute_categories(surface, cell, CategoryParams(noise=0))
+    flat = (cats.inclination == 0) & (cats.orientation == 0) & (cats.state == 0)
+    r = resolve_lengths(load_filter("flat-area"), cats.tile_size).rectangle
+    return connect.rectangle_cover(flat, r.width, r.height, r.error)
 
 
 def score_scene(truth, detections, flat_exact: np.ndarray | None, tile_transform: Affine) -> dict:
@@ -103,7 +113,7 @@ def score_scene(truth, detections, flat_exact: np.ndarray | None, tile_transform
                 correct += 1
             elif kind == "flat-area" and flat_exact is not None:
                 inside = ~geometry_mask([g], flat_exact.shape, tile_transform, all_touched=False)
-                if inside.any() and flat_exact[inside].mean() >= 0.95:
+                if inside.any() and flat_exact[inside].mean() >= 0.9:
                     correct += 1
         found, errors = 0, []
         for i, t in enumerate(tr):
@@ -111,7 +121,8 @@ def score_scene(truth, detections, flat_exact: np.ndarray | None, tile_transform
             if not mine:
                 continue
             cover = unary_union([g.buffer(TILE) for g, _ in mine]).intersection(grown[i]).area
-            if cover >= 0.5 * grown[i].area:
+            longest = max(length for _, length in mine)
+            if cover >= 0.5 * grown[i].area or longest >= 0.5 * t.length_m:
                 found += 1
                 g, length = max(mine, key=lambda d: d[0].area)
                 errors.append(abs(length - t.length_m) / t.length_m)
@@ -211,10 +222,9 @@ def run_dtm_scene(seed: int) -> tuple[str, dict]:
     rng = np.random.default_rng([7, seed])
     dtm = exact + rng.normal(0, scene.noise, exact.shape)
     tt = Affine(0.5, 0, ORIGIN[0], 0, -0.5, ORIGIN[1] + scene.size)
-    cats = compute_categories(dtm, 0.5, CategoryParams())
-    res = detect_features(
-        cats, [load_filter(n) for n in builtin_filter_names()], tt, cats.tile_size
-    )
+    filters = [load_filter(n) for n in builtin_filter_names()]
+    cats, stepped = categories_for(dtm, 0.5, filters)
+    res = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped)
     dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
     flat = _flat_tiles(exact, 0.5)
     sc = score_scene(_shifted_truth(scene), dets, flat, cats.transform(tt))
@@ -250,8 +260,8 @@ def part_scene(seeds: list[int]) -> None:
     rows = []
     for seed in seeds:
         scene = make_feature_scene(seed=seed)
-        cats = compute_categories(scene.dtm, scene.cell, CategoryParams())
-        res = detect_features(cats, filters, scene.transform, cats.tile_size)
+        cats, stepped = categories_for(scene.dtm, scene.cell, filters)
+        res = detect_features(cats, filters, scene.transform, cats.tile_size, stepped=stepped)
         dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
         rows.append(
             (f"hillside seed {seed}", score_scene(scene.truth, dets, None, Affine.identity()))
@@ -271,12 +281,12 @@ def speed() -> None:
 def run_speed(label: str, dtm, cell: float, transform) -> None:
     filters = [load_filter(n) for n in builtin_filter_names()]
     t0 = time.perf_counter()
-    cats = compute_categories(dtm, cell, CategoryParams())
+    cats, stepped = categories_for(dtm, cell, filters)
     t1 = time.perf_counter()
     times = {}
     for f in filters:
         s = time.perf_counter()
-        res = detect_features(cats, [f], transform, cats.tile_size)
+        res = detect_features(cats, [f], transform, cats.tile_size, stepped=stepped)
         times[f.name] = (time.perf_counter() - s, len(res.objects))
     t2 = time.perf_counter()
     print(

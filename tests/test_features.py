@@ -8,9 +8,10 @@ from rasterio import Affine
 from shapely.geometry import box
 
 from terrasift.errors import FilterSyntaxError, ParameterError
-from terrasift.workers.categories import NODATA, Categories, compute_categories
+from terrasift.workers.categories import NODATA, Categories
 from terrasift.workers.features import (
     builtin_filter_names,
+    categories_for,
     detect_features,
     features_geojson,
     format_filter,
@@ -437,8 +438,9 @@ def scene_result():
     from terrasift.synthetic.features import make_feature_scene
 
     scene = make_feature_scene(seed=0)
-    cats = compute_categories(scene.dtm, scene.cell)
-    result = detect_features(cats, resolve_filters("all"), scene.transform, cats.tile_size)
+    filters = resolve_filters("all")
+    cats, stepped = categories_for(scene.dtm, scene.cell, filters)
+    result = detect_features(cats, filters, scene.transform, cats.tile_size, stepped=stepped)
     return scene, cats, result
 
 

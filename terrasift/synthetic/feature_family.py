@@ -20,9 +20,9 @@ from the ranges below (ROBUSTNESS.md, *terrain objects*):
 
 The surface is an exact, vectorised function of local coordinates, so it can
 be sampled by pulses (``point_scene``) or on a raster (``surface_raster``).
-Hill and ridge heights are drawn so their flanks rise at least 1.5 times
-steeper than the background (else they are not landforms on it but part of
-the slope) and at most about 32 degrees.
+Hill and ridge heights are drawn so their steepest flanks rise at least 0.15
+more than the background (else their uphill side is level ground by the
+category definition, under 0.2 m per 2 m tile) and at most about 32 degrees.
 """
 
 from __future__ import annotations
@@ -152,8 +152,9 @@ def make_family_scene(seed: int, size: float = 320.0) -> FamilyScene:
 
     def flank_ratio() -> tuple[float, float]:
         # height / width so the steepest flank (pi h / D cosine, 2 h / D triangle)
-        # is at least 1.5x the background slope and at most ~0.62 (32 deg)
-        return max(0.08, 0.75 * slope), 0.2
+        # rises at least 0.15 more than the background (else the uphill side is
+        # level ground: < 0.2 m per 2 m tile) and at most ~0.62 (32 deg)
+        return max(0.08, (slope + 0.15) / 2), max(0.2, (slope + 0.15) / 2 + 0.02)
 
     # --- a levelled field on sloped ground
     if background == "sloped":

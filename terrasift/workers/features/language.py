@@ -114,6 +114,8 @@ class CategorySpec:
     state: ValueSet = ValueSet()
     orientation: ValueSet = ValueSet()
     negate: bool = False
+    height: ValueSet = ValueSet()
+    """The tile's height in decimetres as the flatness test sees it (``Categories.relief10``)."""
 
 
 @dataclass(frozen=True)
@@ -172,8 +174,23 @@ class Rectangle:
 
 
 @dataclass(frozen=True)
+class Aspect:
+    """``aspect min max``: objects whose length / width lies in [min, max]; -1 (None) leaves a side open."""
+
+    min: float | None = None
+    max: float | None = None
+
+
+@dataclass(frozen=True)
 class Filter:
-    """A parsed filter file."""
+    """A parsed filter file.
+
+    ``join`` (``join <gap>``): objects of the filter closer than the gap (a
+    length, or ``width``: the narrower one's own width) become one object when
+    the joined object is no wider than 1.5 times the wider piece (pieces of one
+    ditch, not two parallel ditches). Joining comes before the connect limits,
+    so pieces too short alone count together.
+    """
 
     name: str
     segments: tuple[Segment, ...]
@@ -181,6 +198,10 @@ class Filter:
     connect: Connect | None = None
     rectangle: Rectangle | None = None
     steps: tuple[str, ...] = field(default=(), compare=False)
+    aspect: Aspect | None = None
+    join: Length | Literal["width"] | None = None
+    step: Metres | None = None
+    """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
 
     @property
     def makes_objects(self) -> bool:
@@ -255,6 +276,9 @@ class _Parser:
         h_and_v = False
         connect: Connect | None = None
         rect: Rectangle | None = None
+        aspect: Aspect | None = None
+        join: Length | Literal["width"] | None = None
+        step: Metres | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -274,6 +298,27 @@ class _Parser:
                     raise self.error("only one connect or findrectangle step is allowed", no)
                 connect = self.connect(no, args)
                 steps.append("connect")
+            elif key == "aspect":
+                if aspect is not None or len(args) != 2:
+                    raise self.error("aspect takes min and max length/width once (-1: open)", no)
+                lo, hi = (None if v == -1 else v for v in self.numbers(args, no, "aspect"))
+                if any(v is not None and v < 1 for v in (lo, hi)):
+                    raise self.error("aspect limits are ratios of at least 1 (or -1)", no)
+                if lo is not None and hi is not None and lo > hi:
+                    raise self.error("aspect: min exceeds max", no)
+                aspect = Aspect(lo, hi)
+                steps.append("aspect")
+            elif key == "step":
+                if steps or step is not None:
+                    raise self.error("step comes once, before the segments", no)
+                if len(args) != 1 or not args[0].endswith("m"):
+                    raise self.error("step takes one length in metres, e.g. step 1m", no)
+                (step,) = self.lengths(args, no, "step", lo=1)
+            elif key == "join":
+                if join is not None or len(args) != 1:
+                    raise self.error("join takes one gap (tiles, metres or 'width') once", no)
+                join = "width" if args[0] == "width" else self.lengths(args, no, "join", lo=1)[0]
+                steps.append("join")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
                     raise self.error("only one connect or findrectangle step is allowed", no)
@@ -289,7 +334,11 @@ class _Parser:
                 raise self.error(f"unexpected {key!r} outside a segment", no)
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
-        return Filter(self.name, tuple(segments), h_and_v, connect, rect, tuple(steps))
+        if (aspect is not None or join is not None) and connect is None:
+            raise self.error("aspect and join need a connect step", last_line)
+        return Filter(
+            self.name, tuple(segments), h_and_v, connect, rect, tuple(steps), aspect, join, step
+        )
 
     def segment(self, start: int, args: list[str]) -> Segment:
         lo = hi = None
@@ -367,7 +416,7 @@ class _Parser:
             key, rest = words[0], words[1:]
             if key == "endcategory":
                 return CategorySpec(negate=negate, **props)
-            if key not in ("inclination", "state", "orientation"):
+            if key not in ("inclination", "state", "orientation", "height"):
                 raise self.error(f"unexpected {key!r} inside a category", no)
             if key in props:
                 raise self.error(f"{key} given twice in one category", no)
@@ -391,6 +440,10 @@ class _Parser:
             bad = [v for v in vals if v > 2]
             if bad:
                 raise self.error(f"state must be 0, 1 or 2, got {bad[0]}", no)
+        elif key == "height":
+            bad = [v for v in vals if v > 254]
+            if bad:
+                raise self.error(f"height is in decimetres, 0–254, got {bad[0]}", no)
         else:
             norm = []
             for v in vals:
@@ -430,7 +483,7 @@ class _Parser:
 
 def format_filter(f: Filter) -> str:
     """The filter as text that parses back to an equal Filter."""
-    out: list[str] = []
+    out: list[str] = [f"step {f.step.text()}"] if f.step is not None else []
     for seg in f.segments:
         head = (
             "beginsegment"
@@ -454,6 +507,8 @@ def format_filter(f: Filter) -> str:
                 out.append(f"      inclination {cat.inclination.text()}")
                 out.append(f"      state {cat.state.text()}")
                 out.append(f"      orientation {cat.orientation.text()}")
+                if cat.height.values is not None:
+                    out.append(f"      height {cat.height.text()}")
                 out.append("    endcategory")
             out.append("  endsubsegment")
         out.append("endsegment")
@@ -470,6 +525,11 @@ def format_filter(f: Filter) -> str:
         elif step == "findrectangle" and f.rectangle is not None:
             r = f.rectangle
             out.append(f"findrectangle {_text(r.width)} {_text(r.height)} {r.error:g}")
+        elif step == "aspect" and f.aspect is not None:
+            lo, hi = (-1 if v is None else v for v in (f.aspect.min, f.aspect.max))
+            out.append(f"aspect {lo:g} {hi:g}")
+        elif step == "join" and f.join is not None:
+            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
     return "\n".join(out) + "\n"
 
 
@@ -479,6 +539,10 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("connect")
     if f.rectangle is not None:
         steps.append("findrectangle")
+    if f.aspect is not None:
+        steps.append("aspect")
+    if f.join is not None:
+        steps.append("join")
     return tuple(steps)
 
 
@@ -574,4 +638,5 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     rect = f.rectangle
     if rect is not None:
         rect = replace(rect, width=t(rect.width, "size"), height=t(rect.height, "size"))
-    return replace(f, segments=tuple(segs), connect=connect, rectangle=rect)
+    join = f.join if f.join == "width" else t(f.join, "size")
+    return replace(f, segments=tuple(segs), connect=connect, rectangle=rect, join=join)

@@ -41,10 +41,14 @@ def category_mask(
     cats: Categories | tuple[NDArray, NDArray, NDArray], spec: CategorySpec
 ) -> NDArray[np.bool_]:
     """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
-    inc, ori, st = (
-        (cats.inclination, cats.orientation, cats.state) if isinstance(cats, Categories) else cats
-    )
+    if isinstance(cats, Categories):
+        cats = (cats.inclination, cats.orientation, cats.state, cats.relief10)
+    inc, ori, st = cats[:3]
     m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
+    if spec.height.values is not None:
+        if len(cats) < 4 or cats[3] is None:
+            raise ValueError("a filter tests height but the categories carry no heights")
+        m &= _lut(spec.height)[cats[3]]
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)
@@ -153,8 +157,9 @@ def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArra
 
 def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
-    flt = resolve_lengths(flt, cats.tile_size)
-    arrays = (cats.inclination, cats.orientation, cats.state)
+    flt = resolve_lengths(flt, cats.spacing)
+    relief = cats.relief10 if cats.relief10 is not None else cats.height10
+    arrays = (cats.inclination, cats.orientation, cats.state, relief)
     arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
     v = np.zeros(cats.shape, dtype=bool)
