@@ -400,6 +400,93 @@ def test_find_rectangles_first_fit_with_tolerance():
     assert C.find_rectangles(m, 10, 10, 0) == [(10, 18, 10, 10)]
 
 
+def test_rectangle_cover_is_the_union_of_passing_windows():
+    m = np.zeros((30, 40), bool)
+    m[2:17, 3:25] = True  # 15 x 22 tiles: larger than the 10 x 10 window
+    m[8, 10] = False
+    m[20:26, 30:38] = True  # smaller than the window: never covered
+    cover = C.rectangle_cover(m, 10, 10, 2)
+    expected = np.zeros_like(m)
+    expected[2:17, 3:25] = True  # the whole block, its missing tile included
+    assert (cover == expected).all()
+    labels, n = __import__("scipy.ndimage", fromlist=["label"]).label(cover)
+    assert n == 1
+    assert not C.rectangle_cover(m, 10, 10, 0)[2:17, 3:25].all()
+
+
+def test_flat_area_larger_than_the_window_is_one_object_measured_whole():
+    inc = np.full((80, 90), 1, np.uint8)
+    inc[5:70, 10:85] = 0  # 65 x 75 tiles of 2 m: 130 m x 150 m
+    cats = cats_from(inc)
+    res = detect_features(cats, [load_filter("flat-area")], Affine(2, 0, 0, 0, -2, 0), 2.0)
+    (obj,) = res.objects
+    assert obj.length_m == pytest.approx(150, rel=0.02) and obj.width_m == pytest.approx(
+        130, rel=0.02
+    )
+
+
+def test_join_bridges_a_gap_shorter_than_the_width_along_the_object_only():
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nendcategory\n"
+        "endsubsegment\nendsegment\nconnect simple 20 -1 -1 -1\njoin width\n"
+    )
+    inc = np.zeros((40, 60), np.uint8)
+    inc[5:9, 2:14] = 1  # two 12-tile pieces of one 4-tile-wide strip, 2 tiles apart
+    inc[5:9, 16:28] = 1
+    inc[20:24, 2:14] = 1  # a piece with a parallel one 3 tiles to the side
+    inc[27:31, 2:14] = 1
+    inc[34:38, 2:14] = 1  # a piece 6 tiles (more than its width) from the next
+    inc[34:38, 20:32] = 1
+    res = detect_features(cats_from(inc), [flt], Affine(2, 0, 0, 0, -2, 0), 2.0)
+    assert len(res.objects) == 1  # only the joined strip reaches 20 tiles
+    (obj,) = res.objects
+    assert obj.length_m == pytest.approx(52, rel=0.1)
+    assert obj.geometry.bounds[1] == pytest.approx(-18) and obj.geometry.bounds[3] == pytest.approx(
+        -10
+    )
+    assert parse_filter(format_filter(flt)) == flt
+
+
+def test_aspect_keeps_objects_by_length_over_width():
+    base = "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nendcategory\nendsubsegment\nendsegment\nconnect simple 2 -1 -1 -1\n"
+    inc = np.zeros((40, 60), np.uint8)
+    inc[2:12, 2:12] = 1  # round-ish: aspect 1
+    inc[20:24, 2:40] = 1  # long: aspect ~9
+    cats, tt = cats_from(inc), Affine(2, 0, 0, 0, -2, 0)
+    compact = detect_features(cats, [parse_filter(base + "aspect 1 2\n")], tt, 2.0).objects
+    long = detect_features(cats, [parse_filter(base + "aspect 3 -1\n")], tt, 2.0).objects
+    assert [o.length_m < 30 for o in compact] == [True]
+    assert [o.length_m > 60 for o in long] == [True]
+    with pytest.raises(FilterSyntaxError, match="ratios"):
+        parse_filter(base + "aspect 0.5 2\n")
+
+
+def test_step_filter_runs_on_overlapping_tiles_and_height_tests_the_relief():
+    # a level plain with a 0.25 m embankment 6 m wide, its 0.4 m shoulders across
+    # tile borders, so that on the 2 m grid each step is split between two tiles
+    cell, n = 0.5, 200
+    c = (np.arange(n) + 0.5) * cell
+    x, _ = np.meshgrid(c, c)
+    z = np.interp(x, [41.8, 42.2, 47.8, 48.2], [0, 0.25, 0.25, 0], left=0, right=0) + 100
+    flt = parse_filter(
+        "step 1m\nbeginsegment\nbeginsubsegment 1 1 exclude\nbegincategory not\ninclination 0\n"
+        "state 0\norientation 0\nendcategory\nendsubsegment\nbeginsubsegment 2m 12m\n"
+        "begincategory\ninclination 0\nstate 0\norientation 0\nheight 0 1\nendcategory\n"
+        "endsubsegment\nbeginsubsegment 1 1 exclude\nbegincategory not\ninclination 0\nstate 0\n"
+        "orientation 0\nendcategory\nendsubsegment\nendsegment\nconnect segment 40m -1 -1 -1 20\n"
+    )
+    assert parse_filter(format_filter(flt)) == flt and flt.step == Metres(1)
+    tt = Affine(cell, 0, 0, 0, -cell, n * cell)
+    cats, stepped = categories_for(z, cell, [flt])
+    assert (cats.inclination == 0).all()  # on 2 m tiles no step registers
+    assert stepped[1.0].spacing == 1.0 and stepped[1.0].shape == (100, 100)
+    (road,) = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
+    x0, _, x1, _ = road.geometry.bounds
+    assert 42 <= x0 <= 43 and 47 <= x1 <= 48 and road.length_m > 90
+    with pytest.raises(ParameterError, match="pass its categories"):
+        detect_features(cats, [flt], tt, 2.0)
+
+
 # --------------------------------------------------------------------------- objects
 
 

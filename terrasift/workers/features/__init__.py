@@ -191,7 +191,8 @@ def _run_filter(
     if flt.rectangle is not None:
         r = flt.rectangle
         cover = _connect.rectangle_cover(marks, r.width, r.height, r.error)
-        labels, _ = ndimage.label(cover)
+        labels, _ = ndimage.label(cover)  # one object per connected cover: its marked tiles
+        labels[~marks] = 0
         objects += objects_from_labels(
             labels.astype(np.int32),
             flt.name,

@@ -153,8 +153,8 @@ def objects_from_labels(
     """Features for every label whose length/width (in tiles) lie within ``limits``.
 
     ``fill_holes`` gives enclosed holes to the object (an outline found by its
-    flanks); ``measure`` ``rectangle`` sizes every object by its equal area and
-    perimeter rectangle (areas made of rectangular windows), ``auto`` as
+    flanks); ``measure`` ``rectangle`` sizes every object by the rectangle with
+    its second area moments (areas made of rectangular windows), ``auto`` as
     ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
     ``"width"``) joins pieces first (``join_pieces``).
     """
@@ -197,9 +197,13 @@ def objects_from_labels(
     for f in pieces:
         if min_l is not None and f.length_m / tile_size < min_l:
             continue
-        if measure != "rectangle":
+        if measure == "rectangle":
+            # the rectangle with the outline's second moments (sides √(12 λ)):
+            # unlike area and perimeter, not lengthened by a ragged edge
+            length, width = (v * np.sqrt(12) / 4 for v in moment_size(f.geometry))
+        else:
             length, width = object_size(_smoothed(f.geometry, tile_size))
-            f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
+        f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
         lt, wt = f.length_m / tile_size, f.width_m / tile_size
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
             continue
