@@ -295,15 +295,17 @@ def _axis_angle(poly: Polygon | MultiPolygon) -> float:
     """Direction (radians, mod π) of the long axis of ``poly``'s second area moments."""
     parts = poly.geoms if isinstance(poly, MultiPolygon) else [poly]
     cx, cy = poly.centroid.x, poly.centroid.y
-    sxx = syy = sxy = 0.0
+    area = sxx = syy = sxy = 0.0
     for p in parts:
         xy = np.asarray(p.exterior.coords) - (cx, cy)
         x0, y0, x1, y1 = xy[:-1, 0], xy[:-1, 1], xy[1:, 0], xy[1:, 1]
         cr = x0 * y1 - x1 * y0
+        area += cr.sum() / 2
         sxx += (cr * (y0 * y0 + y0 * y1 + y1 * y1)).sum() / 12
         syy += (cr * (x0 * x0 + x0 * x1 + x1 * x1)).sum() / 12
         sxy += (cr * (x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0)).sum() / 24
-    return float(0.5 * np.arctan2(2 * sxy, syy - sxx)) % np.pi
+    sign = 1.0 if area >= 0 else -1.0  # rings may run either way
+    return float(0.5 * np.arctan2(2 * sign * sxy, sign * (syy - sxx))) % np.pi
 
 
 def _angle_diff(a: NDArray, b: NDArray) -> NDArray:
