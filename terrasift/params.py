@@ -157,9 +157,12 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     if job.ground_preset != "default":
         get_stage(f"ground.{job.ground}").params.preset(job.ground_preset)
     grid_alignment(out)
-    from terrasift.workers.features import resolve_filters
+    from terrasift.workers.features import check_filters, resolve_filters
 
-    resolve_filters(job.features, job.filters)  # unknown names and bad filter text fail now
+    # unknown names, bad filter text and lengths that do not fit the tile size fail now
+    check_filters(
+        resolve_filters(job.features, job.filters), float(out.get("categories.tile_size", 2.0))
+    )
     return out
 
 

@@ -613,3 +613,11 @@ def test_search_in_row_bands_matches_one_pass():
     arrays = (inc, np.zeros_like(inc), np.zeros_like(inc))
     seg = parse_filter(DITCHLIKE).segments[0]
     assert (search_rows(arrays, seg, band=7) == search_rows(arrays, seg)).all()
+
+
+def test_job_parameters_check_filter_sizes_against_the_tile_size():
+    from terrasift.params import validate_params
+
+    assert validate_params({"features": "hill", "categories.tile_size": 4.0})
+    with pytest.raises(FilterSyntaxError, match="63 tiles at 0.5 m"):
+        validate_params({"features": "hill", "categories.tile_size": 0.5})

@@ -47,6 +47,7 @@ __all__ = [
     "Filter",
     "builtin_filter_names",
     "categories_for",
+    "check_filters",
     "detect_features",
     "features_geojson",
     "format_filter",
@@ -129,6 +130,13 @@ def categories_for(
     params = params or CategoryParams()
     cats = compute_categories(dtm, cell, params)
     return cats, {s: compute_categories(dtm, cell, params, step=s) for s in step_sizes(filters)}
+
+
+def check_filters(filters: list[Filter], tile_size: float) -> None:
+    """Raise FilterSyntaxError now if a filter's metres break a limit in tiles of ``tile_size``
+    (or of its own step), so a job fails when submitted rather than when finishing."""
+    for f in filters:
+        resolve_lengths(f, f.step.value if f.step is not None else tile_size)
 
 
 def step_sizes(filters: list[Filter]) -> list[float]:
