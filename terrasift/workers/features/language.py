@@ -55,11 +55,12 @@ class Metres:
         return f"{self.value:g}m"
 
     def tiles(self, tile_size: float, bound: Literal["min", "max", "size"]) -> int:
-        """Tile count: a minimum rounds down and a maximum up (the object sought keeps
-        its full range), a window size up (the window covers at least the length)."""
+        """Tile count: a minimum rounds down (to at least one tile) and a maximum up
+        (the object sought keeps its full range), a window size up (the window
+        covers at least the length)."""
         t = self.value / tile_size
-        if bound == "min":
-            return int(math.floor(t + 1e-9))
+        if bound == "min":  # a length above 0 is at least one tile
+            return max(1, int(math.floor(t + 1e-9)))
         return int(math.ceil(t - 1e-9))
 
 
