@@ -616,7 +616,7 @@ def test_search_in_row_bands_matches_one_pass():
 
 
 def test_job_parameters_check_filter_sizes_against_the_tile_size():
-    from terrasift.params import validate_params
+    from terrasift.jobs.params import validate_params
 
     assert validate_params({"features": "hill", "categories.tile_size": 4.0})
     with pytest.raises(FilterSyntaxError, match="63 tiles at 0.5 m"):
