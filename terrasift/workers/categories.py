@@ -212,7 +212,7 @@ def compute_categories(
         win = np.lib.stride_tricks.sliding_window_view(padded, (k, k))[::s, ::s]
         z = win.reshape(rows * cols, k * k)
 
-    nodata = np.isnan(z).any(axis=1)
+    nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
     z = np.where(nodata[:, None], 0.0, z)
     z = z - z.mean(axis=1, keepdims=True)
     height = z.max(axis=1) - z.min(axis=1)
