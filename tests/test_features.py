@@ -619,5 +619,5 @@ def test_job_parameters_check_filter_sizes_against_the_tile_size():
     from terrasift.jobs.params import validate_params
 
     assert validate_params({"features": "hill", "categories.tile_size": 4.0})
-    with pytest.raises(FilterSyntaxError, match="63 tiles at 0.5 m"):
-        validate_params({"features": "hill", "categories.tile_size": 0.5})
+    with pytest.raises(FilterSyntaxError, match="63 tiles at 1 m"):
+        validate_params({"features": "hill", "categories.tile_size": 1.0})
