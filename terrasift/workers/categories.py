@@ -303,10 +303,8 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
     (bands of overlapping tiles are read with a margin whose tile rows belong to the next band)."""
     first = parts[0]
 
-    def cat(name: str) -> NDArray | None:
+    def cat(name: str) -> NDArray[np.uint8]:
         arrays = [getattr(p, name) for p in parts]
-        if arrays[0] is None:
-            return None
         return np.concatenate([a[:n] for a, n in zip(arrays, keep, strict=True)])
 
     return Categories(
@@ -317,7 +315,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         first.cells_per_tile,
         first.tile_size,
         float(np.median([p.noise for p in parts])),
-        cat("relief10"),
+        None if first.relief10 is None else cat("relief10"),
         first.step_cells,
     )
 
@@ -327,8 +325,12 @@ def plane_residuals(dtm: NDArray, cell: float, params: CategoryParams) -> NDArra
     k = max(2, int(round(params.tile_size / cell)))
     dtm = np.asarray(dtm, dtype=np.float64)
     rows, cols = dtm.shape[0] // k, dtm.shape[1] // k
-    z = dtm[: rows * k, : cols * k].reshape(rows, k, cols, k).transpose(0, 2, 1, 3)
-    z = z.reshape(rows * cols, k * k)
+    z: NDArray[np.float64] = (
+        dtm[: rows * k, : cols * k]
+        .reshape(rows, k, cols, k)
+        .transpose(0, 2, 1, 3)
+        .reshape(rows * cols, k * k)
+    )
     z = z[~np.isnan(z).any(axis=1)]
     _, resid0, *_ = _models(k, cell)
     r0 = z @ resid0

@@ -165,11 +165,12 @@ def detect_features(
     for flt in filters:
         cats, grid = categories, tt
         if flt.step is not None:
-            cats = (stepped or {}).get(flt.step.value)
-            if cats is None:
+            found = (stepped or {}).get(flt.step.value)
+            if found is None:
                 raise ParameterError(
                     f"filter {flt.name} runs every {flt.step.text()}: pass its categories"
                 )
+            cats = found
             if not np.isclose(abs(transform.a) * cats.cells_per_tile, cats.tile_size):
                 raise ParameterError(f"filter {flt.name} needs the DTM's transform")
             grid = cats.transform(transform)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal, cast
+from typing import Any, Literal, TypeAlias, cast
 
 from terrasift.errors import FilterSyntaxError
 from terrasift.workers.categories import ORIENTATIONS
@@ -64,8 +64,9 @@ class Metres:
         return int(math.ceil(t - 1e-9))
 
 
-#: a length in tiles or in metres
-Length = int | Metres
+#: a length: a whole number of tiles, or Metres until ``resolve_lengths`` turns it into
+#: tiles (typed loosely: the search and connect steps only ever see resolved filters)
+Length: TypeAlias = Any
 
 
 def _text(v: Length | None) -> str:
@@ -314,7 +315,7 @@ class _Parser:
                     raise self.error("step comes once, before the segments", no)
                 if len(args) != 1 or not args[0].endswith("m"):
                     raise self.error("step takes one length in metres, e.g. step 1m", no)
-                (step,) = self.lengths(args, no, "step", lo=1)
+                step = self.lengths(args, no, "step", lo=1)[0]
             elif key == "join":
                 if join is not None or len(args) != 1:
                     raise self.error("join takes one gap (tiles, metres or 'width') once", no)
@@ -605,7 +606,7 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     def err(msg: str, _line: int | None) -> FilterSyntaxError:
         return FilterSyntaxError(f"{msg} at {tile_size:g} m tiles", name=f.name)
 
-    def t(v: Length | None, bound: Literal["min", "max", "size"]) -> int | None:
+    def t(v: Length | None, bound: Literal["min", "max", "size"]) -> Any:
         return v.tiles(tile_size, bound) if isinstance(v, Metres) else v
 
     segs = []

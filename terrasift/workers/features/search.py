@@ -15,6 +15,8 @@ the subsegments not marked ``exclude`` are marked.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -37,13 +39,11 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
     return lut
 
 
-def category_mask(
-    cats: Categories | tuple[NDArray, NDArray, NDArray], spec: CategorySpec
-) -> NDArray[np.bool_]:
+def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
     """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
     if isinstance(cats, Categories):
         cats = (cats.inclination, cats.orientation, cats.state, cats.relief10)
-    inc, ori, st = cats[:3]
+    inc, ori, st = cats[0], cats[1], cats[2]
     m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
     if spec.height.values is not None:
         if len(cats) < 4 or cats[3] is None:
