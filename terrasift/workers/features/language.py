@@ -617,9 +617,11 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         subs = []
         for sub in seg.subsegments:
             lo, hi = t(sub.min_len, "min"), max(1, t(sub.max_len, "max"))
-            if lo > hi or sub.max_errors >= hi > 0:
+            if lo > hi:
                 raise err(f"subsegment {_text(sub.min_len)}..{_text(sub.max_len)} is empty", None)
-            subs.append(replace(sub, min_len=lo, max_len=hi))
+            # a run of few large tiles allows fewer misfits than its length in tiles
+            errors = min(sub.max_errors, hi - 1)
+            subs.append(replace(sub, min_len=lo, max_len=hi, max_errors=errors))
         lo = t(seg.min_total, "min")
         new = replace(
             seg,
