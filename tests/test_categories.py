@@ -41,6 +41,36 @@ def test_flat_and_nearly_flat_tiles_are_all_zero():
         assert (band == 0).all()
 
 
+@pytest.mark.parametrize("sigma", [0.01, 0.03, 0.05])
+def test_noise_is_measured_and_does_not_unflatten_level_ground(sigma):
+    x, y = grid(20)
+    rng = np.random.default_rng(3)
+    z = 10 + 0.03 * x + rng.normal(0, sigma, x.shape)
+    cats = compute_categories(z, CELL)
+    assert cats.noise == pytest.approx(sigma, rel=0.15)
+    assert (cats.inclination == 0).mean() > 0.97
+    assert (cats.state == 0).mean() > 0.97
+    seed = compute_categories(z, CELL, CategoryParams(noise=0))
+    if sigma >= 0.05:  # the seed's max - min sees the noise
+        assert (seed.inclination == 0).mean() < 0.8
+    # a real slope stays inclined under the same noise
+    steep = compute_categories(z + 0.25 * y, CELL)
+    assert (steep.inclination == 3).mean() > 0.97
+
+
+def test_overlapping_tiles_every_step():
+    x, y = grid(6)
+    z = np.where(x > 4.0, 0.4, 0.0)  # a step on the border of two 2 m tiles
+    assert (compute_categories(z, CELL).height10 == 0).all()  # split: neither sees it
+    cats = compute_categories(z, CELL, step=1.0)
+    assert cats.shape == (12, 12) and cats.spacing == 1.0
+    t = cats.transform(__import__("rasterio").Affine(CELL, 0, 0, 0, -CELL, 0))
+    assert (t.a, t.c) == (1.0, 0.5)  # tile i stands for the metre at its centre
+    # the tile starting at 3 m holds the whole step
+    assert (cats.height10[:11, 3] == 4).all() and (cats.height10[11] == NODATA).all()
+    assert (np.delete(cats.height10[:11, :11], 3, axis=1) == 0).all()
+
+
 def test_gentle_slope_below_flat_height_is_flat_but_steeper_is_not():
     x, y = grid()
     gentle = compute_categories(0.1 * y, CELL)  # 0.15 m over a tile's cell centres

@@ -186,27 +186,18 @@ def _write_categories(job: Path) -> list[str]:
     names = []
     work = job / "work"
     work.mkdir(exist_ok=True)
+    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
     with rasterio.open(out / "dtm.tif") as ds:
         transform, height, width = ds.transform, ds.height, ds.width
-        res = abs(transform.a)
-        k = max(2, int(round(cparams.tile_size / res)))  # cells per category tile
-        band = max(k, BAND_CELLS // width // k * k)  # whole category tiles
-        parts = [
-            cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
-            for r in range(0, height, band)
-        ]
-    inclination, orientation, state, height10 = (
-        np.concatenate([getattr(p, f) for p in parts])
-        for f in ("inclination", "orientation", "state", "height10")
-    )
-    cats = cat.Categories(
-        inclination,
-        orientation,
-        state,
-        height10,
-        cells_per_tile=parts[0].cells_per_tile,
-        tile_size=parts[0].tile_size,
-    )
+        rows = max(1, BAND_CELLS // width)  # DTM rows per band: memory follows this, not the job
+
+        def grid(step: float | None) -> cat.Categories:
+            return cat.categories_by_bands(
+                lambda r0, r1: _read_rows(ds, r0, r1), height, abs(transform.a), cparams, rows, step
+            )
+
+        cats = grid(None)
+        stepped = {st: grid(st) for st in feat.step_sizes(filters)}
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(
@@ -224,10 +215,14 @@ def _write_categories(job: Path) -> list[str]:
         m.close_as_cog(out / "categories.tif", resampling="nearest")
     names.append("categories.tif")
 
-    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
     if filters:
         result = feat.detect_features(
-            cats, filters, transform, cats.tile_size, stage_params(params, "features")
+            cats,
+            filters,
+            transform,
+            cats.tile_size,
+            stage_params(params, "features"),
+            stepped=stepped,
         )
         crs = plan["crs_wkt"]
         # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its

@@ -177,9 +177,12 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     out.update(derived)
     block_models(out)  # presets, the rotation's included, exist for the chosen method
     grid_alignment(out)
-    from terrasift.workers.features import resolve_filters
+    from terrasift.workers.features import check_filters, resolve_filters
 
-    resolve_filters(job.features, job.filters)  # unknown names and bad filter text fail now
+    # unknown names, bad filter text and lengths that do not fit the tile size fail now
+    check_filters(
+        resolve_filters(job.features, job.filters), float(out.get("categories.tile_size", 2.0))
+    )
     return out
 
 

@@ -14,12 +14,24 @@ edge line|, so its gain over the plane follows from one more projection
 - state: 0 one plane, 1 convex edge (ridge-like), 2 concave edge (ditch-like);
 - height10: (max − min) inside the tile in decimetres.
 
+Noise. A DTM with a few centimetres of noise has tiles whose max − min is
+noise rather than relief (16 cells of 4 cm noise span ~14 cm), so flatness is
+judged on the fitted model where the model explains the tile up to the noise:
+the noise σ is measured from the DTM itself (the median one-plane residual
+of its tiles, corrected for the three fitted parameters, ``noise=None``), a
+tile whose chosen model leaves a residual RMS within ``flat_noise`` σ is flat
+when the model's own range is below ``flat_height``, others keep the raw
+max − min (a bump or a pit the planes cannot follow); two planes are tried
+only where the one-plane residual exceeds ``edge_noise`` σ too. With no noise
+the model's range is the raw range and the test is the seed's.
+
 Tiles with any nodata cell, and partial tiles at the right/bottom border, carry
 ``NODATA`` (255) in all four bands.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -78,6 +90,16 @@ class CategoryParams(StageParams):
     """Two planes are taken when their residual sum of squares is at most this share of one plane's."""
     extreme_ratio: float = Field(1.0, gt=0, le=10)
     """An E–W or N–S edge becomes an extreme point when the slope along it exceeds this times the slope across it."""
+    noise: float | None = Field(None, ge=0, le=1)
+    """DTM noise σ in metres; None measures it from the DTM (median one-plane residual of its tiles), 0 turns the noise tests off."""
+    flat_noise: float = Field(2.0, ge=0, le=10)
+    """A tile whose model leaves a residual RMS within this many σ is judged flat or not by the model's range."""
+    edge_noise: float = Field(1.5, ge=0, le=10)
+    """Two planes are tried only where the one-plane residual RMS exceeds this many σ (and edge_min_rms)."""
+
+
+#: fewest tiles with data for measuring the noise; below, it is taken as 0
+MIN_NOISE_TILES = 64
 
 
 @dataclass(frozen=True)
@@ -90,6 +112,21 @@ class Categories:
     height10: NDArray[np.uint8]
     cells_per_tile: int
     tile_size: float
+    noise: float = 0.0
+    relief10: NDArray[np.uint8] | None = None
+    """Height in decimetres as the flatness test sees it (the model's range where it
+    explains the tile up to the noise, else max − min); the filters' ``height``."""
+    step_cells: int | None = None
+    """Cells between tile origins when tiles overlap (``step``); None: tiles abut."""
+
+    @property
+    def step(self) -> int:
+        return self.step_cells or self.cells_per_tile
+
+    @property
+    def spacing(self) -> float:
+        """Metres between neighbouring tiles of the grid (the tile size unless tiles overlap)."""
+        return self.tile_size * self.step / self.cells_per_tile
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -100,8 +137,10 @@ class Categories:
         return self.inclination == NODATA
 
     def transform(self, dtm_transform: Affine) -> Affine:
-        """The tile grid's geotransform given the DTM's."""
-        return dtm_transform @ Affine.scale(self.cells_per_tile)
+        """The tile grid's geotransform given the DTM's (overlapping tiles: a grid
+        cell of one step centred on its tile)."""
+        off = (self.cells_per_tile - self.step) / 2
+        return dtm_transform @ Affine.translation(off, off) @ Affine.scale(self.step)
 
     def bands(self) -> NDArray[np.uint8]:
         """(4, rows, cols) uint8 in the order of ``categories.tif``."""
@@ -148,18 +187,30 @@ def _direction_code(gx: NDArray, gy: NDArray) -> NDArray[np.uint8]:
     "Terrain categories on a 2 m tile grid: inclination, edge, state, height",
 )
 def compute_categories(
-    dtm: NDArray, cell: float, params: CategoryParams | None = None
+    dtm: NDArray, cell: float, params: CategoryParams | None = None, step: float | None = None
 ) -> Categories:
-    """Fit one or two planes to every tile of ``dtm`` (north-up, NaN nodata, ``cell`` m)."""
+    """Fit one or two planes to every tile of ``dtm`` (north-up, NaN nodata, ``cell`` m).
+
+    With ``step`` (metres, below the tile size) tiles start every step instead
+    of every tile: overlapping tiles, so a feature narrower than a tile (a road
+    shoulder) lies whole inside some tile wherever the grid falls. Tile i then
+    covers cells [i·step, i·step + k) and stands for the step-sized cell at its
+    centre (``Categories.transform``).
+    """
     params = params or CategoryParams()
     k = max(2, int(round(params.tile_size / cell)))
     if abs(k * cell - params.tile_size) > 0.5 * cell:
         raise ParameterError(f"tile_size {params.tile_size} cannot be snapped to {cell} m cells")
     dtm = np.asarray(dtm, dtype=np.float64)
-    rows, cols = -(-dtm.shape[0] // k), -(-dtm.shape[1] // k)
-    padded = np.full((rows * k, cols * k), np.nan)
+    s = k if step is None else max(1, min(k, int(round(step / cell))))
+    rows, cols = -(-dtm.shape[0] // s), -(-dtm.shape[1] // s)
+    padded = np.full(((rows - 1) * s + k, (cols - 1) * s + k), np.nan)
     padded[: dtm.shape[0], : dtm.shape[1]] = dtm
-    z = padded.reshape(rows, k, cols, k).transpose(0, 2, 1, 3).reshape(rows * cols, k * k)
+    if s == k:
+        z = padded.reshape(rows, k, cols, k).transpose(0, 2, 1, 3).reshape(rows * cols, k * k)
+    else:
+        win = np.lib.stride_tricks.sliding_window_view(padded, (k, k))[::s, ::s]
+        z = win.reshape(rows * cols, k * k)
 
     nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
     z = np.where(nodata[:, None], 0.0, z)
@@ -178,9 +229,21 @@ def compute_categories(
     best_gain = gain[idx, best]
     c3 = proj[idx, best] / hnorm[best]
     rms0 = np.sqrt(rss0 / (k * k))
-    two = (rms0 > params.edge_min_rms) & (rss0 - best_gain <= params.edge_ratio * rss0)
+    sigma = params.noise
+    if sigma is None:
+        sigma = _noise([plane_residuals(dtm, cell, params)], k)
+    gate = max(params.edge_min_rms, params.edge_noise * sigma)
+    two = (rms0 > gate) & (rss0 - best_gain <= params.edge_ratio * rss0)
 
-    flat = height < params.flat_height
+    # the height flatness is judged on: the model's range where it explains the tile
+    fitted = z - r0
+    if two.any():
+        fitted[two] += c3[two, None] * h[:, best[two]].T
+    rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
+    explained = rms_model <= params.flat_noise * sigma
+    model_height = fitted.max(axis=1) - fitted.min(axis=1)
+    relief = np.where(explained, model_height, height)
+    flat = relief < params.flat_height
     gx, gy = coef0[:, 1], coef0[:, 2]
     rise = np.hypot(gx, gy) * k * cell
     inclination = _direction_code(gx, gy)
@@ -218,7 +281,8 @@ def compute_categories(
     orientation[flat] = 0
     state[flat] = 0
     height10 = np.clip(np.round(height * 10), 0, 254).astype(np.uint8)
-    for band in (inclination, orientation, state, height10):
+    relief10 = np.clip(np.round(relief * 10), 0, 254).astype(np.uint8)
+    for band in (inclination, orientation, state, height10, relief10):
         band[nodata] = NODATA
     shape = (rows, cols)
     return Categories(
@@ -228,4 +292,84 @@ def compute_categories(
         height10.reshape(shape),
         k,
         k * cell,
+        float(sigma),
+        relief10.reshape(shape),
+        None if s == k else s,
     )
+
+
+def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
+    """Categories of consecutive row bands stacked, keeping the first ``keep[i]`` tile rows of band i
+    (bands of overlapping tiles are read with a margin whose tile rows belong to the next band)."""
+    first = parts[0]
+
+    def cat(name: str) -> NDArray[np.uint8]:
+        arrays = [getattr(p, name) for p in parts]
+        return np.concatenate([a[:n] for a, n in zip(arrays, keep, strict=True)])
+
+    return Categories(
+        cat("inclination"),
+        cat("orientation"),
+        cat("state"),
+        cat("height10"),
+        first.cells_per_tile,
+        first.tile_size,
+        float(np.median([p.noise for p in parts])),
+        None if first.relief10 is None else cat("relief10"),
+        first.step_cells,
+    )
+
+
+def plane_residuals(dtm: NDArray, cell: float, params: CategoryParams) -> NDArray[np.float64]:
+    """One-plane residual RMS of every whole tile with data (abutting tiles)."""
+    k = max(2, int(round(params.tile_size / cell)))
+    dtm = np.asarray(dtm, dtype=np.float64)
+    rows, cols = dtm.shape[0] // k, dtm.shape[1] // k
+    z: NDArray[np.float64] = (
+        dtm[: rows * k, : cols * k]
+        .reshape(rows, k, cols, k)
+        .transpose(0, 2, 1, 3)
+        .reshape(rows * cols, k * k)
+    )
+    z = z[~np.isnan(z).any(axis=1)]
+    _, resid0, *_ = _models(k, cell)
+    r0 = z @ resid0
+    return np.sqrt((r0 * r0).sum(axis=1) / (k * k))
+
+
+def _noise(residuals: list[NDArray], k: int) -> float:
+    """Noise σ from one-plane residual RMS of tiles: their median, corrected for the 3 fitted
+    parameters; 0 with fewer than MIN_NOISE_TILES tiles."""
+    r = np.concatenate(residuals) if residuals else np.zeros(0)
+    if r.size < MIN_NOISE_TILES:
+        return 0.0
+    return float(np.median(r)) * float(np.sqrt(k * k / (k * k - 3)))
+
+
+def categories_by_bands(
+    read_rows: Callable[[int, int], NDArray],
+    height: int,
+    cell: float,
+    params: CategoryParams,
+    band_rows: int,
+    step: float | None = None,
+) -> Categories:
+    """Categories of a DTM read in bands of about ``band_rows`` rows (``read_rows(r0, r1)``),
+    so memory follows the band. Overlapping tiles (``step``) read a tile's overlap
+    beyond each band; the tiles starting there belong to the next band."""
+    k = max(2, int(round(params.tile_size / cell)))
+    s = k if step is None else max(1, min(k, int(round(step / cell))))
+    whole = int(np.lcm(k, s))
+    band = max(whole, band_rows // whole * whole)  # whole tiles and whole steps
+    if params.noise is None:  # measured once over all bands, as over the whole DTM
+        res = [
+            plane_residuals(read_rows(r, min(height, r + band)), cell, params)
+            for r in range(0, height, band)
+        ]
+        params = params.model_copy(update={"noise": _noise(res, k)})
+    parts, keep = [], []
+    for r in range(0, height, band):
+        stop = min(height, r + band + (k - s))
+        parts.append(compute_categories(read_rows(r, stop), cell, params, step))
+        keep.append(-(-min(band, height - r) // s))
+    return stack_rows(parts, keep)

@@ -7,8 +7,9 @@ rectangle step (``flat``) give a tile raster instead of objects.
 
 Example::
 
-    cats = compute_categories(dtm, 0.5, CategoryParams())
-    result = detect_features(cats, [load_filter(n) for n in builtin_filter_names()], dtm_transform, cats.tile_size)
+    filters = [load_filter(n) for n in builtin_filter_names()]
+    cats, stepped = categories_for(dtm, 0.5, filters)
+    result = detect_features(cats, filters, dtm_transform, cats.tile_size, stepped=stepped)
     fc = features_geojson(result, "EPSG:32633", job_id="j1", to_wgs84=True)
 """
 
@@ -27,10 +28,15 @@ from shapely.geometry import mapping
 from shapely.geometry.polygon import orient
 
 from terrasift.errors import ParameterError
-from terrasift.workers.categories import Categories
+from terrasift.workers.categories import Categories, CategoryParams, compute_categories
 from terrasift.workers.features import connect as _connect
-from terrasift.workers.features.language import Filter, format_filter, parse_filter
-from terrasift.workers.features.objects import Feature, objects_from_labels, rectangle_features
+from terrasift.workers.features.language import (
+    Filter,
+    format_filter,
+    parse_filter,
+    resolve_lengths,
+)
+from terrasift.workers.features.objects import Feature, objects_from_labels
 from terrasift.workers.features.search import search_filter
 from terrasift.workers.registry import StageParams, register
 
@@ -40,12 +46,16 @@ __all__ = [
     "FeatureResult",
     "Filter",
     "builtin_filter_names",
+    "categories_for",
+    "check_filters",
     "detect_features",
     "features_geojson",
     "format_filter",
     "load_filter",
     "parse_filter",
     "resolve_filters",
+    "resolve_lengths",
+    "step_sizes",
 ]
 
 _BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
@@ -110,50 +120,120 @@ def _tile_transform(cats: Categories, transform: Affine, tile_size: float) -> Af
     FeatureParams,
     "Terrain objects (ditch, ridge, hill, pond, road, flat areas) from categories",
 )
+def categories_for(
+    dtm: NDArray, cell: float, filters: list[Filter], params: CategoryParams | None = None
+) -> tuple[Categories, dict[float, Categories]]:
+    """Categories of ``dtm`` on the tile grid and on every overlapping grid ``filters`` ask for,
+    ready for ``detect_features(cats, filters, ..., stepped=stepped)``."""
+    params = params or CategoryParams()
+    cats = compute_categories(dtm, cell, params)
+    return cats, {s: compute_categories(dtm, cell, params, step=s) for s in step_sizes(filters)}
+
+
+def check_filters(filters: list[Filter], tile_size: float) -> None:
+    """Raise FilterSyntaxError now if a filter's metres break a limit in tiles of ``tile_size``
+    (or of its own step), so a job fails when submitted rather than when finishing."""
+    for f in filters:
+        resolve_lengths(f, f.step.value if f.step is not None else tile_size)
+
+
+def step_sizes(filters: list[Filter]) -> list[float]:
+    """Steps (metres) of the overlapping tile grids the filters run on (``step``)."""
+    return sorted({f.step.value for f in filters if f.step is not None})
+
+
 def detect_features(
     categories: Categories,
     filters: list[Filter],
     transform: Affine,
     tile_size: float,
     params: FeatureParams | None = None,
+    *,
+    stepped: dict[float, Categories] | None = None,
 ) -> FeatureResult:
     """Run ``filters`` over the category grid.
 
     ``transform`` is the DTM's geotransform or the tile grid's (told apart by
     cell size); polygons come out in its CRS. Objects of all filters go to
     ``objects``; filters without connect/findrectangle mark tiles in ``marked``.
+    Filters with a ``step`` run on ``stepped[step]``: categories of overlapping
+    tiles (``compute_categories(..., step=step)``), which need the DTM's transform.
     """
     params = params or FeatureParams()
     tt = _tile_transform(categories, transform, tile_size)
     result = FeatureResult()
     for flt in filters:
-        h, v = search_filter(categories, flt)
-        if flt.h_and_v:
-            marks = _connect.h_and_v(h, v)
-            h, v = h & marks, v & marks
-        else:
-            marks = h | v
-        if flt.rectangle is not None:
-            r = flt.rectangle
-            rects = _connect.find_rectangles(marks, r.width, r.height, r.error)
-            result.objects += rectangle_features(rects, flt.name, tt, tile_size)
-        elif flt.connect is not None:
-            c = flt.connect
-            if c.method == "simple":
-                labels = _connect.simple(marks)
-            elif c.method == "segment":
-                gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
-                labels = _connect.segments(h, v, gap)
-                labels = _drop_gappy(labels, c.max_error)
-            else:
-                labels = _connect.edges(categories, h, v, marks)
-            limits = (c.min_length, c.max_length, c.min_width, c.max_width)
-            result.objects += objects_from_labels(
-                labels, flt.name, tt, tile_size, limits, params.simplify_tiles
-            )
-        else:
-            result.marked[flt.name] = marks
+        cats, grid = categories, tt
+        if flt.step is not None:
+            found = (stepped or {}).get(flt.step.value)
+            if found is None:
+                raise ParameterError(
+                    f"filter {flt.name} runs every {flt.step.text()}: pass its categories"
+                )
+            cats = found
+            if not np.isclose(abs(transform.a) * cats.cells_per_tile, cats.tile_size):
+                raise ParameterError(f"filter {flt.name} needs the DTM's transform")
+            grid = cats.transform(transform)
+        flt = resolve_lengths(flt, cats.spacing)
+        result.objects += _run_filter(cats, flt, grid, params, result)
     return result
+
+
+def _run_filter(
+    categories: Categories,
+    flt: Filter,
+    tt: Affine,
+    params: FeatureParams,
+    result: FeatureResult,
+) -> list[Feature]:
+    """Objects of one resolved filter (marks of a filter with no object step go to ``result``)."""
+    tile_size = categories.spacing
+    objects: list[Feature] = []
+    h, v = search_filter(categories, flt)
+    if flt.h_and_v:
+        marks = _connect.h_and_v(h, v)
+        h, v = h & marks, v & marks
+    else:
+        marks = h | v
+    if flt.rectangle is not None:
+        r = flt.rectangle
+        cover = _connect.rectangle_cover(marks, r.width, r.height, r.error)
+        labels, _ = ndimage.label(cover)  # one object per connected cover: its marked tiles
+        labels[~marks] = 0
+        objects += objects_from_labels(
+            labels.astype(np.int32),
+            flt.name,
+            tt,
+            tile_size,
+            simplify_tiles=params.simplify_tiles,
+            fill_holes=False,
+            measure="rectangle",
+        )
+    elif flt.connect is not None:
+        c = flt.connect
+        if c.method == "simple":
+            labels = _connect.simple(marks)
+        elif c.method == "segment":
+            gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
+            labels = _connect.segments(h, v, gap)
+            labels = _drop_gappy(labels, c.max_error)
+        else:
+            labels = _connect.edges(categories, h, v, marks)
+        limits = (c.min_length, c.max_length, c.min_width, c.max_width)
+        aspect = (flt.aspect.min, flt.aspect.max) if flt.aspect else (None, None)
+        objects += objects_from_labels(
+            labels,
+            flt.name,
+            tt,
+            tile_size,
+            limits,
+            params.simplify_tiles,
+            aspect=aspect,
+            join=flt.join,
+        )
+    else:
+        result.marked[flt.name] = marks
+    return objects
 
 
 def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32]:

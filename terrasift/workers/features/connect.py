@@ -13,7 +13,9 @@ without their recursion-depth limit:
   line 90° from its inclination) within 45° and the two tiles' edges agree
   within ±45°, plus tiles of one segment.
 
-``h_and_v`` and ``find_rectangles`` are the seed's logical AND and rectangle search.
+``h_and_v`` and ``find_rectangles`` are the seed's logical AND and rectangle
+search; ``rectangle_cover`` keeps every window that passes instead of the first
+fit, so overlapping windows of one flat area make one object.
 """
 
 from __future__ import annotations
@@ -172,3 +174,45 @@ def find_rectangles(
         found.append((r, c, height, width))
         free[max(0, r - height + 1) : r + height, max(0, c - width + 1) : c + width] = False
     return found
+
+
+def rectangle_cover(
+    marks: NDArray[np.bool_], width: int, height: int, error: float
+) -> NDArray[np.bool_]:
+    """Tiles inside any ``height`` × ``width`` window with at most ``error`` % unmarked.
+
+    The union of all passing windows: an area larger than the window comes out
+    whole (its connected components are the objects), not as the first-fit
+    squares the seed's search leaves, which cut a 150 m field into one 100 m
+    square and leftovers.
+    """
+    rows, cols = marks.shape
+    if rows < height or cols < width:
+        return np.zeros_like(marks, dtype=bool)
+    sat = np.zeros((rows + 1, cols + 1), dtype=np.int64)
+    sat[1:, 1:] = marks.astype(np.int64).cumsum(0).cumsum(1)
+    count = (
+        sat[height:, width:]
+        - sat[:-height, width:]
+        - sat[height:, :-width]
+        + sat[:-height, :-width]
+    )
+    need = int(np.ceil(width * height * (1 - error / 100.0) - 1e-9))
+    ok = (count >= need).astype(np.int64)  # window with its top-left tile at (r, c)
+    # tile (r, c) is covered when a passing window starts in [r-h+1, r] x [c-w+1, c]
+    s2 = np.zeros((ok.shape[0] + 1, ok.shape[1] + 1), dtype=np.int64)
+    s2[1:, 1:] = ok.cumsum(0).cumsum(1)
+    r = np.arange(rows)
+    c = np.arange(cols)
+    r1 = np.minimum(r, ok.shape[0] - 1) + 1
+    r0 = np.maximum(r - height + 1, 0)
+    c1 = np.minimum(c, ok.shape[1] - 1) + 1
+    c0 = np.maximum(c - width + 1, 0)
+    hits = (
+        s2[r1[:, None], c1[None, :]]
+        - s2[r0[:, None], c1[None, :]]
+        - s2[r1[:, None], c0[None, :]]
+        + s2[r0[:, None], c0[None, :]]
+    )
+    valid = (r0[:, None] < r1[:, None]) & (c0[None, :] < c1[None, :])
+    return (hits > 0) & valid

@@ -2,8 +2,13 @@
 
 A filter is a list of segments (cross-section patterns searched along rows and,
 rotated, along columns) and post-processing steps (``h-and-v``, ``connect``,
-``findrectangle``). Lengths and widths are in category tiles. Every error names
-its line, so a user posting a filter with a job gets told where it breaks.
+``findrectangle``). Lengths and widths are in category tiles, or in metres when
+written with an ``m`` suffix (``connect simple 12m 80m 12m 80m``,
+``beginsubsegment 2m 24m``, ``findrectangle 100m 100m 5``): those are turned
+into tile counts for the category tile size the filter runs on
+(``resolve_lengths``), so a filter keeps its meaning when the tile size or the
+DTM resolution changes. Every error names its line, so a user posting a filter
+with a job gets told where it breaks.
 
 Orientation codes are two digits ``ab`` (an edge between boundary points a and b,
 stored with a < b), ``aa`` (an extreme point) or ``0`` (no edge); directions are
@@ -12,9 +17,10 @@ numbered counter-clockwise from east: 1 E, 2 NE, 3 N, 4 NW, 5 W, 6 SW, 7 S, 8 SE
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal, cast
+from typing import Any, Literal, TypeAlias, cast
 
 from terrasift.errors import FilterSyntaxError
 from terrasift.workers.categories import ORIENTATIONS
@@ -37,6 +43,45 @@ def rotate_orientation(code: int, quarter_turns: int = 1) -> int:
     a, b = divmod(code, 10)
     a, b = sorted((rotate_direction(a, quarter_turns), rotate_direction(b, quarter_turns)))
     return 10 * a + b
+
+
+@dataclass(frozen=True)
+class Metres:
+    """A length written in metres (``12m``); becomes a tile count in ``resolve_lengths``."""
+
+    value: float
+
+    def text(self) -> str:
+        return f"{self.value:g}m"
+
+    def tiles(self, tile_size: float, bound: Literal["min", "max", "size"]) -> int:
+        """Tile count: a minimum rounds down (to at least one tile) and a maximum up
+        (the object sought keeps its full range), a window size up (the window
+        covers at least the length)."""
+        t = self.value / tile_size
+        if bound == "min":  # a length above 0 is at least one tile
+            return max(1, int(math.floor(t + 1e-9)))
+        return int(math.ceil(t - 1e-9))
+
+
+#: a length: a whole number of tiles, or Metres until ``resolve_lengths`` turns it into
+#: tiles (typed loosely: the search and connect steps only ever see resolved filters)
+Length: TypeAlias = Any
+
+
+def _text(v: Length | None) -> str:
+    if v is None:
+        return "-1"
+    return v.text() if isinstance(v, Metres) else str(v)
+
+
+def _le(a: Length | None, b: Length | None) -> bool:
+    """a <= b where both are known in one unit (True when they cannot be compared yet)."""
+    if a is None or b is None or isinstance(a, Metres) != isinstance(b, Metres):
+        return True
+    if isinstance(a, Metres):
+        return a.value <= b.value
+    return a <= b
 
 
 @dataclass(frozen=True)
@@ -71,14 +116,16 @@ class CategorySpec:
     state: ValueSet = ValueSet()
     orientation: ValueSet = ValueSet()
     negate: bool = False
+    height: ValueSet = ValueSet()
+    """The tile's height in decimetres as the flatness test sees it (``Categories.relief10``)."""
 
 
 @dataclass(frozen=True)
 class SubSegment:
     """A run of ``min_len``..``max_len`` tiles, each matching one of ``categories``."""
 
-    min_len: int
-    max_len: int
+    min_len: Length
+    max_len: Length
     categories: tuple[CategorySpec, ...]
     exclude: bool = False
     max_errors: int = 0
@@ -89,15 +136,22 @@ class Segment:
     """A cross-section pattern; total length limits are None when not given."""
 
     subsegments: tuple[SubSegment, ...]
-    min_total: int | None = None
-    max_total: int | None = None
+    min_total: Length | None = None
+    max_total: Length | None = None
     invert: bool = False
     direction: Literal["both", "horizontal", "vertical"] = "both"
 
     @property
     def longest(self) -> int:
+        """Longest match in tiles (a resolved segment only)."""
         top = sum(s.max_len for s in self.subsegments)
         return top if self.max_total is None else min(top, self.max_total)
+
+    @property
+    def in_tiles(self) -> bool:
+        vals = [self.min_total, self.max_total]
+        vals += [v for s in self.subsegments for v in (s.min_len, s.max_len)]
+        return not any(isinstance(v, Metres) for v in vals)
 
 
 @dataclass(frozen=True)
@@ -105,10 +159,10 @@ class Connect:
     """``connect method minlen maxlen minwid maxwid [maxerror%]``; -1 disables a limit (stored as None)."""
 
     method: Literal["edge", "simple", "segment"]
-    min_length: int | None = None
-    max_length: int | None = None
-    min_width: int | None = None
-    max_width: int | None = None
+    min_length: Length | None = None
+    max_length: Length | None = None
+    min_width: Length | None = None
+    max_width: Length | None = None
     max_error: float = 0.0
 
 
@@ -116,14 +170,29 @@ class Connect:
 class Rectangle:
     """``findrectangle w h err%``: rectangles of w × h tiles with at most err % unmarked."""
 
-    width: int
-    height: int
+    width: Length
+    height: Length
     error: float
 
 
 @dataclass(frozen=True)
+class Aspect:
+    """``aspect min max``: objects whose length / width lies in [min, max]; -1 (None) leaves a side open."""
+
+    min: float | None = None
+    max: float | None = None
+
+
+@dataclass(frozen=True)
 class Filter:
-    """A parsed filter file."""
+    """A parsed filter file.
+
+    ``join`` (``join <gap>``): objects of the filter closer than the gap (a
+    length, or ``width``: the narrower one's own width) become one object when
+    the joined object is no wider than 1.5 times the wider piece (pieces of one
+    ditch, not two parallel ditches). Joining comes before the connect limits,
+    so pieces too short alone count together.
+    """
 
     name: str
     segments: tuple[Segment, ...]
@@ -131,6 +200,10 @@ class Filter:
     connect: Connect | None = None
     rectangle: Rectangle | None = None
     steps: tuple[str, ...] = field(default=(), compare=False)
+    aspect: Aspect | None = None
+    join: Length | Literal["width"] | None = None
+    step: Metres | None = None
+    """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
 
     @property
     def makes_objects(self) -> bool:
@@ -176,6 +249,24 @@ class _Parser:
             out.append(v)
         return out
 
+    def lengths(self, words: list[str], line: int, what: str, lo: int) -> list[Length]:
+        """Whole numbers of tiles (at least ``lo``) or metres written ``<number>m`` (above 0)."""
+        out: list[Length] = []
+        for w in words:
+            if w.endswith("m"):
+                try:
+                    v = float(w[:-1])
+                except ValueError:
+                    raise self.error(
+                        f"{what}: expected tiles or metres (e.g. 12m), got {w!r}", line
+                    ) from None
+                if not (v > 0 and math.isfinite(v)):
+                    raise self.error(f"{what}: a length in metres must be above 0, got {w!r}", line)
+                out.append(Metres(v))
+            else:
+                out += self.ints([w], line, what, lo=lo)
+        return out
+
     def numbers(self, words: list[str], line: int, what: str) -> list[float]:
         try:
             return [float(w) for w in words]
@@ -187,6 +278,9 @@ class _Parser:
         h_and_v = False
         connect: Connect | None = None
         rect: Rectangle | None = None
+        aspect: Aspect | None = None
+        join: Length | Literal["width"] | None = None
+        step: Metres | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -206,12 +300,33 @@ class _Parser:
                     raise self.error("only one connect or findrectangle step is allowed", no)
                 connect = self.connect(no, args)
                 steps.append("connect")
+            elif key == "aspect":
+                if aspect is not None or len(args) != 2:
+                    raise self.error("aspect takes min and max length/width once (-1: open)", no)
+                lo, hi = (None if v == -1 else v for v in self.numbers(args, no, "aspect"))
+                if any(v is not None and v < 1 for v in (lo, hi)):
+                    raise self.error("aspect limits are ratios of at least 1 (or -1)", no)
+                if lo is not None and hi is not None and lo > hi:
+                    raise self.error("aspect: min exceeds max", no)
+                aspect = Aspect(lo, hi)
+                steps.append("aspect")
+            elif key == "step":
+                if steps or step is not None:
+                    raise self.error("step comes once, before the segments", no)
+                if len(args) != 1 or not args[0].endswith("m"):
+                    raise self.error("step takes one length in metres, e.g. step 1m", no)
+                step = self.lengths(args, no, "step", lo=1)[0]
+            elif key == "join":
+                if join is not None or len(args) != 1:
+                    raise self.error("join takes one gap (tiles, metres or 'width') once", no)
+                join = "width" if args[0] == "width" else self.lengths(args, no, "join", lo=1)[0]
+                steps.append("join")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
                     raise self.error("only one connect or findrectangle step is allowed", no)
                 if len(args) != 3:
                     raise self.error("findrectangle needs width, height and error %", no)
-                w, h = self.ints(args[:2], no, "findrectangle", lo=1)
+                w, h = self.lengths(args[:2], no, "findrectangle", lo=1)
                 (err,) = self.numbers(args[2:], no, "findrectangle error")
                 if not 0 <= err < 100:
                     raise self.error("findrectangle error % must be in [0, 100)", no)
@@ -221,7 +336,11 @@ class _Parser:
                 raise self.error(f"unexpected {key!r} outside a segment", no)
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
-        return Filter(self.name, tuple(segments), h_and_v, connect, rect, tuple(steps))
+        if (aspect is not None or join is not None) and connect is None:
+            raise self.error("aspect and join need a connect step", last_line)
+        return Filter(
+            self.name, tuple(segments), h_and_v, connect, rect, tuple(steps), aspect, join, step
+        )
 
     def segment(self, start: int, args: list[str]) -> Segment:
         lo = hi = None
@@ -230,8 +349,8 @@ class _Parser:
                 raise self.error(
                     "beginsegment takes no parameters or min and max total length", start
                 )
-            lo, hi = self.ints(args, start, "beginsegment", lo=1)
-            if lo > hi:
+            lo, hi = self.lengths(args, start, "beginsegment", lo=1)
+            if not _le(lo, hi):
                 raise self.error(f"beginsegment: min {lo} exceeds max {hi}", start)
         subs: list[SubSegment] = []
         invert = False
@@ -243,14 +362,8 @@ class _Parser:
                 if not subs:
                     raise self.error("a segment needs at least one subsegment", no)
                 seg = Segment(tuple(subs), lo, hi, invert, direction)
-                if sum(s.min_len for s in subs) == 0:
-                    raise self.error("a segment must match at least one tile", no)
-                if seg.longest > MAX_SEGMENT_TILES:
-                    raise self.error(f"a segment may span at most {MAX_SEGMENT_TILES} tiles", start)
-                if lo is not None and lo > sum(s.max_len for s in subs):
-                    raise self.error(
-                        "beginsegment minimum exceeds what the subsegments can match", start
-                    )
+                if seg.in_tiles:
+                    _check_segment(seg, lambda msg, at: self.error(msg, at), start, no)
                 return seg
             if rest and key in ("invert", "horizontal", "vertical"):
                 raise self.error(f"{key} takes no parameters", no)
@@ -272,8 +385,8 @@ class _Parser:
             exclude, args = True, args[:-1]
         if len(args) != 2:
             raise self.error("beginsubsegment needs min and max length [exclude]", start)
-        lo, hi = self.ints(args, start, "beginsubsegment", lo=0)
-        if hi < 1 or lo > hi:
+        lo, hi = self.lengths(args, start, "beginsubsegment", lo=0)
+        if (isinstance(hi, int) and hi < 1) or not _le(lo, hi):
             raise self.error(f"beginsubsegment: bad length range {lo}..{hi}", start)
         cats: list[CategorySpec] = []
         max_errors = 0
@@ -283,7 +396,7 @@ class _Parser:
             if key == "endsubsegment":
                 if not cats:
                     raise self.error("a subsegment needs at least one category", no)
-                if max_errors >= hi and hi > 0:
+                if isinstance(hi, int) and max_errors >= hi and hi > 0:
                     raise self.error("maxerrors must be below the subsegment's max length", no)
                 return SubSegment(lo, hi, tuple(cats), exclude, max_errors)
             if key == "maxerrors":
@@ -305,7 +418,7 @@ class _Parser:
             key, rest = words[0], words[1:]
             if key == "endcategory":
                 return CategorySpec(negate=negate, **props)
-            if key not in ("inclination", "state", "orientation"):
+            if key not in ("inclination", "state", "orientation", "height"):
                 raise self.error(f"unexpected {key!r} inside a category", no)
             if key in props:
                 raise self.error(f"{key} given twice in one category", no)
@@ -329,6 +442,10 @@ class _Parser:
             bad = [v for v in vals if v > 2]
             if bad:
                 raise self.error(f"state must be 0, 1 or 2, got {bad[0]}", no)
+        elif key == "height":
+            bad = [v for v in vals if v > 254]
+            if bad:
+                raise self.error(f"height is in decimetres, 0–254, got {bad[0]}", no)
         else:
             norm = []
             for v in vals:
@@ -353,13 +470,13 @@ class _Parser:
         if len(nums) not in (4, allowed):
             extra = " [maxerror%]" if method == "segment" else ""
             raise self.error(f"connect {method} needs minlen maxlen minwid maxwid{extra}", no)
-        lims = self.ints(nums[:4], no, "connect", lo=-1)
+        lims = self.lengths(nums[:4], no, "connect", lo=-1)
         err = self.numbers(nums[4:], no, "connect maxerror")[0] if len(nums) == 5 else 0.0
         if not 0 <= err < 100:
             raise self.error("connect maxerror % must be in [0, 100)", no)
         lo_l, hi_l, lo_w, hi_w = (None if v == -1 else v for v in lims)
         for lo, hi, what in ((lo_l, hi_l, "length"), (lo_w, hi_w, "width")):
-            if lo is not None and hi is not None and lo > hi:
+            if not _le(lo, hi):
                 raise self.error(f"connect: min {what} exceeds max {what}", no)
         return Connect(method, lo_l, hi_l, lo_w, hi_w, err)
 
@@ -369,12 +486,12 @@ class _Parser:
 
 def format_filter(f: Filter) -> str:
     """The filter as text that parses back to an equal Filter."""
-    out: list[str] = []
+    out: list[str] = [f"step {f.step.text()}"] if f.step is not None else []
     for seg in f.segments:
         head = (
             "beginsegment"
             if seg.min_total is None
-            else f"beginsegment {seg.min_total} {seg.max_total}"
+            else f"beginsegment {_text(seg.min_total)} {_text(seg.max_total)}"
         )
         out.append(head)
         if seg.invert:
@@ -383,7 +500,7 @@ def format_filter(f: Filter) -> str:
             out.append(f"  {seg.direction}")
         for sub in seg.subsegments:
             out.append(
-                f"  beginsubsegment {sub.min_len} {sub.max_len}"
+                f"  beginsubsegment {_text(sub.min_len)} {_text(sub.max_len)}"
                 + (" exclude" if sub.exclude else "")
             )
             if sub.max_errors:
@@ -393,6 +510,8 @@ def format_filter(f: Filter) -> str:
                 out.append(f"      inclination {cat.inclination.text()}")
                 out.append(f"      state {cat.state.text()}")
                 out.append(f"      orientation {cat.orientation.text()}")
+                if cat.height.values is not None:
+                    out.append(f"      height {cat.height.text()}")
                 out.append("    endcategory")
             out.append("  endsubsegment")
         out.append("endsegment")
@@ -402,14 +521,18 @@ def format_filter(f: Filter) -> str:
         elif step == "connect" and f.connect is not None:
             c = f.connect
             lims = " ".join(
-                str(-1 if v is None else v)
-                for v in (c.min_length, c.max_length, c.min_width, c.max_width)
+                _text(v) for v in (c.min_length, c.max_length, c.min_width, c.max_width)
             )
             tail = f" {c.max_error:g}" if c.method == "segment" and c.max_error else ""
             out.append(f"connect {c.method} {lims}{tail}")
         elif step == "findrectangle" and f.rectangle is not None:
             r = f.rectangle
-            out.append(f"findrectangle {r.width} {r.height} {r.error:g}")
+            out.append(f"findrectangle {_text(r.width)} {_text(r.height)} {r.error:g}")
+        elif step == "aspect" and f.aspect is not None:
+            lo, hi = (-1 if v is None else v for v in (f.aspect.min, f.aspect.max))
+            out.append(f"aspect {lo:g} {hi:g}")
+        elif step == "join" and f.join is not None:
+            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
     return "\n".join(out) + "\n"
 
 
@@ -419,6 +542,10 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("connect")
     if f.rectangle is not None:
         steps.append("findrectangle")
+    if f.aspect is not None:
+        steps.append("aspect")
+    if f.join is not None:
+        steps.append("join")
     return tuple(steps)
 
 
@@ -456,3 +583,65 @@ def transform_segment(seg: Segment, quarter_turns: int = 0) -> Segment:
         for sub in seg.subsegments
     )
     return replace(seg, subsegments=subs, invert=False)
+
+
+def _check_segment(seg: Segment, error: Callable[[str, int | None], Exception], start, end) -> None:
+    """Limits of a segment whose lengths are tile counts."""
+    if sum(s.min_len for s in seg.subsegments) == 0:
+        raise error("a segment must match at least one tile", end)
+    if seg.longest > MAX_SEGMENT_TILES:
+        raise error(f"a segment may span at most {MAX_SEGMENT_TILES} tiles", start)
+    if seg.min_total is not None and seg.min_total > sum(s.max_len for s in seg.subsegments):
+        raise error("beginsegment minimum exceeds what the subsegments can match", start)
+
+
+def resolve_lengths(f: Filter, tile_size: float) -> Filter:
+    """The filter with every length in metres turned into tiles of ``tile_size`` m.
+
+    Minima round down and maxima up, so the range of objects sought is kept; a
+    ``findrectangle`` window rounds up. Raises FilterSyntaxError when the tile
+    counts break a limit of the language (e.g. a segment longer than 63 tiles).
+    """
+
+    def err(msg: str, _line: int | None) -> FilterSyntaxError:
+        return FilterSyntaxError(f"{msg} at {tile_size:g} m tiles", name=f.name)
+
+    def t(v: Length | None, bound: Literal["min", "max", "size"]) -> Any:
+        return v.tiles(tile_size, bound) if isinstance(v, Metres) else v
+
+    segs = []
+    for seg in f.segments:
+        if seg.in_tiles:
+            segs.append(seg)
+            continue
+        subs = []
+        for sub in seg.subsegments:
+            lo, hi = t(sub.min_len, "min"), max(1, t(sub.max_len, "max"))
+            if lo > hi:
+                raise err(f"subsegment {_text(sub.min_len)}..{_text(sub.max_len)} is empty", None)
+            # a run of few large tiles allows fewer misfits than its length in tiles
+            errors = min(sub.max_errors, hi - 1)
+            subs.append(replace(sub, min_len=lo, max_len=hi, max_errors=errors))
+        lo = t(seg.min_total, "min")
+        new = replace(
+            seg,
+            subsegments=tuple(subs),
+            min_total=None if lo is None else max(1, lo),
+            max_total=t(seg.max_total, "max"),
+        )
+        _check_segment(new, err, None, None)
+        segs.append(new)
+    connect = f.connect
+    if connect is not None:
+        connect = replace(
+            connect,
+            min_length=t(connect.min_length, "min"),
+            max_length=t(connect.max_length, "max"),
+            min_width=t(connect.min_width, "min"),
+            max_width=t(connect.max_width, "max"),
+        )
+    rect = f.rectangle
+    if rect is not None:
+        rect = replace(rect, width=t(rect.width, "size"), height=t(rect.height, "size"))
+    join = f.join if f.join == "width" else t(f.join, "size")
+    return replace(f, segments=tuple(segs), connect=connect, rectangle=rect, join=join)

@@ -144,9 +144,23 @@ def objects_from_labels(
         None,
     ),
     simplify_tiles: float = 0.5,
+    *,
+    fill_holes: bool = True,
+    measure: str = "auto",
+    aspect: tuple[float | None, float | None] = (None, None),
+    join: float | str | None = None,
 ) -> list[Feature]:
-    """Features for every label whose length/width (in tiles) lie within ``limits``."""
-    labels = fill_object_holes(labels.astype(np.int32))
+    """Features for every label whose length/width (in tiles) lie within ``limits``.
+
+    ``fill_holes`` gives enclosed holes to the object (an outline found by its
+    flanks); ``measure`` ``rectangle`` sizes every object by the rectangle with
+    its second area moments (areas made of rectangular windows), ``auto`` as
+    ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
+    ``"width"``) joins pieces first (``join_pieces``).
+    """
+    labels = labels.astype(np.int32)
+    if fill_holes:
+        labels = fill_object_holes(labels)
     if labels.max() == 0:
         return []
     counts = np.bincount(labels.ravel())
@@ -155,7 +169,14 @@ def objects_from_labels(
     # perimeter of 4 edges per tile) and a width w needs about w² tiles.
     small = np.zeros(counts.size, dtype=bool)
     if min_l is not None:
-        small |= 2 * counts < min_l
+        short = 2 * counts < min_l
+        if join is not None:
+            # a piece with another within reach may be joined: keep all but specks
+            reach = int(
+                np.ceil(max_w if join == "width" and max_w else 8 if join == "width" else join)
+            )
+            short &= ~_near_other(labels, reach, counts.size) | (counts < 3)
+        small |= short
     if min_w is not None:
         small |= counts < 0.5 * min_w * min_w
     small[0] = False
@@ -163,16 +184,143 @@ def objects_from_labels(
         labels = np.where(small[labels], 0, labels)
         if labels.max() == 0:
             return []
-    feats = []
+    pieces = []
     for lab, poly in polygons(labels, transform, simplify_tiles * tile_size).items():
-        length, width = object_size(_smoothed(poly, tile_size))
-        lt, wt = length / tile_size, width / tile_size
+        # a cheap size first: the tile staircase's area and perimeter; its length
+        # is at least the smoothed outline's, so it can rule objects out
+        length, width = rectangle_size(poly)
+        pieces.append(Feature(kind, poly, float(length), float(width), int(counts[lab])))
+    if join is not None and len(pieces) > 1:
+        pieces = join_pieces(pieces, join, tile_size)
+    feats = []
+    lo_a, hi_a = aspect
+    for f in pieces:
+        if min_l is not None and f.length_m / tile_size < min_l:
+            continue
+        if measure == "rectangle":
+            # the rectangle with the outline's second moments (sides √(12 λ)):
+            # unlike area and perimeter, not lengthened by a ragged edge
+            length, width = (v * np.sqrt(12) / 4 for v in moment_size(f.geometry))
+        else:
+            length, width = object_size(_smoothed(f.geometry, tile_size))
+        f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
+        lt, wt = f.length_m / tile_size, f.width_m / tile_size
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
             continue
         if (min_w is not None and wt < min_w) or (max_w is not None and wt > max_w):
             continue
-        feats.append(Feature(kind, poly, float(length), float(width), int(counts[lab])))
+        ratio = f.length_m / max(f.width_m, 1e-9)
+        if (lo_a is not None and ratio < lo_a) or (hi_a is not None and ratio > hi_a):
+            continue
+        feats.append(f)
     return feats
+
+
+def _near_other(labels: NDArray[np.int32], reach: int, n: int) -> NDArray[np.bool_]:
+    """Per label: another label lies within ``reach`` tiles (square neighbourhood)."""
+    size = 2 * reach + 1
+    hi = ndimage.maximum_filter(labels, size=size)
+    big = np.iinfo(np.int32).max
+    lo = ndimage.minimum_filter(np.where(labels > 0, labels, big), size=size)
+    mixed = (labels > 0) & ((hi != labels) | (lo != labels))
+    out = np.zeros(n, dtype=bool)
+    out[np.unique(labels[mixed])] = True
+    return out
+
+
+def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> list[Feature]:
+    """Pieces closer than ``join`` tiles (``"width"``: the narrower piece's width) joined.
+
+    A pair joins when the gap between them runs within 45° of both pieces'
+    long axes: two ends of one broken ditch line up, two parallel ditches lie
+    side by side. Sizes here are the cheap staircase ones (``rectangle_size``);
+    ``objects_from_labels`` measures the objects that remain.
+    """
+    import shapely
+    from shapely import STRtree
+
+    geoms = [p.geometry for p in pieces]
+    widths = np.array([p.width_m for p in pieces])
+    reach = widths.max() if join == "width" else float(join) * tile_size
+    tree = STRtree(geoms)
+    a, b = tree.query(geoms, predicate="dwithin", distance=reach)
+    keep = a < b
+    a, b = a[keep], b[keep]
+    if a.size == 0:
+        return pieces
+    ga, gb = np.asarray(geoms, dtype=object)[a], np.asarray(geoms, dtype=object)[b]
+    gap = shapely.distance(ga, gb)
+    allowed = np.minimum(widths[a], widths[b]) if join == "width" else np.full(a.size, reach)
+    ok = gap <= allowed
+    axes = np.array([_axis_angle(g) for g in geoms])
+    lines = shapely.shortest_line(ga[ok], gb[ok])
+    xy = shapely.get_coordinates(lines).reshape(-1, 2, 2)
+    d = xy[:, 1] - xy[:, 0]
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    tiny = np.hypot(d[:, 0], d[:, 1]) < 0.5 * tile_size
+    along = (_angle_diff(phi, axes[a[ok]]) <= np.pi / 4) & (
+        _angle_diff(phi, axes[b[ok]]) <= np.pi / 4
+    )
+    pairs = np.flatnonzero(ok)[tiny | along]
+    parent = list(range(len(pieces)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    bridged: dict[int, float] = {}
+    for k in pairs.tolist():
+        ri, rj = root(int(a[k])), root(int(b[k]))
+        if ri != rj:
+            parent[rj] = ri
+            bridged[ri] = max(bridged.get(ri, 0.0), bridged.pop(rj, 0.0), float(gap[k]))
+    groups: dict[int, list[int]] = {}
+    for i in range(len(pieces)):
+        groups.setdefault(root(i), []).append(i)
+    out = []
+    for r, members in groups.items():
+        if len(members) == 1:
+            out.append(pieces[members[0]])
+            continue
+        geom = _bridge([geoms[m] for m in members], bridged.get(r, 0.0))
+        length, width = rectangle_size(geom)
+        tiles = sum(pieces[m].tiles for m in members)
+        out.append(Feature(pieces[0].kind, geom, float(length), float(width), tiles))
+    return out
+
+
+def _axis_angle(poly: Polygon | MultiPolygon) -> float:
+    """Direction (radians, mod π) of the long axis of ``poly``'s second area moments."""
+    parts = poly.geoms if isinstance(poly, MultiPolygon) else [poly]
+    cx, cy = poly.centroid.x, poly.centroid.y
+    area = sxx = syy = sxy = 0.0
+    for p in parts:
+        xy = np.asarray(p.exterior.coords) - (cx, cy)
+        x0, y0, x1, y1 = xy[:-1, 0], xy[:-1, 1], xy[1:, 0], xy[1:, 1]
+        cr = x0 * y1 - x1 * y0
+        area += cr.sum() / 2
+        sxx += (cr * (y0 * y0 + y0 * y1 + y1 * y1)).sum() / 12
+        syy += (cr * (x0 * x0 + x0 * x1 + x1 * x1)).sum() / 12
+        sxy += (cr * (x0 * y1 + 2 * x0 * y0 + 2 * x1 * y1 + x1 * y0)).sum() / 24
+    sign = 1.0 if area >= 0 else -1.0  # rings may run either way
+    return float(0.5 * np.arctan2(2 * sign * sxy, sign * (syy - sxx))) % np.pi
+
+
+def _angle_diff(a: NDArray, b: NDArray) -> NDArray:
+    d = np.abs(a - b) % np.pi
+    return np.minimum(d, np.pi - d)
+
+
+def _bridge(geoms: list, gap: float) -> Polygon | MultiPolygon:
+    """Union of ``geoms`` closed across gaps up to ``gap`` (one outline where they line up)."""
+    g = unary_union(geoms)
+    if gap <= 0 or not isinstance(g, MultiPolygon):
+        return g
+    r = gap / 2 + 1e-6
+    closed = g.buffer(r, join_style="mitre").buffer(-r, join_style="mitre")
+    return closed if not closed.is_empty else g
 
 
 def rectangle_features(

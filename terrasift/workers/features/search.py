@@ -15,6 +15,8 @@ the subsegments not marked ``exclude`` are marked.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -25,6 +27,7 @@ from terrasift.workers.features.language import (
     Segment,
     SubSegment,
     ValueSet,
+    resolve_lengths,
     transform_segment,
 )
 
@@ -36,14 +39,16 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
     return lut
 
 
-def category_mask(
-    cats: Categories | tuple[NDArray, NDArray, NDArray], spec: CategorySpec
-) -> NDArray[np.bool_]:
+def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
     """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
-    inc, ori, st = (
-        (cats.inclination, cats.orientation, cats.state) if isinstance(cats, Categories) else cats
-    )
+    if isinstance(cats, Categories):
+        cats = (cats.inclination, cats.orientation, cats.state, cats.relief10)
+    inc, ori, st = cats[0], cats[1], cats[2]
     m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
+    if spec.height.values is not None:
+        if len(cats) < 4 or cats[3] is None:
+            raise ValueError("a filter tests height but the categories carry no heights")
+        m &= _lut(spec.height)[cats[3]]
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)
@@ -150,7 +155,9 @@ def _search_band(cats: tuple[NDArray, ...], seg: Segment) -> NDArray[np.bool_]:
 
 def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
-    arrays = (cats.inclination, cats.orientation, cats.state)
+    flt = resolve_lengths(flt, cats.spacing)
+    relief = cats.relief10 if cats.relief10 is not None else cats.height10
+    arrays = (cats.inclination, cats.orientation, cats.state, relief)
     arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
     v = np.zeros(cats.shape, dtype=bool)
