@@ -184,6 +184,13 @@ CANDIDATES: dict[str, list[dict]] = {
         {"raised_step": 0.5},
         {"ground_tol_cell": 0.1},
         {"grow_peak_area": 10.0},
+        {"ground_slope": 0.5},
+        {"ground_slope": 0.0},
+        {"support_k": 0},
+        {"screen_tol": 0.5},
+        {"snap_cells": False},
+        {"raised_relative": False},
+        {"raised_slope": 20.0, "raised_relative": False},
     ],
 }
 

@@ -37,7 +37,7 @@ GRASS = 0.25  # m: vegetation returns lower than this above the ground count as 
 @dataclass(frozen=True)
 class Box:
     """An oriented rectangle: centre, length along ``angle`` (radians), width, top height
-    above the ground at its centre (flat top)."""
+    above the ground along its axis (level across, following the ground along its length)."""
 
     cx: float
     cy: float
@@ -111,8 +111,10 @@ def _assemble(
     roof = np.zeros(n, dtype=bool)
     for b in boxes:
         inside = b.inside(px, py) & ~roof
-        top = float(ground(np.array([b.cx]), np.array([b.cy]))[0]) + b.height
-        z[inside] = top
+        # Level across, following the ground along its length (as platforms and tracks do).
+        c, s = np.cos(b.angle), np.sin(b.angle)
+        u = (px[inside] - b.cx) * c + (py[inside] - b.cy) * s
+        z[inside] = ground(b.cx + u * c, b.cy + u * s) + b.height
         cls[inside] = BUILDING
         roof |= inside
     if shrubs.shape[0]:
