@@ -1,0 +1,282 @@
+"""A job from inputs to outputs: plan, shard, blocks, finish — resumable at every step.
+
+The job directory holds everything: ``job.json`` (inputs, parameters),
+``plan.json`` (tiles, CRS, block grid), ``shards/<tile>/<block>.bin``,
+``blocks/<block>.npz`` and ``outputs/``. Each task writes its result
+atomically and is skipped when the result exists, so a restarted service or
+a repeated ``process`` call redoes only what is missing. The CLI and the
+service both drive jobs through ``run_job``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from terrasift.files import load_json
+from terrasift.jobs import finish, report
+from terrasift.jobs.block import run_block
+from terrasift.jobs.dirs import check_cancel
+from terrasift.jobs.plan import plan_job
+from terrasift.jobs.quicklooks import write_quicklooks
+from terrasift.progress import JobProgress
+from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
+from terrasift.workers.executors import Executor, Future
+
+#: called with work done, total work and details (stage, message, warnings)
+Progress = Callable[[int, int, Mapping[str, Any]], None]
+
+
+def run_job(
+    job_dir: Path, executor: Executor, progress: Progress | None = None, *, products: str = "all"
+) -> list[str]:
+    """Run (or resume) the job in ``job_dir`` on ``executor``; return output names.
+
+    ``products="classified"`` writes only the classified point clouds (and the report).
+    """
+    job_dir = Path(job_dir)
+    progress = progress or (lambda done, total, info: None)
+    started = time.perf_counter()
+    check_cancel(job_dir)
+    job = load_json(job_dir / "job.json")
+    params = job["params"]
+    plan = plan_job(job_dir, job)
+    grid = BlockGrid(**plan["grid"])
+    n_tiles = len(plan["tiles"])
+
+    # Finishing tasks: one classified point cloud per tile, and (all products)
+    # the rasters, then slope/categories/features from the mosaicked DTM. The
+    # list is in order of priority: the DTM first, since the terrain tasks
+    # wait on it, then the long tasks, so the workers finish together. A job
+    # that selected outputs runs only the tasks they need; the quicklooks come
+    # last, from whatever the tasks before them wrote.
+    want = finishing_wanted(job.get("outputs"), products)
+    finishing: list[Task] = []
+    if "classified" in want:
+        finishing = [Task(finish.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    if want - {"classified"}:
+        dtm = Task(finish.write_raster, (str(job_dir), "dtm"))
+        terrain = [
+            Task(fn, (str(job_dir),), after=(0,))
+            for key, fn in (("categories", finish.write_categories), ("slope", finish.write_slope))
+            if key in want
+        ]
+        others = [
+            Task(finish.write_raster, (str(job_dir), n))
+            for n in finish.RASTERS
+            if n != "dtm" and n in want
+        ]
+        finishing = [dtm, *finishing, *terrain, *others]
+    if "quicklooks" in want:
+        finishing.append(
+            Task(write_quicklooks, (str(job_dir),), after=tuple(range(len(finishing))))
+        )
+
+    # Progress is work done: every task's points times its kind's measured cost.
+    shard_root = job_dir / "shards"
+    parts = shard_parts([t["point_count"] for t in plan["tiles"]])
+    todo = [p for p in parts if not (shard_root / p.name).is_dir()]
+    points = sum(int(t["point_count"]) for t in plan["tiles"])
+    meter = JobProgress(progress, points, executor.workers, plan.get("warnings"))
+    for p in parts:
+        meter.add("shard", p.name, "shard", p.stop - p.start, done=p not in todo)
+    for i, task in enumerate(finishing):
+        kind = task.fn.__name__.removeprefix("write_")
+        tile_points = plan["tiles"][task.args[1]]["point_count"] if kind == "classified" else 0
+        meter.add("finish", i, kind, tile_points or points)
+    meter.add("report", "report", "report", points)
+    meter.reserve("blocks", "block")
+    meter.enter("shard")
+
+    # Shard: one streaming pass per tile (per part of a large tile).
+    t = time.perf_counter()
+    shard_args = [
+        (
+            plan["tiles"][p.tile]["path"],
+            p.tile,
+            grid,
+            str(shard_root / p.name),
+            1_000_000,
+            params.get("scan_dimension"),
+            p.start,
+            p.stop,
+        )
+        for p in todo
+    ]
+    _run_tasks(
+        executor,
+        job_dir,
+        shard_tile,
+        shard_args,
+        lambda i, _: meter.done("shard", todo[i].name),
+        meter.report,
+    )
+    shard_seconds = time.perf_counter() - t
+
+    # Blocks: every block that received a point from any tile.
+    sizes: dict[str, int] = {}
+    for shard in (
+        p
+        for d in shard_root.iterdir()
+        if d.is_dir() and not d.name.startswith(".")
+        for p in d.glob("*.bin")
+    ):
+        sizes[shard.stem] = sizes.get(shard.stem, 0) + shard.stat().st_size
+    # Largest blocks first, so the last tasks to finish are short ones and
+    # workers do not idle at the end of the job.
+    names = sorted(sizes, key=lambda n: (-sizes[n], n))
+    meter.split("blocks", sizes, "block")
+    meter.enter("blocks")
+    t = time.perf_counter()
+    block_stats = _run_tasks(
+        executor,
+        job_dir,
+        run_block,
+        [(str(job_dir), n) for n in names],
+        lambda i, _: meter.done("blocks", names[i]),
+        meter.report,
+    )
+    block_seconds = time.perf_counter() - t
+
+    t = time.perf_counter()
+    (job_dir / "outputs").mkdir(exist_ok=True)
+    meter.enter("finish")
+    _run_mixed_tasks(
+        executor,
+        job_dir,
+        finishing,
+        lambda i, _: meter.done("finish", i),
+        in_flight=executor.workers,
+        heartbeat=meter.report,
+    )
+    finish_seconds = time.perf_counter() - t
+    check_cancel(job_dir)
+    timings = {
+        "shard": shard_seconds,
+        "blocks": block_seconds,
+        "finish": finish_seconds,
+        "total": time.perf_counter() - started,
+    }
+    meter.enter("report")
+    names_out = report.write_report_and_item(job_dir, plan, params, block_stats, timings)
+    meter.done("report", "report")
+    if job.get("outputs") is not None:
+        keep = set(job["outputs"])
+        names_out = [
+            n
+            for n in names_out
+            if n in keep or (n.startswith("classified") and "classified.laz" in keep)
+        ]
+    return names_out
+
+
+#: finishing work each selectable output needs (outputs not named need none beyond the report)
+OUTPUT_TASKS = {
+    "classified.laz": {"classified"},
+    "dtm.tif": {"dtm"},
+    "dsm.tif": {"dsm"},
+    "chm.tif": {"chm"},
+    "coverage.tif": {"coverage"},
+    "slope.tif": {"slope"},
+    "categories.tif": {"categories"},
+    "features.geojson": {"categories"},
+    "features.native.geojson": {"categories"},
+    "thumbnail.png": {"quicklooks", "dtm"},
+    "hillshade.png": {"quicklooks", "dtm"},
+    "chm.png": {"quicklooks", "chm"},
+    "coverage.png": {"quicklooks", "coverage"},
+    "categories.png": {"quicklooks", "categories"},
+    "features.png": {"quicklooks", "dtm", "categories"},
+    "steep_blocks.png": {"quicklooks", "dtm"},
+}
+
+
+def finishing_wanted(selected: list[str] | None, products: str = "all") -> set[str]:
+    """Finishing tasks for the selected outputs (None: every output of ``products``)."""
+    if products == "classified":
+        return {"classified"}
+    if selected is None:
+        return set().union(*OUTPUT_TASKS.values())
+    return set().union(set(), *(OUTPUT_TASKS.get(n, set()) for n in selected))
+
+
+@dataclass(frozen=True)
+class Task:
+    """A call to submit, once the tasks at positions ``after`` (same list) are done."""
+
+    fn: Callable[..., Any]
+    args: tuple
+    after: tuple[int, ...] = ()
+
+
+def _run_tasks(
+    executor: Executor,
+    job_dir: Path,
+    fn: Callable[..., Any],
+    arg_list: list[tuple],
+    on_done: Callable[[int, Any], None],
+    heartbeat: Callable[[], None] | None = None,
+) -> list[Any]:
+    return _run_mixed_tasks(
+        executor, job_dir, [Task(fn, a) for a in arg_list], on_done, heartbeat=heartbeat
+    )
+
+
+def _run_mixed_tasks(
+    executor: Executor,
+    job_dir: Path,
+    tasks: list[Task],
+    on_done: Callable[[int, Any], None],
+    *,
+    in_flight: int | None = None,
+    heartbeat: Callable[[], None] | None = None,
+) -> list[Any]:
+    """Submit every task as soon as the tasks it comes after are done; wait for
+    all and return their results in list order.
+
+    With ``in_flight``, at most that many tasks are submitted at a time and a
+    free slot goes to the first ready task in list order: the list is a
+    priority order (a pool runs what it was given first-come, first-served).
+    ``on_done(position, result)`` follows each task; ``heartbeat`` each wait.
+    The first failure cancels the rest and is raised; so is a dismissal seen
+    between waits (running tasks see the marker themselves).
+    """
+    results: dict[int, Any] = {}
+    futures: dict[int, Future] = {}
+    position: dict[int, int] = {}  # id(future) -> task position
+    waiting = set(range(len(tasks)))
+    limit = in_flight or len(tasks)
+
+    def submit_ready() -> None:
+        for i in sorted(waiting):
+            if len(futures) - len(results) >= limit:
+                return
+            if all(j in results for j in tasks[i].after):
+                futures[i] = executor.submit(tasks[i].fn, *tasks[i].args)
+                position[id(futures[i])] = i
+                waiting.discard(i)
+
+    try:
+        submit_ready()
+        while len(results) < len(tasks):
+            running = [f for i, f in futures.items() if i not in results]
+            if not running:
+                raise RuntimeError(f"tasks {sorted(waiting)} wait on tasks that never run")
+            done = executor.wait_any(running, timeout=0.5)
+            for f in done:
+                i = position[id(f)]
+                results[i] = f.result()
+                on_done(i, results[i])
+            if heartbeat is not None:
+                heartbeat()
+            submit_ready()
+            check_cancel(job_dir)
+    except BaseException:
+        for i, f in futures.items():
+            if i not in results:
+                f.cancel()
+        raise
+    return [results[i] for i in range(len(tasks))]
