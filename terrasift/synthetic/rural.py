@@ -313,16 +313,19 @@ def rural_slope(seed: int, size: float = 200.0) -> Scene:
                 ]
             )
         )
-    embankments = [
-        Embankment(
-            *rng.uniform(0.2, 0.8, 2) * size,
-            rng.uniform(0, np.pi),
-            rng.uniform(4, 10),
-            rng.choice([-1, 1]) * rng.uniform(0.5, 3.0),
-            1 / rng.uniform(1.0, 2.0),
+    embankments = []
+    for _ in range(int(rng.integers(0, 3))):
+        cx, cy = rng.uniform(0.2, 0.8, 2) * size  # drawn first, as before
+        embankments.append(
+            Embankment(
+                float(cx),
+                float(cy),
+                rng.uniform(0, np.pi),
+                rng.uniform(4, 10),
+                rng.choice([-1, 1]) * rng.uniform(0.5, 3.0),
+                1 / rng.uniform(1.0, 2.0),
+            )
         )
-        for _ in range(int(rng.integers(0, 3)))
-    ]
     return _assemble(
         rng,
         size,
