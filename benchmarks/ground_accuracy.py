@@ -189,8 +189,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"support_k": 0},
         {"screen_tol": 0.5},
         {"snap_cells": False},
-        {"raised_relative": False},
-        {"raised_slope": 20.0, "raised_relative": False},
+        {"raised_relative": True},
+        {"raised_slope": 20.0},
     ],
 }
 

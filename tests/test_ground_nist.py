@@ -630,9 +630,9 @@ def test_relative_steps_keep_a_hill_with_steep_slopes_and_drop_a_platform():
     not (DATA / "isprs" / "samp52.laz").exists(), reason="shared ISPRS data not present"
 )
 def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_steps():
-    # Steep slopes: with steps measured against level (raised_relative off), a
-    # hilltop between slope edges is cut off as a raised segment at some
-    # translations (kappa 70-72 at these two).
+    # Steep slopes: with steps measured against level (the default), a hilltop
+    # between slope edges is cut off as a raised segment at some translations
+    # (kappa 70-72 at these two).
     laspy = pytest.importorskip("laspy")
     las = laspy.read(str(DATA / "isprs" / "samp52.laz"))
     xyz = np.column_stack([las.x, las.y, las.z])
