@@ -25,15 +25,9 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     scan, path = _scan_tile(tmp_path)
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
-    # the angular cells of the mixed filter must be at least the scan step (0.4°)
+    # the mixed filter's angles and distances follow from the scan measured in each block
     params = jobs.validate_params(
-        {
-            "sensor_origin": origin,
-            "features": "none",
-            "block_size": 40,
-            "buffer": 4,
-            "mixed.cell_angle": 0.5,
-        }
+        {"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4}
     )
     jobs.prepare_job(job, [path], params)
     jobs.run_job(job, InlineExecutor())
@@ -43,12 +37,16 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     # most marked points are real mixed or ghost returns, and few correct points are lost
     precision = np.mean(scan.is_mixed[marked])
     fpr = np.mean(marked[~scan.is_mixed])
-    assert precision > 0.4 and fpr < 0.03, (
-        precision,
-        fpr,
-    )  # measured 0.51 and 0.014 on this coarse scan
+    tpr = np.mean(marked[scan.is_mixed])
+    # measured: tpr 0.45, precision 0.46, fpr 0.018 on this coarse (0.4°) scan with a
+    # footprint under one step (1° cells from the measured step; fixed 0.5° cells:
+    # 0.42, 0.60, 0.009): coarse scans are where the filter is weakest
+    assert tpr > 0.4 and precision > 0.4 and fpr < 0.025, (tpr, precision, fpr)
     report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"]["marked"] == int(marked.sum())
+    geo = report["mixed_measurements"]["geometry"]["0"]
+    assert abs(geo["step_az"] - 0.4) < 0.02 and abs(geo["cell_angle"] - 2.5 * geo["step"]) < 1e-3
+    assert set(geo["how"]) == {"las_scale", "step", "range_noise", "footprint"}
     assert report["counts_per_class"]["7"] == int(marked.sum())
     assert (classes == 2).sum() > 0.2 * len(scan)  # the ground plane in front of the mast
 

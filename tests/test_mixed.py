@@ -21,7 +21,7 @@ VARIANTS = (
 
 @pytest.fixture(scope="module")
 def scan():
-    # The scan step must not exceed the hash cell (0.25°), as for real scans.
+    # The stage measures the scan's step (0.2°) and sizes its cells from it.
     return make_scan(step_deg=0.2, azimuth_deg=(-30.0, 30.0), n_boards=3, n_poles=3, seed=5)
 
 
@@ -37,7 +37,10 @@ def test_scan_truth_is_exact_and_mixed_points_lie_between_surfaces(scan):
     rel = scan.xyz - scan.origin
     on_ground = np.abs(rel[:, 2] + 1.5) < 0.03  # mast height 1.5 m
     assert on_ground[scan.truth == CORRECT].mean() > 0.5
-    assert not (on_ground & scan.is_mixed).any()
+    # Truth is taken on the noise-free returns (> 3 cm off every surface); with
+    # 4 mm range noise none of them comes within 1 cm of the ground.
+    near_ground = np.abs(rel[:, 2] + 1.5) < 0.01
+    assert not (near_ground & scan.is_mixed).any()
 
 
 def test_default_marks_most_mixed_and_few_correct(scan):

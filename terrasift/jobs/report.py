@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyproj
 
 from terrasift.files import PARTIAL, write_json
@@ -77,6 +78,7 @@ def write_report_and_item(
             {
                 "marked": sum(m["marked"] for m in mixed),
                 "unclassified": sum(m["unclassified"] for m in mixed),
+                "geometry": _scan_geometry(mixed),
             }
             if mixed
             else "not run: no sensor_origin given"
@@ -130,3 +132,22 @@ def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> di
             }
         )
     return {"type": "FeatureCollection", "features": feats}
+
+
+def _scan_geometry(mixed: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per scan position: the median over blocks of each measured or derived value."""
+    per: dict[str, list[dict[str, Any]]] = {}
+    for m in mixed:
+        for g in m.get("geometry", []):
+            per.setdefault(str(g["scan"]), []).append(g)
+    out: dict[str, dict[str, Any]] = {}
+    for scan, gs in sorted(per.items()):
+        flat = [{**g, **g.get("measured", {})} for g in gs]
+        vals: dict[str, list[float]] = {}
+        for f in flat:
+            for k, v in f.items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "scan":
+                    vals.setdefault(k, []).append(float(v))
+        out[scan] = {"blocks": len(gs), **{k: float(np.median(v)) for k, v in vals.items()}}
+        out[scan]["how"] = gs[0].get("measured", {}).get("how", "stated parameters")
+    return out

@@ -44,7 +44,9 @@ def create_app(
         def executor_factory() -> Executor:
             from terrasift.workers.executors import make_executor
 
-            return make_executor(settings.workers, settings.dask_scheduler)
+            return make_executor(
+                settings.workers, settings.dask_scheduler, settings.dask_no_workers_timeout
+            )
 
     auth = Auth(
         settings.auth_enabled, load_tokens(settings.token_file) if settings.token_file else {}

@@ -77,24 +77,32 @@ def make_scan(
     elevation_deg: tuple[float, float] = (-25.0, 10.0),
     mast_height: float = 1.5,
     beam_deg: tuple[float, float] = (0.25, 0.12),
+    footprint_steps: float | None = None,
     sub_rays: tuple[int, int] = (11, 3),
     centre_intensity: float = 0.5,
     n_boards: int = 8,
     n_poles: int = 10,
     object_range: tuple[float, float] = (3.0, 15.0),
     wall_gap: tuple[float, float] = (1.0, 2.5),
-    max_range: float = 30.0,
+    max_range: float | None = None,
     max_mix_gap: float = 2.5,
     min_share: float = 0.05,
     range_noise: float = 0.004,
+    las_scale: float = 0.0,
     tol: float = 0.03,
     origin: tuple[float, float, float] = (500_000.0, 5_400_000.0, 100.0),
     seed: int = 0,
+    chunk: int = 20_000,
 ) -> Scan:
     """Ray-cast one scan of boards and poles in front of walls; see the module doc.
 
     ``beam_deg`` is the footprint (across, along the elevation), ``sub_rays`` its
     sampling; the outer half of the footprint across is the high-intensity lobes.
+    ``footprint_steps`` instead gives a square footprint of that many angular steps
+    (a mixed return then spreads as a ramp over about as many neighbouring beams).
+    ``las_scale`` > 0 rounds the absolute coordinates to that step, as a LAS file
+    stores them. ``max_range`` defaults to the farthest wall plus 5 m. Truth is
+    taken on the noise-free returns, so it does not depend on noise or scale.
     """
     rng = np.random.default_rng(seed)
     sensor = np.array([0.0, 0.0, mast_height])
@@ -102,12 +110,15 @@ def make_scan(
         rng, n_boards, n_poles, azimuth_deg, object_range, wall_gap
     )
     planes = boards + walls
+    if max_range is None:
+        max_range = object_range[1] + wall_gap[1] + 5.0
+    if footprint_steps is not None:
+        beam_deg = (footprint_steps * step_deg, footprint_steps * step_deg)
 
     step = np.radians(step_deg)
     az = np.arange(np.radians(azimuth_deg[0]), np.radians(azimuth_deg[1]), step)
     el = np.arange(np.radians(elevation_deg[0]), np.radians(elevation_deg[1]), step)
     A, E = (g.ravel() for g in np.meshgrid(az, el, indexing="ij"))
-    centre = _direction(A, E)
 
     # Sub-ray offsets across (a) and along elevation (b); lobes at |a| >= 0.5.
     na, nb = sub_rays
@@ -116,6 +127,67 @@ def make_scan(
     ga, gb = (g.ravel() for g in np.meshgrid(a, b, indexing="ij"))
     intensity = np.where(np.abs(ga) >= 0.5, 1.0, centre_intensity)
     half_w, half_h = np.radians(beam_deg[0]) / 2, np.radians(beam_deg[1]) / 2
+    pole_ids = np.arange(1 + len(planes), 1 + len(planes) + len(poles))
+
+    # Chunks of beams keep the (beams, sub-rays, 3) arrays small.
+    ranges = np.full(A.size, np.inf)
+    ghost = np.zeros(A.size, dtype=bool)
+    for c0 in range(0, A.size, chunk):
+        sl = slice(c0, min(c0 + chunk, A.size))
+        ranges[sl], ghost[sl] = _cast(
+            A[sl],
+            E[sl],
+            ga,
+            gb,
+            intensity,
+            half_w,
+            half_h,
+            sensor,
+            mast_height,
+            max_range,
+            planes,
+            poles,
+            pole_ids,
+            max_mix_gap,
+            min_share,
+        )
+    ok = np.isfinite(ranges)
+    centre = _direction(A[ok], E[ok])
+    clean = sensor + centre * ranges[ok][:, None]
+    pts = sensor + centre * (ranges[ok] + rng.normal(0.0, range_noise, ok.sum()))[:, None]
+    ghost = ghost[ok]
+
+    dist = _distance_to_scene(clean, planes, poles)
+    truth = np.full(pts.shape[0], CORRECT, dtype=np.uint8)
+    off = dist > tol
+    truth[off] = MIXED
+    truth[off & ghost] = GHOST
+    shift = np.asarray(origin, dtype=np.float64)
+    xyz = pts + shift
+    if las_scale > 0:
+        xyz = np.round(xyz / las_scale) * las_scale
+    return Scan(xyz=xyz, truth=truth, origin=sensor + shift, boards=planes, poles=poles)
+
+
+def _cast(
+    A,
+    E,
+    ga,
+    gb,
+    intensity,
+    half_w,
+    half_h,
+    sensor,
+    mast_height,
+    max_range,
+    planes,
+    poles,
+    pole_ids,
+    max_mix_gap,
+    min_share,
+):
+    """Range and ghost flag of each beam (azimuth A, elevation E)."""
+    centre = _direction(A, E)
     e_az = np.stack([-np.sin(A), np.cos(A), np.zeros_like(A)], axis=1)
     e_el = np.stack([-np.sin(E) * np.cos(A), -np.sin(E) * np.sin(A), np.cos(E)], axis=1)
     dirs = (
@@ -145,23 +217,53 @@ def make_scan(
         sub_i = hit_id[rows]
         sub_r[closer], sub_i[closer] = t[closer], k
         rng_hit[rows], hit_id[rows] = sub_r, sub_i
+    return _combine(rng_hit, hit_id, intensity, np.abs(ga) >= 0.5, pole_ids, max_mix_gap, min_share)
 
-    pole_ids = np.arange(1 + len(planes), 1 + len(planes) + len(poles))
-    ranges, ghost = _combine(
-        rng_hit, hit_id, intensity, np.abs(ga) >= 0.5, pole_ids, max_mix_gap, min_share
+
+@dataclass
+class ScanTile:
+    """Several scan positions in one tile: points, truth, origins (k, 3) and each point's position."""
+
+    xyz: NDArray[np.float64]
+    truth: NDArray[np.uint8]
+    origins: NDArray[np.float64]
+    scan_id: NDArray[np.intp]
+
+    @property
+    def is_mixed(self) -> NDArray[np.bool_]:
+        return self.truth != CORRECT
+
+    def __len__(self) -> int:
+        return self.xyz.shape[0]
+
+
+def make_scan_tile(
+    positions: list[tuple[float, float, float]],
+    *,
+    ground: tuple[float, float, float] = (500_000.0, 5_400_000.0, 100.0),
+    seed: int = 0,
+    **scan_kw,
+) -> ScanTile:
+    """Scans from several positions (dx, dy, mast height) over one level ground.
+
+    Each position ray-casts its own objects (a new draw per position), so per-point
+    truth stays exact; positions share the ground plane at ``ground``'s height.
+    """
+    parts = [
+        make_scan(
+            origin=(ground[0] + dx, ground[1] + dy, ground[2]),
+            mast_height=mast,
+            seed=seed * 1000 + k,
+            **scan_kw,
+        )
+        for k, (dx, dy, mast) in enumerate(positions)
+    ]
+    return ScanTile(
+        xyz=np.vstack([p.xyz for p in parts]),
+        truth=np.concatenate([p.truth for p in parts]),
+        origins=np.vstack([p.origin for p in parts]),
+        scan_id=np.concatenate([np.full(len(p), k, dtype=np.intp) for k, p in enumerate(parts)]),
     )
-    ok = np.isfinite(ranges)
-    ranges = ranges[ok] + rng.normal(0.0, range_noise, ok.sum())
-    pts = sensor + centre[ok] * ranges[:, None]
-    ghost = ghost[ok]
-
-    dist = _distance_to_scene(pts, planes, poles)
-    truth = np.full(pts.shape[0], CORRECT, dtype=np.uint8)
-    off = dist > tol
-    truth[off] = MIXED
-    truth[off & ghost] = GHOST
-    shift = np.asarray(origin, dtype=np.float64)
-    return Scan(xyz=pts + shift, truth=truth, origin=sensor + shift, boards=planes, poles=poles)
 
 
 def _direction(az: NDArray, el: NDArray) -> NDArray[np.float64]:
@@ -257,6 +359,8 @@ def _combine(rng_hit, hit_id, intensity, lobe, pole_ids, max_mix_gap, min_share)
     total = energy.sum(axis=1)
     ranges = np.full(n_rays, np.inf)
     ids = np.unique(hit_id[hit])
+    if ids.size == 0:
+        return ranges, np.zeros(n_rays, dtype=bool)
     # Per beam and surface id: energy share and energy-weighted mean range.
     share = np.zeros((n_rays, ids.size))
     mean_r = np.full((n_rays, ids.size), np.inf)

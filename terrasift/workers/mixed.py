@@ -39,8 +39,8 @@ No Python loop runs over points; the only loop is over scan positions.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +49,7 @@ from pydantic import Field, model_validator
 from terrasift.errors import InputError, ParameterError
 from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
 from terrasift.workers.registry import StageParams, register
+from terrasift.workers.scan_geometry import measure_scan_geometry
 
 Variant = Literal[
     "naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"
@@ -69,8 +70,9 @@ class MixedParams(StageParams):
     contains the ray within ``normal_angle``; both: the two together."""
     votes: int = Field(3, ge=1, le=1000)
     """Votes a point needs to be marked by the accumulator variant."""
-    box_width: float = Field(0.15, gt=0.0, le=10.0)
-    """Box extent across the ray, horizontal before roll."""
+    box_width: float | None = Field(None, gt=0.0, le=10.0)
+    """Box extent across the ray, horizontal before roll, in metres. None: an angle,
+    ``box_factor`` × (footprint + cell_angle) of the scan, times each box's range."""
     box_height: float = Field(0.8, gt=0.0, le=10.0)
     """Box extent across the ray, vertical before roll."""
     box_depth: float = Field(2.5, gt=0.0, le=20.0)
@@ -91,15 +93,35 @@ class MixedParams(StageParams):
     window of its front face, so it widens with range)."""
     voxel_size: float = Field(0.05, ge=0.0, le=1.0)
     """Range step of the sparse voxels that share one interest box (0: one box per point)."""
-    cell_angle: float = Field(0.25, gt=0.0, le=5.0)
+    cell_angle: float | None = Field(None, gt=0.0, le=5.0)
     """Angular size of the hash cells seen from the sensor; sets the lateral precision.
-    Must be at least the scan's angular step, or neighbouring cells are empty and
-    lateral support fails."""
-    support_tol: float = Field(0.02, gt=0.0, le=1.0)
+    None: ``cell_steps`` × the scan's measured angular step. A cell equal to the step
+    is the worst choice (every beam sits on a cell border, so neighbouring cells hold
+    zero or two beams and lateral support fails), and cells of 1.2–2 steps alias
+    against the scan lines; a fixed value should be about 2.5 steps or more."""
+    cell_steps: float = Field(2.5, ge=1.0, le=20.0)
+    """Cell angle in measured angular steps when ``cell_angle`` is None (a non-integer
+    multiple keeps the cell borders off the scan lines' rhythm)."""
+    support_tol: float | None = Field(None, gt=0.0, le=1.0)
     """Lateral support: a point where the surface seen in the next two angular cells
     across the box, extrapolated linearly, lands within support_tol of its range
     lies on a surface crossing the box, so it is not box content (it can still be
-    an interest point). Mixed returns lie off that line."""
+    an interest point). Mixed returns lie off that line. None: ``support_sigmas`` ×
+    the scan's measured range scatter (noise and LAS quantisation)."""
+    support_sigmas: float = Field(5.0, gt=0.0, le=50.0)
+    """Support tolerance in measured range sd when ``support_tol`` is None (the
+    extrapolation from two cells scatters by about 2.4 sd)."""
+    box_factor: float = Field(2.0, gt=0.0, le=20.0)
+    """Box width as an angle, in units of (footprint + cell_angle), when ``box_width``
+    is None: a mixed ramp spreads over the footprint, and the box must hold it
+    with its neighbouring cells."""
+    resolve: float = Field(0.25, gt=0.0, le=10.0)
+    """Points whose angle the LAS coordinate step blurs by more than resolve × cell_angle
+    (sd of the quantisation, scale / √12 / range) are never box content: too near for
+    the file to tell neighbouring beams apart. Needs the measured geometry."""
+    footprint: float | None = Field(None, gt=0.0, le=10.0)
+    """Beam footprint across the scan lines in degrees when known; None measures it
+    from the ramps of blended returns at range edges (one step when none shows)."""
     cross_box: bool = False
     """Also evaluate a second box turned 90° about the ray, for mixed sheets along
     horizontal edges (board tops and bottoms)."""
@@ -137,6 +159,8 @@ class MixedResult:
     n_unclassified: int
     n_regions: int  # interest boxes evaluated
     n_triggered: int  # interest boxes whose trigger fired
+    geometry: list[dict[str, Any]] = field(default_factory=list)
+    """Per scan position: the measured scan geometry and the values it gave the stage."""
 
 
 @register("mixed", MixedParams, "Tuley mixed-measurement removal for ground-based scans")
@@ -160,12 +184,18 @@ def mark_mixed(
     marked = np.zeros(n, dtype=bool)
     unclassified = np.zeros(n, dtype=bool)
     n_regions = n_triggered = 0
+    geometry: list[dict[str, Any]] = []
     for k in range(origins.shape[0]):
         idx = np.flatnonzero(ids == k) if ids is not None else slice(None)
-        m, u, nr, nt = _mark_scan(xyz[idx] - origins[k], params)
+        rel = xyz[idx] - origins[k]
+        if rel.shape[0] == 0:
+            continue
+        derived = derive_params(rel, params, absolute=xyz[idx])
+        m, u, nr, nt = _mark_scan(rel, derived.params, derived.box_angle, derived.las_scale)
         marked[idx], unclassified[idx] = m, u
         n_regions += nr
         n_triggered += nt
+        geometry.append({"scan": k, "points": int(rel.shape[0]), **derived.report()})
     n_unc = int(unclassified.sum())
     return MixedResult(
         marked=marked,
@@ -176,7 +206,60 @@ def mark_mixed(
         n_unclassified=n_unc,
         n_regions=n_regions,
         n_triggered=n_triggered,
+        geometry=geometry,
     )
+
+
+@dataclass(frozen=True)
+class Derived:
+    """Stage parameters of one scan position with the geometry they came from."""
+
+    params: MixedParams  # cell_angle and support_tol resolved
+    box_angle: float | None  # box width as an angle (radians); None: params.box_width
+    geometry: Any  # ScanGeometry or None
+
+    @property
+    def las_scale(self) -> float:
+        return self.geometry.las_scale if self.geometry is not None else 0.0
+
+    def report(self) -> dict[str, Any]:
+        p = self.params
+        out: dict[str, Any] = {
+            "cell_angle": round(float(p.cell_angle or 0.0), 6),
+            "support_tol": round(float(p.support_tol or 0.0), 6),
+            # box width across the ray: metres, or degrees (times each box's range)
+            "box_width": p.box_width,
+            "box_angle": None if self.box_angle is None else round(np.degrees(self.box_angle), 6),
+        }
+        if self.geometry is not None:
+            out["measured"] = self.geometry.to_dict()
+        return out
+
+
+def derive_params(
+    rel: NDArray[np.float64], p: MixedParams, absolute: NDArray[np.float64] | None = None
+) -> Derived:
+    """Resolve the angles and distances left open (None) from the scan's measured geometry.
+
+    Without enough points to measure, the values the filter was first tuned with
+    (0.25° cells, 2 cm support, 15 cm boxes) stand in.
+    """
+    if p.cell_angle is not None and p.support_tol is not None and p.box_width is not None:
+        return Derived(p, None, None)
+    geo = measure_scan_geometry(rel, footprint=p.footprint, absolute=absolute)
+    if geo is None:
+        upd = {"cell_angle": p.cell_angle or 0.25, "support_tol": p.support_tol or 0.02}
+        return Derived(p.model_copy(update={**upd, "box_width": p.box_width or 0.15}), None, None)
+    cell = p.cell_angle if p.cell_angle is not None else p.cell_steps * geo.step
+    tol = (
+        p.support_tol
+        if p.support_tol is not None
+        else float(np.clip(p.support_sigmas * geo.range_sigma, 0.002, 1.0))
+        if np.isfinite(geo.range_sigma)
+        else 0.02
+    )
+    box = None if p.box_width is not None else np.radians(p.box_factor * (geo.footprint + cell))
+    return Derived(p.model_copy(update={"cell_angle": cell, "support_tol": tol}), box, geo)
 
 
 def _scan_layout(
@@ -201,8 +284,22 @@ def _scan_layout(
     return origins, ids.astype(np.intp)
 
 
-def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArray, int, int]:
-    """Filter one scan; ``rel`` is relative to its sensor. Returns marks, unclassified, counts."""
+def _mark_scan(
+    rel: NDArray[np.float64],
+    p: MixedParams,
+    box_angle: float | None = None,
+    las_scale: float = 0.0,
+) -> tuple[NDArray, NDArray, int, int]:
+    """Filter one scan; ``rel`` is relative to its sensor. Returns marks, unclassified, counts.
+
+    ``p`` has its cell angle and support tolerance resolved; the box width is
+    ``box_angle`` (radians) × each box's range, or ``p.box_width`` when it is None.
+    """
+    if p.cell_angle is None or p.support_tol is None:
+        raise ValueError("cell_angle and support_tol must be resolved first (derive_params)")
+    if box_angle is None and p.box_width is None:
+        raise ValueError("a box width or a box angle is needed")
+    cell_angle, support_tol = p.cell_angle, p.support_tol
     n = rel.shape[0]
     marked = np.zeros(n, dtype=bool)
     unclassified = np.ones(n, dtype=bool)
@@ -213,7 +310,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     q, r = rel[valid], r[valid]
 
     # Sparse hash of angular cells; points sorted by (cell, range).
-    beta = np.radians(p.cell_angle)
+    beta = np.radians(cell_angle)
     n_az = int(np.ceil(2 * np.pi / beta))
     n_el = int(np.ceil(np.pi / beta)) + 1
     az = np.arctan2(q[:, 1], q[:, 0])
@@ -235,12 +332,19 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     key = cell * big + r
 
     # Lateral support: the surface through the neighbours across azimuth (elevation) continues through the point.
-    sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=0)
+    sup_az = _continued(key, r, az, el, ia, ie, n_az, n_el, big, beta, support_tol, axis=0)
     sup_el = (
-        _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, p.support_tol, axis=1)
+        _continued(key, r, el, az, ia, ie, n_az, n_el, big, beta, support_tol, axis=1)
         if p.cross_box
         else sup_az
     )
+    if las_scale > 0:
+        # Too near for the file's coordinate step to tell the cells apart: the
+        # angle of a point jitters by scale / range, so its neighbours cannot be
+        # found by cell; such points are left alone (never box content).
+        blurred = las_scale / np.sqrt(12.0) / r > p.resolve * beta
+        sup_az = sup_az | blurred
+        sup_el = sup_el | blurred
 
     # Interest voxels: runs of one cell within one range step; the nearest point is the interest point.
     rbin = np.floor(r / p.voxel_size).astype(np.int64) if p.voxel_size > 0 else np.arange(r.size)
@@ -250,6 +354,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
     item_of = np.cumsum(new) - 1
     n_items = first.size
     P, r0, ia0, ie0 = q[first], r[first], ia[first], ie[first]
+    bw = r0 * box_angle if box_angle is not None else np.full(n_items, float(p.box_width or 0.0))
 
     blind = p.blind_depth if "blind" in p.variant else 0.0
     box_votes = np.zeros(r.size, dtype=np.int64)  # boxes whose region holds the point
@@ -270,7 +375,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
         cand = np.flatnonzero(~sup)
         candidate[cand] = True
         frames = box_frames(P, np.radians(roll))
-        na, ne = window_extent(P, r0, frames, p.box_width, p.box_height, beta, n_az)
+        na, ne = window_extent(P, r0, frames, bw, p.box_height, beta, n_az)
         fired = np.zeros(n_items, dtype=bool)
         counted = np.zeros(n_items, dtype=bool)
         if cand.size:
@@ -284,7 +389,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
                 na[look],
                 ne[look],
                 frames[look],
-                p.box_width,
+                bw[look],
                 p.box_height,
                 beta,
                 n_az,
@@ -317,7 +422,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
             counted = S[:, 0] >= p.min_points
             ci = np.flatnonzero(counted)
             if ci.size:
-                fired[ci] = _trigger(S[ci], frames[ci], r0[ci], p)
+                fired[ci] = _trigger(S[ci], frames[ci], r0[ci], bw[ci], p)
 
             # Marking through difference arrays over the sorted content.
             sel = fired[it]
@@ -473,7 +578,11 @@ def _window_count(
 
 
 def _trigger(
-    S: NDArray[np.float64], frames: NDArray[np.float64], r0: NDArray[np.float64], p: MixedParams
+    S: NDArray[np.float64],
+    frames: NDArray[np.float64],
+    r0: NDArray[np.float64],
+    bw: NDArray[np.float64],
+    p: MixedParams,
 ) -> NDArray[np.bool_]:
     """Saliency of each box from its moment sums; which boxes fire."""
     n = S[:, 0]
@@ -502,7 +611,7 @@ def _trigger(
     along = np.einsum("ij,ijk,ik->i", mdir, cov, mdir)
     # Thin: rms across the sheet under thinness × that of points filling the box
     # width, the box being the angular window of its front face, widened with range.
-    fill = (p.box_width * rbar / r0) ** 2 / 12.0
+    fill = (bw * rbar / r0) ** 2 / 12.0
     thin = mu <= p.thinness**2 * fill
     # The content must reach along the ray (at least half as far, in rms, as across
     # it): a row of ground points across the ray lies in such a plane too.
@@ -514,8 +623,10 @@ def _trigger(
     # surfaceness: saliency in box units (each axis over the box's extent), so a
     # box filled at random is isotropic; the sheet must be the box's long plane
     # (normal along the width axis), which roll turns about the ray.
-    scale = np.array([1.0 / p.box_depth, 1.0 / p.box_width, 1.0 / p.box_height])
-    R = frames * scale[None, :, None]
+    scale = np.column_stack(
+        [np.full(bw.size, 1.0 / p.box_depth), 1.0 / bw, np.full(bw.size, 1.0 / p.box_height)]
+    )
+    R = frames * scale[:, :, None]
     cb = R @ cov @ np.transpose(R, (0, 2, 1))
     wb, vb = np.linalg.eigh(cb)
     b2, b1, b0 = np.maximum(wb[:, 0], 0.0), wb[:, 1], wb[:, 2]

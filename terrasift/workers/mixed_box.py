@@ -33,7 +33,7 @@ def window_extent(
     P: NDArray[np.float64],
     r0: NDArray[np.float64],
     frames: NDArray[np.float64],
-    width: float,
+    width: NDArray[np.float64] | float,
     height: float,
     beta: float,
     n_az: int,
@@ -63,7 +63,7 @@ def window_pairs(
     na: NDArray[np.int64],
     ne: NDArray[np.int64],
     frames: NDArray[np.float64],
-    width: float,
+    width: NDArray[np.float64],
     height: float,
     beta: float,
     n_az: int,
@@ -110,7 +110,7 @@ def window_pairs(
         with np.errstate(divide="ignore", invalid="ignore"):
             u = r0[item] * np.einsum("ij,ij->i", d, f[:, 1]) / s
             v = r0[item] * np.einsum("ij,ij->i", d, f[:, 2]) / s
-        keep = ((s > 0) & (np.abs(u) <= width / 2) & (np.abs(v) <= height / 2)) | (
+        keep = ((s > 0) & (np.abs(u) <= width[item] / 2) & (np.abs(v) <= height / 2)) | (
             (da == 0) & (de == 0)
         )
         out_i.append(item[keep])

@@ -40,7 +40,8 @@ def _mixed_halo(models: BlockModels, density: float) -> float:
         return 0.0
     p = models.mixed
     # the interest box of a core point reaches its depth along the ray and half its width across
-    return float(p.box_depth + max(p.box_width, p.box_height))
+    # (a box width measured from the scan is an angle: its height bounds it in practice)
+    return float(p.box_depth + max(p.box_width or p.box_height, p.box_height))
 
 
 @block_step("mixed", order=10, halo=_mixed_halo)
@@ -57,6 +58,7 @@ def mixed_step(block: Block, models: BlockModels) -> None:
         "marked": int(found.marked[core].sum()),
         "unclassified": int(found.unclassified[core].sum()),
         "loss_rate": float(found.unclassified[core].mean()) if core.any() else 0.0,
+        "geometry": found.geometry,
     }
     block.act = np.flatnonzero(~found.marked)
     block.sub = block.xyz[block.act]

@@ -1,0 +1,290 @@
+"""Scan geometry measured from the points of one ground-based scan position.
+
+The mixed-measurement filter works in the sensor's angle space, so its angles
+and distances follow from the scanner: the angular step between beams in
+azimuth and in elevation, the range noise, the LAS scale (an angular
+uncertainty of scale / range at each range) and the beam footprint (a mixed
+return blends what the footprint covers, so at an edge it spreads as a ramp
+over about footprint / step neighbouring beams). Everything here is measured
+on the points relative to the sensor; nothing assumes a scanner model beyond
+beams on (locally) regular angular lines.
+
+- LAS scale: the smallest step that divides the differences of the sorted
+  coordinate values (0 when the coordinates are not quantised).
+- Angular step: per point, the nearest neighbour in angle space lying along
+  azimuth (resp. elevation); the median of those spacings. Only points far
+  enough for the scale's angular uncertainty to stay under a tenth of a step
+  take part.
+- Range noise: residual of each point's range against the line through its
+  two azimuth neighbours (a local plane seen along a scan line); a robust sd,
+  then the LAS quantisation's share (scale²/12) taken out.
+- Footprint: the scan lines are binned on the measured azimuth grid; at each
+  range edge between two surfaces closer than ``max_gap`` the number of beams
+  whose range lies between the two (the ramp) is counted; the footprint is the
+  mean ramp length in steps (at least one step). Stated when the caller knows it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
+REGULAR = 0.5  # share of neighbour spacings within 25 % of the step for a scan grid
+
+
+@dataclass(frozen=True)
+class ScanGeometry:
+    """Measured geometry of one scan position (angles in degrees, lengths in metres)."""
+
+    step_az: float
+    step_el: float
+    range_noise: float  # instrument noise, quantisation removed
+    range_sigma: float  # total range scatter the filter sees (noise and quantisation)
+    las_scale: float  # 0 when the coordinates are not quantised
+    footprint: float  # beam footprint across the scan lines
+    footprint_steps: float
+    n_points: int
+    how: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def step(self) -> float:
+        """The coarser of the two steps: the spacing every cell must hold."""
+        return max(self.step_az, self.step_el)
+
+    def angular_uncertainty(self, r: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
+        """Angle (degrees) of the LAS quantisation (sd of a uniform step) at range ``r``."""
+        return np.degrees(self.las_scale / np.sqrt(12.0) / np.maximum(r, 1e-6))
+
+    def to_dict(self) -> dict[str, object]:
+        d = asdict(self)
+        d["step"] = self.step
+        for k, v in d.items():
+            if isinstance(v, float):
+                d[k] = float(f"{v:.6g}")
+        return d
+
+
+def measure_scan_geometry(
+    rel: NDArray[np.float64],
+    *,
+    footprint: float | None = None,
+    las_scale: float | None = None,
+    absolute: NDArray[np.float64] | None = None,
+    max_gap: float = 2.5,
+) -> ScanGeometry | None:
+    """Measure the geometry of the points ``rel`` (relative to their sensor).
+
+    ``absolute`` (the same points in file coordinates) is where the LAS scale is
+    read; ``las_scale`` and ``footprint`` (degrees) override the measurements.
+    Returns None when there are too few points to measure anything.
+    """
+    rel = np.asarray(rel, dtype=np.float64)
+    r = np.linalg.norm(rel, axis=1)
+    keep = r > 1e-6
+    if np.count_nonzero(keep) < 50:
+        return None
+    rel, r = rel[keep], r[keep]
+    how: dict[str, str] = {}
+    if las_scale is None:
+        src = rel if absolute is None else np.asarray(absolute, np.float64)[keep]
+        las_scale = coordinate_scale(src)
+        how["las_scale"] = "smallest step dividing the differences of sorted coordinate values"
+    else:
+        how["las_scale"] = "stated"
+
+    az = np.arctan2(rel[:, 1], rel[:, 0])
+    el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
+    az, el, r = _sector(az, el, r)
+
+    # First pass on the farthest half, then on every point whose quantisation
+    # angle stays under a tenth of the step found.
+    far = r >= np.median(r)
+    sa, se = _steps(az[far], el[far])
+    if not np.isfinite(sa) or not np.isfinite(se):
+        return None
+    if las_scale > 0:
+        ok = las_scale / np.sqrt(12.0) / r < 0.1 * min(sa, se)
+        if np.count_nonzero(ok) >= 50:
+            sa2, se2 = _steps(az[ok], el[ok])
+            if np.isfinite(sa2) and np.isfinite(se2):
+                sa, se = sa2, se2
+        else:
+            ok = far
+    else:
+        ok = np.ones(r.size, dtype=bool)
+    how["step"] = (
+        "median spacing to the nearest neighbour along azimuth / elevation in angle space, "
+        f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step"
+    )
+
+    sigma = _range_sigma(az[ok], el[ok], r[ok], sa, se)  # NaN when no line shows
+    q2 = las_scale**2 / 12.0
+    noise = float(np.sqrt(max(sigma**2 - q2, 0.0))) if np.isfinite(sigma) else float("nan")
+    how["range_noise"] = (
+        "robust sd of range residuals against the line through the two azimuth neighbours, "
+        "LAS quantisation (scale²/12) removed"
+    )
+
+    if footprint is not None:
+        fp = float(footprint)
+        steps = fp / np.degrees(sa)
+        how["footprint"] = "stated"
+    else:
+        jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
+        steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, jump, max_gap)
+        if np.isfinite(steps):
+            how["footprint"] = (
+                f"mean ramp of blended returns at range edges closer than {max_gap:g} m, in steps"
+            )
+        else:
+            steps = 1.0
+            how["footprint"] = "no mixing edge measured: one step assumed"
+        steps = max(steps, 1.0)
+        fp = steps * np.degrees(sa)
+    return ScanGeometry(
+        step_az=float(np.degrees(sa)),
+        step_el=float(np.degrees(se)),
+        range_noise=noise,
+        range_sigma=float(sigma),
+        las_scale=float(las_scale),
+        footprint=float(fp),
+        footprint_steps=float(steps),
+        n_points=int(r.size),
+        how=how,
+    )
+
+
+def coordinate_scale(xyz: NDArray[np.float64], sample: int = 200_000) -> float:
+    """LAS-like quantisation step of the coordinates (largest over the axes), 0 if none."""
+    best = 0.0
+    for col in range(3):
+        v = np.unique(xyz[:sample, col])
+        d = np.diff(v)
+        d = d[d > 1e-9]
+        if d.size < 10:
+            continue
+        s0 = float(d.min())
+        found = 0.0
+        for k in range(1, 11):
+            s = s0 / k
+            q = d / s
+            if np.mean(np.abs(q - np.round(q)) < 0.01) > 0.99:
+                found = s
+                break
+        if found == 0.0 or found < 1e-7:
+            return 0.0  # one axis not quantised: floating-point coordinates
+        best = max(best, float(f"{found:.6g}"))
+    return best
+
+
+def _sector(az, el, r):
+    """At most MAX_SAMPLE points from one contiguous azimuth sector (neighbours stay intact)."""
+    if az.size <= MAX_SAMPLE:
+        return az, el, r
+    o = np.argsort(az, kind="stable")
+    mid = az.size // 2
+    sl = o[mid - MAX_SAMPLE // 2 : mid + MAX_SAMPLE // 2]
+    return az[sl], el[sl], r[sl]
+
+
+def _neighbours(az, el, k: int = 12):
+    u = az * np.cos(el)
+    tree = cKDTree(np.column_stack([u, el]))
+    _, j = tree.query(np.column_stack([u, el]), k=min(k + 1, az.size))
+    j = j[:, 1:]
+    da = (az[j] - az[:, None] + np.pi) % (2 * np.pi) - np.pi
+    de = el[j] - el[:, None]
+    return j, da, de
+
+
+def _steps(az, el) -> tuple[float, float]:
+    """Median nearest spacing along azimuth and along elevation (radians)."""
+    if az.size < 20:
+        return np.nan, np.nan
+    _, da, de = _neighbours(az, el)
+    du = np.abs(da) * np.cos(el)[:, None]
+    adu, ade = np.abs(du), np.abs(de)
+    along_a = adu > 2.0 * ade
+    along_e = ade > 2.0 * adu
+    # The nearest neighbour on one side only: the least of two noisy spacings runs short.
+    sa = np.where(along_a & (da > 0), da, np.inf).min(axis=1)
+    se = np.where(along_e & (de > 0), de, np.inf).min(axis=1)
+    sa, se = sa[np.isfinite(sa) & (sa > 0)], se[np.isfinite(se) & (se > 0)]
+    if sa.size < 10 or se.size < 10:
+        return np.nan, np.nan
+    ma, me = float(np.median(sa)), float(np.median(se))
+    # Beams on scan lines: most spacings sit at the step. Scattered points (no
+    # scanner grid, e.g. merged or resampled clouds) spread widely: no step.
+    regular = min(np.mean(np.abs(sa / ma - 1) < 0.25), np.mean(np.abs(se / me - 1) < 0.25))
+    if regular < REGULAR:
+        return np.nan, np.nan
+    return ma, me
+
+
+def _range_sigma(az, el, r, sa, se) -> float:
+    """Robust sd of range about the line through the azimuth neighbours either side."""
+    if az.size < 20:
+        return float("nan")
+    j, da, de = _neighbours(az, el, k=8)
+    same_line = np.abs(de) < 0.25 * se
+    left = np.where(same_line & (da < 0) & (da > -1.6 * sa), -da, np.inf)
+    right = np.where(same_line & (da > 0) & (da < 1.6 * sa), da, np.inf)
+    il, ir = left.argmin(axis=1), right.argmin(axis=1)
+    rows = np.arange(az.size)
+    good = np.isfinite(left[rows, il]) & np.isfinite(right[rows, ir])
+    if np.count_nonzero(good) < 20:
+        return float("nan")
+    jl, jr = j[rows, il][good], j[rows, ir][good]
+    a_l, a_r = -left[rows, il][good], right[rows, ir][good]
+    w = -a_l / (a_r - a_l)  # weight of the right neighbour at the point's angle
+    pred = (1 - w) * r[jl] + w * r[jr]
+    res = (r[good] - pred) / np.sqrt(1.0 + w**2 + (1 - w) ** 2)
+    return float(1.4826 * np.median(np.abs(res - np.median(res))))
+
+
+def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
+    """Mean number of beams blended between two surfaces at azimuth edges (NaN if none)."""
+    phase_a = _phase(az, sa)
+    phase_e = _phase(el, se)
+    ca = np.round((az - phase_a) / sa).astype(np.int64)
+    ce = np.round((el - phase_e) / se).astype(np.int64)
+    on_grid = (np.abs((az - phase_a) / sa - ca) < 0.25) & (np.abs((el - phase_e) / se - ce) < 0.25)
+    if np.count_nonzero(on_grid) < 0.8 * az.size:
+        return float("nan")  # not a regular grid: ramps cannot be followed along lines
+    ca, ce, r = ca[on_grid], ce[on_grid], r[on_grid]
+    o = np.lexsort((ca, ce))
+    ca, ce, r = ca[o], ce[o], r[o]
+    adj = (ce[1:] == ce[:-1]) & (ca[1:] == ca[:-1] + 1)
+    J = np.where(adj, np.diff(r), 0.0)
+    big = np.abs(J) > jump
+    sgn = np.sign(J) * big
+    # Runs of consecutive same-sign big jumps: a ramp of (length - 1) blended returns.
+    start = big & np.r_[True, sgn[1:] != sgn[:-1]]
+    run_id = np.cumsum(start) - 1
+    ids = run_id[big]
+    if ids.size == 0:
+        return float("nan")
+    length = np.bincount(ids)
+    total = np.abs(np.bincount(ids, weights=J[big]))
+    first = np.flatnonzero(start)
+    last = first + length - 1
+    # Flanks: the jumps just before and after the run are small (surfaces either side).
+    lim = 0.3 * total / length
+    before, after = np.maximum(first - 1, 0), np.minimum(last + 1, J.size - 1)
+    ok_flank = (first > 0) & (last < J.size - 1)
+    ok_flank &= (np.abs(J[before]) < lim) & (np.abs(J[after]) < lim)
+    ok_flank &= adj[before] & adj[after]
+    edges = ok_flank & (total > 0.2) & (total < max_gap) & (length <= 8)
+    if np.count_nonzero(edges) < 5:
+        return float("nan")
+    return float(np.mean(length[edges] - 1))
+
+
+def _phase(a: NDArray[np.float64], s: float) -> float:
+    """Offset of a regular angular grid of step ``s`` (circular mean of a mod s)."""
+    t = 2 * np.pi * a / s
+    return float(np.angle(np.mean(np.exp(1j * t))) / (2 * np.pi) * s)

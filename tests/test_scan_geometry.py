@@ -1,0 +1,58 @@
+"""Scan geometry measured from the points against the generator's known scanner."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from terrasift.synthetic.scan import make_scan
+from terrasift.workers.scan_geometry import coordinate_scale, measure_scan_geometry
+
+
+@pytest.mark.parametrize(
+    ("step", "footprint", "noise", "scale"),
+    [(0.3, 3.0, 0.01, 0.01), (0.12, 1.0, 0.003, 0.001), (0.4, 2.0, 0.006, 0.0)],
+)
+def test_measured_geometry_matches_the_scanner(step, footprint, noise, scale):
+    s = make_scan(
+        step_deg=step,
+        footprint_steps=footprint,
+        range_noise=noise,
+        las_scale=scale,
+        azimuth_deg=(-40.0, 40.0),
+        n_boards=6,
+        n_poles=6,
+        object_range=(3.0, 30.0),
+        seed=3,
+    )
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None
+    assert g.step_az == pytest.approx(step, rel=0.01)
+    assert g.step_el == pytest.approx(step, rel=0.01)
+    assert g.las_scale == pytest.approx(scale, abs=1e-9)
+    assert noise * 0.8 < g.range_noise < noise * 1.4, g
+    # Ramps of blended returns run a little short of the footprint (shares under
+    # 5 % of a surface are not blended in by the generator).
+    assert footprint - 0.8 < g.footprint_steps < footprint + 0.5, g
+    assert g.footprint == pytest.approx(g.footprint_steps * g.step_az)
+    assert set(g.how) == {"las_scale", "step", "range_noise", "footprint"}
+
+
+def test_stated_footprint_and_scale_are_kept():
+    s = make_scan(step_deg=0.3, azimuth_deg=(-30.0, 30.0), n_boards=3, n_poles=3, seed=1)
+    g = measure_scan_geometry(s.xyz - s.origin, footprint=0.9, las_scale=0.002)
+    assert g.footprint == 0.9 and g.how["footprint"] == "stated"
+    assert g.las_scale == 0.002 and g.how["las_scale"] == "stated"
+    assert g.footprint_steps == pytest.approx(3.0, rel=0.02)
+
+
+def test_coordinate_scale():
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 50, (5000, 3)) + [500_000.0, 5_400_000.0, 100.0]
+    assert coordinate_scale(xyz) == 0.0
+    assert coordinate_scale(np.round(xyz / 0.005) * 0.005) == pytest.approx(0.005)
+    assert coordinate_scale(np.round(xyz / 0.01) * 0.01) == pytest.approx(0.01)
+
+
+def test_too_few_points():
+    assert measure_scan_geometry(np.ones((10, 3))) is None
