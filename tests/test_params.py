@@ -105,8 +105,8 @@ def test_auto_buffer_widens_for_nist_on_sparse_data_only():
     assert nist["buffer"] == "auto"
     dense, sparse = resolve_buffer(nist, 8.0), resolve_buffer(nist, 0.16)
     assert dense == (DEFAULT_BUFFER, None)
-    # 0.16 pts/m²: 2.5 m spacing, 25 m first-pass bins, 2.5 of them
-    assert sparse[0] == pytest.approx(62.5, abs=0.5) and sparse[1] is None
+    # 0.16 pts/m²: 2.5 m spacing, 25 m first-pass bins snapped to 24 m (a divisor of 240 m), 2.5 of them
+    assert sparse[0] == pytest.approx(60.0, abs=0.5) and sparse[1] is None
     assert resolve_buffer(validate_params({"ground": "ptd"}), 0.16) == (DEFAULT_BUFFER, None)
     # cut below half the block size, with a warning that says so
     cut, warning = resolve_buffer(validate_params({"ground": "nist", "block_size": 60}), 0.16)

@@ -22,6 +22,21 @@ from numpy.typing import NDArray
 ANCHOR = 240.0
 
 
+#: Bin sizes (1 m and up, to 0.1 m) that divide ``ANCHOR``: a grid of one of them,
+#: anchored on a multiple of itself in coordinates whose origin is a multiple of
+#: ``ANCHOR``, lines up with every block's whatever its extent.
+ANCHORED_CELLS = np.array([c / 10 for c in range(10, 2401) if 2400 % c == 0])
+
+
+def snap_cell(cell: float) -> float:
+    """The bin size of ``ANCHORED_CELLS`` nearest ``cell`` by ratio (``cell`` itself
+    below 1 m or above ``ANCHOR``): cells derived from two blocks' slightly different
+    densities snap to the same size, so their bins coincide where the blocks overlap."""
+    if not (ANCHORED_CELLS[0] <= cell <= ANCHOR):
+        return float(cell)
+    return float(ANCHORED_CELLS[np.argmin(np.abs(np.log(ANCHORED_CELLS / cell)))])
+
+
 def anchored_origin(xy: NDArray[np.float64], anchor: float = ANCHOR) -> NDArray[np.float64]:
     """The multiple of ``anchor`` at or below the smallest x and y of ``xy``."""
     xy = np.asarray(xy, dtype=np.float64)

@@ -45,16 +45,29 @@ def raised_segments(
     up_share: float = 1.0,
     min_lift: float = 0.0,
     rounds: int = 4,
+    relative: bool = False,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
     ``up_share`` 1 keeps to wholly raised segments (``min_lift`` is then unused).
+    With ``relative``, an edge is a step only when its gradient exceeds the
+    median gradient of the edges going down from its lower end by
+    tan(``step_slope_deg``): a wall rises out of the terrain at its foot, a
+    slope edge of steep terrain continues the slope below it.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
     dz = xyz[e[:, 1], 2] - xyz[e[:, 0], 2]
     run = np.hypot(*(xyz[e[:, 1], :2] - xyz[e[:, 0], :2]).T)
-    is_step = (np.abs(dz) >= step) & (np.abs(dz) >= np.tan(np.radians(step_slope_deg)) * run)
+    grad = np.abs(dz) / np.maximum(run, 1e-9)
+    base = np.zeros(n)
+    if relative:
+        # The terrain at an edge's foot: the edges going down from its lower end.
+        upper = np.where(dz > 0, e[:, 1], e[:, 0])
+        base = _median_per_vertex(upper, grad, n)
+        lower = np.where(dz > 0, e[:, 0], e[:, 1])
+        grad = grad - base[lower]
+    is_step = (np.abs(dz) >= step) & (grad >= np.tan(np.radians(step_slope_deg)))
     gentle = e[~is_step]
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
@@ -88,6 +101,19 @@ def raised_segments(
             break
         gone |= raised
     return gone[seg]
+
+
+def _median_per_vertex(
+    v: NDArray[np.int64], value: NDArray[np.float64], n: int
+) -> NDArray[np.float64]:
+    """Median (lower middle) of ``value`` per vertex id ``v`` (0 where a vertex has none)."""
+    order = np.lexsort((value, v))
+    count = np.bincount(v, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    out = np.zeros(n)
+    has = count > 0
+    out[has] = value[order][start[has] + (count[has] - 1) // 2]
+    return out
 
 
 def _lift(
