@@ -110,3 +110,13 @@ def test_auto_buffer_widens_for_nist_on_sparse_data_only():
     assert cut < 30 and "block_size" in warning
     # a buffer in metres is taken as given
     assert resolve_buffer(validate_params({"ground": "nist", "buffer": 7}), 0.16) == (7.0, None)
+
+
+def test_feature_names_are_deduplicated_and_bounded() -> None:
+    from terrasift.params import MAX_FEATURE_NAMES
+
+    assert validate_params({"features": "ditch, ridge,ditch,,ridge"})["features"] == "ditch,ridge"
+    assert validate_params({"features": ",".join(["ditch"] * 80_000)})["features"] == "ditch"
+    many = ",".join(f"f{i}" for i in range(MAX_FEATURE_NAMES + 1))
+    with pytest.raises(ParameterError, match="at most 64"):
+        validate_params({"features": many})

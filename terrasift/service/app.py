@@ -26,6 +26,7 @@ from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
 from terrasift.service.store import JobStore
+from terrasift.workers.pool import reap_leftovers
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,13 @@ def create_app(
         def executor_factory() -> Executor:
             from terrasift.workers.executors import make_executor
 
-            return make_executor(settings.workers, settings.dask_scheduler)
+            return make_executor(
+                settings.workers,
+                settings.dask_scheduler,
+                nice=settings.worker_nice,
+                memory_limit=settings.worker_memory_limit(),
+                pid_dir=settings.workers_dir,
+            )
 
     auth = Auth(
         settings.auth_enabled, load_tokens(settings.token_file) if settings.token_file else {}
@@ -55,6 +62,9 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
         settings.surveys_dir.mkdir(parents=True, exist_ok=True)
+        reaped = reap_leftovers(settings.workers_dir)
+        if reaped:
+            log.warning("killed %d worker(s) left by an earlier run: %s", len(reaped), reaped)
         store = JobStore(settings.db_path)
         scheduler = Scheduler(
             store,
@@ -62,14 +72,15 @@ def create_app(
             executor_factory,
             settings.max_concurrent_jobs,
             pipeline=pipeline,
+            task_seconds=(settings.task_seconds, settings.task_seconds_per_mpoint),
         )
         app.state.svc = Service(settings, store, scheduler)
         scheduler.start()
         try:
             yield
         finally:
-            # waits for tasks already running in the pool; off the event loop
-            await anyio.to_thread.run_sync(scheduler.stop)
+            # running tasks get the grace period, then their workers are stopped; off the event loop
+            await anyio.to_thread.run_sync(scheduler.stop, settings.shutdown_grace)
             store.close()
 
     app = FastAPI(

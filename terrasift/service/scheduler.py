@@ -11,9 +11,12 @@ is resumable and repeats only the tasks that are missing.
 
 from __future__ import annotations
 
+import inspect
+import json
 import logging
 import shutil
 import threading
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Executor
 from pathlib import Path
@@ -31,26 +34,34 @@ GENERIC_FAILURE = "processing failed on an internal error; the service log has t
 class JobExecutor:
     """One job's view of the shared executor: remembers its futures so they can be cancelled."""
 
-    def __init__(self, inner: Any):
+    def __init__(self, inner: Any, task_timeout: Callable[[], float | None] | None = None):
         self._inner = inner
         self._futures: list[Any] = []
         self._lock = threading.Lock()
+        self._task_timeout = task_timeout
         self.cancelled = False
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         with self._lock:
             if self.cancelled:
                 raise JobCancelled("the job was dismissed")
-            future = self._inner.submit(fn, *args, **kwargs)
+            limited = getattr(self._inner, "submit_limited", None)
+            if limited is not None and self._task_timeout is not None and not kwargs:
+                future = limited(self._task_timeout(), fn, *args)
+            else:
+                future = self._inner.submit(fn, *args, **kwargs)
             self._futures = [f for f in self._futures if not f.done()]
             self._futures.append(future)
             return future
 
     def cancel(self) -> int:
-        """Cancel every future not yet running; the number cancelled."""
+        """Cancel every future; running ones too where the executor can stop its workers."""
         with self._lock:
             self.cancelled = True
             futures, self._futures = self._futures, []
+        stop = getattr(self._inner, "cancel_running", None)
+        if stop is not None:
+            return stop(futures)
         return sum(1 for f in futures if f.cancel())
 
     def wait_any(self, futures: Iterable[Any], timeout: float) -> set[Any]:
@@ -62,6 +73,14 @@ class JobExecutor:
         futures = list(futures)
         done = {f for f in futures if f.done()}
         return done or self._inner.wait_any(futures, timeout)
+
+    def stop_queued(self) -> None:
+        """Cancel the futures not yet running; running ones may finish (a shutdown's grace)."""
+        with self._lock:
+            self.cancelled = True
+            futures = list(self._futures)
+        for f in futures:
+            f.cancel()
 
     def shutdown(self, *args: Any, **kwargs: Any) -> None:
         """The scheduler owns the shared executor; a job cannot shut it down."""
@@ -81,6 +100,7 @@ class Scheduler:
         max_concurrent: int = 2,
         pipeline: ModuleType | Any | None = None,
         poll_seconds: float = 2.0,
+        task_seconds: tuple[float, float] | None = None,
     ):
         self.store = store
         self.jobs_dir = jobs_dir
@@ -90,6 +110,8 @@ class Scheduler:
         self.max_concurrent = max_concurrent
         self._pipeline = pipeline
         self._poll = poll_seconds
+        # (seconds, seconds per million points): every task's time limit
+        self._task_seconds = task_seconds
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._active: dict[str, JobExecutor | None] = {}
@@ -121,29 +143,37 @@ class Scheduler:
         )
         self._loop.start()
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Stop dispatching, cancel queued tasks and wait for job threads.
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop dispatching, let running tasks finish for up to ``timeout`` s, then stop them.
 
-        Jobs still running stay ``running`` in the store and resume on the next start.
+        Jobs still running stay ``running`` in the store and resume on the next start
+        (their finished tasks are kept).
         """
+        deadline = time.monotonic() + timeout
         self._stopping.set()
         self._wake.set()
         with self._lock:
-            executors = [e for e in self._active.values() if e is not None]
             threads = list(self._threads.values())
+            executors = [e for e in self._active.values() if e is not None]
         for ex in executors:
-            ex.cancel()
+            ex.stop_queued()
         if self._loop is not None:
-            self._loop.join(timeout)
+            self._loop.join(max(0.0, deadline - time.monotonic()))
         for t in threads:
-            t.join(timeout)
+            t.join(max(0.0, deadline - time.monotonic()))
         with self._executor_lock:
-            if self._executor is not None:
-                try:
-                    self._executor.shutdown()
-                except Exception:  # noqa: BLE001 - shutting down anyway
-                    log.exception("executor shutdown failed")
-                self._executor = None
+            executor, self._executor = self._executor, None
+        if executor is not None:
+            try:
+                kill = any(t.is_alive() for t in threads)
+                if kill and "kill" in inspect.signature(executor.shutdown).parameters:
+                    executor.shutdown(kill=True)  # type: ignore[call-arg]
+                else:
+                    executor.shutdown()
+            except Exception:  # noqa: BLE001 - shutting down anyway
+                log.exception("executor shutdown failed")
+        for t in threads:
+            t.join(5.0)
 
     @property
     def stopping(self) -> bool:
@@ -231,7 +261,7 @@ class Scheduler:
                 self.purge(job_dir)
             return
         try:
-            ex = JobExecutor(self._executor_or_create())
+            ex = JobExecutor(self._executor_or_create(), self._time_limit(job_dir))
         except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
             log.exception("cannot create the executor for job %s", job_id)
             self.store.finish(job_id, FAILED, f"no workers available: {exc}")
@@ -272,6 +302,25 @@ class Scheduler:
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:
             self.purge(job_dir)
+
+    def _time_limit(self, job_dir: Path) -> Callable[[], float | None] | None:
+        """Each task's time limit, from the job's points once the plan has counted them."""
+        if self._task_seconds is None:
+            return None
+        base, per_million = self._task_seconds
+        known: list[float] = []
+
+        def limit() -> float:
+            if not known:
+                try:
+                    plan = json.loads((job_dir / "plan.json").read_text())
+                    points = sum(int(t["point_count"]) for t in plan["tiles"])
+                except (OSError, ValueError, KeyError, TypeError):
+                    return base  # not planned yet: no task runs before the plan
+                known.append(base + per_million * points / 1e6)
+            return known[0]
+
+        return limit
 
     def purge(self, job_dir: Path) -> None:
         """Remove what a dismissed job produced and its uploads; job.json stays for the record."""
