@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import pyproj
 
-from terrasift.errors import InputError, JobCancelled
+from terrasift.errors import InputError, JobCancelled, ProcessingError
 from terrasift.params import grid_alignment, resolve_buffer, validate_params
 from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
 from terrasift.tiling.lasfile import TileInfo, read_tile_info
@@ -232,6 +232,7 @@ def run_job(
     _run_mixed_tasks(executor, job_dir, finish, tick, in_flight=executor.workers)
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
+    _require_ground(output_path(job_dir, "dtm.tif"))
     timings = {
         "shard": shard_seconds,
         "blocks": block_seconds,
@@ -241,6 +242,22 @@ def run_job(
     names_out = outputs.write_report_and_item(job_dir, plan, params, block_stats, timings)
     tick(None)
     return names_out
+
+
+def _require_ground(dtm: Path) -> None:
+    """A successful job never has an empty DTM: fail it saying why instead."""
+    if not dtm.exists():
+        return
+    import rasterio
+
+    with rasterio.open(dtm) as ds:
+        for _, window in ds.block_windows(1):
+            if np.ma.count(ds.read(1, window=window, masked=True)):
+                return
+    raise ProcessingError(
+        "no ground found: every cell of the DTM is empty (no point was classified as ground); "
+        "the point data may be corrupt, or the parameters unsuited to it"
+    )
 
 
 def _plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:

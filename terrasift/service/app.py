@@ -21,6 +21,7 @@ from terrasift import __version__
 from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.context import Service
+from terrasift.service.guard import RequestGuard
 from terrasift.service.routes import jobs, path, processes, surveys
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
@@ -73,6 +74,11 @@ def create_app(
             settings.max_concurrent_jobs,
             pipeline=pipeline,
             task_seconds=(settings.task_seconds, settings.task_seconds_per_mpoint),
+            input_roots=[
+                settings.jobs_dir,
+                settings.surveys_dir,
+                *([settings.input_root] if settings.input_root else []),
+            ],
         )
         app.state.svc = Service(settings, store, scheduler)
         scheduler.start()
@@ -93,6 +99,7 @@ def create_app(
     app.state.settings = settings
     app.state.auth = auth
     problems.install(app)
+    app.add_middleware(RequestGuard)
     app.include_router(processes.router)
     app.include_router(jobs.router)
     app.include_router(path.router)

@@ -101,6 +101,7 @@ class Scheduler:
         pipeline: ModuleType | Any | None = None,
         poll_seconds: float = 2.0,
         task_seconds: tuple[float, float] | None = None,
+        input_roots: list[Path] | None = None,
     ):
         self.store = store
         self.jobs_dir = jobs_dir
@@ -112,6 +113,8 @@ class Scheduler:
         self._poll = poll_seconds
         # (seconds, seconds per million points): every task's time limit
         self._task_seconds = task_seconds
+        # where a job's inputs may lie when it starts (None: anywhere, for tests)
+        self._input_roots = input_roots
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._active: dict[str, JobExecutor | None] = {}
@@ -260,6 +263,10 @@ class Scheduler:
             if job is not None and job.status == DISMISSED:  # dismissed while queued
                 self.purge(job_dir)
             return
+        escaped = self._escaped_input(job_id)
+        if escaped:
+            self.store.finish(job_id, FAILED, f"input {escaped} now lies outside the input root")
+            return
         try:
             ex = JobExecutor(self._executor_or_create(), self._time_limit(job_dir))
         except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
@@ -302,6 +309,18 @@ class Scheduler:
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:
             self.purge(job_dir)
+
+    def _escaped_input(self, job_id: str) -> str | None:
+        """The name of an input that resolves outside the allowed roots (a symlink swapped in)."""
+        job = self.store.get_job(job_id)
+        if self._input_roots is None or job is None:
+            return None
+        roots = [r.resolve() for r in self._input_roots]
+        for p in job.inputs:
+            real = Path(p).resolve()
+            if not any(real.is_relative_to(r) for r in roots):
+                return Path(p).name
+        return None
 
     def _time_limit(self, job_dir: Path) -> Callable[[], float | None] | None:
         """Each task's time limit, from the job's points once the plan has counted them."""
