@@ -22,7 +22,7 @@ from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.context import Service
 from terrasift.service.guard import RequestGuard
-from terrasift.service.routes import jobs, path, processes, surveys
+from terrasift.service.routes import health, jobs, path, processes, surveys
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
@@ -66,7 +66,9 @@ def create_app(
         reaped = reap_leftovers(settings.workers_dir)
         if reaped:
             log.warning("killed %d worker(s) left by an earlier run: %s", len(reaped), reaped)
-        store = JobStore(settings.db_path)
+        store = JobStore(settings.db_path, settings.jobs_dir, settings.surveys_dir)
+        if store.recovered:
+            log.error("job store: %s", store.recovered)
         scheduler = Scheduler(
             store,
             settings.jobs_dir,
@@ -104,6 +106,7 @@ def create_app(
     app.include_router(jobs.router)
     app.include_router(path.router)
     app.include_router(surveys.router)
+    app.include_router(health.router)
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

@@ -28,6 +28,7 @@ from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, SUCCESSFUL, Job
 
 log = logging.getLogger(__name__)
 
+STORE_CHECK_SECONDS = 60.0  # between full integrity checks of the job store
 GENERIC_FAILURE = "processing failed on an internal error; the service log has the details"
 
 
@@ -130,6 +131,11 @@ class Scheduler:
             self._pipeline = terrasift.pipeline
         return self._pipeline
 
+    @property
+    def executor(self) -> Executor | None:
+        """The shared executor, once a job has needed it."""
+        return self._executor
+
     def job_dir(self, job_id: str) -> Path:
         return self.jobs_dir / job_id
 
@@ -225,8 +231,16 @@ class Scheduler:
             return self._executor
 
     def _dispatch_loop(self) -> None:
+        checked = time.monotonic()
         while not self._stopping.is_set():
             try:
+                # the store file may be deleted or damaged under a running service
+                thorough = time.monotonic() - checked > STORE_CHECK_SECONDS
+                if thorough:
+                    checked = time.monotonic()
+                state = self.store.check(thorough=thorough)
+                if state != "ok":
+                    log.error("job store: %s", self.store.recovered)
                 self._dispatch()
             except Exception:  # noqa: BLE001 - the loop must survive a bad row or a locked db
                 log.exception("scheduler dispatch failed")
