@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-load bench-malformed openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,12 @@ bench-vegetation: $(STAMP)
 
 bench-rotation: $(STAMP)
 	$(PY) benchmarks/rotation_accuracy.py
+
+bench-load: $(STAMP)
+	$(PY) benchmarks/load.py
+
+bench-malformed: $(STAMP)
+	$(PY) benchmarks/malformed_corpus.py
 
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py

@@ -104,7 +104,20 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
                 "(the header's point count is wrong)"
             )
     else:
+        if laszip is None:
+            raise InputError(f"{name}: compressed points but no laszip VLR to decode them")
         _check_laz_chunk_table(path, name, offset, size, count, laszip)
+    # Writers get the per-return counts slightly wrong (one point off in lidR's
+    # Topography.laz): a small gap is a warning, a large one a wrong count.
+    by_return = _points_by_return(head, minor)
+    count_warning = None
+    if by_return and by_return != count:
+        text = (
+            f"{name}: header claims {count} points but its counts per return add up to {by_return}"
+        )
+        if abs(by_return - count) > max(1, 0.01 * count):
+            raise InputError(text + " (the header is wrong)")
+        count_warning = text + f"; {count} points are read"
 
     scales = tuple(float(s) for s in header.scales)
     for axis, s in zip("xyz", scales, strict=True):
@@ -130,7 +143,7 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
             f"more than {MAX_EXTENT:.0f} for one tile"
         )
 
-    warnings: list[str] = []
+    warnings: list[str] = [count_warning] if count_warning else []
     crs_wkt = None
     try:
         crs = header.parse_crs()
@@ -241,6 +254,15 @@ def _check_evlrs(fh: BinaryIO, name: str, size: int, offset: int, start: int, co
             raise InputError(
                 f"{name}: extended VLR {i + 1} of {count} claims {length} bytes, past the file's end"
             )
+
+
+def _points_by_return(head: bytes, minor: int) -> int:
+    """Sum of the header's points-by-return counts (0 when the writer left them empty)."""
+    legacy = sum(struct.unpack_from("<5I", head, 111))
+    if minor >= 4:
+        extended = sum(struct.unpack_from("<15Q", head, 255))
+        return extended or legacy
+    return legacy
 
 
 def _point_data_end(head: bytes, minor: int, size: int, offset: int) -> int:
