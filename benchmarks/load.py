@@ -36,8 +36,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data: Path, port: int) -> subprocess.Popen:
+def start_server(data: Path, port: int, pythonpath: str | None = None) -> subprocess.Popen:
     env = {**os.environ, "TERRASIFT_DATA_DIR": str(data), "TERRASIFT_AUTH": "off"}
+    if pythonpath:  # another checkout of terrasift, for a baseline in the same run
+        env["PYTHONPATH"] = pythonpath
     proc = subprocess.Popen(
         [sys.executable, "-m", "terrasift", "serve", "--host", "127.0.0.1", "--port", str(port)],
         env=env,
@@ -47,7 +49,7 @@ def start_server(data: Path, port: int) -> subprocess.Popen:
     end = time.monotonic() + 60
     while time.monotonic() < end:
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+            if httpx.get(f"http://127.0.0.1:{port}/conformance", timeout=2).status_code == 200:
                 return proc
         except httpx.HTTPError:
             time.sleep(0.2)
@@ -64,6 +66,9 @@ async def poll(
 
     async def one(i: int) -> None:
         async with httpx.AsyncClient(base_url=base, timeout=30) as client:
+            # the first read opens the poller's connection: not counted
+            (await client.get(f"/jobs/{job_ids[i % len(job_ids)]}")).raise_for_status()
+            await asyncio.sleep(interval * i / pollers)  # spread the pollers over the interval
             for _ in range(cap):
                 if time.monotonic() >= deadline:
                     return
@@ -89,14 +94,25 @@ def main() -> None:
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between a poller's reads")
     ap.add_argument("--max-requests", type=int, default=1000, help="per poller")
     ap.add_argument("--size", type=float, default=200.0, help="edge of each job's tile in metres")
+    ap.add_argument(
+        "--baseline", help="a directory holding another terrasift package to measure first"
+    )
     args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="terrasift-load-") as tmp:
+        tile = write_las(make_scene(size=args.size, density=8, seed=4), Path(tmp) / "tile.laz")
+        runs = [("baseline", args.baseline)] if args.baseline else []
+        for label, path in [*runs, ("this tree", None)]:
+            print(f"== {label}")
+            measure(args, tile, path)
+
+
+def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> None:
 
     with tempfile.TemporaryDirectory(prefix="terrasift-load-") as tmp:
         tmp = Path(tmp)
-        tile = write_las(make_scene(size=args.size, density=8, seed=4), tmp / "tile.laz")
         port = free_port()
         base = f"http://127.0.0.1:{port}"
-        server = start_server(tmp / "data", port)
+        server = start_server(tmp / "data", port, pythonpath)
         try:
             params = json.dumps({"block_size": 50, "resolution": 0.5})
             with httpx.Client(base_url=base, timeout=60) as c:
@@ -153,7 +169,10 @@ def main() -> None:
             except subprocess.TimeoutExpired:
                 server.kill()
             stop_seconds = time.monotonic() - t
-        print(f"{args.pollers} pollers, one read each every {args.interval} s per poller")
+        load = os.getloadavg()[0]
+        print(
+            f"{args.pollers} pollers, one read each every {args.interval} s; load average {load:.1f}"
+        )
         print(f"idle (jobs dismissed):        {summary(idle)}")
         print(
             f"two jobs running ({len(still)} still running at the end, progress {still}): {summary(busy)}"

@@ -111,9 +111,11 @@ class JobStore:
         self.path = path
         self.jobs_dir = jobs_dir
         self.surveys_dir = surveys_dir
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the writing connection
+        self._rlock = threading.Lock()  # the reading one: reads never wait for a commit
         self.recovered: str | None = None  # what the last open or check had to do
         self._db = self._open()
+        self._rdb = self._reader()
         with self._lock:
             empty = self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0] == 0
         if empty and self._rebuild_from_records():
@@ -128,6 +130,8 @@ class JobStore:
             db.row_factory = sqlite3.Row
             try:
                 db.execute("PRAGMA journal_mode=WAL")
+                # in WAL mode a commit survives a crash of the service without an fsync each
+                db.execute("PRAGMA synchronous=NORMAL")
                 db.executescript(_SCHEMA)
                 if db.execute("PRAGMA quick_check").fetchone()[0] != "ok":
                     raise sqlite3.DatabaseError("quick_check failed")
@@ -141,6 +145,16 @@ class JobStore:
             self._ident = _ident(self.path)
             return db
         raise AssertionError("unreachable")
+
+    def _reader(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30)
+        db.row_factory = sqlite3.Row
+        return db
+
+    @contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        with self._rlock:
+            yield self._rdb
 
     def _move_aside(self) -> None:
         stamp = now().replace(":", "")
@@ -157,7 +171,9 @@ class JobStore:
         connection's copy is written back, nothing is lost); ``rebuilt`` (it was
         corrupt: rebuilt from the job directories).
         """
-        with self._lock:
+        if not thorough and _ident(self.path) == self._ident:
+            return "ok"
+        with self._rlock, self._lock:
             if _ident(self.path) == self._ident:
                 if not thorough:
                     return "ok"
@@ -183,6 +199,8 @@ class JobStore:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._ident = _ident(self.path)
                 rebuilt = False
+            self._rdb.close()
+            self._rdb = self._reader()
         if rebuilt:
             self._rebuild_from_records()
             self.recovered = "the store file was corrupt; rebuilt from the job directories"
@@ -235,7 +253,8 @@ class JobStore:
             _write_json(job_dir / RECORD, dict(row))
 
     def close(self) -> None:
-        with self._lock:
+        with self._rlock, self._lock:
+            self._rdb.close()
             self._db.close()
 
     @contextmanager
@@ -286,8 +305,8 @@ class JobStore:
 
     def get_job(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""
-        with self._lock:
-            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
         return _job(row)
@@ -314,15 +333,15 @@ class JobStore:
             args.append(process_id)
         sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "")
         sql += " ORDER BY created DESC, rowid DESC LIMIT ? OFFSET ?"
-        with self._lock:
-            rows = self._db.execute(sql, (*args, limit, offset)).fetchall()
+        with self._read() as db:
+            rows = db.execute(sql, (*args, limit, offset)).fetchall()
         return [_job(r) for r in rows]
 
     def jobs_with_status(self, *statuses: str) -> list[Job]:
         """Jobs in any of ``statuses``, oldest first (the scheduler's queue order)."""
         marks = ",".join("?" * len(statuses))
-        with self._lock:
-            rows = self._db.execute(
+        with self._read() as db:
+            rows = db.execute(
                 f"SELECT * FROM jobs WHERE status IN ({marks}) ORDER BY created, rowid", statuses
             ).fetchall()
         return [_job(r) for r in rows]
@@ -407,8 +426,8 @@ class JobStore:
         return Survey(survey_id, tenant, files, params, ts)
 
     def get_survey(self, survey_id: str, tenant: str | None = None) -> Survey | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
         return Survey(
@@ -420,8 +439,8 @@ class JobStore:
         )
 
     def survey_jobs(self, survey_id: str) -> list[Job]:
-        with self._lock:
-            rows = self._db.execute(
+        with self._read() as db:
+            rows = db.execute(
                 "SELECT * FROM jobs WHERE survey_id = ? ORDER BY created, rowid", (survey_id,)
             ).fetchall()
         return [_job(r) for r in rows]

@@ -112,8 +112,12 @@ def list_jobs(
     response_model_exclude_none=True,
     responses=problem_responses(401, 404),
 )
-def job_status(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
+async def job_status(
+    job_id: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> JSONResponse:
     """statusInfo with integer progress from tasks done."""
+    # one indexed read on the store's own reading connection: cheaper in the event
+    # loop than a hop to a worker thread, which is what pollers would wait for
     return JSONResponse(ogc.status_info(_job(request, job_id, who), base_url(request)))
 
 
