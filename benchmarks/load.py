@@ -3,8 +3,8 @@
 Starts ``terrasift serve`` on a loopback port with a fresh data directory,
 measures p50/p99 of the status read with the pollers while the service is idle,
 then again while two jobs run, and prints both. Every loop is bounded: pollers
-stop at ``--seconds`` or after ``--max-requests`` each, the jobs are dismissed
-at the end, and the server is stopped.
+stop at ``--seconds`` or after ``--max-requests`` each, and the server is stopped
+with SIGTERM while the jobs run (its exit time and leftover workers are printed).
 """
 
 from __future__ import annotations
@@ -159,9 +159,9 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
                 )
                 states = [c.get(f"/jobs/{j}").json() for j in busy_ids]
                 still = [s["progress"] for s in states if s["status"] == "running"]
-                for j in busy_ids:
-                    c.delete(f"/jobs/{j}")
+                workers = [int(p.name) for p in (tmp / "data" / "workers").glob("[0-9]*")]
         finally:
+            # SIGTERM with the jobs still running: the grace period (10 s), then the workers go
             t = time.monotonic()
             server.send_signal(signal.SIGTERM)
             try:
@@ -169,6 +169,8 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
             except subprocess.TimeoutExpired:
                 server.kill()
             stop_seconds = time.monotonic() - t
+            time.sleep(1.0)
+            alive = [p for p in workers if Path(f"/proc/{p}").exists()]
         load = os.getloadavg()[0]
         print(
             f"{args.pollers} pollers, one read each every {args.interval} s; load average {load:.1f}"
@@ -177,7 +179,10 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
         print(
             f"two jobs running ({len(still)} still running at the end, progress {still}): {summary(busy)}"
         )
-        print(f"SIGTERM to exit: {stop_seconds:.1f} s")
+        print(
+            f"SIGTERM with both jobs running to exit: {stop_seconds:.1f} s; "
+            f"workers left alive: {len(alive)} of {len(workers)}"
+        )
 
 
 if __name__ == "__main__":
