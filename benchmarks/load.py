@@ -40,9 +40,11 @@ def start_server(data: Path, port: int, pythonpath: str | None = None) -> subpro
     env = {**os.environ, "TERRASIFT_DATA_DIR": str(data), "TERRASIFT_AUTH": "off"}
     if pythonpath:  # another checkout of terrasift, for a baseline in the same run
         env["PYTHONPATH"] = pythonpath
+    data.mkdir(parents=True, exist_ok=True)
     proc = subprocess.Popen(
         [sys.executable, "-m", "terrasift", "serve", "--host", "127.0.0.1", "--port", str(port)],
         env=env,
+        cwd=data.parent,  # not the repository: `-m terrasift` would import this tree first
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -62,13 +64,13 @@ async def poll(
 ) -> list[float]:
     """Latencies (s) of GET /jobs/{id} from ``pollers`` clients, each every ``interval`` s."""
     latencies: list[float] = []
-    deadline = time.monotonic() + seconds
 
     async def one(i: int) -> None:
-        async with httpx.AsyncClient(base_url=base, timeout=30) as client:
+        async with httpx.AsyncClient(base_url=base, timeout=60) as client:
             # the first read opens the poller's connection: not counted
             (await client.get(f"/jobs/{job_ids[i % len(job_ids)]}")).raise_for_status()
             await asyncio.sleep(interval * i / pollers)  # spread the pollers over the interval
+            deadline = time.monotonic() + seconds
             for _ in range(cap):
                 if time.monotonic() >= deadline:
                     return
@@ -83,6 +85,8 @@ async def poll(
 
 
 def summary(lat: list[float]) -> str:
+    if len(lat) < 2:
+        return f"n={len(lat)}"
     q = statistics.quantiles(lat, n=100)
     return f"n={len(lat)} p50={1000 * statistics.median(lat):.1f} ms p99={1000 * q[98]:.1f} ms max={1000 * max(lat):.1f} ms"
 

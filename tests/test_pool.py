@@ -39,6 +39,11 @@ def sleep(seconds: float) -> float:
     return seconds
 
 
+def spin() -> None:
+    while True:
+        pass
+
+
 def grow() -> None:
     held = []
     while True:
@@ -81,9 +86,12 @@ def test_an_exception_is_the_task_s_own(pool: WorkerPool) -> None:
 
 def test_time_limit_and_dismiss_stop_a_running_call(pool: WorkerPool) -> None:
     t = time.monotonic()
-    with pytest.raises(TaskTimeout, match=r"sleep\(\) ran longer than its limit of 1 s"):
-        pool.submit(sleep, 60, timeout=1.0).result(timeout=30)
+    with pytest.raises(TaskTimeout, match=r"spin\(\) ran longer than its limit of 1 s of CPU"):
+        pool.submit(spin, timeout=1.0).result(timeout=30)
     assert time.monotonic() - t < 10
+    # a task that waits instead of computing meets the wall-clock limit (4 x)
+    with pytest.raises(TaskTimeout, match=r"sleep\(\) ran longer .* \(4 s in all\)"):
+        pool.submit(sleep, 60, timeout=1.0).result(timeout=30)
     running = pool.submit(sleep, 60)
     queued = [pool.submit(sleep, 60) for _ in range(2)]
     while not pool.busy_pids():

@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 
 PR_SET_PDEATHSIG = 1
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+WALL_FACTOR = 4  # a task's wall-clock limit, in multiples of its CPU limit
 
 
 class WorkerLost(ProcessingError):
@@ -150,6 +152,7 @@ class _Task:
     timeout: float | None
     tries: int = 0
     started: float = 0.0
+    cpu0: float = 0.0  # the worker's CPU seconds when the task started
     kill: BaseException | None = None  # why the manager must kill the worker running it
 
 
@@ -332,6 +335,7 @@ class WorkerPool:
                         continue
                     task.tries += 1
                     task.started = time.monotonic()
+                    task.cpu0 = _cpu_seconds(w.proc.pid)
                     w.task = task
 
     def _receive(self, w: _Worker) -> None:
@@ -413,11 +417,17 @@ class WorkerPool:
             task = w.task
             if task is None:
                 continue
-            if task.kill is None and task.timeout is not None and now - task.started > task.timeout:
-                task.kill = TaskTimeout(
-                    f"{describe(task.fn, task.args)} ran longer than its limit of "
-                    f"{task.timeout:.0f} s and was stopped"
-                )
+            # The limit is CPU time, so a busy machine does not fail honest tasks;
+            # a task that waits instead of computing is stopped at WALL_FACTOR times it.
+            if task.kill is None and task.timeout is not None:
+                cpu = _cpu_seconds(w.proc.pid) - task.cpu0
+                wall = now - task.started
+                if cpu > task.timeout or wall > WALL_FACTOR * task.timeout:
+                    task.kill = TaskTimeout(
+                        f"{describe(task.fn, task.args)} ran longer than its limit of "
+                        f"{task.timeout:.0f} s of CPU ({WALL_FACTOR * task.timeout:.0f} s in all) "
+                        f"and was stopped after {cpu:.0f} s of CPU, {wall:.0f} s in all"
+                    )
             if task.kill is None:
                 rss = _rss(w.proc.pid)
                 self.peak_rss = max(self.peak_rss, rss)
@@ -443,6 +453,17 @@ class WorkerPool:
                 w.proc.join(1.0)
             self._forget(w)
         self._workers = []
+
+
+def _cpu_seconds(pid: int | None) -> float:
+    """User and system CPU seconds of ``pid`` so far (0 when unknown)."""
+    if not pid:
+        return 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _TICKS
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def _rss(pid: int | None) -> int:
