@@ -73,6 +73,9 @@ def test_malformed_corpus_through_the_app(client: TestClient, good: tuple[bytes,
         assert outcomes[name][0] == "refused-4xx", (name, outcomes[name])
     for name in ("laz-payload-zeroed-0", "laz-payload-random-2", "las-point-outside-bounds"):
         assert outcomes[name][0] == "failed", (name, outcomes[name])
+    # a count one point short of the data goes on, saying so in the status (and the report)
+    kind, message = outcomes["laz-point-count-3359-of-3360"]
+    assert kind == "successful" and "counts per return add up to 3360" in message, message
     pool = client.app.state.svc.scheduler.executor.pool
     print(f"peak worker RSS {pool.peak_rss / 2**20:.0f} MiB, workers replaced {pool.replaced}")
     assert pool.peak_rss < MEMORY_LIMIT

@@ -319,7 +319,7 @@ class Scheduler:
                 log.exception("job %s failed", job_id)
                 self.store.finish(job_id, FAILED, GENERIC_FAILURE)
         else:
-            self.store.finish(job_id, SUCCESSFUL, "finished", list(names))
+            self.store.finish(job_id, SUCCESSFUL, _finished_message(job_dir), list(names))
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:
             self.purge(job_dir)
@@ -362,3 +362,14 @@ class Scheduler:
             clear(job_dir)
         for sub in ("outputs", "inputs"):
             shutil.rmtree(job_dir / sub, ignore_errors=True)
+
+
+def _finished_message(job_dir: Path) -> str:
+    """``finished``, with the plan's warnings (e.g. header counts that disagree) when there are any."""
+    try:
+        warnings = json.loads((job_dir / "plan.json").read_text()).get("warnings", [])
+    except (OSError, ValueError, AttributeError):
+        warnings = []
+    if not warnings:
+        return "finished"
+    return f"finished with {len(warnings)} warning(s): " + "; ".join(str(w) for w in warnings)
