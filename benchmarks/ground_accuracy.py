@@ -30,8 +30,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from terrasift.jobs.params import JobParams  # noqa: E402
 from terrasift.metrics import ground_score  # noqa: E402
-from terrasift.params import JobParams  # noqa: E402
 from terrasift.synthetic import slopes  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
 from terrasift.workers import registry  # noqa: E402

@@ -52,10 +52,11 @@ def median_time(fn, runs: int) -> float:
 
 def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]:
     """Points/s of read, shard, and ground + DTM over all blocks, in this process."""
-    from terrasift import pipeline
+    from terrasift import jobs
+    from terrasift.jobs.block import run_block
+    from terrasift.jobs.plan import plan_job
     from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
     from terrasift.tiling.lasfile import iter_chunks
-    from terrasift.workers.block import run_block
 
     def read() -> None:
         for _ in iter_chunks(tile):
@@ -64,9 +65,9 @@ def stage_rates(tile: Path, n: int, runs: int, params: dict) -> dict[str, float]
     out: dict[str, float] = {"read": n / median_time(read, runs)}
     work = Path(tempfile.mkdtemp(prefix="bench-stages-"))
     job = work / "job"
-    validated = pipeline.validate_params(params)
-    pipeline.prepare_job(job, [tile], validated)
-    plan = pipeline._plan(job, pipeline.load_json(job / "job.json"))
+    validated = jobs.validate_params(params)
+    jobs.prepare_job(job, [tile], validated)
+    plan = plan_job(job, jobs.load_json(job / "job.json"))
     grid = BlockGrid(**plan["grid"])
     parts = shard_parts([n])
 
@@ -122,7 +123,7 @@ def isprs_accuracy(params: dict) -> None:
     """Ground accuracy of whole jobs (blocks, halos and all) on the ISPRS samples."""
     import laspy
 
-    from terrasift import pipeline
+    from terrasift import jobs
     from terrasift.metrics import ground_score
     from terrasift.workers.executors import InlineExecutor
 
@@ -135,10 +136,10 @@ def isprs_accuracy(params: dict) -> None:
     rows = []
     for f in files:
         job = Path(tempfile.mkdtemp(prefix="bench-isprs-")) / "job"
-        validated = pipeline.validate_params({"crs": "EPSG:32632", **params})
-        pipeline.prepare_job(job, [f], validated)
-        pipeline.run_job(job, InlineExecutor(), products="classified")
-        out = laspy.read(pipeline.output_path(job, "classified.laz"))
+        validated = jobs.validate_params({"crs": "EPSG:32632", **params})
+        jobs.prepare_job(job, [f], validated)
+        jobs.run_job(job, InlineExecutor(), products="classified")
+        out = laspy.read(jobs.output_path(job, "classified.laz"))
         ref = laspy.read(f)
         s = ground_score(np.asarray(ref.classification) == 2, np.asarray(out.classification) == 2)
         rows.append(s)

@@ -4,7 +4,7 @@
         [--no-isprs] [--no-cost]
 
 ``--method`` is the ground stage (``ground.ptd`` or ``ground.nist``; default the
-job default, ``terrasift.params.DEFAULT_GROUND``). Every run goes through the
+job default, ``terrasift.jobs.params.DEFAULT_GROUND``). Every run goes through the
 registry stage as a block does (``terrasift.workers.block._ground``): the
 method's default preset on the block, the steepness test on its ground, and on
 a steep block the rotation parameters of the method (``RotationParams.presets``,
@@ -43,8 +43,8 @@ single_threaded_blas()  # as in the workers; CPU times otherwise count BLAS thre
 
 import numpy as np  # noqa: E402
 
+from terrasift.jobs.params import DEFAULT_GROUND, stage_params  # noqa: E402
 from terrasift.metrics import ground_score  # noqa: E402
-from terrasift.params import DEFAULT_GROUND, stage_params  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
@@ -211,7 +211,8 @@ def cost() -> None:
 def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
     """CPU seconds (median of 3) of the block task on ``xyz`` as one block with
     default parameters, and whether it was found steep."""
-    from terrasift.pipeline import validate_params
+    from terrasift.jobs import validate_params
+    from terrasift.jobs.params import block_models
     from terrasift.tiling.blocks import SHARD_DTYPE, BlockGrid
     from terrasift.workers.block import classify_block
 
@@ -223,11 +224,12 @@ def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
     mins, maxs = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     span = float(np.max(maxs - mins)) + 2.0
     grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=0.0)
-    params = validate_params({"ground": METHOD.removeprefix("ground.")})
+    models = block_models(validate_params({"ground": METHOD.removeprefix("ground.")}))
+    density = xyz.shape[0] / float(np.prod(maxs - mins))
     times, steep = [], False
     for _ in range(3):
         t0 = time.process_time()
-        result = classify_block(pts, grid, 0, 0, params)
+        result = classify_block(pts, grid, 0, 0, models, density)
         times.append(time.process_time() - t0)
         steep = bool(result.stats["steep"].get("steep"))
     return float(np.median(times)), steep

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from terrasift.errors import ParameterError, TerrasiftError
-from terrasift.params import parse_cli_params
+from terrasift.jobs.params import parse_cli_params
 
 WORK_DIR = ".terrasift-work"
 
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "path":
             import json
 
-            from terrasift.pipeline import dtm_path_profile
+            from terrasift.jobs import dtm_path_profile
 
             try:
                 geometry = json.loads(args.line.read_text())
@@ -118,29 +118,29 @@ def process(
     from terrasift.workers.executors import make_executor, single_threaded_blas
 
     single_threaded_blas()  # before numpy loads: forked workers inherit its BLAS set-up
-    from terrasift import pipeline
+    from terrasift import jobs
 
-    params = pipeline.validate_params(raw_params)
-    pipeline.inspect_inputs(list(inputs), params)
+    params = jobs.validate_params(raw_params)
+    jobs.inspect_inputs(list(inputs), params)
     out.mkdir(parents=True, exist_ok=True)
     work = out / WORK_DIR
     job_file = work / "job.json"
     if job_file.exists():
-        previous = pipeline.load_json(job_file)
+        previous = jobs.load_json(job_file)
         if previous["inputs"] != [str(p.resolve()) for p in inputs] or previous["params"] != params:
             shutil.rmtree(work)  # different job: start over
     if not job_file.exists():
-        pipeline.prepare_job(work, list(inputs), params)
+        jobs.prepare_job(work, list(inputs), params)
     executor = make_executor(params.get("workers"))
     bar = _progress_bar() if progress else None
     try:
-        names = pipeline.run_job(work, executor, bar.update if bar else None, products=products)
+        names = jobs.run_job(work, executor, bar.update if bar else None, products=products)
     finally:
         executor.shutdown()
         if bar:
             bar.close()
     for name in names:
-        shutil.move(str(pipeline.output_path(work, name)), out / name)
+        shutil.move(str(jobs.output_path(work, name)), out / name)
     shutil.rmtree(work)
     return names
 

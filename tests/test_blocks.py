@@ -132,3 +132,10 @@ def test_tile_parts_shard_to_the_same_points(tmp_path, small_tile, small_scene):
         whole = read_block_points([tmp_path / "whole"], name)
         split = read_block_points([tmp_path / p.name for p in parts[:3]], name)
         assert np.array_equal(np.sort(whole, order="index"), np.sort(split, order="index"))
+
+
+def test_the_block_task_runs_the_registered_steps_in_order():
+    from terrasift.workers.registry import block_steps
+
+    ids = [s.id for s in block_steps()]
+    assert ids == ["mixed", "ground", "surface", "vegetation", "roughness", "elevation"]

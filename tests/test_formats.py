@@ -6,7 +6,7 @@ import laspy
 import numpy as np
 import pytest
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.terrain import make_scene, write_las
 from terrasift.workers.executors import InlineExecutor
 
@@ -37,12 +37,12 @@ def test_classified_copy_keeps_everything(tmp_path, version, point_format, suffi
         data[25] = 0
         src.write_bytes(bytes(data))
     job = tmp_path / "job"
-    params = pipeline.validate_params(
+    params = jobs.validate_params(
         {"block_size": 40, "buffer": 5, "features": "none", "crs": "EPSG:32632"}
     )
-    pipeline.prepare_job(job, [src], params)
-    pipeline.run_job(job, InlineExecutor(), products="classified")
-    a, b = laspy.read(src), laspy.read(pipeline.output_path(job, "classified.laz"))
+    jobs.prepare_job(job, [src], params)
+    jobs.run_job(job, InlineExecutor(), products="classified")
+    a, b = laspy.read(src), laspy.read(jobs.output_path(job, "classified.laz"))
     assert b.header.point_format.id == point_format
     assert len(b.points) == len(a.points)
     for dim in a.point_format.dimension_names:

@@ -7,7 +7,7 @@ import json
 import laspy
 import numpy as np
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.synthetic.scan import make_scan
 from terrasift.synthetic.terrain import Scene, write_las
 from terrasift.workers.executors import InlineExecutor
@@ -26,7 +26,7 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
     # the angular cells of the mixed filter must be at least the scan step (0.4°)
-    params = pipeline.validate_params(
+    params = jobs.validate_params(
         {
             "sensor_origin": origin,
             "features": "none",
@@ -35,9 +35,9 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
             "mixed.cell_angle": 0.5,
         }
     )
-    pipeline.prepare_job(job, [path], params)
-    pipeline.run_job(job, InlineExecutor())
-    classes = np.asarray(laspy.read(pipeline.output_path(job, "classified.laz")).classification)
+    jobs.prepare_job(job, [path], params)
+    jobs.run_job(job, InlineExecutor())
+    classes = np.asarray(laspy.read(jobs.output_path(job, "classified.laz")).classification)
     marked = classes == 7
     assert marked.any()
     # most marked points are real mixed or ghost returns, and few correct points are lost
@@ -47,7 +47,7 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
         precision,
         fpr,
     )  # measured 0.51 and 0.014 on this coarse scan
-    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"]["marked"] == int(marked.sum())
     assert report["counts_per_class"]["7"] == int(marked.sum())
     assert (classes == 2).sum() > 0.2 * len(scan)  # the ground plane in front of the mast
@@ -56,11 +56,11 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
 def test_without_origin_the_report_says_mixed_did_not_run(tmp_path):
     _, path = _scan_tile(tmp_path)
     job = tmp_path / "job"
-    pipeline.prepare_job(
-        job, [path], pipeline.validate_params({"features": "none", "block_size": 40, "buffer": 4})
+    jobs.prepare_job(
+        job, [path], jobs.validate_params({"features": "none", "block_size": 40, "buffer": 4})
     )
-    pipeline.run_job(job, InlineExecutor(), products="classified")
-    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    jobs.run_job(job, InlineExecutor(), products="classified")
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["mixed_measurements"].startswith("not run")
     assert "7" not in report["counts_per_class"]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from terrasift.errors import FilterSyntaxError, ParameterError
-from terrasift.params import (
+from terrasift.jobs.params import (
     DEFAULT_BUFFER,
     effective_stage_params,
     grid_alignment,
@@ -40,6 +40,9 @@ def test_defaults_are_filled_and_json_ready():
         ({"vegetation.no_such_field": 1}, "stage vegetation has no field 'no_such_field'"),
         ({"resolution": 0.3}, "whole multiple of resolution"),
         ({"features": "ditch,volcano"}, "unknown filter 'volcano'"),
+        ({"ground.preset": "bold"}, "parameter ground.preset"),
+        ({"ground.rotation.preset": "steep"}, "unknown preset 'steep'"),
+        ({"features.filters": "ditch"}, "stage features has no field 'filters'"),
     ],
 )
 def test_bad_values_name_the_problem(raw, message):
@@ -112,8 +115,39 @@ def test_auto_buffer_widens_for_nist_on_sparse_data_only():
     assert resolve_buffer(validate_params({"ground": "nist", "buffer": 7}), 0.16) == (7.0, None)
 
 
+def test_every_stage_input_says_what_it_is():
+    from terrasift.service.ogc import parameter_inputs
+
+    inputs = parameter_inputs()
+    for key, value in inputs.items():
+        if "." in key and key != "ground.preset":
+            meaning = value["description"].split("): ", 1)[1]
+            assert len(meaning) > 10, key
+
+
+def test_ground_methods_come_from_the_registry():
+    from terrasift.jobs.params import JobParams
+    from terrasift.workers.registry import ground_methods
+
+    assert ground_methods() == ["nist", "ptd"]
+    schema = JobParams.model_json_schema(by_alias=True)["properties"]["ground"]
+    assert schema["enum"] == ground_methods()
+
+
+def test_auto_buffer_is_the_largest_halo_a_block_step_asks_for():
+    from terrasift.jobs.params import block_models
+    from terrasift.workers.registry import block_steps
+
+    p = validate_params({"vegetation.cell": 4.0, "resolution": 1.0})
+    models = block_models(p)
+    halos = {s.id: s.halo(models, 8.0) for s in block_steps()}
+    assert halos["vegetation"] == 28.0  # 7 bins of 4 m beyond the core
+    assert resolve_buffer(p, 8.0) == (28.0, None)
+    assert resolve_buffer(validate_params({}), 8.0) == (DEFAULT_BUFFER, None)
+
+
 def test_feature_names_are_deduplicated_and_bounded() -> None:
-    from terrasift.params import MAX_FEATURE_NAMES
+    from terrasift.jobs.params import MAX_FEATURE_NAMES
 
     assert validate_params({"features": "ditch, ridge,ditch,,ridge"})["features"] == "ditch,ridge"
     assert validate_params({"features": ",".join(["ditch"] * 80_000)})["features"] == "ditch"

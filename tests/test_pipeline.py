@@ -13,9 +13,9 @@ import pytest
 import rasterio
 from rio_cogeo.cogeo import cog_validate
 
-from terrasift import pipeline
+from terrasift import jobs
 from terrasift.errors import JobCancelled
-from terrasift.params import stage_params
+from terrasift.jobs.params import stage_params
 from terrasift.workers.executors import InlineExecutor, LocalExecutor
 
 BLOCK = {"block_size": 80, "buffer": 15}
@@ -23,9 +23,9 @@ BLOCK = {"block_size": 80, "buffer": 15}
 
 def _run(tmp_path, tile, params, name="job", executor=None):
     job = tmp_path / name
-    validated = pipeline.validate_params(params)
-    pipeline.prepare_job(job, [tile], validated)
-    names = pipeline.run_job(job, executor or InlineExecutor())
+    validated = jobs.validate_params(params)
+    jobs.prepare_job(job, [tile], validated)
+    names = jobs.run_job(job, executor or InlineExecutor())
     return job, names
 
 
@@ -39,11 +39,11 @@ def test_outputs_exist_and_cogs_are_valid(finished_job):
     job, names = finished_job
     for name in ["classified.laz", "dtm.tif", "dsm.tif", "chm.tif", "report.json", "item.json"]:
         assert name in names
-        assert pipeline.output_path(job, name).stat().st_size > 0
+        assert jobs.output_path(job, name).stat().st_size > 0
     for name in ["dtm.tif", "dsm.tif", "chm.tif"]:
-        valid, errors, _ = cog_validate(str(pipeline.output_path(job, name)), quiet=True)
+        valid, errors, _ = cog_validate(str(jobs.output_path(job, name)), quiet=True)
         assert valid, errors
-        with rasterio.open(pipeline.output_path(job, name)) as ds:
+        with rasterio.open(jobs.output_path(job, name)) as ds:
             assert ds.crs.to_epsg() == 32632
             assert ds.dtypes[0] == "float32" and ds.nodata is not None
             assert ds.overviews(1), "COG should carry overviews"
@@ -54,7 +54,7 @@ def test_classified_laz_keeps_every_point_order_and_dimension(
 ):
     job, _ = finished_job
     src = laspy.read(small_tile)
-    out = laspy.read(pipeline.output_path(job, "classified.laz"))
+    out = laspy.read(jobs.output_path(job, "classified.laz"))
     assert len(out.points) == len(src.points)
     assert list(out.point_format.dimension_names) == list(src.point_format.dimension_names)
     for dim in ["X", "Y", "Z", "intensity", "return_number", "number_of_returns", "truth"]:
@@ -76,7 +76,7 @@ def test_classified_laz_keeps_every_point_order_and_dimension(
 
 def _dtm_rmse(job, scene) -> float:
     """RMSE of the job's DTM against the true surface over cells holding a true ground point."""
-    with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+    with rasterio.open(jobs.output_path(job, "dtm.tif")) as ds:
         dtm = ds.read(1, masked=True)
         rows, cols = np.nonzero(~np.ma.getmaskarray(dtm))
         xs, ys = rasterio.transform.xy(ds.transform, rows, cols)
@@ -99,7 +99,7 @@ def test_dtm_matches_true_surface(tmp_path, small_tile, small_scene, ground):
 
 def test_report_and_stac_item(finished_job, small_scene):
     job, names = finished_job
-    report = json.loads(pipeline.output_path(job, "report.json").read_text())
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
     assert report["points"] == len(small_scene)
     assert sum(report["counts_per_class"].values()) == len(small_scene)
     # no sensor origin, so no mixed measurements: class 7 is the isolated low points
@@ -117,7 +117,7 @@ def test_report_and_stac_item(finished_job, small_scene):
     assert report["roughness"]["n_bins"] == sum(b["n_bins"] for b in per_block.values()) > 0
     veg = report["vegetation"]
     assert 0 < veg["tree_coverage"] < 1 and sum(veg["bins"].values()) > 0
-    item = json.loads(pipeline.output_path(job, "item.json").read_text())
+    item = json.loads(jobs.output_path(job, "item.json").read_text())
     assert item["properties"]["proj:code"] == "EPSG:32632"
     assert item["assets"]["dtm.tif"]["type"].startswith(
         "image/tiff; application=geotiff; profile=cloud-optimized"
@@ -133,8 +133,8 @@ def test_block_seams_do_not_change_labels(tmp_path, small_tile, small_scene):
     differ lie within 5 m of a block edge)."""
     job_small, _ = _run(tmp_path, small_tile, {"block_size": 80}, "small")
     job_one, _ = _run(tmp_path, small_tile, {"block_size": 400}, "one")
-    a = np.asarray(laspy.read(pipeline.output_path(job_small, "classified.laz")).classification)
-    b = np.asarray(laspy.read(pipeline.output_path(job_one, "classified.laz")).classification)
+    a = np.asarray(laspy.read(jobs.output_path(job_small, "classified.laz")).classification)
+    b = np.asarray(laspy.read(jobs.output_path(job_one, "classified.laz")).classification)
     x, y = small_scene.xyz[:, 0], small_scene.xyz[:, 1]
     x0, y0, x1, y1 = small_scene.bounds
     inner = (x > x0 + 20) & (x < x1 - 20) & (y > y0 + 20) & (y < y1 - 20)
@@ -163,7 +163,7 @@ def test_dtm_nodata_does_not_depend_on_blocks(tmp_path):
     masks = []
     for size in (80, 400):
         job, _ = _run(tmp_path, tile, {"block_size": size, "features": "none"}, f"b{size}")
-        with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+        with rasterio.open(jobs.output_path(job, "dtm.tif")) as ds:
             masks.append(ds.read_masks(1) == 0)
     assert masks[0].sum() > 1000  # the lake is there
     assert np.array_equal(masks[0], masks[1])
@@ -174,30 +174,30 @@ def test_resume_redoes_only_missing_work(tmp_path, small_tile):
     before = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}
     victim = sorted(before)[1]
     (job / "blocks" / victim).unlink()
-    pipeline.output_path(job, "dtm.tif").unlink()
-    reference = laspy.read(pipeline.output_path(job, "classified.laz")).classification.copy()
-    pipeline.output_path(job, "classified.laz").unlink()
-    pipeline.run_job(job, InlineExecutor())
+    jobs.output_path(job, "dtm.tif").unlink()
+    reference = laspy.read(jobs.output_path(job, "classified.laz")).classification.copy()
+    jobs.output_path(job, "classified.laz").unlink()
+    jobs.run_job(job, InlineExecutor())
     after = {p.name: p.stat().st_mtime_ns for p in (job / "blocks").glob("*.npz")}
     changed = {n for n in after if after[n] != before.get(n)}
     assert changed == {victim}
     assert np.array_equal(
-        laspy.read(pipeline.output_path(job, "classified.laz")).classification, reference
+        laspy.read(jobs.output_path(job, "classified.laz")).classification, reference
     )
-    assert pipeline.output_path(job, "dtm.tif").exists()
+    assert jobs.output_path(job, "dtm.tif").exists()
 
 
 def test_cancelled_job_stops(tmp_path, small_tile):
     job = tmp_path / "job"
-    pipeline.prepare_job(job, [small_tile], pipeline.validate_params(BLOCK))
-    pipeline.request_cancel(job)
+    jobs.prepare_job(job, [small_tile], jobs.validate_params(BLOCK))
+    jobs.request_cancel(job)
     with pytest.raises(JobCancelled):
-        pipeline.run_job(job, InlineExecutor())
+        jobs.run_job(job, InlineExecutor())
     assert not (job / "outputs" / "classified.laz").exists()
 
 
 def _labels(job) -> np.ndarray:
-    return np.asarray(laspy.read(pipeline.output_path(job, "classified.laz")).classification)
+    return np.asarray(laspy.read(jobs.output_path(job, "classified.laz")).classification)
 
 
 def test_process_pool_gives_the_same_labels(tmp_path, small_tile, finished_job):
@@ -244,19 +244,19 @@ def test_multi_tile_job_has_no_seam(tmp_path, small_scene, finished_job):
         paths.append(write_las(part, tmp_path / f"part{i}.laz", extra_bytes=True))
         parts.append(sel)
     job = tmp_path / "job"
-    pipeline.prepare_job(job, paths, pipeline.validate_params(BLOCK))
-    names = pipeline.run_job(job, InlineExecutor())
+    jobs.prepare_job(job, paths, jobs.validate_params(BLOCK))
+    names = jobs.run_job(job, InlineExecutor())
     assert {"classified-part0.laz", "classified-part1.laz", "dtm.tif"} <= set(names)
     with (
-        rasterio.open(pipeline.output_path(job, "dtm.tif")) as a,
-        rasterio.open(pipeline.output_path(job_one, "dtm.tif")) as b,
+        rasterio.open(jobs.output_path(job, "dtm.tif")) as a,
+        rasterio.open(jobs.output_path(job_one, "dtm.tif")) as b,
     ):
         assert a.transform == b.transform and a.shape == b.shape
         np.testing.assert_allclose(a.read(1), b.read(1), atol=1e-4)
-    one = np.asarray(laspy.read(pipeline.output_path(job_one, "classified.laz")).classification)
+    one = np.asarray(laspy.read(jobs.output_path(job_one, "classified.laz")).classification)
     for i, sel in enumerate(parts):
         got = np.asarray(
-            laspy.read(pipeline.output_path(job, f"classified-part{i}.laz")).classification
+            laspy.read(jobs.output_path(job, f"classified-part{i}.laz")).classification
         )
         assert np.array_equal(got, one[sel])
 
@@ -268,32 +268,32 @@ def test_tiles_with_different_crs_are_refused(tmp_path, small_scene):
     a = write_las(small_scene, tmp_path / "a.laz", crs="EPSG:32632")
     b = write_las(small_scene, tmp_path / "b.laz", crs="EPSG:25832")
     with pytest.raises(InputError, match="share a CRS"):
-        pipeline.inspect_inputs([a, b], pipeline.validate_params({}))
+        jobs.inspect_inputs([a, b], jobs.validate_params({}))
     shutil.rmtree(tmp_path, ignore_errors=True)
 
 
 def test_banded_slope_and_categories_equal_whole_dtm(tmp_path, small_tile, monkeypatch):
     """Slope and categories are computed over bands of DTM rows; the bands must not show."""
-    from terrasift.params import stage_params
-    from terrasift.tiling import outputs
+    from terrasift.jobs import finish as outputs
+    from terrasift.jobs.params import stage_params
     from terrasift.workers import categories, terrain
 
     job, _ = _run(tmp_path, small_tile, {**BLOCK, "features": "none"})
     for name in ("slope.tif", "categories.tif"):
-        pipeline.output_path(job, name).unlink()
+        jobs.output_path(job, name).unlink()
     monkeypatch.setattr(outputs, "BAND_CELLS", 24 * 324)  # bands of 24 rows over the 324 × 324 DTM
     outputs.write_terrain(str(job))
-    params = pipeline.load_json(job / "job.json")["params"]
-    with rasterio.open(pipeline.output_path(job, "dtm.tif")) as ds:
+    params = jobs.load_json(job / "job.json")["params"]
+    with rasterio.open(jobs.output_path(job, "dtm.tif")) as ds:
         dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
     tp = stage_params(params, "terrain")
     whole_slope = terrain.slope_degrees(dtm, 0.5, tp.median_size, tp.smooth)
     whole_cats = categories.compute_categories(dtm, 0.5, stage_params(params, "categories")).bands()
-    with rasterio.open(pipeline.output_path(job, "slope.tif")) as ds:
+    with rasterio.open(jobs.output_path(job, "slope.tif")) as ds:
         np.testing.assert_allclose(
             ds.read(1, masked=True).filled(np.nan), whole_slope, atol=1e-4, equal_nan=True
         )
-    with rasterio.open(pipeline.output_path(job, "categories.tif")) as ds:
+    with rasterio.open(jobs.output_path(job, "categories.tif")) as ds:
         assert np.array_equal(ds.read(), whole_cats)
 
 

@@ -252,19 +252,29 @@ def test_bind_ground_seeds_only_stages_that_take_a_seed_mask():
 
 
 def test_rotation_preset_follows_the_ground_method():
-    from terrasift.params import stage_params
+    from terrasift.errors import ParameterError
+    from terrasift.jobs.params import rotation_params, stage_params, validate_params
 
-    assert stage_params({}, "ground.rotation", "ground.ptd") == RotationParams()
-    nist = stage_params({}, "ground.rotation", "ground.nist")
+    assert rotation_params({}, "ground.ptd") == RotationParams()
+    nist = rotation_params({}, "ground.nist")
     assert (nist.angle, nist.second_angle) == (30.0, 45.0) and not nist.rerun_unrotated
     assert nist.ground_preset == "conservative"
     # job overrides still go on top of the method's preset
-    one = stage_params({"ground.rotation.second_angle": "none"}, "ground.rotation", "ground.nist")
+    one = rotation_params({"ground.rotation.second_angle": "none"}, "ground.nist")
     assert one.second_angle is None and one.angle == 30.0
+    # a preset the stage does not have is an error, not the defaults
+    with pytest.raises(ParameterError, match="unknown preset 'ground.ptd'"):
+        stage_params({}, "ground.rotation", "ground.ptd")
+    # so is a rotation preset the ground method does not have
+    with pytest.raises(ParameterError, match="unknown preset 'steep'"):
+        validate_params({"ground.rotation.preset": "steep"})
 
 
 def test_block_rotates_with_the_methods_preset(monkeypatch):
-    from terrasift.workers import block
+    from terrasift.jobs.params import block_models, validate_params
+    from terrasift.tiling.blocks import BlockGrid
+    from terrasift.workers import steps
+    from terrasift.workers.block import Block
     from terrasift.workers.ground import rotation
 
     seen = {}
@@ -282,7 +292,11 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
     pts = _plane(25.0)[::4]
     for method, second in (("ptd", None), ("nist", 45.0)):
         seen.clear()
-        block._ground(pts, {"ground": method, "rotation": "always"}, None, block._Timer())
+        models = block_models(validate_params({"ground": method, "rotation": "always"}))
+        grid = BlockGrid.over(pts.min(0)[:2], pts.max(0)[:2], 0.5, 200.0, 20.0, 2.0)
+        core = np.ones(len(pts), bool)
+        block = Block(pts, np.zeros(len(pts)), core, grid, 0, 0, 8.0, lambda: None)
+        steps.ground_step(block, models)
         assert seen["params"].second_angle == second
         assert (seen["seeded"] is not None) == (method == "ptd")
         assert (seen["unrotated"] is not None) == (
@@ -293,7 +307,7 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
 def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
     # Tipped by 30° only, the overhang stays steeper than ground.nist follows;
     # the rerun conservative unrotated run drops terrain the default run keeps.
-    from terrasift.params import stage_params
+    from terrasift.jobs.params import stage_params
     from terrasift.workers.ground.rotation import bind_ground
     from terrasift.workers.registry import get_stage
 

@@ -46,7 +46,7 @@ OUTPUTS: dict[str, str] = {
 
 def parameter_inputs() -> dict[str, dict[str, Any]]:
     """Every job parameter as a process input: the §8 keys, then ``<stage>.<field>`` per registered stage."""
-    from terrasift.params import JobParams
+    from terrasift.jobs.params import JobParams
     from terrasift.workers.registry import stages
 
     out: dict[str, dict[str, Any]] = {}

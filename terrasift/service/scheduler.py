@@ -126,9 +126,9 @@ class Scheduler:
     @property
     def pipeline(self) -> Any:
         if self._pipeline is None:
-            import terrasift.pipeline
+            import terrasift.jobs
 
-            self._pipeline = terrasift.pipeline
+            self._pipeline = terrasift.jobs
         return self._pipeline
 
     @property

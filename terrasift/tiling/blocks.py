@@ -9,14 +9,13 @@ core lies within ``buffer`` of it, corners included.
 
 from __future__ import annotations
 
-import os
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from terrasift.files import atomic_path
 from terrasift.tiling.lasfile import iter_chunks
 
 SHARD_DTYPE = np.dtype(
@@ -175,38 +174,33 @@ def shard_tile(
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
     """
-    out_dir = Path(out_dir)
-    tmp = out_dir.with_name(out_dir.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     core_counts: dict[str, int] = {}
-    for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop):
-        x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
-        p, bid, core = assign_blocks(grid, x, y)
-        # Stable, so a block's points keep file order; on 16-bit ids numpy
-        # sorts by radix (~6x faster than the merge sort of wider ints).
-        key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
-        order = np.argsort(key, kind="stable")
-        p, bid, core = p[order], bid[order], core[order]
-        rec = np.empty(p.size, SHARD_DTYPE)
-        rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
-        rec["index"] = chunk.start + p
-        rec["tile"] = tile_index
-        rec["core"] = core
-        rec["return_number"] = chunk.return_number[p]
-        rec["number_of_returns"] = chunk.number_of_returns[p]
-        rec["scan_id"] = chunk.scan_id[p]
-        starts = np.flatnonzero(np.r_[True, bid[1:] != bid[:-1]])
-        ends = np.r_[starts[1:], bid.size]
-        for s, e in zip(starts, ends, strict=True):
-            b = int(bid[s])
-            name = block_name(b % grid.nx, b // grid.nx)
-            with open(tmp / f"{name}.bin", "ab") as fh:
-                rec[s:e].tofile(fh)
-            core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(tmp, out_dir)
+    with atomic_path(out_dir) as tmp:
+        tmp.mkdir()
+        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop):
+            x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+            p, bid, core = assign_blocks(grid, x, y)
+            # Stable, so a block's points keep file order; on 16-bit ids numpy
+            # sorts by radix (~6x faster than the merge sort of wider ints).
+            key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
+            order = np.argsort(key, kind="stable")
+            p, bid, core = p[order], bid[order], core[order]
+            rec = np.empty(p.size, SHARD_DTYPE)
+            rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
+            rec["index"] = chunk.start + p
+            rec["tile"] = tile_index
+            rec["core"] = core
+            rec["return_number"] = chunk.return_number[p]
+            rec["number_of_returns"] = chunk.number_of_returns[p]
+            rec["scan_id"] = chunk.scan_id[p]
+            starts = np.flatnonzero(np.r_[True, bid[1:] != bid[:-1]])
+            ends = np.r_[starts[1:], bid.size]
+            for s, e in zip(starts, ends, strict=True):
+                b = int(bid[s])
+                name = block_name(b % grid.nx, b // grid.nx)
+                with open(tmp / f"{name}.bin", "ab") as fh:
+                    rec[s:e].tofile(fh)
+                core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
     return core_counts
 
 

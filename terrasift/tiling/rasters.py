@@ -7,7 +7,6 @@ deflate) into a temporary name and renamed, so a reader never sees half a file.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,8 @@ from rasterio.transform import Affine
 from rasterio.windows import Window
 from rio_cogeo.cogeo import cog_translate
 from rio_cogeo.profiles import cog_profiles
+
+from terrasift.files import atomic_path
 
 FLOAT_NODATA = -9999.0
 RASTER_CACHE_MB = 64
@@ -100,24 +101,23 @@ class RasterMosaic:
         """Close the mosaic and write it as a COG at ``out_path`` (atomically)."""
         self._ds.close()
         out_path = Path(out_path)
-        tmp = out_path.with_name(out_path.name + ".part")
         profile = cog_profiles.get("deflate")
         # Deflate level 1: ~30 % faster than the default 6 for a 3 % larger file.
         profile.update(blockxsize=256, blockysize=256, zlevel=1)
         profile["photometric"] = "MINISBLACK"
         if self.dtype.startswith("float"):
             profile["predictor"] = 3
-        cog_translate(
-            str(self.path),
-            str(tmp),
-            profile,
-            in_memory=False,
-            quiet=True,
-            overview_resampling=resampling,
-            use_cog_driver=False,
-            web_optimized=False,
-        )
-        os.replace(tmp, out_path)
+        with atomic_path(out_path) as tmp:
+            cog_translate(
+                str(self.path),
+                str(tmp),
+                profile,
+                in_memory=False,
+                quiet=True,
+                overview_resampling=resampling,
+                use_cog_driver=False,
+                web_optimized=False,
+            )
         self.path.unlink(missing_ok=True)
         return out_path
 

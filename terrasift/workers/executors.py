@@ -2,7 +2,7 @@
 
 Tasks are plain module-level functions of paths and names, so they pickle the
 same way for both. Cancelling is two-fold: queued futures are cancelled here,
-and running tasks see the job's cancel marker (``terrasift.pipeline``) between
+and running tasks see the job's cancel marker (``terrasift.jobs``) between
 stages, which works on any worker that shares the data directory.
 """
 
@@ -47,8 +47,13 @@ def single_threaded_blas() -> None:
         os.environ.setdefault(var, "1")
 
 
-# Modules every task needs: a forked worker inherits them already imported.
-TASK_MODULES = ("terrasift.workers.block", "terrasift.tiling.outputs")
+# The heavy modules every task needs (the stages, raster and LAS writing): a
+# forked worker inherits them already imported.
+TASK_MODULES = (
+    "terrasift.workers.stages",
+    "terrasift.tiling.rasters",
+    "terrasift.tiling.classified",
+)
 
 
 def _os_thread_count() -> int:

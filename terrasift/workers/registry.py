@@ -20,7 +20,9 @@ from terrasift.errors import ParameterError
 class StageParams(BaseModel):
     """Base of every stage's parameter model: frozen, unknown keys rejected."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # Attribute docstrings become the field descriptions of the published
+    # process inputs (``/processes/terrain``), so they say what and why.
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     #: named parameter sets; ``default`` is implied by the field defaults
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
@@ -66,21 +68,69 @@ class Stage:
     params: type[StageParams]
     run: Callable[..., Any]
     description: str
+    role: str = ""
+    """``ground`` for a ground method (a job's ``ground`` parameter names it), else empty."""
+
+
+@dataclass(frozen=True)
+class BlockStep:
+    """A step of the block task: ``run(block, models)`` with one signature for all.
+
+    ``halo(models, density)``: metres of data around a block's core the step
+    needs to decide the core as a run over the whole tile would (0: none).
+    """
+
+    id: str
+    order: float
+    run: Callable[[Any, Any], None]
+    halo: Callable[[Any, float], float]
 
 
 _STAGES: dict[str, Stage] = {}
+_STEPS: dict[str, BlockStep] = {}
 
 
-def register(stage_id: str, params: type[StageParams], description: str) -> Callable:
+def register(
+    stage_id: str, params: type[StageParams], description: str, *, role: str = ""
+) -> Callable:
     """Decorator registering ``fn`` under ``stage_id``; a duplicate id raises."""
 
     def decorate(fn: Callable[..., Any]) -> Callable[..., Any]:
         if stage_id in _STAGES:
             raise ValueError(f"stage {stage_id!r} is already registered")
-        _STAGES[stage_id] = Stage(stage_id, params, fn, description)
+        _STAGES[stage_id] = Stage(stage_id, params, fn, description, role)
         return fn
 
     return decorate
+
+
+def _no_halo(models: Any, density: float) -> float:
+    return 0.0
+
+
+def block_step(
+    step_id: str, *, order: float, halo: Callable[[Any, float], float] = _no_halo
+) -> Callable:
+    """Decorator registering ``fn(block, models)`` as a block step run at ``order``."""
+
+    def decorate(fn: Callable[[Any, Any], None]) -> Callable[[Any, Any], None]:
+        if step_id in _STEPS:
+            raise ValueError(f"block step {step_id!r} is already registered")
+        _STEPS[step_id] = BlockStep(step_id, order, fn, halo)
+        return fn
+
+    return decorate
+
+
+def block_steps() -> list[BlockStep]:
+    """The block task's steps in the order they run."""
+    _load_all()
+    return sorted(_STEPS.values(), key=lambda s: s.order)
+
+
+def ground_methods() -> list[str]:
+    """Names of the ground methods (``nist`` for ``ground.nist``), sorted."""
+    return [s.id.removeprefix("ground.") for s in stages("ground.") if s.role == "ground"]
 
 
 def get_stage(stage_id: str) -> Stage:

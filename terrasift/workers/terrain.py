@@ -241,6 +241,15 @@ def combine(parts: Iterable[Roughness]) -> Roughness:
     return Roughness(n, mx, my, m2x, m2y)
 
 
+def roughness_cell(params: TerrainParams, density: float) -> float:
+    """The roughness bin size at ``density`` points per m²: ``cell``, or the
+    smallest whole multiple of it at which a bin expects twice ``min_points``,
+    so the gauge of a sparse cloud does not go empty (the job's mean density,
+    so every block uses the same cell)."""
+    need = np.sqrt(2 * params.min_points / max(density, 1e-6))
+    return params.cell * max(1, int(np.ceil(need / params.cell)))
+
+
 @register(
     "terrain",
     TerrainParams,

@@ -190,6 +190,16 @@ def auto_support(n: NDArray, grid: Grid, min_points: int) -> int:
     return 15
 
 
+def with_support(params: VegetationParams, density: float) -> VegetationParams:
+    """``params`` with ``support`` fixed: the given width, else the one for
+    ``density`` (the job's mean points per m², one value for the whole job so
+    neighbouring blocks judge bins alike)."""
+    if params.support is not None:
+        return params
+    support = support_for_density(density, params.cell, params.min_points)
+    return params.model_copy(update={"support": support})
+
+
 def support_for_density(density: float, cell: float, min_points: int = 20) -> int:
     """Smallest odd window width whose k × k bins expect ≥ 2 (min_points + 1) points
     at ``density`` points per m². The spine can fix ``support`` once per job from

@@ -53,7 +53,7 @@ async def path_profile(
     job = _finished(_job(request, job_id, who))
     svc = service(request)
     job_dir = svc.scheduler.job_dir(job.id)
-    from terrasift.pipeline import job_path_profile
+    from terrasift.jobs import job_path_profile
 
     profile = await run_in_threadpool(job_path_profile, job_dir, line, crs=crs, spacing=spacing)
     if f == "csv":

@@ -54,8 +54,6 @@ _BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
 class FeatureParams(StageParams):
     """Parameters of feature detection."""
 
-    filters: str = "all"
-    """Comma list of filter names, ``all`` (every built-in) or ``none``; user filters are added by name."""
     simplify_tiles: float = Field(0.5, ge=0, le=5)
     """Polygon simplification tolerance in tiles."""
 

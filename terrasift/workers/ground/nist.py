@@ -442,7 +442,12 @@ def _mow(
     return np.flatnonzero(code == IN_BAND)
 
 
-@register("ground.nist", NistParams, "NIST select/reject, TIN masking, meshing, screening, mowing")
+@register(
+    "ground.nist",
+    NistParams,
+    "NIST select/reject, TIN masking, meshing, screening, mowing",
+    role="ground",
+)
 def classify_ground(
     xyz: NDArray[np.float64],
     params: NistParams,

@@ -115,8 +115,13 @@ class PtdParams(StageParams):
         },
     }
 
+    def halo(self, density: float) -> float:
+        """One seed cell: the lowest points that seed the TIN around a core
+        point at the block's edge come from the cells next to it."""
+        return float(self.max_building_size)
 
-@register("ground.ptd", PtdParams, "progressive TIN densification")
+
+@register("ground.ptd", PtdParams, "progressive TIN densification", role="ground")
 def classify_ground(
     xyz: NDArray[np.float64],
     params: PtdParams,

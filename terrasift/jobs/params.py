@@ -10,15 +10,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, Literal
 
 import pyproj
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from terrasift.errors import ParameterError
-from terrasift.workers.registry import get_stage, stages
+from terrasift.workers.block import BlockModels
+from terrasift.workers.registry import block_steps, get_stage, ground_methods, stages
 
 DEFAULT_GROUND = "nist"
+#: the registered ground methods (``ground.nist`` -> ``nist``): the values of ``ground``
+GroundMethod = Literal[tuple(ground_methods())]  # type: ignore[valid-type]
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
 MAX_FEATURE_NAMES = 64  # filters in one job; each one searches the whole mosaic twice
 
@@ -28,7 +31,7 @@ class JobParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
-    ground: Literal["nist", "ptd"] = Field(DEFAULT_GROUND, description="ground method")
+    ground: GroundMethod = Field(DEFAULT_GROUND, description="ground method")
     ground_preset: Literal["default", "conservative", "aggressive"] = Field(
         "default", alias="ground.preset", description="named parameter set of the ground method"
     )
@@ -161,17 +164,14 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     # is reported now rather than inside a worker.
     for stage_id, values in overrides.items():
         stage = get_stage(stage_id)
-        preset = job.ground_preset if stage_id.startswith("ground.") else "default"
-        if preset != "default" and preset not in stage.params.presets:
-            preset = "default"
+        preset = job.ground_preset if stage_id == f"ground.{job.ground}" else "default"
         try:
             stage.params.preset(preset, **values)
         except ParameterError as exc:
             raise ParameterError(f"parameter {stage_id}.{exc}") from None
         for k, v in values.items():
             out[f"{stage_id}.{k}"] = v
-    if job.ground_preset != "default":
-        get_stage(f"ground.{job.ground}").params.preset(job.ground_preset)
+    block_models(out)  # presets, the rotation's included, exist for the chosen method
     grid_alignment(out)
     from terrasift.workers.features import resolve_filters
 
@@ -185,7 +185,7 @@ def effective_stage_params(params: Mapping[str, Any]) -> dict[str, dict[str, Any
     Of the ground methods only the job's own appears, with its preset; zeros
     that mean "automatic" stay zero (the stage resolves them per block).
     """
-    methods = set(get_args(JobParams.model_fields["ground"].annotation))
+    methods = set(ground_methods())
     chosen = f"ground.{params['ground']}"
     out: dict[str, dict[str, Any]] = {}
     for stage in stages():
@@ -203,15 +203,21 @@ def effective_stage_params(params: Mapping[str, Any]) -> dict[str, dict[str, Any
 def resolve_buffer(params: Mapping[str, Any], density: float) -> tuple[float, str | None]:
     """The job's halo in metres, and a warning when ``auto`` had to be cut short.
 
-    ``auto`` is the larger of DEFAULT_BUFFER and the halo the ground method
+    ``auto`` is the larger of DEFAULT_BUFFER and the largest halo a block step
     asks for at ``density`` (sparse data needs wider bins, so wider halos, for
     blocks to label their cores as one run over the tile would), kept below
     half the block size.
     """
     if params["buffer"] != "auto":
         return float(params["buffer"]), None
-    method = f"ground.{params['ground']}"
-    need = stage_params(params, method, params.get("ground.preset", "default")).halo(density)
+    models = block_models(params)
+    needs = {
+        models.ground.id if step.id == "ground" else step.id: step.halo(models, density)
+        for step in block_steps()
+    }
+    # the ground method names the need unless another step needs more
+    method = max(needs, key=lambda k: (needs[k], k == models.ground.id))
+    need = needs[method]
     res = float(params["resolution"])
     want = max(DEFAULT_BUFFER, math.ceil(need / res) * res)
     cap = (math.ceil(float(params["block_size"]) / 2 / res) - 1) * res
@@ -221,6 +227,37 @@ def resolve_buffer(params: Mapping[str, Any], density: float) -> tuple[float, st
         f"buffer: {method} needs {want:.0f} m of halo at {density:.2g} points/m², cut to {cap:g} m by "
         f"block_size {params['block_size']:g}; a larger block_size labels block edges more reliably"
     )
+
+
+def block_models(params: Mapping[str, Any]) -> BlockModels:
+    """The block stages' parameter models for a job's validated parameters.
+
+    Unknown presets raise ParameterError; the rotation takes the preset it
+    names for the job's ground method (``RotationParams.presets``) when it has one.
+    """
+    stage = get_stage(f"ground.{params['ground']}")
+    rotation = rotation_params(params, stage.id)
+    origins = params.get("sensor_origin")
+    return BlockModels(
+        ground=stage,
+        ground_params=stage_params(params, stage.id, params.get("ground.preset", "default")),
+        rotation_ground_params=stage_params(params, stage.id, rotation.ground_preset),
+        lowpoints=stage_params(params, "ground.lowpoints"),
+        steep=stage_params(params, "ground.steep"),
+        rotation=rotation,
+        rotation_mode=params.get("rotation", "auto"),
+        vegetation=stage_params(params, "vegetation"),
+        terrain=stage_params(params, "terrain"),
+        mixed=stage_params(params, "mixed"),
+        sensor_origin=tuple(tuple(float(c) for c in o) for o in origins) if origins else None,
+    )
+
+
+def rotation_params(params: Mapping[str, Any], method: str) -> Any:
+    """The rotation's parameters for ground method ``method`` (a stage id):
+    its preset for that method when it has one, else its defaults; job overrides on top."""
+    presets = get_stage("ground.rotation").params.presets
+    return stage_params(params, "ground.rotation", method if method in presets else "default")
 
 
 def grid_alignment(params: Mapping[str, Any]) -> float:
@@ -280,9 +317,10 @@ def stage_params(params: Mapping[str, Any], stage_id: str, preset: str = "defaul
         for k, v in params.items()
         if k.startswith(prefix) and "." not in k[len(prefix) :]
     }
-    if preset != "default" and preset not in stage.params.presets:
-        preset = "default"
-    return stage.params.preset(preset, **overrides)
+    try:
+        return stage.params.preset(preset, **overrides)
+    except ParameterError as exc:
+        raise ParameterError(f"parameter {stage_id}: {exc}") from None
 
 
 def parse_cli_params(pairs: list[str]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Finishing tasks of a job: mosaics to COGs, classified LAZ in original order, report, STAC item.
+"""Finishing tasks of a job: mosaics to COGs, slope, categories and features over the mosaic, classified LAZ.
 
 Each writes to a temporary name and renames, and is skipped when its output
 already exists, so a resumed job repeats only what is missing.
@@ -6,42 +6,24 @@ already exists, so a resumed job repeats only what is missing.
 
 from __future__ import annotations
 
-import copy
-import datetime as dt
-import json
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import laspy
 import numpy as np
-import pyproj
 from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
-from terrasift.params import stage_params
+from terrasift.files import load_json, write_json
+from terrasift.jobs.dirs import block_results
+from terrasift.jobs.params import stage_params
 from terrasift.tiling.blocks import BlockGrid
-from terrasift.tiling.rasters import FLOAT_NODATA, RasterMosaic, bounded_raster_cache, job_transform
-
-MEDIA_TYPES = {
-    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-    ".laz": "application/vnd.laszip",
-    ".geojson": "application/geo+json",
-    ".json": "application/json",
-}
+from terrasift.tiling.classified import write_classified_copy
+from terrasift.tiling.rasters import RasterMosaic, bounded_raster_cache, job_transform
 
 #: the float rasters every job writes; name -> how to make it from a block's arrays
 FLOAT_RASTERS = ("dtm", "dsm", "chm")
 COVERAGE_NODATA = 255
-
-
-def _load(job_dir: Path, name: str) -> Any:
-    return json.loads((job_dir / name).read_text())
-
-
-def _block_files(job_dir: Path) -> list[Path]:
-    return sorted((job_dir / "blocks").glob("*.npz"), key=lambda p: p.name)
 
 
 RASTERS = (*FLOAT_RASTERS, "coverage")
@@ -63,13 +45,13 @@ def _write_raster(job: Path, name: str) -> str:
     target = job / "outputs" / f"{name}.tif"
     if target.exists():
         return target.name
-    plan = _load(job, "plan.json")
+    plan = load_json(job / "plan.json")
     grid = BlockGrid(**plan["grid"])
     work = job / "work"
     work.mkdir(exist_ok=True)
     f = 1
     if name == "coverage":
-        params = _load(job, "job.json")["params"]
+        params = load_json(job / "job.json")["params"]
         cell = float(stage_params(params, "vegetation").cell)
         f = int(
             round(cell / grid.resolution)
@@ -93,7 +75,7 @@ def _write_raster(job: Path, name: str) -> str:
             crs=plan["crs_wkt"],
         )
     mosaic.fill_nodata()
-    for path in _block_files(job):
+    for path in block_results(job):
         with np.load(path) as data:
             row_off, col_off, rows, cols = (int(v) for v in data["window"])
             if rows <= 0 or cols <= 0:
@@ -141,8 +123,8 @@ def write_slope(job_dir: str) -> str:
     out = job / "outputs"
     if (out / "slope.tif").exists():
         return "slope.tif"
-    plan = _load(job, "plan.json")
-    tparams = stage_params(_load(job, "job.json")["params"], "terrain")
+    plan = load_json(job / "plan.json")
+    tparams = stage_params(load_json(job / "job.json")["params"], "terrain")
     work = job / "work"
     work.mkdir(exist_ok=True)
     with bounded_raster_cache(), rasterio.open(out / "dtm.tif") as ds:
@@ -195,8 +177,8 @@ def _write_categories(job: Path) -> list[str]:
     from terrasift.workers import features as feat
 
     out = job / "outputs"
-    plan = _load(job, "plan.json")
-    params = _load(job, "job.json")["params"]
+    plan = load_json(job / "plan.json")
+    params = load_json(job / "job.json")["params"]
     cparams = stage_params(params, "categories")
     names = []
     work = job / "work"
@@ -243,8 +225,8 @@ def _write_categories(job: Path) -> list[str]:
         crs = plan["crs_wkt"]
         native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
         if native is not None:
-            _write_json(out / "features.native.geojson", native)
-            _write_json(
+            write_json(out / "features.native.geojson", native)
+            write_json(
                 out / "features.geojson",
                 feat.features_geojson(result, crs, job.name, to_wgs84=True),
             )
@@ -265,12 +247,6 @@ def _write_categories(job: Path) -> list[str]:
     return names
 
 
-def _write_json(path: Path, data: Any) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(json.dumps(data))
-    os.replace(tmp, path)
-
-
 def classified_name(plan: Mapping[str, Any], tile_index: int) -> str:
     """``classified.laz`` for a one-tile job, ``classified-<stem>.laz`` per tile otherwise."""
     if len(plan["tiles"]) == 1:
@@ -281,7 +257,7 @@ def classified_name(plan: Mapping[str, Any], tile_index: int) -> str:
 def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000) -> str:
     """Task: copy tile ``tile_index`` with the job's classes, every point in order, every dimension kept."""
     job = Path(job_dir)
-    plan = _load(job, "plan.json")
+    plan = load_json(job / "plan.json")
     name = classified_name(plan, tile_index)
     out = job / "outputs" / name
     if out.exists():
@@ -290,7 +266,7 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
     n = int(tile["point_count"])
     labels = np.zeros(n, np.uint8)
     seen = np.zeros(n, np.uint8)
-    for path in _block_files(job):
+    for path in block_results(job):
         with np.load(path) as data:
             mine = data["tile"] == tile_index
             idx = data["index"][mine]
@@ -301,209 +277,11 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
         raise ProcessingError(
             f"{name}: {missing} points got no label and {twice} got more than one"
         )
-    tmp = out.with_name(out.name + ".part")
-    with laspy.open(tile["path"]) as reader:
-        header = copy.deepcopy(reader.header)
-        if str(header.version) == "1.0":
-            # laspy writes from 1.1 on; 1.0 and 1.2 share the header and point
-            # records of formats 0 and 1, so the copy is written as 1.2.
-            header.version = laspy.header.Version(1, 2)
-        params = _load(job, "job.json")["params"]
-        if params.get("crs"):
-            header.add_crs(pyproj.CRS.from_user_input(params["crs"]))
-        with laspy.open(str(tmp), mode="w", header=header, do_compress=True) as writer:
-            start = 0
-            for pts in reader.chunk_iterator(chunk_size):
-                pts.classification = labels[start : start + len(pts)]
-                writer.write_points(pts)
-                start += len(pts)
-    os.replace(tmp, out)
+    params = load_json(job / "job.json")["params"]
+    write_classified_copy(tile["path"], out, labels, crs=params.get("crs"), chunk_size=chunk_size)
     return name
 
 
 def _count(seen: np.ndarray, idx: np.ndarray) -> None:
     u, c = np.unique(idx, return_counts=True)
     seen[u] += c.astype(np.uint8)
-
-
-def write_report_and_item(
-    job_dir: Path,
-    plan: Mapping[str, Any],
-    params: Mapping[str, Any],
-    block_stats: list[dict],
-    timings: Mapping[str, float],
-) -> list[str]:
-    """Write ``report.json`` and ``item.json``; return every output name of the job."""
-    job = Path(job_dir)
-    out = job / "outputs"
-    counts: dict[str, int] = {}
-    stage_times: dict[str, float] = {}
-    for s in block_stats:
-        for c, v in s.get("counts", {}).items():
-            counts[c] = counts.get(c, 0) + v
-        for k, v in s.get("timings", {}).items():
-            stage_times[k] = stage_times.get(k, 0.0) + v
-    points = sum(int(t["point_count"]) for t in plan["tiles"])
-    from terrasift.params import effective_stage_params
-    from terrasift.workers import terrain, vegetation
-
-    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
-    for s in block_stats:
-        for k in bins:
-            bins[k] += s.get("vegetation", {}).get(k, 0)
-    tree_cov, bush_cov = vegetation.coverage_from_counts(bins)
-    rough = terrain.combine(
-        terrain.Roughness(*s["roughness_sums"]) for s in block_stats if "roughness_sums" in s
-    )
-    steep = [s for s in block_stats if s.get("steep", {}).get("rotated")]
-    mixed = [s["mixed"] for s in block_stats if "mixed" in s]
-    report = {
-        "job": job.name,
-        "points": points,
-        "tiles": [Path(t["path"]).name for t in plan["tiles"]],
-        "crs": plan["crs"],
-        "blocks": len(block_stats),
-        "block_buffer": plan["grid"][
-            "buffer"
-        ],  # metres; resolved when the buffer parameter is auto
-        "counts_per_class": dict(sorted(counts.items(), key=lambda kv: int(kv[0]))),
-        "vegetation": {
-            "tree_coverage": tree_cov,
-            "bush_coverage": bush_cov,
-            "bins": bins,
-            "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
-        },
-        "roughness": {
-            **rough.to_dict(),
-            "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None),
-        },
-        "roughness_per_block": {
-            s["name"]: terrain.Roughness(*s["roughness_sums"]).to_dict()
-            for s in block_stats
-            if "roughness_sums" in s
-        },
-        "steep_blocks": {
-            "tested": sum(1 for s in block_stats if s.get("steep")),
-            "rotated": len(steep),
-            "blocks": {s["name"]: s["steep"] for s in steep},
-        },
-        "mixed_measurements": (
-            {
-                "marked": sum(m["marked"] for m in mixed),
-                "unclassified": sum(m["unclassified"] for m in mixed),
-            }
-            if mixed
-            else "not run: no sensor_origin given"
-        ),
-        "low_points": sum(s.get("low_points", 0) for s in block_stats),
-        "parameters": dict(params),
-        "stage_parameters": effective_stage_params(params),
-        "timings_seconds": {
-            "job": dict(timings),
-            "stages_summed_over_blocks": stage_times,
-        },
-        "points_per_second": points / timings["total"] if timings.get("total") else None,
-        "warnings": list(plan.get("warnings", [])),
-    }
-    _write_json(out / "steep_blocks.geojson", steep_blocks_geojson(plan, steep))
-    tmp = out / "report.json.part"
-    tmp.write_text(json.dumps(report, indent=2))
-    os.replace(tmp, out / "report.json")
-    names = sorted(
-        p.name for p in out.iterdir() if not p.name.endswith(".part") and p.name != "item.json"
-    )
-    item = stac_item(job.name, plan, names)
-    tmp = out / "item.json.part"
-    tmp.write_text(json.dumps(item, indent=2))
-    os.replace(tmp, out / "item.json")
-    return sorted([*names, "item.json"])
-
-
-def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> dict[str, Any]:
-    """Blocks that went through rotated classification, as RFC 7946 polygons (WGS 84 when the CRS is known)."""
-    from terrasift.tiling.blocks import parse_block_name
-
-    grid = BlockGrid(**plan["grid"])
-    tf = None
-    if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(
-            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
-        )
-    feats = []
-    for s in steep_stats:
-        ix, iy = parse_block_name(s["name"])
-        x0, y0, x1, y1 = grid.core_bounds(ix, iy)
-        ring = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]
-        if tf is not None:
-            ring = [tf.transform(x, y) for x, y in ring]
-        feats.append(
-            {
-                "type": "Feature",
-                "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in ring]]},
-                "properties": {
-                    "block": s["name"],
-                    "facet_share": s["steep"].get("facet_share"),
-                    "points_added_per_rotation": s["steep"].get("added_per_rotation", []),
-                    "points": s.get("points_core"),
-                },
-            }
-        )
-    return {"type": "FeatureCollection", "features": feats}
-
-
-def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[str, Any]:
-    """A STAC 1.0 Item with the projection extension describing the job's outputs."""
-    grid = BlockGrid(**plan["grid"])
-    xmin, ymin = grid.x0, grid.y0
-    xmax, ymax = grid.x0 + grid.width * grid.resolution, grid.y_top
-    bbox_native = [xmin, ymin, xmax, ymax]
-    geometry = None
-    bbox = None
-    if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(
-            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
-        )
-        lon0, lat0, lon1, lat1 = tf.transform_bounds(xmin, ymin, xmax, ymax)
-        bbox = [lon0, lat0, lon1, lat1]
-        geometry = {
-            "type": "Polygon",
-            "coordinates": [[[lon0, lat0], [lon1, lat0], [lon1, lat1], [lon0, lat1], [lon0, lat0]]],
-        }
-    transform = [grid.resolution, 0.0, grid.x0, 0.0, -grid.resolution, grid.y_top]
-    props: dict[str, Any] = {
-        "datetime": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
-        "proj:bbox": bbox_native,
-        "proj:shape": [grid.height, grid.width],
-        "proj:transform": transform,
-    }
-    code = plan.get("crs")
-    if code and code.startswith("EPSG:"):
-        props["proj:code"] = code
-    elif plan.get("crs_wkt"):
-        props["proj:code"] = None
-        props["proj:wkt2"] = plan["crs_wkt"]
-    assets = {}
-    for name in names:
-        suffix = Path(name).suffix
-        role = "metadata" if suffix == ".json" else "data"
-        asset: dict[str, Any] = {
-            "href": f"./{name}",
-            "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
-            "roles": [role],
-        }
-        if suffix == ".tif":
-            asset["proj:shape"] = [grid.height, grid.width]
-            asset["proj:transform"] = transform
-            asset["nodata"] = FLOAT_NODATA
-        assets[name] = asset
-    return {
-        "type": "Feature",
-        "stac_version": "1.0.0",
-        "stac_extensions": ["https://stac-extensions.github.io/projection/v2.0.0/schema.json"],
-        "id": job_id,
-        "bbox": bbox,
-        "geometry": geometry,
-        "properties": props,
-        "links": [],
-        "assets": assets,
-    }

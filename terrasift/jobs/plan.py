@@ -1,0 +1,115 @@
+"""Submission and planning: input headers and CRS checked, ``job.json`` and ``plan.json`` written.
+
+Planning reads headers only: the tiles, their CRS, the mean point density
+(which the density-derived defaults of the stages use, one value per job)
+and the block grid laid over the union of the tiles.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyproj
+
+from terrasift.errors import InputError
+from terrasift.files import load_json, write_json
+from terrasift.jobs.params import grid_alignment, resolve_buffer
+from terrasift.tiling.blocks import BlockGrid
+from terrasift.tiling.lasfile import TileInfo, read_tile_info
+
+
+def inspect_inputs(
+    paths: list[Path], params: Mapping[str, Any], *, max_points: int | None = None
+) -> dict[str, Any]:
+    """Check every input's header (no points read) and the job's CRS.
+
+    Raises InputError naming the problem. Returns a summary for the job record.
+    """
+    if not paths:
+        raise InputError("no input files")
+    infos = [read_tile_info(p, max_points=max_points) for p in paths]
+    crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
+    mins = [min(i.mins[k] for i in infos) for k in range(3)]
+    maxs = [max(i.maxs[k] for i in infos) for k in range(3)]
+    return {
+        "tiles": len(infos),
+        "points": sum(i.point_count for i in infos),
+        "bounds": [*mins, *maxs],
+        "crs": _crs_label(crs_wkt),
+        "warnings": warnings,
+    }
+
+
+def resolve_crs(infos: list[TileInfo], override: str | None) -> tuple[str | None, list[str]]:
+    """The job's CRS as WKT: the ``crs`` parameter, else the tiles' common CRS."""
+    warnings = [w for i in infos for w in i.warnings]
+    if override:
+        crs = pyproj.CRS.from_user_input(override)
+        return crs.to_wkt(), [w for w in warnings if "no CRS" not in w]
+    found = [pyproj.CRS.from_wkt(i.crs_wkt) for i in infos if i.crs_wkt]
+    if not found:
+        warnings.append(
+            "no CRS known: rasters carry none and features.geojson is not written; pass crs=EPSG:..."
+        )
+        return None, warnings
+    first = found[0]
+    for other, info in zip(found[1:], [i for i in infos if i.crs_wkt][1:], strict=True):
+        if not first.equals(other, ignore_axis_order=True):
+            raise InputError(
+                f"tiles of one job must share a CRS: {Path(info.path).name} is {_crs_label(other.to_wkt())}, "
+                f"the first tile is {_crs_label(first.to_wkt())}"
+            )
+    if len(found) < len(infos):
+        warnings.append("some tiles have no CRS; the others' CRS is used for all")
+    return first.to_wkt(), warnings
+
+
+def _crs_label(wkt: str | None) -> str | None:
+    if not wkt:
+        return None
+    crs = pyproj.CRS.from_wkt(wkt)
+    code = crs.to_epsg()
+    return f"EPSG:{code}" if code else crs.name
+
+
+def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
+    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters)."""
+    job_dir = Path(job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    write_json(
+        job_dir / "job.json",
+        {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)},
+        indent=2,
+    )
+
+
+def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
+    """The job's ``plan.json`` (tiles, CRS, density, block grid), made from the tiles' headers once."""
+    path = job_dir / "plan.json"
+    if path.exists():
+        return load_json(path)
+    params = job["params"]
+    infos = [read_tile_info(p) for p in job["inputs"]]
+    crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
+    mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
+    maxs = (max(i.maxs[0] for i in infos), max(i.maxs[1] for i in infos))
+    area = sum(max(i.area, 1.0) for i in infos)
+    density = sum(i.point_count for i in infos) / area
+    buffer, warning = resolve_buffer(params, density)
+    if warning:
+        warnings.append(warning)
+    grid = BlockGrid.over(
+        mins, maxs, params["resolution"], params["block_size"], buffer, grid_alignment(params)
+    )
+    plan = {
+        "tiles": [dict(i.__dict__) for i in infos],
+        "density": density,
+        "crs_wkt": crs_wkt,
+        "crs": _crs_label(crs_wkt),
+        "grid": grid.to_dict(),
+        "warnings": warnings,
+    }
+    write_json(path, plan, indent=2)
+    return plan

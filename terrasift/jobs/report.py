@@ -1,0 +1,196 @@
+"""The job's ``report.json``, ``steep_blocks.geojson`` and STAC ``item.json``."""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyproj
+
+from terrasift.files import PARTIAL, write_json
+from terrasift.jobs.params import effective_stage_params
+from terrasift.tiling.blocks import BlockGrid, parse_block_name
+from terrasift.tiling.rasters import FLOAT_NODATA
+from terrasift.workers import terrain, vegetation
+
+MEDIA_TYPES = {
+    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
+    ".laz": "application/vnd.laszip",
+    ".geojson": "application/geo+json",
+    ".json": "application/json",
+}
+
+
+def write_report_and_item(
+    job_dir: Path,
+    plan: Mapping[str, Any],
+    params: Mapping[str, Any],
+    block_stats: list[dict],
+    timings: Mapping[str, float],
+) -> list[str]:
+    """Write ``report.json`` and ``item.json``; return every output name of the job."""
+    job = Path(job_dir)
+    out = job / "outputs"
+    counts: dict[str, int] = {}
+    stage_times: dict[str, float] = {}
+    for s in block_stats:
+        for c, v in s.get("counts", {}).items():
+            counts[c] = counts.get(c, 0) + v
+        for k, v in s.get("timings", {}).items():
+            stage_times[k] = stage_times.get(k, 0.0) + v
+    points = sum(int(t["point_count"]) for t in plan["tiles"])
+    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
+    for s in block_stats:
+        for k in bins:
+            bins[k] += s.get("vegetation", {}).get(k, 0)
+    tree_cov, bush_cov = vegetation.coverage_from_counts(bins)
+    rough = terrain.combine(
+        terrain.Roughness(*s["roughness_sums"]) for s in block_stats if "roughness_sums" in s
+    )
+    steep = [s for s in block_stats if s.get("steep", {}).get("rotated")]
+    mixed = [s["mixed"] for s in block_stats if "mixed" in s]
+    report = {
+        "job": job.name,
+        "points": points,
+        "tiles": [Path(t["path"]).name for t in plan["tiles"]],
+        "crs": plan["crs"],
+        "blocks": len(block_stats),
+        "block_buffer": plan["grid"][
+            "buffer"
+        ],  # metres; resolved when the buffer parameter is auto
+        "counts_per_class": dict(sorted(counts.items(), key=lambda kv: int(kv[0]))),
+        "vegetation": {
+            "tree_coverage": tree_cov,
+            "bush_coverage": bush_cov,
+            "bins": bins,
+            "nogo_bins": sum(s.get("vegetation_nogo", 0) for s in block_stats),
+        },
+        "roughness": {
+            **rough.to_dict(),
+            "cell": max((s.get("roughness_cell", 0) for s in block_stats), default=None),
+        },
+        "roughness_per_block": {
+            s["name"]: terrain.Roughness(*s["roughness_sums"]).to_dict()
+            for s in block_stats
+            if "roughness_sums" in s
+        },
+        "steep_blocks": {
+            "tested": sum(1 for s in block_stats if s.get("steep")),
+            "rotated": len(steep),
+            "blocks": {s["name"]: s["steep"] for s in steep},
+        },
+        "mixed_measurements": (
+            {
+                "marked": sum(m["marked"] for m in mixed),
+                "unclassified": sum(m["unclassified"] for m in mixed),
+            }
+            if mixed
+            else "not run: no sensor_origin given"
+        ),
+        "low_points": sum(s.get("low_points", 0) for s in block_stats),
+        "parameters": dict(params),
+        "stage_parameters": effective_stage_params(params),
+        "timings_seconds": {
+            "job": dict(timings),
+            "stages_summed_over_blocks": stage_times,
+        },
+        "points_per_second": points / timings["total"] if timings.get("total") else None,
+        "warnings": list(plan.get("warnings", [])),
+    }
+    write_json(out / "steep_blocks.geojson", steep_blocks_geojson(plan, steep))
+    write_json(out / "report.json", report, indent=2)
+    names = sorted(
+        p.name for p in out.iterdir() if not p.name.endswith(PARTIAL) and p.name != "item.json"
+    )
+    write_json(out / "item.json", stac_item(job.name, plan, names), indent=2)
+    return sorted([*names, "item.json"])
+
+
+def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> dict[str, Any]:
+    """Blocks that went through rotated classification, as RFC 7946 polygons (WGS 84 when the CRS is known)."""
+    grid = BlockGrid(**plan["grid"])
+    tf = None
+    if plan.get("crs_wkt"):
+        tf = pyproj.Transformer.from_crs(
+            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
+        )
+    feats = []
+    for s in steep_stats:
+        ix, iy = parse_block_name(s["name"])
+        x0, y0, x1, y1 = grid.core_bounds(ix, iy)
+        ring = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]
+        if tf is not None:
+            ring = [tf.transform(x, y) for x, y in ring]
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in ring]]},
+                "properties": {
+                    "block": s["name"],
+                    "facet_share": s["steep"].get("facet_share"),
+                    "points_added_per_rotation": s["steep"].get("added_per_rotation", []),
+                    "points": s.get("points_core"),
+                },
+            }
+        )
+    return {"type": "FeatureCollection", "features": feats}
+
+
+def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[str, Any]:
+    """A STAC 1.0 Item with the projection extension describing the job's outputs."""
+    grid = BlockGrid(**plan["grid"])
+    xmin, ymin = grid.x0, grid.y0
+    xmax, ymax = grid.x0 + grid.width * grid.resolution, grid.y_top
+    bbox_native = [xmin, ymin, xmax, ymax]
+    geometry = None
+    bbox = None
+    if plan.get("crs_wkt"):
+        tf = pyproj.Transformer.from_crs(
+            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
+        )
+        lon0, lat0, lon1, lat1 = tf.transform_bounds(xmin, ymin, xmax, ymax)
+        bbox = [lon0, lat0, lon1, lat1]
+        geometry = {
+            "type": "Polygon",
+            "coordinates": [[[lon0, lat0], [lon1, lat0], [lon1, lat1], [lon0, lat1], [lon0, lat0]]],
+        }
+    transform = [grid.resolution, 0.0, grid.x0, 0.0, -grid.resolution, grid.y_top]
+    props: dict[str, Any] = {
+        "datetime": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
+        "proj:bbox": bbox_native,
+        "proj:shape": [grid.height, grid.width],
+        "proj:transform": transform,
+    }
+    code = plan.get("crs")
+    if code and code.startswith("EPSG:"):
+        props["proj:code"] = code
+    elif plan.get("crs_wkt"):
+        props["proj:code"] = None
+        props["proj:wkt2"] = plan["crs_wkt"]
+    assets = {}
+    for name in names:
+        suffix = Path(name).suffix
+        role = "metadata" if suffix == ".json" else "data"
+        asset: dict[str, Any] = {
+            "href": f"./{name}",
+            "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
+            "roles": [role],
+        }
+        if suffix == ".tif":
+            asset["proj:shape"] = [grid.height, grid.width]
+            asset["proj:transform"] = transform
+            asset["nodata"] = FLOAT_NODATA
+        assets[name] = asset
+    return {
+        "type": "Feature",
+        "stac_version": "1.0.0",
+        "stac_extensions": ["https://stac-extensions.github.io/projection/v2.0.0/schema.json"],
+        "id": job_id,
+        "bbox": bbox,
+        "geometry": geometry,
+        "properties": props,
+        "links": [],
+        "assets": assets,
+    }
