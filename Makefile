@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-load bench-malformed openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-progress bench-load bench-malformed openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,9 @@ bench-vegetation: $(STAMP)
 
 bench-rotation: $(STAMP)
 	$(PY) benchmarks/rotation_accuracy.py
+
+bench-progress: $(STAMP)
+	$(PY) benchmarks/progress_trace.py
 
 bench-load: $(STAMP)
 	$(PY) benchmarks/load.py

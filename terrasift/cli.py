@@ -76,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.inputs, args.out, parse_cli_params(args.param), progress=not args.quiet
             )
             print("\n".join(str(args.out / n) for n in names))
+            print_summary(args.out / "report.json")
             return 0
         if args.command == "classify":
             classify(args.input, args.output, parse_cli_params(args.param), progress=not args.quiet)
@@ -149,21 +150,48 @@ def classify(src: Path, dst: Path, raw_params: dict, *, progress: bool = True) -
     """Write ``src`` with ground/vegetation/noise classes to ``dst`` (LAZ)."""
     out = dst.parent / f".{dst.name}.terrasift"
     names = process([src], out, raw_params, progress=progress, products="classified")
+    print_summary(out / "report.json")
     shutil.move(str(out / "classified.laz"), dst)
     for n in names:
         (out / n).unlink(missing_ok=True)
     shutil.rmtree(out, ignore_errors=True)
 
 
+def print_summary(report_path: Path) -> None:
+    """Warnings first (to stderr), then one summary line of the job (to stderr as well)."""
+    import json
+
+    try:
+        report = json.loads(report_path.read_text())
+    except (OSError, ValueError):
+        return
+    for warning in report.get("warnings", []):
+        print(f"terrasift: warning: {warning}", file=sys.stderr)
+    counts = report.get("counts_per_class", {})
+    classes = ", ".join(f"class {c}: {n}" for c, n in counts.items())
+    seconds = report.get("timings_seconds", {}).get("job", {}).get("total")
+    took = f" in {seconds:.1f} s ({report['points_per_second']:,.0f} points/s)" if seconds else ""
+    print(
+        f"terrasift: {report.get('points', 0):,} points of {len(report.get('tiles', []))} tile(s), "
+        f"{report.get('blocks', 0)} blocks{took}; {classes}; "
+        f"{len(report.get('warnings', []))} warning(s)",
+        file=sys.stderr,
+    )
+
+
 class _progress_bar:
+    """A tqdm bar over the job's work, described by the current stage and counts."""
+
     def __init__(self) -> None:
         from tqdm import tqdm
 
         self._bar = tqdm(total=100, unit="%", desc="terrasift", file=sys.stderr)
 
-    def update(self, done: int, total: int) -> None:
+    def update(self, done: int, total: int, info: dict | None = None) -> None:
         pct = int(100 * done / total) if total else 0
         self._bar.n = min(pct, 100)
+        if info:
+            self._bar.set_postfix_str(info.get("message", ""), refresh=False)
         self._bar.refresh()
 
     def close(self) -> None:

@@ -52,10 +52,17 @@ class FakePipeline:
                     raise InputError(f"{p.name}: not a LAS/LAZ file (no LASF signature)")
         return {"points": sum(p.stat().st_size for p in paths), "tiles": len(paths)}
 
-    def prepare_job(self, job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
-        (job_dir / "job.json").write_text(
-            json.dumps({"inputs": [str(p) for p in inputs], "params": dict(params)})
-        )
+    def prepare_job(
+        self,
+        job_dir: Path,
+        inputs: list[Path],
+        params: Mapping[str, Any],
+        outputs: list[str] | None = None,
+    ) -> None:
+        job = {"inputs": [str(p) for p in inputs], "params": dict(params)}
+        if outputs is not None:
+            job["outputs"] = outputs
+        (job_dir / "job.json").write_text(json.dumps(job))
 
     def run_job(
         self, job_dir: Path, executor: Any, progress: Callable[[int, int], None] | None = None
@@ -74,9 +81,15 @@ class FakePipeline:
             raise self.fail
         out = job_dir / "outputs"
         out.mkdir(exist_ok=True)
-        (out / "dtm.tif").write_bytes(bytes(range(256)) * 40)
-        (out / "report.json").write_text(json.dumps({"tasks": self.tasks}))
-        return ["dtm.tif", "report.json"]
+        wanted = json.loads((job_dir / "job.json").read_text()).get("outputs")
+        names = []
+        if wanted is None or "dtm.tif" in wanted:
+            (out / "dtm.tif").write_bytes(bytes(range(256)) * 40)
+            names.append("dtm.tif")
+        if wanted is None or "report.json" in wanted:
+            (out / "report.json").write_text(json.dumps({"tasks": self.tasks}))
+            names.append("report.json")
+        return names
 
     def _task(self, job_dir: Path, i: int) -> None:
         if i >= self.free_tasks:

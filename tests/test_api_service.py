@@ -389,9 +389,11 @@ def test_execution_with_server_paths(tmp_path: Path) -> None:
         assert poll(c, job_id, "successful")["status"] == "successful"
 
         r = c.post(
-            "/processes/terrain/execution", json={"inputs": {"files": ["survey"], "params": {}}}
+            "/processes/terrain/execution",
+            json={"inputs": {"files": ["survey"], "params": {}}},
+            headers={"Prefer": "respond-async"},
         )
-        assert r.status_code == 201 and "preference-applied" not in r.headers
+        assert r.status_code == 201
         job = json.loads((tmp_path / "data" / "jobs" / r.json()["jobID"] / "job.json").read_text())
         assert [Path(p).name for p in job["inputs"]] == ["t1.las", "t2.laz"]
 

@@ -74,15 +74,23 @@ def _crs_label(wkt: str | None) -> str | None:
     return f"EPSG:{code}" if code else crs.name
 
 
-def prepare_job(job_dir: Path, inputs: list[Path], params: Mapping[str, Any]) -> None:
-    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters)."""
+def prepare_job(
+    job_dir: Path,
+    inputs: list[Path],
+    params: Mapping[str, Any],
+    outputs: list[str] | None = None,
+) -> None:
+    """Write the job's ``job.json`` (inputs as absolute paths, validated parameters,
+    the selected outputs when not all)."""
     job_dir = Path(job_dir)
     job_dir.mkdir(parents=True, exist_ok=True)
-    write_json(
-        job_dir / "job.json",
-        {"inputs": [str(Path(p).resolve()) for p in inputs], "params": dict(params)},
-        indent=2,
-    )
+    job: dict[str, Any] = {
+        "inputs": [str(Path(p).resolve()) for p in inputs],
+        "params": dict(params),
+    }
+    if outputs is not None:
+        job["outputs"] = list(outputs)
+    write_json(job_dir / "job.json", job, indent=2)
 
 
 def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:

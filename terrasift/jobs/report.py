@@ -20,6 +20,7 @@ MEDIA_TYPES = {
     ".laz": "application/vnd.laszip",
     ".geojson": "application/geo+json",
     ".json": "application/json",
+    ".png": "image/png",
 }
 
 
@@ -173,6 +174,8 @@ def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[st
     for name in names:
         suffix = Path(name).suffix
         role = "metadata" if suffix == ".json" else "data"
+        if suffix == ".png":  # quicklooks
+            role = "thumbnail" if name == "thumbnail.png" else "overview"
         asset: dict[str, Any] = {
             "href": f"./{name}",
             "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),

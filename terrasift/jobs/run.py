@@ -11,7 +11,7 @@ service both drive jobs through ``run_job``.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,10 +22,13 @@ from terrasift.jobs import finish, report
 from terrasift.jobs.block import run_block
 from terrasift.jobs.dirs import check_cancel, output_path
 from terrasift.jobs.plan import plan_job
+from terrasift.jobs.quicklooks import write_quicklooks
+from terrasift.progress import JobProgress
 from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
 from terrasift.workers.executors import Executor, Future
 
-Progress = Callable[[int, int], None]
+#: called with work done, total work and details (stage, message, warnings)
+Progress = Callable[[int, int, Mapping[str, Any]], None]
 
 
 def run_job(
@@ -36,7 +39,7 @@ def run_job(
     ``products="classified"`` writes only the classified point clouds (and the report).
     """
     job_dir = Path(job_dir)
-    progress = progress or (lambda done, total: None)
+    progress = progress or (lambda done, total, info: None)
     started = time.perf_counter()
     check_cancel(job_dir)
     job = load_json(job_dir / "job.json")
@@ -48,32 +51,46 @@ def run_job(
     # Finishing tasks: one classified point cloud per tile, and (all products)
     # the rasters, then slope/categories/features from the mosaicked DTM. The
     # list is in order of priority: the DTM first, since the terrain tasks
-    # wait on it, then the long tasks, so the workers finish together.
-    finishing: list[Task] = [
-        Task(finish.write_classified, (str(job_dir), i)) for i in range(n_tiles)
-    ]
-    if products == "all":
+    # wait on it, then the long tasks, so the workers finish together. A job
+    # that selected outputs runs only the tasks they need; the quicklooks come
+    # last, from whatever the tasks before them wrote.
+    want = finishing_wanted(job.get("outputs"), products)
+    finishing: list[Task] = []
+    if "classified" in want:
+        finishing = [Task(finish.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
+    if want - {"classified"}:
         dtm = Task(finish.write_raster, (str(job_dir), "dtm"))
         terrain = [
             Task(fn, (str(job_dir),), after=(0,))
-            for fn in (finish.write_categories, finish.write_slope)
+            for key, fn in (("categories", finish.write_categories), ("slope", finish.write_slope))
+            if key in want
         ]
         others = [
-            Task(finish.write_raster, (str(job_dir), n)) for n in finish.RASTERS if n != "dtm"
+            Task(finish.write_raster, (str(job_dir), n))
+            for n in finish.RASTERS
+            if n != "dtm" and n in want
         ]
         finishing = [dtm, *finishing, *terrain, *others]
+    if "quicklooks" in want:
+        finishing.append(
+            Task(write_quicklooks, (str(job_dir),), after=tuple(range(len(finishing))))
+        )
 
-    # Progress counts tasks: shards, blocks, finishing tasks, the report.
+    # Progress is work done: every task's points times its kind's measured cost.
     shard_root = job_dir / "shards"
     parts = shard_parts([t["point_count"] for t in plan["tiles"]])
     todo = [p for p in parts if not (shard_root / p.name).is_dir()]
-    extra = len(finishing) + 1
-    counter = {"done": len(parts) - len(todo), "total": len(parts) + grid.nx * grid.ny + extra}
-    progress(counter["done"], counter["total"])
-
-    def tick(_: Any) -> None:
-        counter["done"] += 1
-        progress(counter["done"], counter["total"])
+    points = sum(int(t["point_count"]) for t in plan["tiles"])
+    meter = JobProgress(progress, points, executor.workers, plan.get("warnings"))
+    for p in parts:
+        meter.add("shard", p.name, "shard", p.stop - p.start, done=p not in todo)
+    for i, task in enumerate(finishing):
+        kind = task.fn.__name__.removeprefix("write_")
+        tile_points = plan["tiles"][task.args[1]]["point_count"] if kind == "classified" else 0
+        meter.add("finish", i, kind, tile_points or points)
+    meter.add("report", "report", "report", points)
+    meter.reserve("blocks", "block")
+    meter.enter("shard")
 
     # Shard: one streaming pass per tile (per part of a large tile).
     t = time.perf_counter()
@@ -90,7 +107,14 @@ def run_job(
         )
         for p in todo
     ]
-    _run_tasks(executor, job_dir, shard_tile, shard_args, tick)
+    _run_tasks(
+        executor,
+        job_dir,
+        shard_tile,
+        shard_args,
+        lambda i, _: meter.done("shard", todo[i].name),
+        meter.report,
+    )
     shard_seconds = time.perf_counter() - t
 
     # Blocks: every block that received a point from any tile.
@@ -105,14 +129,30 @@ def run_job(
     # Largest blocks first, so the last tasks to finish are short ones and
     # workers do not idle at the end of the job.
     names = sorted(sizes, key=lambda n: (-sizes[n], n))
-    counter["total"] = len(parts) + len(names) + extra
+    meter.split("blocks", sizes, "block")
+    meter.enter("blocks")
     t = time.perf_counter()
-    block_stats = _run_tasks(executor, job_dir, run_block, [(str(job_dir), n) for n in names], tick)
+    block_stats = _run_tasks(
+        executor,
+        job_dir,
+        run_block,
+        [(str(job_dir), n) for n in names],
+        lambda i, _: meter.done("blocks", names[i]),
+        meter.report,
+    )
     block_seconds = time.perf_counter() - t
 
     t = time.perf_counter()
     (job_dir / "outputs").mkdir(exist_ok=True)
-    _run_mixed_tasks(executor, job_dir, finishing, tick, in_flight=executor.workers)
+    meter.enter("finish")
+    _run_mixed_tasks(
+        executor,
+        job_dir,
+        finishing,
+        lambda i, _: meter.done("finish", i),
+        in_flight=executor.workers,
+        heartbeat=meter.report,
+    )
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     _require_ground(output_path(job_dir, "dtm.tif"))
@@ -122,9 +162,47 @@ def run_job(
         "finish": finish_seconds,
         "total": time.perf_counter() - started,
     }
+    meter.enter("report")
     names_out = report.write_report_and_item(job_dir, plan, params, block_stats, timings)
-    tick(None)
+    meter.done("report", "report")
+    if job.get("outputs") is not None:
+        keep = set(job["outputs"])
+        names_out = [
+            n
+            for n in names_out
+            if n in keep or (n.startswith("classified") and "classified.laz" in keep)
+        ]
     return names_out
+
+
+#: finishing work each selectable output needs (outputs not named need none beyond the report)
+OUTPUT_TASKS = {
+    "classified.laz": {"classified"},
+    "dtm.tif": {"dtm"},
+    "dsm.tif": {"dsm"},
+    "chm.tif": {"chm"},
+    "coverage.tif": {"coverage"},
+    "slope.tif": {"slope"},
+    "categories.tif": {"categories"},
+    "features.geojson": {"categories"},
+    "features.native.geojson": {"categories"},
+    "thumbnail.png": {"quicklooks", "dtm"},
+    "hillshade.png": {"quicklooks", "dtm"},
+    "chm.png": {"quicklooks", "chm"},
+    "coverage.png": {"quicklooks", "coverage"},
+    "categories.png": {"quicklooks", "categories"},
+    "features.png": {"quicklooks", "dtm", "categories"},
+    "steep_blocks.png": {"quicklooks", "dtm"},
+}
+
+
+def finishing_wanted(selected: list[str] | None, products: str = "all") -> set[str]:
+    """Finishing tasks for the selected outputs (None: every output of ``products``)."""
+    if products == "classified":
+        return {"classified"}
+    if selected is None:
+        return set().union(*OUTPUT_TASKS.values())
+    return set().union(set(), *(OUTPUT_TASKS.get(n, set()) for n in selected))
 
 
 @dataclass(frozen=True)
@@ -141,18 +219,22 @@ def _run_tasks(
     job_dir: Path,
     fn: Callable[..., Any],
     arg_list: list[tuple],
-    on_done: Callable[[Any], None],
+    on_done: Callable[[int, Any], None],
+    heartbeat: Callable[[], None] | None = None,
 ) -> list[Any]:
-    return _run_mixed_tasks(executor, job_dir, [Task(fn, a) for a in arg_list], on_done)
+    return _run_mixed_tasks(
+        executor, job_dir, [Task(fn, a) for a in arg_list], on_done, heartbeat=heartbeat
+    )
 
 
 def _run_mixed_tasks(
     executor: Executor,
     job_dir: Path,
     tasks: list[Task],
-    on_done: Callable[[Any], None],
+    on_done: Callable[[int, Any], None],
     *,
     in_flight: int | None = None,
+    heartbeat: Callable[[], None] | None = None,
 ) -> list[Any]:
     """Submit every task as soon as the tasks it comes after are done; wait for
     all and return their results in list order.
@@ -160,6 +242,7 @@ def _run_mixed_tasks(
     With ``in_flight``, at most that many tasks are submitted at a time and a
     free slot goes to the first ready task in list order: the list is a
     priority order (a pool runs what it was given first-come, first-served).
+    ``on_done(position, result)`` follows each task; ``heartbeat`` each wait.
     The first failure cancels the rest and is raised; so is a dismissal seen
     between waits (running tasks see the marker themselves).
     """
@@ -188,7 +271,9 @@ def _run_mixed_tasks(
             for f in done:
                 i = position[id(f)]
                 results[i] = f.result()
-                on_done(results[i])
+                on_done(i, results[i])
+            if heartbeat is not None:
+                heartbeat()
             submit_ready()
             check_cancel(job_dir)
     except BaseException:

@@ -20,9 +20,10 @@ from fastapi.openapi.utils import get_openapi
 from terrasift import __version__
 from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
+from terrasift.service.callbacks import Notifier
 from terrasift.service.context import Service
 from terrasift.service.guard import RequestGuard
-from terrasift.service.routes import health, jobs, path, processes, surveys
+from terrasift.service.routes import events, health, jobs, pages, path, processes, surveys, uploads
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
@@ -83,10 +84,13 @@ def create_app(
             ],
         )
         app.state.svc = Service(settings, store, scheduler)
+        app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
         scheduler.start()
+        app.state.notifier.start()
         try:
             yield
         finally:
+            await anyio.to_thread.run_sync(app.state.notifier.stop)
             # running tasks get the grace period, then their workers are stopped; off the event loop
             await anyio.to_thread.run_sync(scheduler.stop, settings.shutdown_grace)
             store.close()
@@ -102,10 +106,13 @@ def create_app(
     app.state.auth = auth
     problems.install(app)
     app.add_middleware(RequestGuard)
+    app.include_router(pages.router)  # first: matches only requests that want HTML
     app.include_router(processes.router)
     app.include_router(jobs.router)
     app.include_router(path.router)
     app.include_router(surveys.router)
+    app.include_router(uploads.router)
+    app.include_router(events.router)
     app.include_router(health.router)
 
     def openapi() -> dict[str, Any]:

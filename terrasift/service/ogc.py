@@ -23,10 +23,12 @@ CONFORMANCE = [
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/core",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/ogc-process-description",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/json",
-    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/oas30",
+    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/html",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list",
+    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/callback",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
 ]
+# Not claimed: conf/oas30 (the API definition served at /openapi.json is OpenAPI 3.1).
 
 OUTPUTS: dict[str, str] = {
     "classified.laz": "every input point, original order and dimensions, classes 1/2/3/4/5/7",
@@ -41,6 +43,13 @@ OUTPUTS: dict[str, str] = {
     "steep_blocks.geojson": "blocks classified with rotations",
     "report.json": "counts per class, coverage, roughness, parameters, stage timings, warnings",
     "item.json": "STAC Item whose assets are the outputs",
+    "thumbnail.png": "quicklook: DTM hillshade, 256 px",
+    "hillshade.png": "quicklook: DTM hillshade",
+    "chm.png": "quicklook: canopy height",
+    "coverage.png": "quicklook: vegetation bins (legend in the job page)",
+    "categories.png": "quicklook: terrain categories (inclination, edges)",
+    "features.png": "quicklook: terrain objects over the hillshade",
+    "steep_blocks.png": "quicklook: blocks classified with rotations, over the hillshade",
 }
 
 
@@ -92,7 +101,7 @@ def landing(base: str) -> dict[str, Any]:
             link(
                 f"{base}/openapi.json",
                 "service-desc",
-                "application/vnd.oai.openapi+json;version=3.0",
+                "application/vnd.oai.openapi+json;version=3.1",
                 "the API definition",
             ),
             link(f"{base}/docs", "service-doc", "text/html", "the API documentation"),
@@ -109,7 +118,7 @@ def process_summary(base: str) -> dict[str, Any]:
         "title": "Terrain from LAS/LAZ tiles",
         "description": "Classify ground (and vegetation, noise), grid DTM/DSM and derived rasters, find terrain objects.",
         "version": PROCESS_VERSION,
-        "jobControlOptions": ["async-execute", "dismiss"],
+        "jobControlOptions": ["sync-execute", "async-execute", "dismiss"],
         "outputTransmission": ["reference"],
         "links": [
             link(f"{base}/processes/{PROCESS_ID}", "self", title="process description"),
@@ -122,9 +131,15 @@ def process_description(base: str, parameters: dict[str, dict[str, Any]]) -> dic
     inputs: dict[str, Any] = {
         "files": {
             "title": "tiles",
-            "description": "LAS/LAZ files: paths relative to the service's input root (or absolute inside it); "
-            "a directory stands for the .las/.laz files in it. To upload instead, POST multipart to /jobs.",
-            "schema": {"type": "string"},
+            "description": 'LAS/LAZ files: `{"href": ...}` as answered by POST /uploads, '
+            '`{"value": <base64>, "encoding": "base64"}`, or paths under the service\'s '
+            "input root (a directory stands for the .las/.laz files in it).",
+            "schema": {
+                "oneOf": [
+                    {"type": "string", "contentMediaType": "application/vnd.laszip"},
+                    {"type": "string", "format": "uri"},
+                ]
+            },
             "minOccurs": 1,
             "maxOccurs": "unbounded",
         },
@@ -149,8 +164,9 @@ def process_description(base: str, parameters: dict[str, dict[str, Any]]) -> dic
     return {**process_summary(base), "inputs": inputs, "outputs": outputs}
 
 
-def status_info(job: Job, base: str) -> dict[str, Any]:
-    """statusInfo of OGC API – Processes Part 1, optional members only when known."""
+def status_info(job: Job, base: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """statusInfo of OGC API – Processes Part 1, optional members only when known;
+    ``extra`` adds terrasift's own members (stage, warnings, queuePosition)."""
     doc: dict[str, Any] = {
         "processID": job.process_id,
         "type": "process",
@@ -166,6 +182,7 @@ def status_info(job: Job, base: str) -> dict[str, Any]:
         doc["started"] = job.started
     if job.finished:
         doc["finished"] = job.finished
+    doc.update(extra or {})
     doc["links"] = [
         link(f"{base}/jobs/{job.id}", "self", title="job status"),
         link(f"{base}/jobs/{job.id}/results", REL_RESULTS, title="job results"),

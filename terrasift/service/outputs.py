@@ -24,6 +24,8 @@ MEDIA_TYPES = {
     ".las": "application/vnd.las",
     ".geojson": "application/geo+json",
     ".json": "application/json",
+    ".png": "image/png",
+    ".html": "text/html; charset=utf-8",
 }
 # a STAC Item is a GeoJSON Feature
 MEDIA_TYPE_BY_NAME = {"item.json": "application/geo+json"}

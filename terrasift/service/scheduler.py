@@ -17,13 +17,14 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Executor
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from terrasift.errors import JobCancelled, TerrasiftError
+from terrasift.service.jobinfo import write_detail
 from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, SUCCESSFUL, JobStore
 
 log = logging.getLogger(__name__)
@@ -294,14 +295,24 @@ class Scheduler:
         ):  # dismissed between mark_running and here
             ex.cancel()
 
-        last = [-1]
+        last: list[Any] = [-1, None, 0.0, None]
 
-        def progress(done: int, total: int) -> None:
+        def progress(done: int, total: int, info: Mapping[str, Any] | None = None) -> None:
             # 100 only when successful: after the last block the mosaics still run
             pct = min(99, (100 * done) // total) if total > 0 else 0
-            if pct != last[0]:
-                last[0] = pct
-                self.store.set_progress(job_id, pct, f"{done} of {total} tasks done")
+            message = info.get("message") if info else f"{done} of {total} tasks done"
+            now = time.monotonic()
+            detail = (info.get("stage"), info.get("warnings")) if info else None
+            # counts change often: a new message alone is stored at most once a second,
+            # except when the stage changes, so message and stage agree
+            if pct != last[0] or (
+                message != last[1] and (now - last[2] >= 1.0 or detail != last[3])
+            ):
+                last[:3] = [pct, message, now]
+                self.store.set_progress(job_id, pct, message)
+            if info and detail != last[3]:
+                last[3] = detail
+                write_detail(job_dir, info)
 
         try:
             names = self.pipeline.run_job(job_dir, ex, progress)

@@ -27,6 +27,13 @@ class StatusInfo(BaseModel):
     finished: str | None = None
     updated: str | None = None
     progress: int | None = Field(None, ge=0, le=100)
+    stage: str | None = Field(None, description="what the job does now (terrasift extension)")
+    queuePosition: int | None = Field(
+        None, description="jobs ahead of this accepted one (terrasift extension)"
+    )
+    warnings: list[str] | None = Field(
+        None, description="what degraded but did not stop the job (terrasift extension)"
+    )
     links: list[Link] = []
 
 
@@ -55,19 +62,36 @@ class OutputReference(BaseModel):
 FileRef = str | dict[str, str]
 
 
+class Subscriber(BaseModel):
+    """URLs the service POSTs to: results on success, statusInfo while running and on failure."""
+
+    successUri: str | None = None
+    inProgressUri: str | None = None
+    failedUri: str | None = None
+
+
 class ExecuteRequest(BaseModel):
     """OGC execute request: `files` and `params` (or parameters as inputs of their own)."""
 
     model_config = ConfigDict(extra="allow")
 
     inputs: dict[str, Any] = Field(
-        description="`files`: paths under the input root; `params`: object of parameters; any other key is a parameter",
+        description="`files`: hrefs from POST /uploads, `{value, encoding: base64}` qualified "
+        "values, or paths under the input root; `params`: object of parameters; any other key "
+        "is a parameter (plain or as `{value: ...}`)",
         examples=[
-            {"files": ["survey-2024/tile_01.laz"], "params": {"ground": "nist", "resolution": 0.5}}
+            {
+                "files": [{"href": "http://127.0.0.1:8000/uploads/4f1c.../tile_01.laz"}],
+                "params": {"ground": "nist", "resolution": 0.5},
+            }
         ],
     )
-    outputs: dict[str, Any] | None = None
-    response: Literal["document"] | None = None
+    outputs: dict[str, Any] | None = Field(
+        None,
+        description="outputs to compute and list (ids from the process description); all when absent",
+    )
+    response: Literal["document", "raw"] | None = None
+    subscriber: Subscriber | None = None
 
 
 class SurveyRequest(BaseModel):
@@ -133,9 +157,9 @@ def add_problem_schema(spec: dict[str, Any]) -> dict[str, Any]:
     return spec
 
 
-def multipart_body(description: str) -> dict[str, Any]:
+def multipart_body(description: str, params: bool = True) -> dict[str, Any]:
     """OpenAPI request body of the multipart upload endpoints (parsed by hand, streamed to disk)."""
-    return {
+    body = {
         "required": True,
         "description": description,
         "content": {
@@ -155,3 +179,7 @@ def multipart_body(description: str) -> dict[str, Any]:
             }
         },
     }
+    if not params:
+        form = body["content"]["multipart/form-data"]
+        del form["schema"]["properties"]["params"], form["encoding"]["params"]
+    return body

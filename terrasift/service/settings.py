@@ -70,6 +70,20 @@ class Settings(BaseSettings):
         ge=0,
         description="seconds running tasks may finish on SIGTERM before they are stopped",
     )
+    upload_lifetime: float = Field(
+        24 * 3600, gt=0, description="seconds an href from POST /uploads stays valid"
+    )
+    sync_max_points: int = Field(
+        5_000_000,
+        ge=0,
+        description="execute runs synchronously (Prefer absent or respond-sync) up to this many points",
+    )
+    sync_timeout: float = Field(
+        600, gt=0, description="seconds a synchronous execute waits before answering 201 instead"
+    )
+    callback_attempts: int = Field(
+        4, ge=1, description="tries per subscriber callback (waits 0.5, 1, 2 ... s between)"
+    )
     public_url: str | None = Field(
         None, description="base URL used in links (e.g. behind a proxy); unset = from the request"
     )
@@ -96,6 +110,10 @@ class Settings(BaseSettings):
     @property
     def jobs_dir(self) -> Path:
         return self.data_dir / "jobs"
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.data_dir / "uploads"
 
     @property
     def surveys_dir(self) -> Path:

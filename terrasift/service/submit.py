@@ -128,13 +128,19 @@ def create_job(
     inputs: list[Path],
     raw_params: Mapping[str, Any],
     survey_id: str | None = None,
+    outputs: list[str] | None = None,
 ) -> Job:
-    """Check, prepare and record a job whose inputs are in place; the job directory goes on error."""
+    """Check, prepare and record a job whose inputs are in place; the job directory goes on error.
+
+    ``outputs`` selects the outputs to compute (None: all)."""
     job_dir = scheduler.job_dir(job_id)
     try:
         params = check_inputs(settings, inputs, raw_params, scheduler.pipeline)
         job_dir.mkdir(parents=True, exist_ok=True)
-        scheduler.pipeline.prepare_job(job_dir, inputs, params)
+        if outputs is None:
+            scheduler.pipeline.prepare_job(job_dir, inputs, params)
+        else:
+            scheduler.pipeline.prepare_job(job_dir, inputs, params, outputs=outputs)
         job = store.create_job(
             job_id,
             tenant,

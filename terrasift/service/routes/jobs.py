@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
-from terrasift.service import ogc
+from terrasift.service import jobinfo, ogc
 from terrasift.service.auth import tenant
 from terrasift.service.context import base_url, service
 from terrasift.service.outputs import file_response
@@ -94,7 +94,6 @@ def list_jobs(
     )
     if processID and len(processID) > 1:
         jobs = [j for j in jobs if j.process_id in processID]
-    base = base_url(request)
     links = [ogc.link(str(request.url), "self")]
     if len(jobs) > limit:
         links.append(
@@ -102,7 +101,7 @@ def list_jobs(
                 str(request.url.include_query_params(offset=offset + limit, limit=limit)), "next"
             )
         )
-    return {"jobs": [ogc.status_info(j, base) for j in jobs[:limit]], "links": links}
+    return {"jobs": [status_doc(request, j) for j in jobs[:limit]], "links": links}
 
 
 @router.get(
@@ -112,13 +111,10 @@ def list_jobs(
     response_model_exclude_none=True,
     responses=problem_responses(401, 404),
 )
-async def job_status(
-    job_id: str, request: Request, who: Annotated[str, Depends(tenant)]
-) -> JSONResponse:
-    """statusInfo with integer progress from tasks done."""
-    # one indexed read on the store's own reading connection: cheaper in the event
-    # loop than a hop to a worker thread, which is what pollers would wait for
-    return JSONResponse(ogc.status_info(_job(request, job_id, who), base_url(request)))
+def job_status(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
+    """statusInfo: integer progress of the work done (points × measured stage cost), the
+    current stage and counts in `message`, plus `stage`, `warnings` and `queuePosition`."""
+    return JSONResponse(status_doc(request, _job(request, job_id, who)))
 
 
 @router.delete(
@@ -178,11 +174,18 @@ def head_output(
     return _output(request, job_id, name, who)
 
 
+def status_doc(request: Request, job: Job) -> dict[str, Any]:
+    """The statusInfo of ``job`` with terrasift's extra members."""
+    svc = service(request)
+    extra = jobinfo.extras(svc.store, svc.scheduler.job_dir(job.id), job)
+    return ogc.status_info(job, base_url(request), extra)
+
+
 def created(request: Request, job: Job) -> JSONResponse:
     """201 with the statusInfo and `Location` of a new job."""
     base = base_url(request)
     return JSONResponse(
-        ogc.status_info(job, base), status_code=201, headers={"Location": f"{base}/jobs/{job.id}"}
+        status_doc(request, job), status_code=201, headers={"Location": f"{base}/jobs/{job.id}"}
     )
 
 

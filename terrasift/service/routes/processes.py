@@ -1,19 +1,24 @@
-"""Landing page, conformance, the process list and description, and execution by server paths."""
+"""Landing page, conformance, the process list and description, and execution."""
 
 from __future__ import annotations
 
+import shutil
+import time
 from typing import Any
 
 from fastapi import APIRouter, Body, Depends, Header, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 
-from terrasift.errors import ParameterError
+from terrasift.service import execute as execution
 from terrasift.service import ogc
 from terrasift.service.auth import tenant
 from terrasift.service.context import base_url, service
+from terrasift.service.outputs import file_response
 from terrasift.service.problems import PROBLEM_TYPES, Problem
 from terrasift.service.schemas import ExecuteRequest, StatusInfo, problem_responses
-from terrasift.service.submit import create_job, new_id, resolve_server_paths
+from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, RUNNING
+from terrasift.service.submit import create_job, new_id
+from terrasift.service.upload_store import UploadStore
 
 router = APIRouter()
 
@@ -54,48 +59,85 @@ def process_description(process_id: str, request: Request) -> dict[str, Any]:
 
 @router.post(
     "/processes/{process_id}/execution",
-    summary="Execute on server files",
+    summary="Execute: uploads, values or server files",
     tags=["Processes"],
     status_code=201,
     response_model=StatusInfo,
     response_model_exclude_none=True,
-    responses=problem_responses(400, 401, 403, 404, 413, 422),
+    responses={
+        200: {
+            "description": "synchronous execution: the results document (or, with "
+            "`response: raw` and one output selected, that output)",
+            "content": {"application/json": {}},
+        },
+        **problem_responses(400, 401, 403, 404, 413, 422),
+    },
 )
 def execute(
     process_id: str,
     request: Request,
     body: ExecuteRequest = Body(...),
     prefer: str | None = Header(
-        None, description="`respond-async`: the only mode; honoured and echoed"
+        None,
+        description="`respond-async`: 201 + Location at once; `respond-sync` or none: "
+        "wait and answer the results when the inputs are small",
     ),
     who: str = Depends(tenant),
-) -> JSONResponse:
-    """Start a job on LAS/LAZ files under the input root; always asynchronous (201 + Location)."""
+) -> Response:
+    """Start a job on uploaded, inline or server files; synchronous for small inputs unless
+    `Prefer: respond-async`."""
     _check_process(process_id)
     svc = service(request)
-    inputs = dict(body.inputs)
-    files = inputs.pop("files", None)
-    if files is None:
-        raise Problem(
-            "invalid-request",
-            "inputs.files is required: paths of LAS/LAZ files under the input root",
+    ex = execution.parse(body)
+    job_id = new_id()
+    job_dir = svc.scheduler.job_dir(job_id)
+    uploads = UploadStore(svc.settings.uploads_dir, svc.settings.upload_lifetime)
+    try:
+        paths = execution.stage_files(svc.settings, uploads, who, ex.files, job_dir / "inputs")
+        job = create_job(
+            svc.settings,
+            svc.store,
+            svc.scheduler,
+            who,
+            job_id,
+            paths,
+            ex.params,
+            outputs=ex.outputs,
         )
-    if not isinstance(files, list):
-        files = [files]
-    params = inputs.pop("params", None) or {}
-    if not isinstance(params, dict):
-        raise ParameterError("inputs.params must be an object of parameters")
-    clash = sorted(set(params) & set(inputs))
-    if clash:
-        raise ParameterError(f"parameter(s) given both in params and as inputs: {', '.join(clash)}")
-    params = {**params, **inputs}
-    paths = resolve_server_paths(svc.settings, files)
-    job = create_job(svc.settings, svc.store, svc.scheduler, who, new_id(), paths, params)
+    except BaseException:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        raise
     base = base_url(request)
+    if ex.subscriber:
+        request.app.state.notifier.subscribe(job.id, ex.subscriber, base)
     headers = {"Location": f"{base}/jobs/{job.id}"}
-    if prefer and "respond-async" in prefer.lower():
-        headers["Preference-Applied"] = "respond-async"
-    return JSONResponse(ogc.status_info(job, base), status_code=201, headers=headers)
+    points = 0
+    if "respond-async" not in (prefer or "").lower():
+        summary = svc.scheduler.pipeline.inspect_inputs(paths, job.params)
+        points = int(summary.get("points", 0)) if isinstance(summary, dict) else 0
+    if execution.mode(prefer, points, svc.settings) == execution.ASYNC:
+        if prefer and "respond-async" in prefer.lower():
+            headers["Preference-Applied"] = "respond-async"
+        return JSONResponse(ogc.status_info(job, base), status_code=201, headers=headers)
+    deadline = time.monotonic() + svc.settings.sync_timeout
+    while job.status in (ACCEPTED, RUNNING) and time.monotonic() < deadline:
+        time.sleep(0.1)
+        job = svc.store.get_job(job.id) or job
+    if job.status in (ACCEPTED, RUNNING):  # too slow after all: answer as an asynchronous job
+        return JSONResponse(ogc.status_info(job, base), status_code=201, headers=headers)
+    if job.status == FAILED:
+        raise Problem("job-failed", job.message or "the job failed")
+    if job.status == DISMISSED:
+        raise Problem("job-dismissed", f"job {job.id} was dismissed")
+    if prefer and "respond-sync" in prefer.lower():
+        headers["Preference-Applied"] = "respond-sync"
+    if body.response == "raw" and len(job.outputs) == 1:
+        name = job.outputs[0]
+        path = svc.scheduler.pipeline.output_path(job_dir, name)
+        response = file_response(request, path, name)
+        response.headers.update(headers)
+        return response
+    return JSONResponse(ogc.results(job, base), status_code=200, headers=headers)
 
 
 @router.get(
