@@ -30,7 +30,9 @@ def client(tmp_path: Path, tile: Path) -> Iterator[TestClient]:
     root = tmp_path / "root"
     root.mkdir()
     (root / "tile.las").write_bytes(tile.read_bytes())
-    settings = Settings(_env_file=None, data_dir=tmp_path / "data", workers=1, input_root=root)
+    settings = Settings(
+        _env_file=None, data_dir=tmp_path / "data", workers=1, input_root=root, sync_max_points=0
+    )
     app = create_app(settings, executor_factory=lambda: pytest.fail("no job should run"))
     with TestClient(app, raise_server_exceptions=False) as c:
         c.app.state.svc.scheduler.stop()  # nothing runs: only the answers matter here

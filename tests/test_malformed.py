@@ -133,7 +133,7 @@ def reader_pool() -> Iterator[WorkerPool]:
     pool.shutdown(kill=True)
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     which=st.sampled_from(["las", "laz"]),
     edits=st.lists(
