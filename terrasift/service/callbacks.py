@@ -4,7 +4,8 @@
 progress changes (at most once per ``min_interval`` seconds), ``successUri``
 the results document, ``failedUri`` the statusInfo of a failed or dismissed
 job. Each POST is tried ``attempts`` times with doubling waits; a receiver
-that never answers 2xx is logged and given up. Subscriptions are kept in the
+that never answers 2xx is logged and given up. Each job's callbacks go out
+from their own thread, in order, so a dead receiver delays only its job's. Subscriptions are kept in the
 job directory (``subscriber.json``), so a restarted service still calls back.
 """
 
@@ -35,6 +36,7 @@ class _Subscription:
     last: tuple[str, int] | None = None
     sent_at: float = 0.0
     deliveries: list[str] = field(default_factory=list)
+    worker: threading.Thread | None = None
 
 
 class Notifier:
@@ -87,12 +89,21 @@ class Notifier:
             with self._lock:
                 subs = list(self._subs.items())
             for job_id, sub in subs:
-                try:
-                    if self._check(job_id, sub):
-                        with self._lock:
-                            self._subs.pop(job_id, None)
-                except Exception:  # noqa: BLE001 - one bad job must not stop the others
-                    log.exception("callback for job %s failed", job_id)
+                # one delivery thread per job at a time: a job's callbacks stay in order,
+                # and a slow or dead receiver (retries) does not hold up other jobs'
+                if sub.worker is None or not sub.worker.is_alive():
+                    sub.worker = threading.Thread(
+                        target=self._deliver, args=(job_id, sub), daemon=True
+                    )
+                    sub.worker.start()
+
+    def _deliver(self, job_id: str, sub: _Subscription) -> None:
+        try:
+            if self._check(job_id, sub):
+                with self._lock:
+                    self._subs.pop(job_id, None)
+        except Exception:  # noqa: BLE001 - one bad job must not stop the others
+            log.exception("callback for job %s failed", job_id)
 
     def _check(self, job_id: str, sub: _Subscription) -> bool:
         """Send what is due for one job; True once the job is final (and told)."""
