@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-progress bench-load bench-malformed openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,6 +18,7 @@ serve: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check terrasift tests benchmarks scripts
 	$(VENV)/bin/ruff format --check terrasift tests benchmarks scripts
+	$(VENV)/bin/mypy terrasift
 	$(PY) -m pytest
 
 bench: $(STAMP)
@@ -37,6 +38,9 @@ bench-vegetation: $(STAMP)
 
 bench-rotation: $(STAMP)
 	$(PY) benchmarks/rotation_accuracy.py
+
+bench-buildings: $(STAMP)
+	$(PY) benchmarks/buildings_accuracy.py
 
 bench-progress: $(STAMP)
 	$(PY) benchmarks/progress_trace.py

@@ -8,9 +8,12 @@ succeeds, so an interrupted run resumes where it stopped when called again.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from terrasift.errors import ParameterError, TerrasiftError
 from terrasift.jobs.params import parse_cli_params
@@ -44,13 +47,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--token", default=None)
 
-    p = sub.add_parser("path", help="pitch and roll along a GeoJSON LineString over a DTM")
+    p = sub.add_parser("path", help="pitch and roll along GeoJSON lines over a DTM")
     p.add_argument("dtm", type=Path, help="a DTM GeoTIFF, e.g. OUT/dtm.tif from `process`")
     p.add_argument(
-        "line", type=Path, help="GeoJSON file with a LineString (or a Feature holding one)"
+        "line",
+        type=Path,
+        help="GeoJSON file: a LineString, a Feature or a FeatureCollection of them",
     )
     p.add_argument(
-        "--crs", default=None, help="CRS of the line: WGS 84 if omitted, `native` for the DTM's"
+        "--crs",
+        default=None,
+        help="CRS of the line: the file's crs member or else WGS 84 if omitted, `native` for the DTM's",
     )
     p.add_argument("--spacing", type=float, default=1.0, help="metres between samples")
     p.add_argument("--format", choices=["csv", "json"], default="csv")
@@ -100,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.format == "csv":
                 sys.stdout.write(profile.to_csv())
             else:
-                print(json.dumps(profile.to_records()))
+                # x, y are in the DTM's CRS, which the answer names
+                print(json.dumps({"crs": profile.crs, "samples": profile.to_records()}))
             return 0
         if args.command == "worker":
             return run_worker(args.scheduler, args.nthreads)
@@ -147,14 +155,29 @@ def process(
 
 
 def classify(src: Path, dst: Path, raw_params: dict, *, progress: bool = True) -> None:
-    """Write ``src`` with ground/vegetation/noise classes to ``dst`` (LAZ)."""
+    """Write ``src`` with the job's classes to ``dst``: LAS for ``.las``, LAZ otherwise."""
     out = dst.parent / f".{dst.name}.terrasift"
     names = process([src], out, raw_params, progress=progress, products="classified")
     print_summary(out / "report.json")
-    shutil.move(str(out / "classified.laz"), dst)
+    if dst.suffix.lower() == ".las":
+        _decompress(out / "classified.laz", dst)
+    else:
+        shutil.move(str(out / "classified.laz"), dst)
     for n in names:
         (out / n).unlink(missing_ok=True)
     shutil.rmtree(out, ignore_errors=True)
+
+
+def _decompress(src: Path, dst: Path, chunk_size: int = 1_000_000) -> None:
+    """Copy LAZ ``src`` to an uncompressed LAS at ``dst`` (atomically), chunk by chunk."""
+    import laspy
+
+    tmp = dst.with_name(dst.name + ".part")
+    reader = laspy.open(str(src))
+    with reader, laspy.open(str(tmp), mode="w", header=reader.header, do_compress=False) as writer:
+        for pts in reader.chunk_iterator(chunk_size):
+            writer.write_points(pts)
+    os.replace(tmp, dst)
 
 
 def print_summary(report_path: Path) -> None:
@@ -187,7 +210,7 @@ class _progress_bar:
 
         self._bar = tqdm(total=100, unit="%", desc="terrasift", file=sys.stderr)
 
-    def update(self, done: int, total: int, info: dict | None = None) -> None:
+    def update(self, done: int, total: int, info: Mapping[str, Any] | None = None) -> None:
         pct = int(100 * done / total) if total else 0
         self._bar.n = min(pct, 100)
         if info:

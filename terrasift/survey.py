@@ -16,6 +16,8 @@ from typing import Any
 
 import httpx
 
+from terrasift.files import write_json
+
 STATE_FILE = ".terrasift-survey.json"
 OUT_DIR = "terrasift-out"
 FINAL = {"successful", "failed", "dismissed"}
@@ -102,9 +104,7 @@ def run_survey(
             )
     for p in todo:
         state[p.name] = {"signature": tile_signature(p), "job": job_id, "status": status["status"]}
-    tmp = state_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(state, indent=2))
-    tmp.replace(state_path)
+    write_json(state_path, state, indent=2)
     return 0 if status["status"] == "successful" else 1
 
 

@@ -105,7 +105,7 @@ def test_upload_poll_download_open(
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), scene.xyz, atol=0.006)
     np.testing.assert_array_equal(np.asarray(las.truth), scene.truth)
     classes = np.asarray(las.classification)
-    assert set(np.unique(classes)) <= {1, 2, 3, 4, 5, 7}
+    assert set(np.unique(classes)) <= {1, 2, 3, 4, 5, 6, 7}
     truly_ground = scene.is_ground
     assert (classes[truly_ground] == 2).mean() > 0.8
     head = client.head(results["classified.laz"]["href"])
@@ -226,6 +226,7 @@ def test_path_profile_json_csv_and_bad_line(client: TestClient, tmp_path: Path) 
     r = client.post(f"/jobs/{job_id}/path", params={"crs": "native", "spacing": 5}, json=line)
     assert r.status_code == 200, r.text
     samples = r.json()["samples"]
+    assert r.json()["crs"] == "EPSG:32632"  # the samples' x, y are in the tile CRS
     assert len(samples) == 9 and samples[-1]["distance"] == pytest.approx(40.0)
     # the scene's surface: its z along the line, and pitch from its slope toward the east
     xs = np.array([s["x"] for s in samples])
@@ -238,3 +239,12 @@ def test_path_profile_json_csv_and_bad_line(client: TestClient, tmp_path: Path) 
     bad = client.post(f"/jobs/{job_id}/path", json={"type": "Point", "coordinates": [1, 2]})
     assert bad.status_code == 400 and bad.headers["content-type"].startswith(PROBLEM)
     assert "LineString" in bad.json()["detail"]
+    # a FeatureCollection as QGIS exports it, its CRS named by a crs member
+    fc = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32632"}},
+        "features": [{"type": "Feature", "properties": {}, "geometry": line}] * 2,
+    }
+    two = client.post(f"/jobs/{job_id}/path", params={"spacing": 5}, json=fc)
+    assert two.status_code == 200, two.text
+    assert {s["line"] for s in two.json()["samples"]} == {0, 1}

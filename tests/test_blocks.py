@@ -138,4 +138,13 @@ def test_the_block_task_runs_the_registered_steps_in_order():
     from terrasift.workers.registry import block_steps
 
     ids = [s.id for s in block_steps()]
-    assert ids == ["mixed", "ground", "surface", "vegetation", "roughness", "elevation"]
+    assert ids == [
+        "mixed",
+        "ground",
+        "surface",
+        "objects",
+        "vegetation",
+        "roughness",
+        "elevation",
+        "keep",
+    ]

@@ -114,7 +114,9 @@ def test_path_profile_on_a_tilted_plane(tmp_path, capsys):
         )
         == 0
     )
-    records = json.loads(capsys.readouterr().out)
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["crs"] == "EPSG:32632"
+    records = answer["samples"]
     east = [r for r in records if r["distance"] < 39]
     north = [r for r in records if 41 < r["distance"] < 69]
     expected = np.degrees(np.arctan(0.1))

@@ -38,7 +38,7 @@ def test_defaults_are_filled_and_json_ready():
         ({"sensor_origin": "1,2"}, "sensor_origin"),
         ({"vegetation.cell": 0}, "parameter vegetation.cell"),
         ({"vegetation.no_such_field": 1}, "stage vegetation has no field 'no_such_field'"),
-        ({"resolution": 0.3}, "whole multiple of resolution"),
+        ({"resolution": 0.3, "vegetation.cell": 1}, "whole multiple of resolution"),
         ({"features": "ditch,volcano"}, "unknown filter 'volcano'"),
         ({"ground.preset": "bold"}, "parameter ground.preset"),
         ({"ground.rotation.preset": "steep"}, "unknown preset 'steep'"),

@@ -16,7 +16,6 @@ from terrasift.workers.vegetation import (
     class_counts,
     classify_bins,
     coverage_from_counts,
-    from_north_up,
     height_classes,
     north_up,
     support_for_density,
@@ -175,7 +174,7 @@ def test_north_up_orientation():
     flat = np.arange(6)  # flat = iy * nx + ix, iy = 0 is the south row
     r = north_up(flat, g)
     assert r[0].tolist() == [3, 4, 5] and r[1].tolist() == [0, 1, 2]
-    np.testing.assert_array_equal(from_north_up(r, g), flat)
+    np.testing.assert_array_equal(r[::-1].reshape(g.size), flat)
 
 
 def test_height_classes():
@@ -226,5 +225,5 @@ def test_support_for_density_and_empty_input():
     assert support_for_density(5.0, 2.0) == 3
     g = Grid(0.0, 0.0, 1.0, 4, 3)
     vb = classify_bins(np.empty((0, 3)), np.empty(0, bool), g, VegetationParams(mow_height=3.0))
-    assert vb.counts == {"empty": 12, "open": 0, "bush": 0, "tree": 0}
+    assert vb.counts == {"empty": 12, "open": 0, "bush": 0, "tree": 0, "building": 0}
     assert vb.tree_coverage == 0.0 and not vb.nogo.any()

@@ -51,14 +51,14 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
     )
     result.stats["seconds"] = time.perf_counter() - t0
     result.stats["name"] = name
+    arrays: dict[str, Any] = {
+        "tile": result.tile,
+        "index": result.index,
+        "classes": result.classes,
+        "window": np.asarray(result.window),
+        **{f"raster_{k}": v for k, v in result.rasters.items()},
+    }
     with atomic_path(out) as tmp, open(tmp, "wb") as fh:
-        np.savez(
-            fh,
-            tile=result.tile,
-            index=result.index,
-            classes=result.classes,
-            window=np.asarray(result.window),
-            **{f"raster_{k}": v for k, v in result.rasters.items()},
-        )
+        np.savez(fh, **arrays)
     write_json(stats_path, result.stats)
     return result.stats

@@ -19,7 +19,12 @@ from terrasift.jobs.dirs import block_results
 from terrasift.jobs.params import stage_params
 from terrasift.tiling.blocks import BlockGrid
 from terrasift.tiling.classified import write_classified_copy
-from terrasift.tiling.rasters import RasterMosaic, bounded_raster_cache, job_transform
+from terrasift.tiling.rasters import (
+    RasterMosaic,
+    band_metadata,
+    bounded_raster_cache,
+    job_transform,
+)
 
 #: the float rasters every job writes; name -> how to make it from a block's arrays
 FLOAT_RASTERS = ("dtm", "dsm", "chm")
@@ -64,6 +69,7 @@ def _write_raster(job: Path, name: str) -> str:
             crs=plan["crs_wkt"],
             dtype="uint8",
             nodata=COVERAGE_NODATA,
+            **band_metadata("coverage"),
         )
     else:
         transform = job_transform(grid.x0, grid.y_top, grid.resolution)
@@ -73,6 +79,7 @@ def _write_raster(job: Path, name: str) -> str:
             height=grid.height,
             transform=transform,
             crs=plan["crs_wkt"],
+            **band_metadata(name),
         )
     mosaic.fill_nodata()
     for path in block_results(job):
@@ -89,7 +96,7 @@ def _write_raster(job: Path, name: str) -> str:
                     col_off // f,
                     np.where(reach, cov, COVERAGE_NODATA).astype(np.uint8),
                 )
-            elif name == "chm":
+            elif name == "chm" and "raster_chm" not in data:
                 mosaic.write(
                     row_off, col_off, np.clip(data["raster_dsm"] - data["raster_dtm"], 0, None)
                 )
@@ -102,11 +109,6 @@ def _write_raster(job: Path, name: str) -> str:
 BAND_CELLS = (
     1 << 19
 )  # DTM cells per band for slope and categories: memory follows this, not the job
-
-
-def write_terrain(job_dir: str) -> list[str]:
-    """Slope, categories and terrain objects from the job's mosaicked DTM (both terrain tasks)."""
-    return [write_slope(job_dir), *write_categories(job_dir)]
 
 
 def write_slope(job_dir: str) -> str:
@@ -137,6 +139,7 @@ def write_slope(job_dir: str) -> str:
             height=height,
             transform=ds.transform,
             crs=plan["crs_wkt"],
+            **band_metadata("slope"),
         )
         for r in range(0, height, band):
             lo, hi = max(0, r - margin), min(height, r + band + margin)
@@ -192,11 +195,15 @@ def _write_categories(job: Path) -> list[str]:
             cat.compute_categories(_read_rows(ds, r, min(height, r + band)), res, cparams)
             for r in range(0, height, band)
         ]
+    inclination, orientation, state, height10 = (
+        np.concatenate([getattr(p, f) for p in parts])
+        for f in ("inclination", "orientation", "state", "height10")
+    )
     cats = cat.Categories(
-        *(
-            np.concatenate([getattr(p, f) for p in parts])
-            for f in ("inclination", "orientation", "state", "height10")
-        ),
+        inclination,
+        orientation,
+        state,
+        height10,
         cells_per_tile=parts[0].cells_per_tile,
         tile_size=parts[0].tile_size,
     )
@@ -211,7 +218,7 @@ def _write_categories(job: Path) -> list[str]:
             dtype="uint8",
             nodata=cat.NODATA,
             count=4,
-            descriptions=("inclination", "orientation", "state", "height_x10"),
+            **band_metadata("categories"),
         )
         m.write(0, 0, bands)
         m.close_as_cog(out / "categories.tif", resampling="nearest")
@@ -223,14 +230,23 @@ def _write_categories(job: Path) -> list[str]:
             cats, filters, transform, cats.tile_size, stage_params(params, "features")
         )
         crs = plan["crs_wkt"]
-        native = feat.features_geojson(result, crs, job.name, to_wgs84=False) if crs else None
-        if native is not None:
-            write_json(out / "features.native.geojson", native)
+        # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its
+        # CRS; WGS 84 (RFC 7946) only when the CRS is known.
+        from terrasift.tiling.vectors import crs_member, write_geopackage
+
+        native = feat.features_geojson(result, crs or 0, job.name, to_wgs84=False)
+        write_geopackage(out / "features.gpkg", native, crs)
+        member = crs_member(crs)
+        write_json(
+            out / "features.native.geojson", {**native, **({"crs": member} if member else {})}
+        )
+        names += ["features.gpkg", "features.native.geojson"]
+        if crs:
             write_json(
                 out / "features.geojson",
                 feat.features_geojson(result, crs, job.name, to_wgs84=True),
             )
-            names += ["features.geojson", "features.native.geojson"]
+            names.append("features.geojson")
         for fname, marks in result.marked.items():
             m = RasterMosaic(
                 work / f"{fname}.tif",

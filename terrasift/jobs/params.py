@@ -20,8 +20,6 @@ from terrasift.workers.block import BlockModels
 from terrasift.workers.registry import block_steps, get_stage, ground_methods, stages
 
 DEFAULT_GROUND = "nist"
-#: the registered ground methods (``ground.nist`` -> ``nist``): the values of ``ground``
-GroundMethod = Literal[tuple(ground_methods())]  # type: ignore[valid-type]
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
 MAX_FEATURE_NAMES = 64  # filters in one job; each one searches the whole mosaic twice
 
@@ -31,7 +29,11 @@ class JobParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
-    ground: GroundMethod = Field(DEFAULT_GROUND, description="ground method")
+    ground: str = Field(
+        DEFAULT_GROUND,
+        description="ground method",
+        json_schema_extra={"enum": [*ground_methods()]},
+    )
     ground_preset: Literal["default", "conservative", "aggressive"] = Field(
         "default", alias="ground.preset", description="named parameter set of the ground method"
     )
@@ -79,6 +81,14 @@ class JobParams(BaseModel):
             and all(isinstance(c, (int, float)) for c in v)
         ):
             return [tuple(v)]
+        return v
+
+    @field_validator("ground")
+    @classmethod
+    def _registered_method(cls, v: str) -> str:
+        # the registry's ground.* methods are the choices (JSON schema: enum)
+        if v not in ground_methods():
+            raise ValueError(f"Input should be {' or '.join(map(repr, ground_methods()))}")
         return v
 
     @field_validator("buffer", mode="before")
@@ -151,13 +161,15 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
     try:
         job = JobParams.model_validate(fixed)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        # Union members show up in the location as tags such as "constrained-float".
-        loc = (
-            ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p))
-            or "params"
-        )
-        raise ParameterError(f"parameter {loc}: {err['msg']}") from None
+        msgs = []
+        for err in exc.errors():
+            # Union members show up in the location as tags such as "constrained-float".
+            loc = (
+                ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and "-" in p))
+                or "params"
+            )
+            msgs.append(f"parameter {loc}: {err['msg']}")
+        raise ParameterError("; ".join(dict.fromkeys(msgs))) from None
     out = job.model_dump(by_alias=True, mode="json")
     overrides = _stage_overrides(rest)
     # Build each stage's model once with the overrides on top, so a bad value
@@ -171,6 +183,14 @@ def validate_params(raw: Mapping[str, Any] | None) -> dict[str, Any]:
             raise ParameterError(f"parameter {stage_id}.{exc}") from None
         for k, v in values.items():
             out[f"{stage_id}.{k}"] = v
+    # Bin and tile sizes the job leaves out follow the resolution; given ones
+    # that contradict it are refused together.
+    from terrasift.workers.resolution import follow_resolution
+
+    derived, conflicts = follow_resolution(job.resolution, out)
+    if conflicts:
+        raise ParameterError("; ".join(conflicts))
+    out.update(derived)
     block_models(out)  # presets, the rotation's included, exist for the chosen method
     grid_alignment(out)
     from terrasift.workers.features import resolve_filters
@@ -249,7 +269,10 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         vegetation=stage_params(params, "vegetation"),
         terrain=stage_params(params, "terrain"),
         mixed=stage_params(params, "mixed"),
-        sensor_origin=tuple(tuple(float(c) for c in o) for o in origins) if origins else None,
+        objects=stage_params(params, "objects"),
+        sensor_origin=tuple((float(x), float(y), float(z)) for x, y, z in origins)
+        if origins
+        else None,
     )
 
 

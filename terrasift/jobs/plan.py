@@ -51,7 +51,7 @@ def resolve_crs(infos: list[TileInfo], override: str | None) -> tuple[str | None
     found = [pyproj.CRS.from_wkt(i.crs_wkt) for i in infos if i.crs_wkt]
     if not found:
         warnings.append(
-            "no CRS known: rasters carry none and features.geojson is not written; pass crs=EPSG:..."
+            "no CRS known: rasters and features.gpkg carry none, features are written in the tiles' own coordinates only (features.native.geojson, features.gpkg; no WGS 84 features.geojson); pass crs=EPSG:..."
         )
         return None, warnings
     first = found[0]

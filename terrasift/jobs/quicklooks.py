@@ -10,13 +10,12 @@ STAC item lists them as ``thumbnail`` and ``overview`` assets.
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from terrasift.files import atomic_path, load_json
 from terrasift.jobs.dirs import block_results
 from terrasift.tiling import quicklook as ql
 
@@ -58,9 +57,8 @@ def _read(path: Path, max_side: int) -> tuple[NDArray, object, float] | None:
 
 
 def _save(out: Path, name: str, image: ql.RGBA) -> str:
-    tmp = out / (name + ".part")
-    tmp.write_bytes(ql.png(image))
-    os.replace(tmp, out / name)
+    with atomic_path(out / name) as tmp:
+        tmp.write_bytes(ql.png(image))
     return name
 
 
@@ -76,7 +74,8 @@ def write_quicklooks(job_dir: str) -> list[str]:
         shade = ql.hillshade(data, cell)
         names.append(_save(out, "hillshade.png", ql.grey(shade)))
         small = _read(out / "dtm.tif", THUMB_SIDE)
-        names.append(_save(out, THUMBNAIL, ql.grey(ql.hillshade(small[0], small[2]))))
+        if small is not None:
+            names.append(_save(out, THUMBNAIL, ql.grey(ql.hillshade(small[0], small[2]))))
         names += _features(job, out, shade, transform)
         names += _steep(job, out, shade, transform)
     chm = _read(out / "chm.tif", MAX_SIDE)
@@ -109,7 +108,7 @@ def _features(job: Path, out: Path, shade: NDArray, transform: object) -> list[s
         return []
     from rasterio.features import rasterize
 
-    features = json.loads(path.read_text()).get("features", [])
+    features = load_json(path).get("features", [])
     image = ql.grey(shade)
     kinds = sorted({f.get("properties", {}).get("kind", "") for f in features})
     for kind in kinds:
@@ -137,13 +136,13 @@ def _steep(job: Path, out: Path, shade: NDArray, transform: object) -> list[str]
     from terrasift.tiling.blocks import BlockGrid, parse_block_name
 
     try:
-        grid = BlockGrid(**json.loads((job / "plan.json").read_text())["grid"])
+        grid = BlockGrid(**load_json(job / "plan.json")["grid"])
     except (OSError, ValueError, KeyError):
         return []
     layer = np.zeros((*shade.shape, 4), np.uint8)
     for stats_path in (p.with_suffix(".json") for p in block_results(job)):
         try:
-            stats = json.loads(stats_path.read_text())
+            stats = load_json(stats_path)
         except (OSError, ValueError):
             continue
         if not stats.get("steep", {}).get("rotated"):

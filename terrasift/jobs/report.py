@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as dt
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -12,16 +11,8 @@ import pyproj
 from terrasift.files import PARTIAL, write_json
 from terrasift.jobs.params import effective_stage_params
 from terrasift.tiling.blocks import BlockGrid, parse_block_name
-from terrasift.tiling.rasters import FLOAT_NODATA
+from terrasift.tiling.stac import stac_item
 from terrasift.workers import terrain, vegetation
-
-MEDIA_TYPES = {
-    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-    ".laz": "application/vnd.laszip",
-    ".geojson": "application/geo+json",
-    ".json": "application/json",
-    ".png": "image/png",
-}
 
 
 def write_report_and_item(
@@ -42,7 +33,7 @@ def write_report_and_item(
         for k, v in s.get("timings", {}).items():
             stage_times[k] = stage_times.get(k, 0.0) + v
     points = sum(int(t["point_count"]) for t in plan["tiles"])
-    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0}
+    bins = {"empty": 0, "open": 0, "bush": 0, "tree": 0, "building": 0}
     for s in block_stats:
         for k in bins:
             bins[k] += s.get("vegetation", {}).get(k, 0)
@@ -103,9 +94,11 @@ def write_report_and_item(
     write_json(out / "steep_blocks.geojson", steep_blocks_geojson(plan, steep))
     write_json(out / "report.json", report, indent=2)
     names = sorted(
-        p.name for p in out.iterdir() if not p.name.endswith(PARTIAL) and p.name != "item.json"
+        p.name
+        for p in out.iterdir()
+        if not p.name.endswith(PARTIAL) and not p.name.startswith(".") and p.name != "item.json"
     )
-    write_json(out / "item.json", stac_item(job.name, plan, names), indent=2)
+    write_json(out / "item.json", stac_item(job.name, out, plan, names), indent=2)
     return sorted([*names, "item.json"])
 
 
@@ -137,63 +130,3 @@ def steep_blocks_geojson(plan: Mapping[str, Any], steep_stats: list[dict]) -> di
             }
         )
     return {"type": "FeatureCollection", "features": feats}
-
-
-def stac_item(job_id: str, plan: Mapping[str, Any], names: list[str]) -> dict[str, Any]:
-    """A STAC 1.0 Item with the projection extension describing the job's outputs."""
-    grid = BlockGrid(**plan["grid"])
-    xmin, ymin = grid.x0, grid.y0
-    xmax, ymax = grid.x0 + grid.width * grid.resolution, grid.y_top
-    bbox_native = [xmin, ymin, xmax, ymax]
-    geometry = None
-    bbox = None
-    if plan.get("crs_wkt"):
-        tf = pyproj.Transformer.from_crs(
-            pyproj.CRS.from_wkt(plan["crs_wkt"]), "EPSG:4326", always_xy=True
-        )
-        lon0, lat0, lon1, lat1 = tf.transform_bounds(xmin, ymin, xmax, ymax)
-        bbox = [lon0, lat0, lon1, lat1]
-        geometry = {
-            "type": "Polygon",
-            "coordinates": [[[lon0, lat0], [lon1, lat0], [lon1, lat1], [lon0, lat1], [lon0, lat0]]],
-        }
-    transform = [grid.resolution, 0.0, grid.x0, 0.0, -grid.resolution, grid.y_top]
-    props: dict[str, Any] = {
-        "datetime": dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z"),
-        "proj:bbox": bbox_native,
-        "proj:shape": [grid.height, grid.width],
-        "proj:transform": transform,
-    }
-    code = plan.get("crs")
-    if code and code.startswith("EPSG:"):
-        props["proj:code"] = code
-    elif plan.get("crs_wkt"):
-        props["proj:code"] = None
-        props["proj:wkt2"] = plan["crs_wkt"]
-    assets = {}
-    for name in names:
-        suffix = Path(name).suffix
-        role = "metadata" if suffix == ".json" else "data"
-        if suffix == ".png":  # quicklooks
-            role = "thumbnail" if name == "thumbnail.png" else "overview"
-        asset: dict[str, Any] = {
-            "href": f"./{name}",
-            "type": MEDIA_TYPES.get(suffix, "application/octet-stream"),
-            "roles": [role],
-        }
-        if suffix == ".tif":
-            asset["proj:shape"] = [grid.height, grid.width]
-            asset["proj:transform"] = transform
-            asset["nodata"] = FLOAT_NODATA
-        assets[name] = asset
-    return {
-        "type": "Feature",
-        "stac_version": "1.0.0",
-        "stac_extensions": ["https://stac-extensions.github.io/projection/v2.0.0/schema.json"],
-        "id": job_id,
-        "bbox": bbox,
-        "geometry": geometry,
-        "properties": props,
-        "links": [],
-        "assets": assets,
-    }

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import AsyncIterator, Callable
-from concurrent.futures import Executor
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -28,6 +27,7 @@ from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
 from terrasift.service.store import JobStore
+from terrasift.workers.executors import Executor
 from terrasift.workers.pool import reap_leftovers
 
 log = logging.getLogger(__name__)

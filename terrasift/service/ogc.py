@@ -31,15 +31,17 @@ CONFORMANCE = [
 # Not claimed: conf/oas30 (the API definition served at /openapi.json is OpenAPI 3.1).
 
 OUTPUTS: dict[str, str] = {
-    "classified.laz": "every input point, original order and dimensions, classes 1/2/3/4/5/7",
+    "classified.laz": "every input point, original order and dimensions, ASPRS classes "
+    "1/2/3/4/5/6/7 and the kept input classes (objects.keep, 9 water by default)",
     "dtm.tif": "bare-earth elevation, float32 COG",
     "dsm.tif": "surface elevation, float32 COG",
-    "chm.tif": "canopy height, float32 COG",
+    "chm.tif": "vegetation height above ground (pit-free; buildings 0), float32 COG",
     "slope.tif": "slope in degrees, COG",
-    "coverage.tif": "bins: 0 empty, 1 open, 2 bush, 3 tree",
-    "categories.tif": "inclination, orientation, state, height×10 on the 2 m grid",
+    "coverage.tif": "bins: 0 empty, 1 open, 2 bush, 3 tree, 4 building",
+    "categories.tif": "inclination, orientation, state, height×10 on the category tile grid",
     "features.geojson": "terrain objects, WGS 84",
-    "features.native.geojson": "terrain objects in the tile CRS",
+    "features.native.geojson": "terrain objects in the tile CRS (crs member)",
+    "features.gpkg": "terrain objects in the tile CRS, GeoPackage",
     "steep_blocks.geojson": "blocks classified with rotations",
     "report.json": "counts per class, coverage, roughness, parameters, stage timings, warnings",
     "item.json": "STAC Item whose assets are the outputs",

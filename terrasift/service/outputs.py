@@ -23,6 +23,7 @@ MEDIA_TYPES = {
     ".laz": "application/vnd.laszip",
     ".las": "application/vnd.las",
     ".geojson": "application/geo+json",
+    ".gpkg": "application/geopackage+sqlite3",
     ".json": "application/json",
     ".png": "image/png",
     ".html": "text/html; charset=utf-8",

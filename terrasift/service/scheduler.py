@@ -18,7 +18,6 @@ import shutil
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
-from concurrent.futures import Executor
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -26,6 +25,7 @@ from typing import Any
 from terrasift.errors import JobCancelled, TerrasiftError
 from terrasift.service.jobinfo import write_detail
 from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, SUCCESSFUL, JobStore
+from terrasift.workers.executors import Executor
 
 log = logging.getLogger(__name__)
 
@@ -290,9 +290,8 @@ class Scheduler:
             return
         with self._lock:
             self._active[job_id] = ex
-        if (
-            self.store.get_job(job_id).status == DISMISSED
-        ):  # dismissed between mark_running and here
+        job = self.store.get_job(job_id)
+        if job is not None and job.status == DISMISSED:  # dismissed between mark_running and here
             ex.cancel()
 
         last: list[Any] = [-1, None, 0.0, None]

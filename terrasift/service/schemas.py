@@ -159,7 +159,7 @@ def add_problem_schema(spec: dict[str, Any]) -> dict[str, Any]:
 
 def multipart_body(description: str, params: bool = True) -> dict[str, Any]:
     """OpenAPI request body of the multipart upload endpoints (parsed by hand, streamed to disk)."""
-    body = {
+    body: dict[str, Any] = {
         "required": True,
         "description": description,
         "content": {

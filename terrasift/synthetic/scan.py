@@ -106,16 +106,14 @@ def make_scan(
     step = np.radians(step_deg)
     az = np.arange(np.radians(azimuth_deg[0]), np.radians(azimuth_deg[1]), step)
     el = np.arange(np.radians(elevation_deg[0]), np.radians(elevation_deg[1]), step)
-    A, E = np.meshgrid(az, el, indexing="ij")
-    A, E = A.ravel(), E.ravel()
+    A, E = (g.ravel() for g in np.meshgrid(az, el, indexing="ij"))
     centre = _direction(A, E)
 
     # Sub-ray offsets across (a) and along elevation (b); lobes at |a| >= 0.5.
     na, nb = sub_rays
     a = np.linspace(-1.0, 1.0, na)
     b = np.linspace(-1.0, 1.0, nb) if nb > 1 else np.zeros(1)
-    ga, gb = np.meshgrid(a, b, indexing="ij")
-    ga, gb = ga.ravel(), gb.ravel()
+    ga, gb = (g.ravel() for g in np.meshgrid(a, b, indexing="ij"))
     intensity = np.where(np.abs(ga) >= 0.5, 1.0, centre_intensity)
     half_w, half_h = np.radians(beam_deg[0]) / 2, np.radians(beam_deg[1]) / 2
     e_az = np.stack([-np.sin(A), np.cos(A), np.zeros_like(A)], axis=1)

@@ -29,6 +29,7 @@ SHARD_DTYPE = np.dtype(
         ("return_number", "u1"),
         ("number_of_returns", "u1"),
         ("scan_id", "<u2"),
+        ("classification", "u1"),  # the input's class (kept classes)
     ]
 )
 
@@ -193,6 +194,7 @@ def shard_tile(
             rec["return_number"] = chunk.return_number[p]
             rec["number_of_returns"] = chunk.number_of_returns[p]
             rec["scan_id"] = chunk.scan_id[p]
+            rec["classification"] = 0 if chunk.classification is None else chunk.classification[p]
             starts = np.flatnonzero(np.r_[True, bid[1:] != bid[:-1]])
             ends = np.r_[starts[1:], bid.size]
             for s, e in zip(starts, ends, strict=True):

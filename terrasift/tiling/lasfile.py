@@ -328,6 +328,7 @@ class PointChunk:
     return_number: NDArray[np.uint8]
     number_of_returns: NDArray[np.uint8]
     scan_id: NDArray[np.uint16]
+    classification: NDArray[np.uint8] | None = None  # the input's classes (kept classes)
 
 
 def iter_chunks(
@@ -350,6 +351,7 @@ def iter_chunks(
             sel.XY_RETURNS_CHANNEL
             | sel.Z
             | sel.POINT_SOURCE_ID
+            | sel.CLASSIFICATION
             | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
         )
         reader = laspy.open(str(path), decompression_selection=wanted)
@@ -398,6 +400,7 @@ def iter_chunks(
                     return_number=np.asarray(pts.return_number, dtype=np.uint8),
                     number_of_returns=np.asarray(pts.number_of_returns, dtype=np.uint8),
                     scan_id=scan,
+                    classification=np.asarray(pts.classification, dtype=np.uint8),
                 )
                 pos += n
         except InputError:

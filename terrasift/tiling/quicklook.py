@@ -23,6 +23,7 @@ COVERAGE_CLASSES: dict[int, tuple[str, tuple[int, int, int]]] = {
     1: ("open", (237, 222, 160)),
     2: ("bush", (134, 190, 90)),
     3: ("tree", (26, 110, 46)),
+    4: ("building", (200, 60, 60)),
 }
 
 #: categories.tif band 1 (inclination: the direction the tile rises toward) -> (label, colour)

@@ -10,6 +10,7 @@ corner): ``flat = iy * nx + ix``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numba
 import numpy as np
@@ -82,10 +83,10 @@ def _cell_counting_sort(
         b = np.int64(fy)
         ix[i] = a
         iy[i] = b
-        lo_x = min(lo_x, a)
-        hi_x = max(hi_x, a)
-        lo_y = min(lo_y, b)
-        hi_y = max(hi_y, b)
+        lo_x = min(lo_x, int(a))
+        hi_x = max(hi_x, int(a))
+        lo_y = min(lo_y, int(b))
+        hi_y = max(hi_y, int(b))
     nx = hi_x - lo_x + 1
     ny = hi_y - lo_y + 1
     if nx > max_keys or ny > max_keys or nx * ny > max_keys:
@@ -109,7 +110,8 @@ def bounds(x: NDArray, y: NDArray) -> tuple[np.floating, np.floating, np.floatin
     """``x.min(), x.max(), y.min(), y.max()`` in one compiled pass for float64
     input (four numpy reductions over strided columns cost several times more)."""
     if x.size and x.size == y.size and x.dtype == np.float64 and y.dtype == np.float64:
-        return tuple(np.float64(v) for v in _bounds_kernel(x.reshape(-1), y.reshape(-1)))
+        x0, x1, y0, y1 = _bounds_kernel(x.reshape(-1), y.reshape(-1))
+        return np.float64(x0), np.float64(x1), np.float64(y0), np.float64(y1)
     return x.min(), x.max(), y.min(), y.max()
 
 
@@ -372,7 +374,7 @@ class BinStats:
     ``rms`` is the root-mean-square deviation of z about the bin mean.
     """
 
-    grid: Grid
+    grid: BinGrid
     n: NDArray[np.int64]
     zmin: NDArray[np.float64]
     zmax: NDArray[np.float64]
@@ -390,8 +392,23 @@ def lowest_per_bin(flat: NDArray[np.int64], z: NDArray, size: int) -> NDArray[np
     return _min_argmin(flat, np.asarray(z, dtype=np.float64), size)[1]
 
 
+class BinGrid(Protocol):
+    """What the per-bin statistics need of a grid: a square ``Grid`` or the
+    rings and sectors of a ``ConcentricGrid``."""
+
+    @property
+    def size(self) -> int: ...
+
+    @property
+    def cell(self) -> float | NDArray[np.float64]: ...
+
+    def index(self, x: NDArray, y: NDArray) -> NDArray[np.int64]: ...
+
+    def centers(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+
 def bin_statistics(
-    xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None
+    xyz: NDArray[np.float64], grid: BinGrid, flat: NDArray[np.int64] | None = None
 ) -> BinStats:
     """Count, min, max, mean, RMS and lowest point of every bin of ``grid``.
 
@@ -421,7 +438,7 @@ class PlaneStats:
     residuals about the plane, so a steep but smooth bin has a small RMS.
     """
 
-    grid: Grid
+    grid: BinGrid
     n: NDArray[np.int64]
     c: NDArray[np.float64]
     sx: NDArray[np.float64]
@@ -431,7 +448,7 @@ class PlaneStats:
 
 
 def plane_fit_statistics(
-    xyz: NDArray[np.float64], grid: Grid, flat: NDArray[np.int64] | None = None
+    xyz: NDArray[np.float64], grid: BinGrid, flat: NDArray[np.int64] | None = None
 ) -> PlaneStats:
     """Fit a least-squares plane in every bin at once via per-bin normal equations.
 

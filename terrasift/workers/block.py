@@ -20,11 +20,12 @@ from terrasift.tiling.blocks import BlockGrid
 from terrasift.workers.ground.lowpoints import LowPointParams
 from terrasift.workers.ground.rotation import RotationParams, SteepParams
 from terrasift.workers.mixed import MixedParams
+from terrasift.workers.objects import ObjectParams
 from terrasift.workers.registry import Stage, StageParams, block_steps
 from terrasift.workers.terrain import TerrainParams
 from terrasift.workers.vegetation import VegetationParams
 
-UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, NOISE = 1, 2, 3, 4, 5, 7
+UNCLASSIFIED, GROUND, LOW_VEG, MED_VEG, HIGH_VEG, BUILDING, NOISE = 1, 2, 3, 4, 5, 6, 7
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,8 @@ class BlockModels:
     vegetation: VegetationParams
     terrain: TerrainParams
     mixed: MixedParams
+    objects: ObjectParams = field(default_factory=ObjectParams)
+    """Buildings, noise and the input classes kept."""
     sensor_origin: tuple[tuple[float, float, float], ...] | None = None
     """Scan positions of a ground-based scan; None for airborne data."""
 
@@ -93,11 +96,19 @@ class Block:
     density: float
     """The job's mean points per m²: one value for every block, so blocks judge alike."""
     check_cancel: Callable[[], None]
+    return_number: NDArray | None = None
+    number_of_returns: NDArray | None = None
+    given: NDArray | None = None
+    """The input's classes (kept classes)."""
     labels: NDArray[np.uint8] = field(init=False)
     act: NDArray[np.intp] = field(init=False)
     sub: NDArray[np.float64] = field(init=False)
     ground: NDArray[np.bool_] = field(init=False)
     low: NDArray[np.bool_] = field(init=False)
+    building: NDArray[np.bool_] | None = None
+    """Flags over ``sub`` (objects step); ``noise`` likewise, ``height`` above ground."""
+    noise: NDArray[np.bool_] | None = None
+    height: NDArray[np.float64] | None = None
     surface: Any = None
     rasters: dict[str, NDArray] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
@@ -136,7 +147,20 @@ def classify_block(
     order = canonical_order(points["x"], points["y"], points["z"])
     xyz = np.column_stack([points["x"][order], points["y"][order], points["z"][order]])
     core = points["core"][order].astype(bool)
-    block = Block(xyz, points["scan_id"][order], core, grid, ix, iy, density, check_cancel)
+    names = points.dtype.names or ()
+    block = Block(
+        xyz,
+        points["scan_id"][order],
+        core,
+        grid,
+        ix,
+        iy,
+        density,
+        check_cancel,
+        points["return_number"][order] if "return_number" in names else None,
+        points["number_of_returns"][order] if "number_of_returns" in names else None,
+        points["classification"][order] if "classification" in names else None,
+    )
     block.stats.update({"points_core": int(core.sum()), "points_total": xyz.shape[0]})
     for step in block_steps():
         step.run(block, models)

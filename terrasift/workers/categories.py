@@ -161,7 +161,7 @@ def compute_categories(
     padded[: dtm.shape[0], : dtm.shape[1]] = dtm
     z = padded.reshape(rows, k, cols, k).transpose(0, 2, 1, 3).reshape(rows * cols, k * k)
 
-    nodata = np.isnan(z).any(axis=1)
+    nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
     z = np.where(nodata[:, None], 0.0, z)
     z = z - z.mean(axis=1, keepdims=True)
     height = z.max(axis=1) - z.min(axis=1)

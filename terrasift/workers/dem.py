@@ -51,7 +51,7 @@ class Window:
 
 
 def lowest_per_cell(xyz: NDArray[np.float64], resolution: float) -> NDArray[np.float64]:
-    """The lowest point of each occupied ``resolution`` cell: decimates ground for the TIN."""
+    """The lowest point of each occupied ``resolution`` cell."""
     if xyz.shape[0] == 0:
         return xyz
     grid = Grid.covering(xyz[:, 0], xyz[:, 1], resolution)
@@ -114,21 +114,10 @@ def sample_window(surface: TinSurface | None, window: Window) -> NDArray[np.floa
     return surface(gx, gy).astype(np.float32)
 
 
-def dtm_window(
-    ground_xyz: NDArray[np.float64], window: Window, vertex_cell: float | None = None
-) -> NDArray[np.float32]:
-    """Ground TIN sampled at the window's cell centres (NaN when there is no ground).
-
-    The TIN's vertices are ``ground_vertices`` on cells of ``vertex_cell``
-    (default: the larger of the resolution and 1 m).
-    """
-    return sample_window(ground_tin(ground_xyz, vertex_cell or max(window.resolution, 1.0)), window)
-
-
 def dsm_window(xyz: NDArray[np.float64], window: Window) -> NDArray[np.float32]:
     """Highest point per cell; empty cells take the nearest filled cell's value."""
     row, col, inside = window.cell_of(xyz[:, 0], xyz[:, 1])
-    out = np.full(window.rows * window.cols, -np.inf)
+    out: NDArray = np.full(window.rows * window.cols, -np.inf)
     flat = row[inside] * window.cols + col[inside]
     np.maximum.at(out, flat, xyz[inside, 2]) if flat.size < 4096 else _max_sorted(
         out, flat, xyz[inside, 2]

@@ -311,7 +311,7 @@ def _mark_scan(rel: NDArray[np.float64], p: MixedParams) -> tuple[NDArray, NDArr
                 out=mom[1:],
             )
             diff = mom[hi] - mom[lo]
-            S = np.column_stack(
+            S: NDArray = np.column_stack(
                 [np.bincount(it, weights=diff[:, j], minlength=n_items) for j in range(11)]
             )
             counted = S[:, 0] >= p.min_points

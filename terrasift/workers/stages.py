@@ -8,6 +8,7 @@ import terrasift.workers.ground.nist  # noqa: F401
 import terrasift.workers.ground.ptd  # noqa: F401
 import terrasift.workers.ground.rotation  # noqa: F401
 import terrasift.workers.mixed  # noqa: F401
+import terrasift.workers.objects  # noqa: F401
 import terrasift.workers.steps  # noqa: F401
 import terrasift.workers.terrain  # noqa: F401
 import terrasift.workers.vegetation  # noqa: F401

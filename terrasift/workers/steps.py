@@ -16,9 +16,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from terrasift.errors import ProcessingError
-from terrasift.workers import dem, mixed, terrain, vegetation
+from terrasift.workers import chm, dem, mixed, objects, terrain, vegetation
 from terrasift.workers.bins import Grid
-from terrasift.workers.block import GROUND, NOISE, Block, BlockModels
+from terrasift.workers.block import (
+    BUILDING,
+    GROUND,
+    HIGH_VEG,
+    LOW_VEG,
+    MED_VEG,
+    NOISE,
+    Block,
+    BlockModels,
+)
 from terrasift.workers.ground import lowpoints, rotation
 from terrasift.workers.registry import block_step
 
@@ -141,6 +150,38 @@ def surface_step(block: Block, models: BlockModels) -> None:
         block.surface = dem.ground_tin(block.sub[block.ground], max(block.grid.resolution, 1.0))
 
 
+def _objects_halo(models: BlockModels, density: float) -> float:
+    # the isolation radius and two rounds of roof growth (two spacings each);
+    # a third round, rare, may reach a little beyond
+    s = objects.spacing(density)
+    radius = models.objects.noise_radius or max(5.0, 4.0 * s)
+    return float(radius + 2 * max(1.0, 2.0 * s))
+
+
+@block_step("objects", order=35, halo=_objects_halo)
+def objects_step(block: Block, models: BlockModels) -> None:
+    """Buildings (6) and noise (7): vegetation bins, the DSM and the CHM do without them."""
+    sub = block.sub
+    block.height = np.full(sub.shape[0], np.nan)
+    if block.surface is not None:
+        block.height = sub[:, 2] - block.surface(sub[:, 0], sub[:, 1])
+    act = block.act
+    rn = None if block.return_number is None else block.return_number[act]
+    nr = None if block.number_of_returns is None else block.number_of_returns[act]
+    with block.timer("objects"):
+        found = objects.label_objects(
+            sub, block.ground | block.low, block.height, models.objects, block.density, rn, nr
+        )
+    block.building, block.noise = found.building, found.noise
+    block.labels[act[found.building]] = BUILDING
+    block.labels[act[found.noise]] = NOISE
+    core = block.core[act]
+    block.stats["objects"] = {
+        "building": int(np.count_nonzero(found.building & core)),
+        "noise": int(np.count_nonzero(found.noise & core)),
+    }
+
+
 def _vegetation_halo(models: BlockModels, density: float) -> float:
     return VEGETATION_PAD * float(models.vegetation.cell)
 
@@ -156,12 +197,20 @@ def vegetation_step(block: Block, models: BlockModels) -> None:
     pad = VEGETATION_PAD
     hgrid = Grid(xmin - pad * c, ymin - pad * c, c, vgrid.nx + 2 * pad, vgrid.ny + 2 * pad)
     sub, is_ground, surface = block.sub, block.ground, block.surface
+    n = sub.shape[0]
+    building = block.building if block.building is not None else np.zeros(n, bool)
+    noise = block.noise if block.noise is not None else np.zeros(n, bool)
+    # Bins are judged on the vegetation's points: a roof is not a tree.
+    plant = ~building & ~noise & ~block.low
     with block.timer("vegetation"):
-        veg = vegetation.classify_bins(sub, is_ground, hgrid, vparams, surface=surface).crop(vgrid)
+        veg = vegetation.classify_bins(
+            sub[plant], is_ground[plant], hgrid, vparams, surface=surface
+        ).crop(vgrid)
+        veg = vegetation.mark_buildings(veg, sub[building])
         if surface is not None:
             flat = vgrid.index(sub[:, 0], sub[:, 1])
             in_veg = (flat >= 0) & (veg.bin_class[np.maximum(flat, 0)] >= vegetation.BUSH)
-            pick = in_veg & ~is_ground & ~block.low
+            pick = in_veg & ~is_ground & plant
             hag = sub[pick, 2] - surface(sub[pick, 0], sub[pick, 1])
             block.labels[block.act[pick]] = vegetation.height_classes(hag)
     block.stats["vegetation"] = veg.counts
@@ -204,8 +253,42 @@ def elevation_step(block: Block, models: BlockModels) -> None:
         valid = dem.data_reach_mask(block.sub, window, reach)
         dtm = dem.sample_window(block.surface, window)
         dtm[~valid] = np.nan
-        dsm = dem.dsm_window(block.sub, window)
+        # noise (a bird, multipath) stays out of the surface model
+        dsm = dem.dsm_window(block.sub[block.labels[block.act] != NOISE], window)
         dsm[~valid] = np.nan
         dsm = np.fmax(dsm, dtm)
     block.rasters["dtm"] = dtm
     block.rasters["dsm"] = dsm
+    with block.timer("chm"):
+        canopy = _chm(block, window)
+        canopy[~valid] = np.nan
+    block.rasters["chm"] = canopy
+
+
+def _chm(block: Block, window: dem.Window) -> NDArray[np.float32]:
+    """Pit-free CHM of the vegetation's first returns (layered TINs); every other
+    point (ground, roofs, unclassified; one per cell) at 0, so a roof reads 0
+    and no layer bridges over it."""
+    if block.surface is None:
+        return np.full((window.rows, window.cols), np.nan, np.float32)
+    act, sub = block.act, block.sub
+    labels = block.labels[act]
+    first = np.ones(act.size, bool)
+    if block.return_number is not None and block.number_of_returns is not None:
+        first = (block.return_number[act] <= 1) | (block.number_of_returns[act] <= 1)
+    is_plant = np.isin(labels, (LOW_VEG, MED_VEG, HIGH_VEG))
+    plant = is_plant & first
+    floor = dem.lowest_per_cell(sub[~is_plant & (labels != NOISE)], window.resolution)
+    xy = np.concatenate([sub[plant, :2], floor[:, :2]])
+    hag = sub[plant, 2] - block.surface(sub[plant, 0], sub[plant, 1])
+    h = np.concatenate([hag, np.zeros(floor.shape[0])])
+    return chm.layered_chm(xy, h, window, chm.max_edge_for(block.density, window.resolution))
+
+
+@block_step("keep", order=90)
+def keep_step(block: Block, models: BlockModels) -> None:
+    """Input classes listed in ``objects.keep`` (water by default) stay as they were."""
+    keep = models.objects.keep
+    if keep and block.given is not None:
+        kept = np.isin(block.given, keep)
+        block.labels[kept] = block.given[kept]

@@ -23,7 +23,7 @@ import io
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -395,6 +395,63 @@ def sample_bilinear(
     return np.where(inside, v, np.nan)
 
 
+def path_lines(geometry: Any) -> tuple[list[dict], str | None]:
+    """The LineStrings of a GeoJSON LineString, MultiLineString, Feature or
+    FeatureCollection (as QGIS exports a layer), in order, and the CRS its
+    ``crs`` member names (None when it has none, i.e. RFC 7946 lon/lat)."""
+    if not isinstance(geometry, dict):
+        raise ParameterError("path must be a GeoJSON LineString, Feature or FeatureCollection")
+    member = geometry.get("crs")
+    crs = None
+    if isinstance(member, dict):
+        crs = (member.get("properties") or {}).get("name")
+    kind = geometry.get("type")
+    if kind == "FeatureCollection":
+        parts = [
+            f.get("geometry") if isinstance(f, dict) else None
+            for f in geometry.get("features") or []
+        ]
+    elif kind == "Feature":
+        parts = [geometry.get("geometry")]
+    else:
+        parts = [geometry]
+    lines: list[dict] = []
+    for g in parts:
+        if isinstance(g, dict) and g.get("type") == "LineString":
+            lines.append(g)
+        elif isinstance(g, dict) and g.get("type") == "MultiLineString":
+            lines += [{"type": "LineString", "coordinates": c} for c in g.get("coordinates") or []]
+        else:
+            got = g.get("type") if isinstance(g, dict) else type(g).__name__
+            raise ParameterError(f"path must be made of LineStrings, not {got}")
+    if not lines:
+        raise ParameterError("path holds no LineString")
+    return lines, crs
+
+
+@dataclass(frozen=True)
+class PathProfiles:
+    """Profiles of several lines; ``crs`` labels their x, y (the DTM's CRS)."""
+
+    profiles: list[PathProfile]
+    crs: str | None
+
+    def to_records(self) -> list[dict[str, float | int | None]]:
+        """Samples of every line; a ``line`` index (0-based) when there are several."""
+        if len(self.profiles) == 1:
+            return self.profiles[0].to_records()
+        return [{**r, "line": i} for i, p in enumerate(self.profiles) for r in p.to_records()]
+
+    def to_csv(self) -> str:
+        if len(self.profiles) == 1:
+            return self.profiles[0].to_csv()
+        head, *rows = self.profiles[0].to_csv().splitlines()
+        out = [head + ",line"]
+        for i, p in enumerate(self.profiles):
+            out += [f"{r},{i}" for r in p.to_csv().splitlines()[1:]]
+        return "\n".join(out) + "\n"
+
+
 def line_coordinates(
     geometry: dict, dst_crs: str | None = None, src_crs: str = "EPSG:4326"
 ) -> NDArray[np.float64]:
@@ -406,7 +463,7 @@ def line_coordinates(
     """
     geom = geometry.get("geometry", geometry) if isinstance(geometry, dict) else None
     if not isinstance(geom, dict) or geom.get("type") != "LineString":
-        raise ParameterError("path must be a GeoJSON LineString")
+        raise ParameterError("path must be a GeoJSON LineString, Feature or FeatureCollection")
     try:
         xy = np.asarray(geom["coordinates"], dtype=np.float64)
     except (KeyError, TypeError, ValueError):

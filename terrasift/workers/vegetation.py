@@ -42,7 +42,8 @@ from terrasift.workers.bins import BinStats, Grid, bin_statistics, plane_fit_sta
 from terrasift.workers.registry import StageParams, register
 from terrasift.workers.surface import TinSurface
 
-EMPTY, OPEN, BUSH, TREE = 0, 1, 2, 3
+EMPTY, OPEN, BUSH, TREE, BUILDING = 0, 1, 2, 3, 4
+BIN_NAMES = {EMPTY: "empty", OPEN: "open", BUSH: "bush", TREE: "tree", BUILDING: "building"}
 LOW_VEG, MED_VEG, HIGH_VEG, UNCLASSIFIED = 3, 4, 5, 1
 
 
@@ -89,7 +90,8 @@ class VegetationParams(StageParams):
 class VegetationBins:
     """Per-bin result, flat arrays of ``grid.size`` in grid order.
 
-    ``bin_class``: 0 empty, 1 open, 2 bush, 3 tree. ``nogo``: bins a vehicle
+    ``bin_class``: 0 empty, 1 open, 2 bush, 3 tree, 4 building (a bin
+    holding building points and no vegetation, see ``mark_buildings``). ``nogo``: bins a vehicle
     should avoid (vegetation below ``mow_height`` when mowing, else every tree
     or bush bin). ``height``: z_max − z_ground (NaN when empty). ``support``:
     the window width that was used.
@@ -146,19 +148,32 @@ class VegetationBins:
 
 
 def class_counts(bin_class: NDArray) -> dict[str, int]:
-    """Number of empty, open, bush and tree bins; sum these over blocks to combine."""
-    c = np.bincount(np.ravel(bin_class).astype(np.int64), minlength=4)
-    return {
-        "empty": int(c[EMPTY]),
-        "open": int(c[OPEN]),
-        "bush": int(c[BUSH]),
-        "tree": int(c[TREE]),
-    }
+    """Number of empty, open, bush, tree and building bins; sum these over blocks to combine."""
+    c = np.bincount(np.ravel(bin_class).astype(np.int64), minlength=5)
+    return {name: int(c[code]) for code, name in BIN_NAMES.items()}
+
+
+def mark_buildings(bins: VegetationBins, building_xyz: NDArray[np.float64]) -> VegetationBins:
+    """``bins`` with every empty or open bin that holds a building point set to BUILDING.
+
+    Vegetation bins are judged without the building points, so a roof is not a
+    tree; a bin where a crown overhangs a roof stays vegetation.
+    """
+    g = bins.grid
+    flat = g.index(building_xyz[:, 0], building_xyz[:, 1]) if building_xyz.shape[0] else None
+    if flat is None or not (flat >= 0).any():
+        return bins
+    has = np.zeros(g.size, bool)
+    has[flat[flat >= 0]] = True
+    cls = bins.bin_class.copy()
+    cls[has & (cls <= OPEN)] = BUILDING
+    return VegetationBins(g, cls, bins.nogo, bins.n, bins.height, bins.support)
 
 
 def coverage_from_counts(counts: dict[str, int]) -> tuple[float, float]:
-    """(tree_coverage, bush_coverage) over non-empty bins; 0 when every bin is empty."""
-    nonempty = counts["open"] + counts["bush"] + counts["tree"]
+    """(tree_coverage, bush_coverage) over non-empty bins (buildings included); 0
+    when every bin is empty."""
+    nonempty = counts["open"] + counts["bush"] + counts["tree"] + counts.get("building", 0)
     if nonempty == 0:
         return 0.0, 0.0
     return counts["tree"] / nonempty, counts["bush"] / nonempty
@@ -167,11 +182,6 @@ def coverage_from_counts(counts: dict[str, int]) -> tuple[float, float]:
 def north_up(flat: NDArray, grid: Grid) -> NDArray:
     """A flat per-bin array (row 0 = south) as a north-up raster (row 0 = north)."""
     return np.asarray(flat).reshape(grid.ny, grid.nx)[::-1]
-
-
-def from_north_up(raster: NDArray, grid: Grid) -> NDArray:
-    """Inverse of ``north_up``: a north-up raster as a flat array in grid order."""
-    return np.ascontiguousarray(np.asarray(raster)[::-1]).reshape(grid.size)
 
 
 def auto_support(n: NDArray, grid: Grid, min_points: int) -> int:

@@ -129,6 +129,8 @@ def dismiss(job_id: str, request: Request, who: Annotated[str, Depends(tenant)])
     svc = service(request)
     _job(request, job_id, who)
     job = svc.store.dismiss(job_id)
+    if job is None:  # deleted since the check above
+        raise Problem("no-such-job", f"no job {job_id!r}")
     svc.scheduler.cancel(job_id)
     return JSONResponse(ogc.status_info(job, base_url(request)))
 
@@ -147,7 +149,7 @@ def job_results(
     return ogc.results(job, base_url(request))
 
 
-_OUTPUT_DOC = dict(
+_OUTPUT_DOC: dict[str, Any] = dict(
     response_class=Response,
     responses={
         200: {"description": "the file", "content": {"application/octet-stream": {}}},

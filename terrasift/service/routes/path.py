@@ -35,12 +35,17 @@ async def path_profile(
     who: Annotated[str, Depends(tenant)],
     line: Annotated[
         dict[str, Any],
-        Body(description="GeoJSON LineString or a Feature holding one", examples=[_EXAMPLE]),
+        Body(
+            description="GeoJSON LineString, a Feature holding one, or a FeatureCollection of "
+            "them (several lines: samples carry a `line` index)",
+            examples=[_EXAMPLE],
+        ),
     ],
     crs: Annotated[
         str | None,
         Query(
-            description="CRS of the line: omit for WGS 84 lon/lat, `native` for the tile CRS, or e.g. EPSG:32632"
+            description="CRS of the line: omit for the GeoJSON's `crs` member or else WGS 84 "
+            "lon/lat, `native` for the tile CRS, or e.g. EPSG:32632"
         ),
     ] = None,
     spacing: Annotated[
@@ -49,7 +54,7 @@ async def path_profile(
     ] = None,
     f: Annotated[Literal["json", "csv"], Query(description="response format")] = "json",
 ) -> Response:
-    """Samples every `spacing` m along the line: distance, x, y (tile CRS), z, pitch and roll in degrees."""
+    """Samples every `spacing` m along the line: distance, x, y (in the tile CRS, named by `crs`), z, pitch and roll in degrees."""
     job = _finished(_job(request, job_id, who))
     svc = service(request)
     job_dir = svc.scheduler.job_dir(job.id)
@@ -58,4 +63,13 @@ async def path_profile(
     profile = await run_in_threadpool(job_path_profile, job_dir, line, crs=crs, spacing=spacing)
     if f == "csv":
         return Response(profile.to_csv(), media_type="text/csv")
-    return JSONResponse({"job": job.id, "crs": crs or "EPSG:4326", "samples": profile.to_records()})
+    return JSONResponse(
+        {
+            "job": job.id,
+            "crs": profile.crs,  # of the samples' x, y: the tile CRS
+            "line_crs": crs
+            or (line.get("crs") or {}).get("properties", {}).get("name")
+            or "EPSG:4326",
+            "samples": profile.to_records(),
+        }
+    )

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, cast
 
 from terrasift.errors import FilterSyntaxError
 from terrasift.workers.categories import ORIENTATIONS
@@ -235,7 +235,7 @@ class _Parser:
                 raise self.error(f"beginsegment: min {lo} exceeds max {hi}", start)
         subs: list[SubSegment] = []
         invert = False
-        direction = "both"
+        direction: Literal["both", "horizontal", "vertical"] = "both"
         while (item := self.next()) is not None:
             no, words = item
             key, rest = words[0], words[1:]
@@ -259,7 +259,7 @@ class _Parser:
             elif key in ("horizontal", "vertical"):
                 if direction != "both":
                     raise self.error("horizontal and vertical are exclusive", no)
-                direction = key
+                direction = "horizontal" if key == "horizontal" else "vertical"
             elif key == "beginsubsegment":
                 subs.append(self.subsegment(no, rest))
             else:
@@ -347,7 +347,8 @@ class _Parser:
     def connect(self, no: int, args: list[str]) -> Connect:
         if not args or args[0] not in ("edge", "simple", "segment"):
             raise self.error("connect needs an algorithm: edge, simple or segment", no)
-        method, nums = args[0], args[1:]
+        method = cast(Literal["edge", "simple", "segment"], args[0])
+        nums = args[1:]
         allowed = 5 if method == "segment" else 4
         if len(nums) not in (4, allowed):
             extra = " [maxerror%]" if method == "segment" else ""

@@ -57,9 +57,7 @@ def class_mask(cats, sub: SubSegment) -> NDArray[np.bool_]:
     return out
 
 
-def search_rows(
-    cats: tuple[NDArray, NDArray, NDArray], seg: Segment, band: int = 512
-) -> NDArray[np.bool_]:
+def search_rows(cats: tuple[NDArray, ...], seg: Segment, band: int = 512) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
     Rows are independent, so they go through in bands of ``band`` rows to bound
@@ -73,7 +71,7 @@ def search_rows(
     )
 
 
-def _search_band(cats: tuple[NDArray, NDArray, NDArray], seg: Segment) -> NDArray[np.bool_]:
+def _search_band(cats: tuple[NDArray, ...], seg: Segment) -> NDArray[np.bool_]:
     inc = cats[0]
     nrows, ncols = inc.shape
     nb = ncols + 1

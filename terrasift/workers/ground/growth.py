@@ -159,7 +159,7 @@ def _ground_slopes(
     both = ground[own] & ground[nbr]
     o, u, v, w = own[both], du[both], dv[both], dz[both]
 
-    def s(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    def s(x: NDArray[np.float64]) -> NDArray:
         return np.bincount(o, weights=x, minlength=n)
 
     suu, svv, suv, suz, svz = s(u * u), s(v * v), s(u * v), s(u * w), s(v * w)

@@ -365,46 +365,14 @@ def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
     return np.argsort(iy * nx + ix, kind="stable")
 
 
-class _Tin:
-    """The current TIN: triangulation, point location and per-facet planes."""
-
-    def __init__(self, verts: NDArray[np.float64]):
-        # startinpy's triangulation (Qhull for degenerate input) and a
-        # vectorised walk to locate points: the TIN of ``tin.py``.
-        self.mesh = Tin(verts, origin=np.zeros(2))
-        self.simplices = np.asarray(self.mesh.tri.simplices, dtype=np.int64)
-        self.verts = verts
-        p = verts[self.simplices]
-        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-        self.area = 0.5 * np.abs(normal[:, 2])
-        norm = np.linalg.norm(normal, axis=1)
-        norm[norm == 0] = np.inf
-        self.unit = normal / norm[:, None]
-        self.nz = np.abs(self.unit[:, 2])
-        self.offset = np.einsum("ij,ij->i", self.unit, p[:, 0])
-
-    def locate(self, xy: NDArray[np.float64]) -> NDArray[np.int64]:
-        """Facet of each point, -1 outside; fastest when consecutive points are close."""
-        t, _ = self.mesh.locate(np.asarray(xy, dtype=np.float64))
-        return np.where(t >= 0, t, -1)
-
-    def distance(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Perpendicular distance of each point to the plane of its facet ``s``."""
-        return np.abs(np.einsum("ij,ij->i", pts, self.unit[s]) - self.offset[s])
-
-    def nearest_vertex(
-        self, s: NDArray[np.int64], pts: NDArray[np.float64]
-    ) -> tuple[NDArray, NDArray]:
-        """Distance to the nearest vertex of facet ``s`` and that vertex, per point."""
-        vs = self.verts[self.simplices[s]]  # (m, 3, 3)
-        d2 = ((vs - pts[:, None, :]) ** 2).sum(axis=2)
-        k = np.argmin(d2, axis=1)
-        r = np.arange(s.size)
-        return np.sqrt(d2[r, k]), vs[r, k]
+def _tin(verts: NDArray[np.float64]) -> Tin:
+    """The current TIN through ``verts`` (local coordinates): startinpy's
+    triangulation (Qhull for degenerate input) and the compiled walk of ``tin.py``."""
+    return Tin(verts, origin=np.zeros(2))
 
 
 def _judge(
-    tin: _Tin, pts: NDArray[np.float64], params: PtdParams, scores: bool
+    tin: Tin, pts: NDArray[np.float64], params: PtdParams, scores: bool
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Facet of each point (-1 outside the TIN) and the acceptance test against it.
 
@@ -414,17 +382,18 @@ def _judge(
     point is judged as if a metre away, and a point closer to the facet than
     sin(iteration_angle) metres passes the angle test wherever it is.
     """
-    s = tin.locate(pts[:, :2])
+    s = tin.facet_of(pts[:, :2])
+    nz = tin.facet_planes().nz
     inside = np.flatnonzero(s >= 0)
     si, pi = s[inside], pts[inside]
-    dist = tin.distance(si, pi)
+    dist = tin.plane_distance(si, pi)
     sin_max = np.sin(np.radians(params.iteration_angle))
     cos_max = np.cos(np.radians(params.terrain_angle))
-    ok = (dist < params.iteration_distance) & (tin.nz[si] >= cos_max)
+    ok = (dist < params.iteration_distance) & (nz[si] >= cos_max)
     sin_angle = np.full(inside.size, np.inf)
     need = np.flatnonzero(ok & (scores | (dist >= sin_max)))
     if need.size:
-        rmin, _ = tin.nearest_vertex(si[need], pi[need])
+        rmin, _ = tin.nearest_corner(si[need], pi[need])
         sin_angle[need] = dist[need] / np.maximum(rmin, 1.0)
     easy = ok.copy()
     easy[need] = False
@@ -433,17 +402,17 @@ def _judge(
     if params.mirror_slope is not None and not ok.all():
         # Mirror image p' = 2v - p through the nearest vertex v, judged against
         # the facet p' falls in: the surface behind v, continued past it.
-        bad = np.flatnonzero(~ok & (tin.nz[si] < np.cos(np.radians(params.mirror_slope))))
+        bad = np.flatnonzero(~ok & (nz[si] < np.cos(np.radians(params.mirror_slope))))
         if bad.size:
-            _, v = tin.nearest_vertex(si[bad], pi[bad])
+            _, v = tin.nearest_corner(si[bad], pi[bad])
             img = 2.0 * v - pi[bad]
-            s2 = tin.locate(img[:, :2])
+            s2 = tin.facet_of(img[:, :2])
             has = np.flatnonzero(s2 >= 0)
             bad, img, s2 = bad[has], img[has], s2[has]
-            d2 = tin.distance(s2, img)
-            r2, _ = tin.nearest_vertex(s2, img)
+            d2 = tin.plane_distance(s2, img)
+            r2, _ = tin.nearest_corner(s2, img)
             sin2 = d2 / np.maximum(r2, 1.0)
-            ok2 = (d2 < params.iteration_distance) & (sin2 < sin_max) & (tin.nz[s2] >= cos_max)
+            ok2 = (d2 < params.iteration_distance) & (sin2 < sin_max) & (nz[s2] >= cos_max)
             ok[bad[ok2]] = True
             sin_angle[bad[ok2]] = sin2[ok2]
     facet = np.full(pts.shape[0], -1, dtype=np.int64)
@@ -488,13 +457,13 @@ def _densify(
     for _ in range(params.max_rounds):
         _refit_frame(verts, nf, nv)
         try:
-            tin = _Tin(verts[:nv])
+            tin = _tin(verts[:nv])
         except QhullError:
             return
         if pending.size == 0:
             break
         s, ok, score = _judge(tin, local[pending], params, scores=True)
-        pick = np.flatnonzero(ok & (tin.area[np.maximum(s, 0)] >= area_min))
+        pick = np.flatnonzero(ok & (tin.facet_planes().area[np.maximum(s, 0)] >= area_min))
         if pick.size == 0:
             break
         o = pick[np.lexsort((score[pick], s[pick]))]
@@ -519,7 +488,7 @@ def _densify(
         if chosen.size < params.tail_fraction * nv:
             _refit_frame(verts, nf, nv)
             try:
-                tin = _Tin(verts[:nv])
+                tin = _tin(verts[:nv])
             except QhullError:
                 return
             break
@@ -535,7 +504,7 @@ def _densify(
             verts = verts[:nv][~drop]
             _refit_frame(verts, nf, verts.shape[0])
             try:
-                tin = _Tin(verts)
+                tin = _tin(verts)
             except QhullError:
                 return
     # Final pass: every other point judged against the last TIN, none inserted.
@@ -547,22 +516,23 @@ def _densify(
             ground[rest[ok]] = True
 
 
-def _pits(tin: _Tin, nf: int, depth: float) -> NDArray[np.bool_]:
+def _pits(tin: Tin, nf: int, depth: float) -> NDArray[np.bool_]:
     """TIN vertices (not of the frame) at least ``depth`` below every TIN
     neighbour that is not a frame vertex."""
-    nv = tin.verts.shape[0]
+    verts = tin.local_xyz
+    nv = verts.shape[0]
     simp = tin.simplices
     a = np.concatenate([simp[:, 0], simp[:, 1], simp[:, 2], simp[:, 1], simp[:, 2], simp[:, 0]])
     b = np.concatenate([simp[:, 1], simp[:, 2], simp[:, 0], simp[:, 0], simp[:, 1], simp[:, 2]])
     real = b >= nf
     lowest_neighbour = np.full(nv, np.inf)
-    np.minimum.at(lowest_neighbour, a[real], tin.verts[b[real], 2])
-    pit = (tin.verts[:, 2] + depth <= lowest_neighbour) & np.isfinite(lowest_neighbour)
+    np.minimum.at(lowest_neighbour, a[real], verts[b[real], 2])
+    pit = (verts[:, 2] + depth <= lowest_neighbour) & np.isfinite(lowest_neighbour)
     pit[:nf] = False
     return pit
 
 
-def _islands(tin: _Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]:
+def _islands(tin: Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]:
     """TIN vertices of raised islands: parts of the ground TIN that only meet
     the rest across downward steps (edges rising at least ``step`` metres at
     more than ``slope`` degrees), nowhere the block's border, and are not its
@@ -572,10 +542,10 @@ def _islands(tin: _Tin, nf: int, step: float, slope: float) -> NDArray[np.bool_]
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    nv = tin.verts.shape[0]
+    v = tin.local_xyz
+    nv = v.shape[0]
     simp = tin.simplices
     e = np.concatenate([simp[:, [0, 1]], simp[:, [1, 2]], simp[:, [2, 0]]])
-    v = tin.verts
     dz = v[e[:, 1], 2] - v[e[:, 0], 2]
     h = np.hypot(v[e[:, 1], 0] - v[e[:, 0], 0], v[e[:, 1], 1] - v[e[:, 0], 1])
     is_step = (np.abs(dz) >= step) & (np.abs(dz) >= np.tan(np.radians(slope)) * h)

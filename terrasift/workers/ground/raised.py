@@ -108,7 +108,7 @@ def _lift(
     cy = np.bincount(seg, xyz[:, 1], n_seg) / size
     u, v, z = xyz[vv, 0] - cx[ss], xyz[vv, 1] - cy[ss], xyz[vv, 2]
 
-    def b(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    def b(a: NDArray[np.float64]) -> NDArray:
         return np.bincount(ss, a, n_seg)
 
     cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)

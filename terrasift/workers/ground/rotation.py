@@ -309,7 +309,7 @@ def classify_rotated(
         lo, hi = np.percentile(xyz[:, 2], [2, 98])
         height = float(hi - lo)
     near = None
-    work = slice(None)
+    work: slice | NDArray[np.intp] = slice(None)
     if (params.max_lift is not None or params.steep_reach is not None) and base.any():
         wide = (
             None

@@ -20,12 +20,12 @@ around them can pass, so the k-nearest queries run on those alone.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from terrasift.workers.bins import Grid
+from terrasift.workers.ground._kernels import _flagged_in, _still_todo, _top_of_ground, _under_top
 
 
 def supported_points(
@@ -97,68 +97,3 @@ def _max3x3(a: NDArray[np.float64]) -> NDArray[np.float64]:
 def _dilate(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Cells of the 2-D mask ``a`` and their 8 neighbours."""
     return _max3x3(a.astype(np.float64)) > 0
-
-
-# One compiled pass each over the millions of points: the numpy forms gather
-# and combine several full-length temporaries per round.
-
-
-@numba.njit(cache=True)
-def _top_of_ground(
-    cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int
-) -> NDArray[np.float64]:
-    """Highest z of the ground points of each cell (-inf when none; NaN propagates as in ``np.maximum.at``)."""
-    top = np.full(size, -np.inf)
-    for i in range(cell.size):
-        if ground[i]:
-            v = z[i]
-            b = cell[i]
-            if v > top[b] or np.isnan(v):
-                top[b] = v
-    return top
-
-
-@numba.njit(cache=True)
-def _under_top(
-    todo: NDArray[np.bool_],
-    z: NDArray[np.float64],
-    top: NDArray[np.float64],
-    cell: NDArray[np.int64],
-    tol: float,
-) -> NDArray[np.int64]:
-    """Indices of the ``todo`` points with ``z <= top[cell] + tol``."""
-    out = np.empty(cell.size, dtype=np.int64)
-    m = 0
-    for i in range(cell.size):
-        if todo[i] and z[i] <= top[cell[i]] + tol:
-            out[m] = i
-            m += 1
-    return out[:m].copy()
-
-
-@numba.njit(cache=True)
-def _flagged_in(
-    points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArray[np.int64]
-) -> NDArray[np.int64]:
-    """Indices of the flagged ``points`` lying in flagged ``cells``."""
-    out = np.empty(cell.size, dtype=np.int64)
-    m = 0
-    for i in range(cell.size):
-        if points[i] and cells[cell[i]]:
-            out[m] = i
-            m += 1
-    return out[:m].copy()
-
-
-@numba.njit(cache=True)
-def _still_todo(
-    may: NDArray[np.bool_],
-    ground: NDArray[np.bool_],
-    near: NDArray[np.bool_],
-    cell: NDArray[np.int64],
-) -> NDArray[np.bool_]:
-    """``may & ~ground & near[cell]``."""
-    out = np.empty(cell.size, dtype=np.bool_)
-    for i in range(cell.size):
-        out[i] = may[i] and not ground[i] and near[cell[i]]
-    return out

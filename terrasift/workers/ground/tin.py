@@ -17,6 +17,9 @@ coordinates of 5e6 m).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
+
 import numba
 import numpy as np
 import startinpy
@@ -24,9 +27,21 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError
 
-_MAX_WALK = 128
+from terrasift.workers.ground import _kernels
+from terrasift.workers.ground._kernels import (
+    _EXTRAPOLATE,
+    _LOCATE,
+    _NEAREST,
+    _adjacency,
+    _band_kernel,
+    _edge_neighbours,
+    _insertion_sort,
+    _surface_kernel,
+    _walk_kernel,
+)
+
+IN_BAND, ABOVE, BELOW = _kernels.IN_BAND, _kernels.ABOVE, _kernels.BELOW  # codes of Tin.band
 _GUESS_K = 0.5
-_MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
 _SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's sort)
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
@@ -129,6 +144,16 @@ def hilbert_key(xy: NDArray[np.float64]) -> NDArray[np.int64]:
     return d
 
 
+@dataclass(frozen=True)
+class FacetPlanes:
+    """Per facet: unit normal, |n_z| (the cosine of its slope), offset n · corner, horizontal area."""
+
+    unit: NDArray[np.float64]
+    nz: NDArray[np.float64]
+    offset: NDArray[np.float64]
+    area: NDArray[np.float64]
+
+
 class Tin:
     """Delaunay TIN through ``xyz``, linear inside the hull, nearest corner outside it."""
 
@@ -155,6 +180,7 @@ class Tin:
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
         self._zt: NDArray[np.float64] | None = None
+        self._planes: FacetPlanes | None = None
 
     @classmethod
     def _from_mesh(
@@ -166,7 +192,7 @@ class Tin:
     ) -> Tin:
         tin = cls.__new__(cls)
         tin.origin, tin.xy, tin.z, tin.tri = origin, xy, z, mesh
-        tin._slopes = tin._trans = tin._guess = tin._zt = None
+        tin._slopes = tin._trans = tin._guess = tin._zt = tin._planes = None
         return tin
 
     @property
@@ -371,9 +397,52 @@ class Tin:
             self._zt = self.z[self.tri.simplices]
         return self._zt
 
-    def slope_local(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Gradient magnitude (rise over run) of the facet under each local point."""
-        return self.height_and_slope(q)[1]
+    @cached_property
+    def simplices(self) -> NDArray[np.int64]:
+        """Corner vertices of every facet."""
+        return np.asarray(self.tri.simplices, dtype=np.int64)
+
+    @cached_property
+    def local_xyz(self) -> NDArray[np.float64]:
+        """The vertices in local coordinates (x, y less ``origin``; z as given)."""
+        return np.column_stack([self.xy, self.z])
+
+    def facet_of(self, q: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Facet under each local point of ``q``, -1 outside the hull; fastest when
+        consecutive points are close."""
+        t, _ = self.locate(np.asarray(q, dtype=np.float64))
+        return np.where(t >= 0, t, -1)
+
+    def facet_planes(self) -> FacetPlanes:
+        """The plane of every facet (cached): for distances of points to facets."""
+        if self._planes is None:
+            p = self.local_xyz[self.simplices]
+            normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            norm = np.linalg.norm(normal, axis=1)
+            norm[norm == 0] = np.inf
+            unit = normal / norm[:, None]
+            self._planes = FacetPlanes(
+                unit=unit,
+                nz=np.abs(unit[:, 2]),
+                offset=np.einsum("ij,ij->i", unit, p[:, 0]),
+                area=0.5 * np.abs(normal[:, 2]),
+            )
+        return self._planes
+
+    def plane_distance(self, s: NDArray[np.int64], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Perpendicular distance of each local point to the plane of its facet ``s``."""
+        planes = self.facet_planes()
+        return np.abs(np.einsum("ij,ij->i", pts, planes.unit[s]) - planes.offset[s])
+
+    def nearest_corner(
+        self, s: NDArray[np.int64], pts: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Distance to the nearest corner of facet ``s`` and that corner, per local point."""
+        vs = self.local_xyz[self.simplices[s]]  # (m, 3, 3)
+        d2 = ((vs - pts[:, None, :]) ** 2).sum(axis=2)
+        k = np.argmin(d2, axis=1)
+        r = np.arange(s.size)
+        return np.sqrt(d2[r, k]), vs[r, k]
 
     def facet_slopes(self) -> NDArray[np.float64]:
         """Gradient magnitude of each triangle."""
@@ -393,213 +462,6 @@ class Tin:
         return self._slopes
 
 
-_U31 = np.uint64(31)
-_U11 = np.uint64(11)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_LOCATE, _NEAREST, _EXTRAPOLATE = 0, 1, 2  # modes of _surface_kernel
-IN_BAND, ABOVE, BELOW = 0, 1, 2  # codes of Tin.band
-
-
-@numba.njit(cache=True, inline="always")
-def _bits(v: float) -> np.uint64:
-    b = np.empty(1)
-    b[0] = v
-    return b.view(np.uint64)[0]
-
-
-@numba.njit(cache=True, inline="always")
-def _walk_one(
-    qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: NDArray
-) -> tuple[int, float, float]:
-    """Walk one query from triangle ``tt`` across the edge facing it until it
-    is inside a triangle (returned) or leaves the hull (-(exit triangle + 1)),
-    with its first two coordinates in the last triangle.
-
-    The exit edge is the most negative coordinate (the first on ties; edge 0
-    for a degenerate sliver, whose coordinates are NaN). After half of
-    ``_MAX_WALK`` steps, a walk that still goes on is cycling on round-off near
-    an edge: its exit edge becomes a pseudo-random negative one, a hash of
-    the query's coordinates and the step, so it depends on the query alone.
-    """
-    c0 = c1 = np.nan
-    for step in range(_MAX_WALK):
-        dx = qx - trans[tt, 4]
-        dy = qy - trans[tt, 5]
-        c0 = trans[tt, 0] * dx + trans[tt, 1] * dy
-        c1 = trans[tt, 2] * dx + trans[tt, 3] * dy
-        c2 = 1.0 - c0 - c1
-        if c0 >= -1e-10 and c1 >= -1e-10 and c2 >= -1e-10:
-            return tt, c0, c1
-        if step >= _MAX_WALK // 2:
-            h = _bits(qx) * _GOLDEN
-            h ^= _bits(qy) + np.uint64(step)
-            h ^= h >> _U31
-            j = 0
-            best = np.uint64(0)
-            for k, c in enumerate((c0, c1, c2)):
-                if c < -1e-10 or np.isnan(c):
-                    v = (h * _MIX[k]) >> _U11
-                    if v > best:
-                        best = v
-                        j = k
-        elif np.isnan(c2) or c0 <= c1 and c0 <= c2:
-            j = 0
-        elif c1 <= c2:
-            j = 1
-        else:
-            j = 2
-        nxt = nbr[3 * tt + j]
-        if nxt < 0:
-            return -(tt + 1), c0, c1
-        tt = nxt
-    return -(tt + 1), c0, c1  # still walking (never seen outside degenerate input): outside
-
-
-@numba.njit(cache=True, inline="always")
-def _start(
-    qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny: int, raster: NDArray
-) -> int:
-    """The start triangle of a query: its cell of the raster of ``Tin._start_raster``."""
-    ix = min(max(int((qx - x0) / cell), 0), nx - 1)
-    iy = min(max(int((qy - y0) / cell), 0), ny - 1)
-    return raster[iy * nx + ix]
-
-
-@numba.njit(cache=True, inline="always")
-def _height(
-    tt: int,
-    c0: float,
-    c1: float,
-    qx: float,
-    qy: float,
-    zt: NDArray,
-    xy: NDArray,
-    simplices: NDArray,
-    nearest: bool,
-) -> float:
-    """Height at a located query: the corner heights ``zt`` of its triangle
-    interpolated, or outside the hull (``tt`` < 0) with ``nearest`` the height
-    of the exit triangle's nearest corner, else its plane's."""
-    ti = tt if tt >= 0 else -tt - 1
-    if tt < 0 and nearest:
-        best = np.inf
-        z = np.nan
-        for k in range(3):
-            v = simplices[ti, k]
-            dx = xy[v, 0] - qx
-            dy = xy[v, 1] - qy
-            d2 = dx * dx + dy * dy
-            if d2 < best:
-                best = d2
-                z = zt[ti, k]
-        return z
-    # Summed as numpy's einsum sums b · zt: b0·z0, then b2·z2, then b1·z1.
-    return c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
-
-
-@numba.njit(cache=True, nogil=True)
-def _walk_kernel(
-    q: NDArray[np.float64],
-    t: NDArray[np.int64],
-    trans: NDArray[np.float64],
-    nbr: NDArray,
-    b0: NDArray[np.float64],
-    b1: NDArray[np.float64],
-) -> None:
-    """``_walk_one`` for every query from its start triangle ``t[i]``, in place."""
-    for i in range(q.shape[0]):
-        t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], t[i], trans, nbr)
-
-
-@numba.njit(cache=True, nogil=True)
-def _surface_kernel(
-    pts: NDArray[np.float64],
-    ox: float,
-    oy: float,
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
-    raster: NDArray[np.int64],
-    trans: NDArray[np.float64],
-    nbr: NDArray,
-    zt: NDArray[np.float64],
-    xy: NDArray[np.float64],
-    simplices: NDArray,
-    slopes: NDArray[np.float64],
-    mode: int,
-    t: NDArray[np.int64],
-    b0: NDArray[np.float64],
-    b1: NDArray[np.float64],
-    z: NDArray[np.float64],
-    sl: NDArray[np.float64],
-) -> None:
-    """Locate every query ``pts[i, :2] - (ox, oy)``.
-
-    ``_LOCATE``: ``t`` gets the triangle (-(exit triangle + 1) outside the
-    hull) and ``b0, b1`` the coordinates. Otherwise ``z`` gets the height
-    (``_height``; ``_NEAREST`` or ``_EXTRAPOLATE`` outside the hull, where
-    ``_EXTRAPOLATE`` also gives ``t`` = exit triangle), and ``sl``, when
-    sized, the facet's ``slopes``.
-    """
-    for i in range(pts.shape[0]):
-        qx = pts[i, 0] - ox
-        qy = pts[i, 1] - oy
-        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
-        if mode == _LOCATE:
-            t[i] = tt
-            b0[i] = c0
-            b1[i] = c1
-            continue
-        ti = tt if tt >= 0 else -tt - 1
-        if mode == _EXTRAPOLATE:
-            t[i] = ti
-        if sl.size:
-            sl[i] = slopes[ti]
-        z[i] = _height(tt, c0, c1, qx, qy, zt, xy, simplices, mode == _NEAREST)
-
-
-@numba.njit(cache=True, nogil=True)
-def _band_kernel(
-    pts: NDArray[np.float64],
-    ox: float,
-    oy: float,
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
-    raster: NDArray[np.int64],
-    trans: NDArray[np.float64],
-    nbr: NDArray,
-    zt: NDArray[np.float64],
-    xy: NDArray[np.float64],
-    simplices: NDArray,
-    slopes: NDArray[np.float64],
-    up: float,
-    down: float,
-    gain: float,
-    cap: float,
-    code: NDArray[np.int8],
-) -> None:
-    """``code[i]`` of point ``pts[i]`` against the surface (see ``Tin.band``)."""
-    for i in range(pts.shape[0]):
-        qx = pts[i, 0] - ox
-        qy = pts[i, 1] - oy
-        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
-        r = pts[i, 2] - _height(tt, c0, c1, qx, qy, zt, xy, simplices, True)
-        allow = 0.0
-        if gain > 0:
-            allow = gain * min(slopes[tt if tt >= 0 else -tt - 1], cap)
-        if r > up + allow:
-            code[i] = ABOVE
-        elif r >= -(down + allow):
-            code[i] = IN_BAND
-        else:
-            code[i] = BELOW  # or no height (NaN)
-
-
 def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
     """Barycentric transform of each triangle ``s`` (rows of six numbers), vectorised:
     scipy's ``Delaunay.transform`` loops in Python-speed LAPACK calls."""
@@ -610,56 +472,6 @@ def _transforms(xy: NDArray[np.float64], s: NDArray) -> NDArray[np.float64]:
         inv = 1.0 / det
     inv[~np.isfinite(inv)] = np.nan
     return np.column_stack([b[:, 1] * inv, -b[:, 0] * inv, -a[:, 1] * inv, a[:, 0] * inv, p2])
-
-
-@numba.njit(cache=True, nogil=True)
-def _edge_neighbours(simplices: NDArray, n: int) -> tuple[NDArray[np.int32], int, int]:
-    """Neighbour triangle opposite each corner of ``simplices`` (-1 on the hull),
-    the number of hull edges and the number of vertices in a triangle.
-
-    Directed edges are bucketed by their start vertex (a counting sort); the
-    edge opposite corner j runs from corner j + 1 to corner j + 2, and its
-    neighbour holds the reversed edge. A directed edge found twice gives a
-    hull count of -1.
-    """
-    m = simplices.shape[0]
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    for t in range(m):
-        for j in range(3):
-            ptr[simplices[t, (j + 1) % 3] + 1] += 1
-    for v in range(n):
-        ptr[v + 1] += ptr[v]
-    fill = ptr[:-1].copy()
-    to = np.empty(3 * m, dtype=np.int64)
-    edge = np.empty(3 * m, dtype=np.int64)
-    for t in range(m):
-        for j in range(3):
-            a = simplices[t, (j + 1) % 3]
-            k = fill[a]
-            to[k] = simplices[t, (j + 2) % 3]
-            edge[k] = 3 * t + j
-            fill[a] += 1
-    nb = np.full((m, 3), -1, dtype=np.int32)
-    vertices = 0
-    for v in range(n):
-        if ptr[v + 1] > ptr[v]:
-            vertices += 1
-        for i in range(ptr[v], ptr[v + 1]):
-            for k in range(i + 1, ptr[v + 1]):
-                if to[i] == to[k]:
-                    return nb, -1, vertices
-    hull = 0
-    for t in range(m):
-        for j in range(3):
-            a = simplices[t, (j + 1) % 3]
-            b = simplices[t, (j + 2) % 3]
-            for k in range(ptr[b], ptr[b + 1]):
-                if to[k] == a:
-                    nb[t, j] = edge[k] // 3
-                    break
-            else:
-                hull += 1
-    return nb, hull, vertices
 
 
 def _area(xy: NDArray[np.float64], s: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -756,52 +568,6 @@ class Mesh:
         if self._vnv is None:
             self._vnv = _adjacency(np.asarray(self.simplices), np.asarray(self.neighbors), self._n)
         return self._vnv
-
-
-@numba.njit(cache=True, nogil=True)
-def _adjacency(
-    simplices: NDArray, neighbors: NDArray, n: int
-) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-    """CSR adjacency (indptr, indices) of the vertices of a mesh, each row in
-    ascending order, as scipy's ``vertex_neighbor_vertices``: every undirected
-    edge taken once (from the lower triangle id, or the hull), counted, then
-    placed."""
-    m = simplices.shape[0]
-    deg = np.zeros(n + 1, dtype=np.int32)
-    for t in range(m):
-        for j in range(3):
-            nb = neighbors[t, j]
-            if nb < 0 or t < nb:
-                deg[simplices[t, (j + 1) % 3] + 1] += 1
-                deg[simplices[t, (j + 2) % 3] + 1] += 1
-    indptr = np.cumsum(deg).astype(np.int32)
-    fill = indptr[:-1].copy()
-    indices = np.empty(indptr[n], dtype=np.int32)
-    for t in range(m):
-        for j in range(3):
-            nb = neighbors[t, j]
-            if nb < 0 or t < nb:
-                a = simplices[t, (j + 1) % 3]
-                b = simplices[t, (j + 2) % 3]
-                indices[fill[a]] = b
-                fill[a] += 1
-                indices[fill[b]] = a
-                fill[b] += 1
-    for v in range(n):
-        _insertion_sort(indices[indptr[v] : indptr[v + 1]])
-    return indptr, indices
-
-
-@numba.njit(cache=True, inline="always")
-def _insertion_sort(a: NDArray) -> None:
-    """Sort the short array ``a`` in place (a vertex's neighbours: about six)."""
-    for i in range(1, a.size):
-        v = a[i]
-        k = i - 1
-        while k >= 0 and a[k] > v:
-            a[k + 1] = a[k]
-            k -= 1
-        a[k + 1] = v
 
 
 def screen(

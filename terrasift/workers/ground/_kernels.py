@@ -1,0 +1,382 @@
+"""Compiled kernels of the ground TIN (``tin``) and the supported-points passes
+(``support``), kept apart from the numpy code that calls them so an edit there
+does not make numba compile them again (its cache follows the source file).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+_MAX_WALK = 128
+_MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93], dtype=np.uint64)
+_U31 = np.uint64(31)
+_U11 = np.uint64(11)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_LOCATE, _NEAREST, _EXTRAPOLATE = 0, 1, 2  # modes of _surface_kernel
+IN_BAND, ABOVE, BELOW = 0, 1, 2  # codes of Tin.band
+
+
+# ------------------------------------------------------------ TIN (tin.py)
+
+
+@numba.njit(cache=True, inline="always")
+def _bits(v: float) -> np.uint64:
+    b = np.empty(1)
+    b[0] = v
+    return b.view(np.uint64)[0]
+
+
+@numba.njit(cache=True, inline="always")
+def _walk_one(
+    qx: float, qy: float, tt: int, trans: NDArray[np.float64], nbr: NDArray
+) -> tuple[int, float, float]:
+    """Walk one query from triangle ``tt`` across the edge facing it until it
+    is inside a triangle (returned) or leaves the hull (-(exit triangle + 1)),
+    with its first two coordinates in the last triangle.
+
+    The exit edge is the most negative coordinate (the first on ties; edge 0
+    for a degenerate sliver, whose coordinates are NaN). After half of
+    ``_MAX_WALK`` steps, a walk that still goes on is cycling on round-off near
+    an edge: its exit edge becomes a pseudo-random negative one, a hash of
+    the query's coordinates and the step, so it depends on the query alone.
+    """
+    c0 = c1 = np.nan
+    for step in range(_MAX_WALK):
+        dx = qx - trans[tt, 4]
+        dy = qy - trans[tt, 5]
+        c0 = trans[tt, 0] * dx + trans[tt, 1] * dy
+        c1 = trans[tt, 2] * dx + trans[tt, 3] * dy
+        c2 = 1.0 - c0 - c1
+        if c0 >= -1e-10 and c1 >= -1e-10 and c2 >= -1e-10:
+            return tt, c0, c1
+        if step >= _MAX_WALK // 2:
+            h = _bits(qx) * _GOLDEN
+            h ^= _bits(qy) + np.uint64(step)
+            h ^= h >> _U31
+            j = 0
+            best = np.uint64(0)
+            for k, c in enumerate((c0, c1, c2)):
+                if c < -1e-10 or np.isnan(c):
+                    v = (h * _MIX[k]) >> _U11
+                    if v > best:
+                        best = v
+                        j = k
+        elif np.isnan(c2) or c0 <= c1 and c0 <= c2:
+            j = 0
+        elif c1 <= c2:
+            j = 1
+        else:
+            j = 2
+        nxt = nbr[3 * tt + j]
+        if nxt < 0:
+            return -(tt + 1), c0, c1
+        tt = nxt
+    return -(tt + 1), c0, c1  # still walking (never seen outside degenerate input): outside
+
+
+@numba.njit(cache=True, inline="always")
+def _start(
+    qx: float, qy: float, x0: float, y0: float, cell: float, nx: int, ny: int, raster: NDArray
+) -> int:
+    """The start triangle of a query: its cell of the raster of ``Tin._start_raster``."""
+    ix = min(max(int((qx - x0) / cell), 0), nx - 1)
+    iy = min(max(int((qy - y0) / cell), 0), ny - 1)
+    return raster[iy * nx + ix]
+
+
+@numba.njit(cache=True, inline="always")
+def _height(
+    tt: int,
+    c0: float,
+    c1: float,
+    qx: float,
+    qy: float,
+    zt: NDArray,
+    xy: NDArray,
+    simplices: NDArray,
+    nearest: bool,
+) -> float:
+    """Height at a located query: the corner heights ``zt`` of its triangle
+    interpolated, or outside the hull (``tt`` < 0) with ``nearest`` the height
+    of the exit triangle's nearest corner, else its plane's."""
+    ti = tt if tt >= 0 else -tt - 1
+    if tt < 0 and nearest:
+        best = np.inf
+        z = np.nan
+        for k in range(3):
+            v = simplices[ti, k]
+            dx = xy[v, 0] - qx
+            dy = xy[v, 1] - qy
+            d2 = dx * dx + dy * dy
+            if d2 < best:
+                best = d2
+                z = zt[ti, k]
+        return z
+    # Summed as numpy's einsum sums b · zt: b0·z0, then b2·z2, then b1·z1.
+    return c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk_kernel(
+    q: NDArray[np.float64],
+    t: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+) -> None:
+    """``_walk_one`` for every query from its start triangle ``t[i]``, in place."""
+    for i in range(q.shape[0]):
+        t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], t[i], trans, nbr)
+
+
+@numba.njit(cache=True, nogil=True)
+def _surface_kernel(
+    pts: NDArray[np.float64],
+    ox: float,
+    oy: float,
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    raster: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    zt: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    simplices: NDArray,
+    slopes: NDArray[np.float64],
+    mode: int,
+    t: NDArray[np.int64],
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+    z: NDArray[np.float64],
+    sl: NDArray[np.float64],
+) -> None:
+    """Locate every query ``pts[i, :2] - (ox, oy)``.
+
+    ``_LOCATE``: ``t`` gets the triangle (-(exit triangle + 1) outside the
+    hull) and ``b0, b1`` the coordinates. Otherwise ``z`` gets the height
+    (``_height``; ``_NEAREST`` or ``_EXTRAPOLATE`` outside the hull, where
+    ``_EXTRAPOLATE`` also gives ``t`` = exit triangle), and ``sl``, when
+    sized, the facet's ``slopes``.
+    """
+    for i in range(pts.shape[0]):
+        qx = pts[i, 0] - ox
+        qy = pts[i, 1] - oy
+        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
+        if mode == _LOCATE:
+            t[i] = tt
+            b0[i] = c0
+            b1[i] = c1
+            continue
+        ti = tt if tt >= 0 else -tt - 1
+        if mode == _EXTRAPOLATE:
+            t[i] = ti
+        if sl.size:
+            sl[i] = slopes[ti]
+        z[i] = _height(tt, c0, c1, qx, qy, zt, xy, simplices, mode == _NEAREST)
+
+
+@numba.njit(cache=True, nogil=True)
+def _band_kernel(
+    pts: NDArray[np.float64],
+    ox: float,
+    oy: float,
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    raster: NDArray[np.int64],
+    trans: NDArray[np.float64],
+    nbr: NDArray,
+    zt: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    simplices: NDArray,
+    slopes: NDArray[np.float64],
+    up: float,
+    down: float,
+    gain: float,
+    cap: float,
+    code: NDArray[np.int8],
+) -> None:
+    """``code[i]`` of point ``pts[i]`` against the surface (see ``Tin.band``)."""
+    for i in range(pts.shape[0]):
+        qx = pts[i, 0] - ox
+        qy = pts[i, 1] - oy
+        tt, c0, c1 = _walk_one(qx, qy, _start(qx, qy, x0, y0, cell, nx, ny, raster), trans, nbr)
+        r = pts[i, 2] - _height(tt, c0, c1, qx, qy, zt, xy, simplices, True)
+        allow = 0.0
+        if gain > 0:
+            allow = gain * min(slopes[tt if tt >= 0 else -tt - 1], cap)
+        if r > up + allow:
+            code[i] = ABOVE
+        elif r >= -(down + allow):
+            code[i] = IN_BAND
+        else:
+            code[i] = BELOW  # or no height (NaN)
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_neighbours(simplices: NDArray, n: int) -> tuple[NDArray[np.int32], int, int]:
+    """Neighbour triangle opposite each corner of ``simplices`` (-1 on the hull),
+    the number of hull edges and the number of vertices in a triangle.
+
+    Directed edges are bucketed by their start vertex (a counting sort); the
+    edge opposite corner j runs from corner j + 1 to corner j + 2, and its
+    neighbour holds the reversed edge. A directed edge found twice gives a
+    hull count of -1.
+    """
+    m = simplices.shape[0]
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    for t in range(m):
+        for j in range(3):
+            ptr[simplices[t, (j + 1) % 3] + 1] += 1
+    for v in range(n):
+        ptr[v + 1] += ptr[v]
+    fill = ptr[:-1].copy()
+    to = np.empty(3 * m, dtype=np.int64)
+    edge = np.empty(3 * m, dtype=np.int64)
+    for t in range(m):
+        for j in range(3):
+            a = simplices[t, (j + 1) % 3]
+            k = fill[a]
+            to[k] = simplices[t, (j + 2) % 3]
+            edge[k] = 3 * t + j
+            fill[a] += 1
+    nb = np.full((m, 3), -1, dtype=np.int32)
+    vertices = 0
+    for v in range(n):
+        if ptr[v + 1] > ptr[v]:
+            vertices += 1
+        for i in range(ptr[v], ptr[v + 1]):
+            for k in range(i + 1, ptr[v + 1]):
+                if to[i] == to[k]:
+                    return nb, -1, vertices
+    hull = 0
+    for t in range(m):
+        for j in range(3):
+            a = simplices[t, (j + 1) % 3]
+            b = simplices[t, (j + 2) % 3]
+            for k in range(ptr[b], ptr[b + 1]):
+                if to[k] == a:
+                    nb[t, j] = edge[k] // 3
+                    break
+            else:
+                hull += 1
+    return nb, hull, vertices
+
+
+@numba.njit(cache=True, nogil=True)
+def _adjacency(
+    simplices: NDArray, neighbors: NDArray, n: int
+) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """CSR adjacency (indptr, indices) of the vertices of a mesh, each row in
+    ascending order, as scipy's ``vertex_neighbor_vertices``: every undirected
+    edge taken once (from the lower triangle id, or the hull), counted, then
+    placed."""
+    m = simplices.shape[0]
+    deg = np.zeros(n + 1, dtype=np.int32)
+    for t in range(m):
+        for j in range(3):
+            nb = neighbors[t, j]
+            if nb < 0 or t < nb:
+                deg[simplices[t, (j + 1) % 3] + 1] += 1
+                deg[simplices[t, (j + 2) % 3] + 1] += 1
+    indptr = np.cumsum(deg).astype(np.int32)
+    fill = indptr[:-1].copy()
+    indices = np.empty(indptr[n], dtype=np.int32)
+    for t in range(m):
+        for j in range(3):
+            nb = neighbors[t, j]
+            if nb < 0 or t < nb:
+                a = simplices[t, (j + 1) % 3]
+                b = simplices[t, (j + 2) % 3]
+                indices[fill[a]] = b
+                fill[a] += 1
+                indices[fill[b]] = a
+                fill[b] += 1
+    for v in range(n):
+        _insertion_sort(indices[indptr[v] : indptr[v + 1]])
+    return indptr, indices
+
+
+@numba.njit(cache=True, inline="always")
+def _insertion_sort(a: NDArray) -> None:
+    """Sort the short array ``a`` in place (a vertex's neighbours: about six)."""
+    for i in range(1, a.size):
+        v = a[i]
+        k = i - 1
+        while k >= 0 and a[k] > v:
+            a[k + 1] = a[k]
+            k -= 1
+        a[k + 1] = v
+
+
+# One compiled pass each over the millions of points (support.py): the numpy
+# forms gather and combine several full-length temporaries per round.
+
+
+@numba.njit(cache=True)
+def _top_of_ground(
+    cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int
+) -> NDArray[np.float64]:
+    """Highest z of the ground points of each cell (-inf when none; NaN propagates as in ``np.maximum.at``)."""
+    top = np.full(size, -np.inf)
+    for i in range(cell.size):
+        if ground[i]:
+            v = z[i]
+            b = cell[i]
+            if v > top[b] or np.isnan(v):
+                top[b] = v
+    return top
+
+
+@numba.njit(cache=True)
+def _under_top(
+    todo: NDArray[np.bool_],
+    z: NDArray[np.float64],
+    top: NDArray[np.float64],
+    cell: NDArray[np.int64],
+    tol: float,
+) -> NDArray[np.int64]:
+    """Indices of the ``todo`` points with ``z <= top[cell] + tol``."""
+    out = np.empty(cell.size, dtype=np.int64)
+    m = 0
+    for i in range(cell.size):
+        if todo[i] and z[i] <= top[cell[i]] + tol:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def _flagged_in(
+    points: NDArray[np.bool_], cells: NDArray[np.bool_], cell: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """Indices of the flagged ``points`` lying in flagged ``cells``."""
+    out = np.empty(cell.size, dtype=np.int64)
+    m = 0
+    for i in range(cell.size):
+        if points[i] and cells[cell[i]]:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def _still_todo(
+    may: NDArray[np.bool_],
+    ground: NDArray[np.bool_],
+    near: NDArray[np.bool_],
+    cell: NDArray[np.int64],
+) -> NDArray[np.bool_]:
+    """``may & ~ground & near[cell]``."""
+    out = np.empty(cell.size, dtype=np.bool_)
+    for i in range(cell.size):
+        out[i] = may[i] and not ground[i] and near[cell[i]]
+    return out
