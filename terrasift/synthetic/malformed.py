@@ -29,7 +29,7 @@ FIELDS = [
     ("min_x", 187, "d"),
     ("min_z", 219, "d"),
 ]
-EXTREMES = {
+EXTREMES: dict[str, list[int | float]] = {
     "B": [0, 0xFF],
     "H": [0, 0xFFFF],
     "I": [0, 0xFFFFFFFF],
@@ -88,9 +88,8 @@ def write_pair(directory: Path, size: float = 40.0, density: float = 2.0) -> tup
     from terrasift.synthetic.terrain import make_scene, write_las
 
     scene = make_scene(size=size, density=density, seed=11)
-    kw = {"crs": "EPSG:32632", "point_format": 1, "version": "1.2"}
-    las = write_las(scene, directory / "good.las", **kw)
-    laz = write_las(scene, directory / "good.laz", **kw)
+    las = write_las(scene, directory / "good.las", crs="EPSG:32632", point_format=1, version="1.2")
+    laz = write_las(scene, directory / "good.laz", crs="EPSG:32632", point_format=1, version="1.2")
     return las.read_bytes(), laz.read_bytes()
 
 
