@@ -69,7 +69,24 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="tcp://host:8786 (default: TERRASIFT_DASK_SCHEDULER)",
     )
-    p.add_argument("--nthreads", type=int, default=1)
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address the worker listens on and announces to the scheduler "
+        "(default 127.0.0.1: loopback only; give the machine's address to join a remote scheduler)",
+    )
+    p.add_argument("--nthreads", type=_positive_int, default=1, help="task threads per worker")
+    p.add_argument(
+        "--nworkers", type=_positive_int, default=1, help="worker processes (each --nthreads)"
+    )
+    p.add_argument(
+        "--dashboard",
+        nargs="?",
+        const=":0",
+        default=None,
+        metavar="[HOST]:PORT",
+        help="serve the Dask worker dashboard (off unless given; default port: any free one)",
+    )
 
     args = parser.parse_args(argv)
     try:
@@ -111,7 +128,13 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps({"crs": profile.crs, "samples": profile.to_records()}))
             return 0
         if args.command == "worker":
-            return run_worker(args.scheduler, args.nthreads)
+            return run_worker(
+                args.scheduler,
+                args.nthreads,
+                host=args.host,
+                nworkers=args.nworkers,
+                dashboard=args.dashboard,
+            )
     except TerrasiftError as exc:
         print(f"terrasift: {exc}", file=sys.stderr)
         return 2
@@ -221,15 +244,46 @@ class _progress_bar:
         self._bar.close()
 
 
-def run_worker(scheduler: str | None, nthreads: int) -> int:
-    """Run a Dask worker that can execute terrasift tasks (it imports this package)."""
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def worker_options(host: str, nthreads: int, dashboard: str | None) -> dict:
+    """Keyword arguments of a Dask worker: bound to ``host``, dashboard only when asked.
+
+    A dashboard given as ``:PORT`` listens on ``host`` too.
+    """
+    options: dict = {"host": host, "nthreads": nthreads, "dashboard": dashboard is not None}
+    if dashboard is not None:
+        options["dashboard_address"] = (
+            f"{host}{dashboard}" if dashboard.startswith(":") else dashboard
+        )
+    return options
+
+
+def run_worker(
+    scheduler: str | None,
+    nthreads: int,
+    *,
+    host: str = "127.0.0.1",
+    nworkers: int = 1,
+    dashboard: str | None = None,
+) -> int:
+    """Run Dask worker(s) that can execute terrasift tasks (they import this package).
+
+    One worker runs in this process; several run each in its own process under a
+    Dask nanny, which also restarts a worker that dies.
+    """
     import asyncio
     import os
 
     from terrasift.workers.executors import single_threaded_blas
 
     single_threaded_blas()
-    from distributed import Worker
+    from distributed import Nanny, Worker
 
     address = scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if not address:
@@ -238,10 +292,19 @@ def run_worker(scheduler: str | None, nthreads: int) -> int:
             file=sys.stderr,
         )
         return 2
+    options = worker_options(host, nthreads, dashboard)
 
     async def run() -> None:
-        async with Worker(address, nthreads=nthreads) as worker:
-            await worker.finished()
+        if nworkers == 1:
+            async with Worker(address, **options) as worker:
+                await worker.finished()
+            return
+        nannies = [Nanny(address, **options) for _ in range(nworkers)]
+        await asyncio.gather(*nannies)  # starts them
+        try:
+            await asyncio.gather(*(n.finished() for n in nannies))
+        finally:
+            await asyncio.gather(*(n.close() for n in nannies), return_exceptions=True)
 
     asyncio.run(run())
     return 0

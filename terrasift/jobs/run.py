@@ -38,10 +38,13 @@ def run_job(
 
     ``products="classified"`` writes only the classified point clouds (and the report).
     """
-    job_dir = Path(job_dir)
+    job_dir = Path(job_dir).absolute()  # tasks may run on other machines' processes
     progress = progress or (lambda done, total, info: None)
     started = time.perf_counter()
     check_cancel(job_dir)
+    preflight = getattr(executor, "preflight", None)  # Dask: workers see the job dir
+    if preflight is not None:
+        preflight(job_dir)
     job = load_json(job_dir / "job.json")
     params = job["params"]
     plan = plan_job(job_dir, job)

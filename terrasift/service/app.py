@@ -49,6 +49,7 @@ def create_app(
             return make_executor(
                 settings.workers,
                 settings.dask_scheduler,
+                settings.dask_no_workers_timeout,
                 nice=settings.worker_nice,
                 memory_limit=settings.worker_memory_limit(),
                 pid_dir=settings.workers_dir,

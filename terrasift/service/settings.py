@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -26,6 +26,11 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=1, le=65535, description="bind port of `terrasift serve`")
     dask_scheduler: str | None = Field(
         None, description="tcp://host:port of a Dask scheduler; unset = local process pool"
+    )
+    dask_no_workers_timeout: float = Field(
+        60.0,
+        gt=0,
+        description="seconds a job waits with no Dask worker in the cluster before it fails",
     )
     workers: int | None = Field(
         None, ge=1, description="worker processes of the local pool; unset = one per core"
@@ -87,6 +92,12 @@ class Settings(BaseSettings):
     public_url: str | None = Field(
         None, description="base URL used in links (e.g. behind a proxy); unset = from the request"
     )
+
+    @field_validator("data_dir", "input_root", "token_file")
+    @classmethod
+    def _absolute(cls, path: Path | None) -> Path | None:
+        """Absolute at start-up: job paths go to Dask workers in other directories."""
+        return path.absolute() if path is not None else None
 
     @property
     def db_path(self) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -18,6 +19,7 @@ from concurrent.futures import wait as cf_wait
 from pathlib import Path
 from typing import Any, Protocol
 
+from terrasift.errors import TerrasiftError
 from terrasift.workers.pool import WorkerPool
 
 
@@ -126,15 +128,134 @@ class LocalExecutor:
         self.pool.shutdown(wait=True, kill=kill)
 
 
-class DaskExecutor:
-    """Tasks on a Dask distributed cluster; workers must share the data directory."""
+NO_WORKERS_TIMEOUT = 60.0
+PROBE_DIR = "worker-probes"
 
-    def __init__(self, address: str):
+
+class NoWorkersError(TerrasiftError):
+    """The Dask cluster had no worker for longer than the configured time."""
+
+    problem = "no-workers"
+
+
+class DataDirError(TerrasiftError):
+    """A Dask worker does not see the job directory the driver wrote."""
+
+    problem = "data-dir-not-shared"
+
+
+def _probe_data_dir(probe: str, token: str, dask_worker: Any = None) -> str:
+    """On a worker: read the driver's probe file and write a reply beside it.
+
+    Returns "" when both work, else why not; never raises, so one bad worker
+    does not hide the others' answers.
+    """
+    path = Path(probe)
+    try:
+        if path.read_text() != token:
+            return f"{path} holds another job's probe"
+    except OSError as exc:
+        return f"cannot read {path} ({exc.strerror or exc})"
+    name = getattr(dask_worker, "address", None) or f"pid-{os.getpid()}"
+    reply = path.parent / f"reply-{_safe(name)}"
+    try:
+        reply.write_text(token)
+    except OSError as exc:
+        return f"cannot write {reply} ({exc.strerror or exc})"
+    return ""
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+class DaskExecutor:
+    """Tasks on a Dask distributed cluster; workers must share the data directory.
+
+    ``no_workers_timeout`` (seconds) bounds how long a job waits with no worker
+    in the cluster, before it starts and while it runs; past it the job fails
+    with :class:`NoWorkersError` instead of sitting at 0 % forever.
+    """
+
+    def __init__(self, address: str, no_workers_timeout: float | None = None):
         from distributed import Client  # imported lazily: the default path needs no Dask
 
+        if no_workers_timeout is None:
+            env = os.environ.get("TERRASIFT_DASK_NO_WORKERS_TIMEOUT")
+            no_workers_timeout = float(env) if env else NO_WORKERS_TIMEOUT
+        self.no_workers_timeout = no_workers_timeout
+        self.address = address
         self._client = Client(address, set_as_default=False)
-        info = self._client.scheduler_info()
-        self.workers = max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+        self._workers_seen = time.monotonic()
+        self._last_check = 0.0
+        self.workers = 1
+        self._count_workers()
+
+    def _count_workers(self) -> int:
+        """Workers in the cluster now; updates ``workers`` (threads, at least 1)."""
+        info = self._client.scheduler_info(n_workers=-1)
+        workers = info.get("workers", {})
+        if workers:
+            self.workers = max(1, sum(w.get("nthreads", 1) for w in workers.values()))
+            self._workers_seen = time.monotonic()
+        return len(workers)
+
+    def _no_workers_error(self) -> NoWorkersError:
+        return NoWorkersError(
+            f"no Dask worker joined the scheduler {self.address} for "
+            f"{self.no_workers_timeout:g} s (TERRASIFT_DASK_NO_WORKERS_TIMEOUT); "
+            "start workers with `terrasift worker SCHEDULER`"
+        )
+
+    def wait_for_workers(self) -> None:
+        """Return once the cluster has a worker; raise NoWorkersError after the timeout."""
+        deadline = time.monotonic() + self.no_workers_timeout
+        while self._count_workers() == 0:
+            if time.monotonic() >= deadline:
+                raise self._no_workers_error()
+            time.sleep(min(0.2, self.no_workers_timeout))
+
+    def preflight(self, job_dir: Path) -> None:
+        """Check every worker reads and writes the job directory, before any task runs.
+
+        The driver writes a probe file under ``job_dir``; each worker reads it and
+        writes a reply next to it, which the driver then reads back. A worker
+        with a private data directory would otherwise "succeed" tasks into its
+        own folder and the job fail much later on a missing file.
+        """
+        import secrets
+
+        self.wait_for_workers()
+        folder = Path(job_dir).absolute() / PROBE_DIR
+        folder.mkdir(parents=True, exist_ok=True)
+        token = secrets.token_hex(8)
+        probe = folder / "probe"
+        probe.write_text(token)
+        try:
+            answers = self._client.run(_probe_data_dir, str(probe), token, on_error="return")
+            problems = []
+            for address, answer in sorted(answers.items()):
+                if isinstance(answer, BaseException):
+                    answer = f"probe failed ({answer!r})"
+                elif not answer:
+                    reply = folder / f"reply-{_safe(address)}"
+                    try:
+                        ok = reply.read_text() == token
+                    except OSError:
+                        ok = False
+                    if not ok:
+                        answer = f"wrote its reply where the driver cannot see it ({reply})"
+                if answer:
+                    problems.append(f"worker {address}: {answer}")
+            if problems:
+                raise DataDirError(
+                    "Dask workers do not share the data directory "
+                    f"{Path(job_dir).absolute().parent}: "
+                    + "; ".join(problems)
+                    + ". Every worker must mount the same data directory at the same path."
+                )
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         # pure=False gives every submission a fresh key, so a retried task is
@@ -142,13 +263,25 @@ class DaskExecutor:
         return self._client.submit(fn, *args, pure=False)
 
     def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
+        """Futures done within ``timeout``; raises NoWorkersError once the cluster
+        has had no worker for longer than ``no_workers_timeout``."""
         # distributed.wait needs a default client, which this one is not (a
         # service may talk to several); futures know their state, so poll them.
         futs = list(futures)
         deadline = time.monotonic() + timeout
         while True:
             done = {f for f in futs if f.done()}
-            if done or time.monotonic() >= deadline:
+            if done:
+                return done
+            now = time.monotonic()
+            if now - self._last_check >= 1.0:
+                self._last_check = now
+                if (
+                    self._count_workers() == 0
+                    and now - self._workers_seen >= self.no_workers_timeout
+                ):
+                    raise self._no_workers_error()
+            if now >= deadline:
                 return done
             time.sleep(0.02)
 
@@ -157,13 +290,16 @@ class DaskExecutor:
 
 
 def make_executor(
-    workers: int | None = None, dask_scheduler: str | None = None, **pool: Any
+    workers: int | None = None,
+    dask_scheduler: str | None = None,
+    no_workers_timeout: float | None = None,
+    **pool: Any,
 ) -> Executor:
     """Dask when a scheduler address is given (or in ``TERRASIFT_DASK_SCHEDULER``), else a local
     pool; ``pool`` holds LocalExecutor's options (nice, memory_limit, pid_dir)."""
     address = dask_scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if address:
-        return DaskExecutor(address)
+        return DaskExecutor(address, no_workers_timeout)
     return LocalExecutor(workers, **pool)
 
 
