@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,12 @@ bench-buildings: $(STAMP)
 
 bench-progress: $(STAMP)
 	$(PY) benchmarks/progress_trace.py
+
+bench-load: $(STAMP)
+	$(PY) benchmarks/load.py
+
+bench-malformed: $(STAMP)
+	$(PY) benchmarks/malformed_corpus.py
 
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py

@@ -144,3 +144,13 @@ def test_auto_buffer_is_the_largest_halo_a_block_step_asks_for():
     assert halos["vegetation"] == 28.0  # 7 bins of 4 m beyond the core
     assert resolve_buffer(p, 8.0) == (28.0, None)
     assert resolve_buffer(validate_params({}), 8.0) == (DEFAULT_BUFFER, None)
+
+
+def test_feature_names_are_deduplicated_and_bounded() -> None:
+    from terrasift.jobs.params import MAX_FEATURE_NAMES
+
+    assert validate_params({"features": "ditch, ridge,ditch,,ridge"})["features"] == "ditch,ridge"
+    assert validate_params({"features": ",".join(["ditch"] * 80_000)})["features"] == "ditch"
+    many = ",".join(f"f{i}" for i in range(MAX_FEATURE_NAMES + 1))
+    with pytest.raises(ParameterError, match="at most 64"):
+        validate_params({"features": many})

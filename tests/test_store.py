@@ -109,3 +109,56 @@ def test_surveys(store: JobStore) -> None:
     assert survey.files == ["/a.laz", "/b.laz"] and survey.params == {"resolution": 1.0}
     store.create_job("run1", "alice", {}, survey.files, survey_id="s")
     assert [j.id for j in store.survey_jobs("s")] == ["run1"]
+
+
+def _records(tmp_path: Path) -> tuple[JobStore, Path]:
+    jobs = tmp_path / "jobs"
+    store = JobStore(tmp_path / "jobs.sqlite", jobs, tmp_path / "surveys")
+    for i, status in enumerate(["successful", "running", "dismissed"]):
+        (jobs / f"j{i}").mkdir(parents=True)
+        store.create_job(f"j{i}", "alice", {"resolution": 1.0}, [f"/in/{i}.las"])
+        if status != "dismissed":
+            store.mark_running(f"j{i}")
+        if status == "successful":
+            store.finish(f"j{i}", "successful", "finished", ["dtm.tif"])
+        elif status == "dismissed":
+            store.dismiss(f"j{i}")
+    store.create_survey("s1", "alice", ["/in/0.las"], {})
+    return store, jobs
+
+
+def test_a_deleted_store_file_is_restored_from_the_open_connection(tmp_path: Path) -> None:
+    store, _ = _records(tmp_path)
+    store.set_progress("j1", 40)  # progress is not in the records: it must survive anyway
+    (tmp_path / "jobs.sqlite").unlink()
+    assert store.check(thorough=False) == "restored"
+    store.close()
+    again = JobStore(tmp_path / "jobs.sqlite")
+    assert again.get_job("j1").progress == 40
+    assert [again.get_job(f"j{i}").status for i in range(3)] == [
+        "successful",
+        "running",
+        "dismissed",
+    ]
+
+
+def test_a_lost_or_corrupt_store_is_rebuilt_from_the_job_directories(tmp_path: Path) -> None:
+    store, jobs = _records(tmp_path)
+    store.close()
+    db = tmp_path / "jobs.sqlite"
+    db.write_bytes(b"this is not a database" * 100)
+    for suffix in ("-wal", "-shm"):
+        (tmp_path / f"jobs.sqlite{suffix}").unlink(missing_ok=True)
+    rebuilt = JobStore(db, jobs, tmp_path / "surveys")
+    assert rebuilt.recovered and "corrupt" in rebuilt.recovered
+    assert list(tmp_path.glob("jobs.sqlite.corrupt-*"))
+    got = {j.id: j for j in rebuilt.list_jobs("alice")}
+    # a job that was running is queued again; the others keep their state and outputs
+    assert {k: j.status for k, j in got.items()} == {
+        "j0": "successful",
+        "j1": "accepted",
+        "j2": "dismissed",
+    }
+    assert got["j0"].outputs == ["dtm.tif"] and got["j0"].params == {"resolution": 1.0}
+    assert rebuilt.get_survey("s1", "alice").files == ["/in/0.las"]
+    assert rebuilt._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"

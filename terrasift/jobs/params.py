@@ -21,6 +21,7 @@ from terrasift.workers.registry import block_steps, get_stage, ground_methods, s
 
 DEFAULT_GROUND = "nist"
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
+MAX_FEATURE_NAMES = 64  # filters in one job; each one searches the whole mosaic twice
 
 
 class JobParams(BaseModel):
@@ -117,6 +118,21 @@ class JobParams(BaseModel):
         v = v.strip()
         if not v:
             raise ValueError("features must be 'all', 'none' or a comma list of filter names")
+        if v in ("all", "none"):
+            return v
+        # each filter searches the whole mosaic, so a repeated name repeats that work
+        names = list(dict.fromkeys(n.strip() for n in v.split(",") if n.strip()))
+        if len(names) > MAX_FEATURE_NAMES:
+            raise ValueError(
+                f"features names {len(names)} distinct filters; at most {MAX_FEATURE_NAMES}"
+            )
+        return ",".join(names)
+
+    @field_validator("filters")
+    @classmethod
+    def _bounded_filters(cls, v: dict[str, str] | None) -> dict[str, str] | None:
+        if v is not None and len(v) > MAX_FEATURE_NAMES:
+            raise ValueError(f"filters holds {len(v)} filters; at most {MAX_FEATURE_NAMES}")
         return v
 
     @model_validator(mode="after")

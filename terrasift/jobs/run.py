@@ -16,10 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from terrasift.errors import ProcessingError
 from terrasift.files import load_json
 from terrasift.jobs import finish, report
 from terrasift.jobs.block import run_block
-from terrasift.jobs.dirs import check_cancel
+from terrasift.jobs.dirs import check_cancel, output_path
 from terrasift.jobs.plan import plan_job
 from terrasift.jobs.quicklooks import write_quicklooks
 from terrasift.progress import JobProgress
@@ -157,6 +158,7 @@ def run_job(
     )
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
+    _require_ground(output_path(job_dir, "dtm.tif"))
     timings = {
         "shard": shard_seconds,
         "blocks": block_seconds,
@@ -283,3 +285,20 @@ def _run_mixed_tasks(
                 f.cancel()
         raise
     return [results[i] for i in range(len(tasks))]
+
+
+def _require_ground(dtm: Path) -> None:
+    """A successful job never has an empty DTM: fail it saying why instead."""
+    if not dtm.exists():
+        return
+    import numpy as np
+    import rasterio
+
+    with rasterio.open(dtm) as ds:
+        for _, window in ds.block_windows(1):
+            if np.ma.count(ds.read(1, window=window, masked=True)):
+                return
+    raise ProcessingError(
+        "no ground found: every cell of the DTM is empty (no point was classified as ground); "
+        "the point data may be corrupt, or the parameters unsuited to it"
+    )

@@ -21,12 +21,14 @@ from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.callbacks import Notifier
 from terrasift.service.context import Service
-from terrasift.service.routes import events, jobs, pages, path, processes, surveys, uploads
+from terrasift.service.guard import RequestGuard
+from terrasift.service.routes import events, health, jobs, pages, path, processes, surveys, uploads
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
 from terrasift.service.store import JobStore
 from terrasift.workers.executors import Executor
+from terrasift.workers.pool import reap_leftovers
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +47,12 @@ def create_app(
             from terrasift.workers.executors import make_executor
 
             return make_executor(
-                settings.workers, settings.dask_scheduler, settings.dask_no_workers_timeout
+                settings.workers,
+                settings.dask_scheduler,
+                settings.dask_no_workers_timeout,
+                nice=settings.worker_nice,
+                memory_limit=settings.worker_memory_limit(),
+                pid_dir=settings.workers_dir,
             )
 
     auth = Auth(
@@ -58,13 +65,24 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
         settings.surveys_dir.mkdir(parents=True, exist_ok=True)
-        store = JobStore(settings.db_path)
+        reaped = reap_leftovers(settings.workers_dir)
+        if reaped:
+            log.warning("killed %d worker(s) left by an earlier run: %s", len(reaped), reaped)
+        store = JobStore(settings.db_path, settings.jobs_dir, settings.surveys_dir)
+        if store.recovered:
+            log.error("job store: %s", store.recovered)
         scheduler = Scheduler(
             store,
             settings.jobs_dir,
             executor_factory,
             settings.max_concurrent_jobs,
             pipeline=pipeline,
+            task_seconds=(settings.task_seconds, settings.task_seconds_per_mpoint),
+            input_roots=[
+                settings.jobs_dir,
+                settings.surveys_dir,
+                *([settings.input_root] if settings.input_root else []),
+            ],
         )
         app.state.svc = Service(settings, store, scheduler)
         app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
@@ -74,8 +92,8 @@ def create_app(
             yield
         finally:
             await anyio.to_thread.run_sync(app.state.notifier.stop)
-            # waits for tasks already running in the pool; off the event loop
-            await anyio.to_thread.run_sync(scheduler.stop)
+            # running tasks get the grace period, then their workers are stopped; off the event loop
+            await anyio.to_thread.run_sync(scheduler.stop, settings.shutdown_grace)
             store.close()
 
     app = FastAPI(
@@ -88,6 +106,7 @@ def create_app(
     app.state.settings = settings
     app.state.auth = auth
     problems.install(app)
+    app.add_middleware(RequestGuard)
     app.include_router(pages.router)  # first: matches only requests that want HTML
     app.include_router(processes.router)
     app.include_router(jobs.router)
@@ -95,6 +114,7 @@ def create_app(
     app.include_router(surveys.router)
     app.include_router(uploads.router)
     app.include_router(events.router)
+    app.include_router(health.router)
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

@@ -76,6 +76,6 @@ class Auth:
         )
 
 
-def tenant(request: Request) -> str:
-    """FastAPI dependency: the tenant of this request."""
+async def tenant(request: Request) -> str:
+    """FastAPI dependency: the tenant of this request (async: no thread hop, it only compares)."""
     return request.app.state.auth.tenant(request)

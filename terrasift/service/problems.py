@@ -8,7 +8,9 @@ terrasift's own types are relative URIs under ``/problems/`` that the app serves
 
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 from dataclasses import dataclass
 from typing import Any
 
@@ -79,6 +81,8 @@ EXCEPTION_PROBLEMS: dict[type[BaseException], str] = {
     errors.JobCancelled: "job-dismissed",
     errors.TerrasiftError: "invalid-request",
 }
+
+_STORAGE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EIO}
 
 _HTTP_STATUS_PROBLEMS = {
     404: "not-found",
@@ -161,6 +165,21 @@ def install(app: FastAPI) -> None:
         return problem_response(
             request, ptype, str(exc.detail), headers=getattr(exc, "headers", None)
         )
+
+    @app.exception_handler(OSError)
+    @app.exception_handler(sqlite3.Error)
+    async def _storage(request: Request, exc: Exception) -> JSONResponse:
+        # the data directory or job store cannot be written: the service, not the request, is at fault
+        if isinstance(exc, sqlite3.Error) or getattr(exc, "errno", None) in _STORAGE_ERRNOS:
+            log.error("storage unavailable on %s %s: %s", request.method, request.url.path, exc)
+            return problem_response(
+                request,
+                PROBLEM_TYPES["service-unavailable"],
+                f"the service cannot store data now ({exc.strerror if isinstance(exc, OSError) else exc}); "
+                "try again later",
+                headers={"Retry-After": "60"},
+            )
+        return await _unexpected(request, exc)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -11,6 +11,8 @@ is resumable and repeats only the tasks that are missing.
 
 from __future__ import annotations
 
+import inspect
+import json
 import logging
 import shutil
 import threading
@@ -27,32 +29,41 @@ from terrasift.workers.executors import Executor
 
 log = logging.getLogger(__name__)
 
+STORE_CHECK_SECONDS = 60.0  # between full integrity checks of the job store
 GENERIC_FAILURE = "processing failed on an internal error; the service log has the details"
 
 
 class JobExecutor:
     """One job's view of the shared executor: remembers its futures so they can be cancelled."""
 
-    def __init__(self, inner: Any):
+    def __init__(self, inner: Any, task_timeout: Callable[[], float | None] | None = None):
         self._inner = inner
         self._futures: list[Any] = []
         self._lock = threading.Lock()
+        self._task_timeout = task_timeout
         self.cancelled = False
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         with self._lock:
             if self.cancelled:
                 raise JobCancelled("the job was dismissed")
-            future = self._inner.submit(fn, *args, **kwargs)
+            limited = getattr(self._inner, "submit_limited", None)
+            if limited is not None and self._task_timeout is not None and not kwargs:
+                future = limited(self._task_timeout(), fn, *args)
+            else:
+                future = self._inner.submit(fn, *args, **kwargs)
             self._futures = [f for f in self._futures if not f.done()]
             self._futures.append(future)
             return future
 
     def cancel(self) -> int:
-        """Cancel every future not yet running; the number cancelled."""
+        """Cancel every future; running ones too where the executor can stop its workers."""
         with self._lock:
             self.cancelled = True
             futures, self._futures = self._futures, []
+        stop = getattr(self._inner, "cancel_running", None)
+        if stop is not None:
+            return stop(futures)
         return sum(1 for f in futures if f.cancel())
 
     def wait_any(self, futures: Iterable[Any], timeout: float) -> set[Any]:
@@ -64,6 +75,14 @@ class JobExecutor:
         futures = list(futures)
         done = {f for f in futures if f.done()}
         return done or self._inner.wait_any(futures, timeout)
+
+    def stop_queued(self) -> None:
+        """Cancel the futures not yet running; running ones may finish (a shutdown's grace)."""
+        with self._lock:
+            self.cancelled = True
+            futures = list(self._futures)
+        for f in futures:
+            f.cancel()
 
     def shutdown(self, *args: Any, **kwargs: Any) -> None:
         """The scheduler owns the shared executor; a job cannot shut it down."""
@@ -83,6 +102,8 @@ class Scheduler:
         max_concurrent: int = 2,
         pipeline: ModuleType | Any | None = None,
         poll_seconds: float = 2.0,
+        task_seconds: tuple[float, float] | None = None,
+        input_roots: list[Path] | None = None,
     ):
         self.store = store
         self.jobs_dir = jobs_dir
@@ -92,6 +113,10 @@ class Scheduler:
         self.max_concurrent = max_concurrent
         self._pipeline = pipeline
         self._poll = poll_seconds
+        # (seconds, seconds per million points): every task's time limit
+        self._task_seconds = task_seconds
+        # where a job's inputs may lie when it starts (None: anywhere, for tests)
+        self._input_roots = input_roots
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._active: dict[str, JobExecutor | None] = {}
@@ -106,6 +131,11 @@ class Scheduler:
 
             self._pipeline = terrasift.jobs
         return self._pipeline
+
+    @property
+    def executor(self) -> Executor | None:
+        """The shared executor, once a job has needed it."""
+        return self._executor
 
     def job_dir(self, job_id: str) -> Path:
         return self.jobs_dir / job_id
@@ -123,29 +153,37 @@ class Scheduler:
         )
         self._loop.start()
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Stop dispatching, cancel queued tasks and wait for job threads.
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop dispatching, let running tasks finish for up to ``timeout`` s, then stop them.
 
-        Jobs still running stay ``running`` in the store and resume on the next start.
+        Jobs still running stay ``running`` in the store and resume on the next start
+        (their finished tasks are kept).
         """
+        deadline = time.monotonic() + timeout
         self._stopping.set()
         self._wake.set()
         with self._lock:
-            executors = [e for e in self._active.values() if e is not None]
             threads = list(self._threads.values())
+            executors = [e for e in self._active.values() if e is not None]
         for ex in executors:
-            ex.cancel()
+            ex.stop_queued()
         if self._loop is not None:
-            self._loop.join(timeout)
+            self._loop.join(max(0.0, deadline - time.monotonic()))
         for t in threads:
-            t.join(timeout)
+            t.join(max(0.0, deadline - time.monotonic()))
         with self._executor_lock:
-            if self._executor is not None:
-                try:
-                    self._executor.shutdown()
-                except Exception:  # noqa: BLE001 - shutting down anyway
-                    log.exception("executor shutdown failed")
-                self._executor = None
+            executor, self._executor = self._executor, None
+        if executor is not None:
+            try:
+                kill = any(t.is_alive() for t in threads)
+                if kill and "kill" in inspect.signature(executor.shutdown).parameters:
+                    executor.shutdown(kill=True)  # type: ignore[call-arg]
+                else:
+                    executor.shutdown()
+            except Exception:  # noqa: BLE001 - shutting down anyway
+                log.exception("executor shutdown failed")
+        for t in threads:
+            t.join(5.0)
 
     @property
     def stopping(self) -> bool:
@@ -194,8 +232,16 @@ class Scheduler:
             return self._executor
 
     def _dispatch_loop(self) -> None:
+        checked = time.monotonic()
         while not self._stopping.is_set():
             try:
+                # the store file may be deleted or damaged under a running service
+                thorough = time.monotonic() - checked > STORE_CHECK_SECONDS
+                if thorough:
+                    checked = time.monotonic()
+                state = self.store.check(thorough=thorough)
+                if state != "ok":
+                    log.error("job store: %s", self.store.recovered)
                 self._dispatch()
             except Exception:  # noqa: BLE001 - the loop must survive a bad row or a locked db
                 log.exception("scheduler dispatch failed")
@@ -232,8 +278,12 @@ class Scheduler:
             if job is not None and job.status == DISMISSED:  # dismissed while queued
                 self.purge(job_dir)
             return
+        escaped = self._escaped_input(job_id)
+        if escaped:
+            self.store.finish(job_id, FAILED, f"input {escaped} now lies outside the input root")
+            return
         try:
-            ex = JobExecutor(self._executor_or_create())
+            ex = JobExecutor(self._executor_or_create(), self._time_limit(job_dir))
         except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
             log.exception("cannot create the executor for job %s", job_id)
             self.store.finish(job_id, FAILED, f"no workers available: {exc}")
@@ -279,10 +329,41 @@ class Scheduler:
                 log.exception("job %s failed", job_id)
                 self.store.finish(job_id, FAILED, GENERIC_FAILURE)
         else:
-            self.store.finish(job_id, SUCCESSFUL, "finished", list(names))
+            self.store.finish(job_id, SUCCESSFUL, _finished_message(job_dir), list(names))
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:
             self.purge(job_dir)
+
+    def _escaped_input(self, job_id: str) -> str | None:
+        """The name of an input that resolves outside the allowed roots (a symlink swapped in)."""
+        job = self.store.get_job(job_id)
+        if self._input_roots is None or job is None:
+            return None
+        roots = [r.resolve() for r in self._input_roots]
+        for p in job.inputs:
+            real = Path(p).resolve()
+            if not any(real.is_relative_to(r) for r in roots):
+                return Path(p).name
+        return None
+
+    def _time_limit(self, job_dir: Path) -> Callable[[], float | None] | None:
+        """Each task's time limit, from the job's points once the plan has counted them."""
+        if self._task_seconds is None:
+            return None
+        base, per_million = self._task_seconds
+        known: list[float] = []
+
+        def limit() -> float:
+            if not known:
+                try:
+                    plan = json.loads((job_dir / "plan.json").read_text())
+                    points = sum(int(t["point_count"]) for t in plan["tiles"])
+                except (OSError, ValueError, KeyError, TypeError):
+                    return base  # not planned yet: no task runs before the plan
+                known.append(base + per_million * points / 1e6)
+            return known[0]
+
+        return limit
 
     def purge(self, job_dir: Path) -> None:
         """Remove what a dismissed job produced and its uploads; job.json stays for the record."""
@@ -291,3 +372,14 @@ class Scheduler:
             clear(job_dir)
         for sub in ("outputs", "inputs"):
             shutil.rmtree(job_dir / sub, ignore_errors=True)
+
+
+def _finished_message(job_dir: Path) -> str:
+    """``finished``, with the plan's warnings (e.g. header counts that disagree) when there are any."""
+    try:
+        warnings = json.loads((job_dir / "plan.json").read_text()).get("warnings", [])
+    except (OSError, ValueError, AttributeError):
+        warnings = []
+    if not warnings:
+        return "finished"
+    return f"finished with {len(warnings)} warning(s): " + "; ".join(str(w) for w in warnings)

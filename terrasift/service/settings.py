@@ -8,6 +8,7 @@ instead of the embedded process pool.
 from __future__ import annotations
 
 import ipaddress
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -54,6 +55,26 @@ class Settings(BaseSettings):
     auth: Literal["auto", "on", "off"] = Field(
         "auto", description="auto: off only on a loopback bind without a token file"
     )
+    worker_memory: int | None = Field(
+        None,
+        ge=64 * 1024**2,
+        description="resident bytes one worker may use before its task is stopped; "
+        "unset = 80 % of the machine's memory shared by the workers",
+    )
+    worker_nice: int = Field(
+        10, ge=0, le=19, description="CPU priority of workers below the API (os.nice increment)"
+    )
+    task_seconds: float = Field(
+        300.0, gt=0, description="time limit of every task, plus task_seconds_per_mpoint"
+    )
+    task_seconds_per_mpoint: float = Field(
+        60.0, ge=0, description="time limit added per million points of the job"
+    )
+    shutdown_grace: float = Field(
+        10.0,
+        ge=0,
+        description="seconds running tasks may finish on SIGTERM before they are stopped",
+    )
     upload_lifetime: float = Field(
         24 * 3600, gt=0, description="seconds an href from POST /uploads stays valid"
     )
@@ -81,6 +102,21 @@ class Settings(BaseSettings):
     @property
     def db_path(self) -> Path:
         return self.data_dir / "jobs.sqlite"
+
+    @property
+    def workers_dir(self) -> Path:
+        """Pid files of the worker processes, so a restart can reap leftovers."""
+        return self.data_dir / "workers"
+
+    def worker_memory_limit(self) -> int | None:
+        """``worker_memory``, else 80 % of physical memory split among the workers."""
+        if self.worker_memory is not None:
+            return self.worker_memory
+        try:
+            total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            return None
+        return int(0.8 * total / (self.workers or os.cpu_count() or 1))
 
     @property
     def jobs_dir(self) -> Path:

@@ -9,6 +9,7 @@ a worker thread reports late.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -93,20 +94,167 @@ class Survey:
     created: str
 
 
-class JobStore:
-    """Thread-safe access to the SQLite job store (one connection, one lock)."""
+RECORD = "record.json"  # a job's (or survey's) row, kept in its directory for rebuilding
 
-    def __init__(self, path: Path):
+
+class JobStore:
+    """Thread-safe access to the SQLite job store (one connection, one lock).
+
+    With ``jobs_dir``/``surveys_dir`` every job and survey also keeps its row as
+    ``record.json`` in its directory (written on creation and on every change of
+    status, not on progress), so a store whose file was deleted or corrupted is
+    rebuilt from them; ``check`` notices either while the service runs.
+    """
+
+    def __init__(self, path: Path, jobs_dir: Path | None = None, surveys_dir: Path | None = None):
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
-        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None, timeout=30)
-        self._db.row_factory = sqlite3.Row
+        self.path = path
+        self.jobs_dir = jobs_dir
+        self.surveys_dir = surveys_dir
+        self._lock = threading.Lock()  # the writing connection
+        self._rlock = threading.Lock()  # the reading one: reads never wait for a commit
+        self.recovered: str | None = None  # what the last open or check had to do
+        self._db = self._open()
+        self._rdb = self._reader()
         with self._lock:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.executescript(_SCHEMA)
+            empty = self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0] == 0
+        if empty and self._rebuild_from_records():
+            self.recovered = self.recovered or "rebuilt from the job directories"
+
+    def _open(self) -> sqlite3.Connection:
+        """Connect in WAL mode; a file that is not a sound database is moved aside."""
+        for attempt in range(2):
+            db = sqlite3.connect(
+                self.path, check_same_thread=False, isolation_level=None, timeout=30
+            )
+            db.row_factory = sqlite3.Row
+            try:
+                db.execute("PRAGMA journal_mode=WAL")
+                # in WAL mode a commit survives a crash of the service without an fsync each
+                db.execute("PRAGMA synchronous=NORMAL")
+                db.executescript(_SCHEMA)
+                if db.execute("PRAGMA quick_check").fetchone()[0] != "ok":
+                    raise sqlite3.DatabaseError("quick_check failed")
+            except sqlite3.DatabaseError:
+                db.close()
+                if attempt:
+                    raise
+                self._move_aside()
+                self.recovered = "the store file was corrupt; rebuilt from the job directories"
+                continue
+            self._ident = _ident(self.path)
+            return db
+        raise AssertionError("unreachable")
+
+    def _reader(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=30)
+        db.row_factory = sqlite3.Row
+        return db
+
+    @contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        with self._rlock:
+            yield self._rdb
+
+    def _move_aside(self) -> None:
+        stamp = now().replace(":", "")
+        for suffix in ("", "-wal", "-shm"):
+            src = self.path.with_name(self.path.name + suffix)
+            if src.exists():
+                os.replace(src, src.with_name(f"{self.path.name}.corrupt-{stamp}{suffix}"))
+
+    def check(self, thorough: bool = True) -> str:
+        """Health check: the file is still ours and sound (``thorough``: SQLite's
+        quick_check too, which reads every page); repairs it when not.
+
+        ``ok``; ``restored`` (the file was deleted or replaced: the open
+        connection's copy is written back, nothing is lost); ``rebuilt`` (it was
+        corrupt: rebuilt from the job directories).
+        """
+        if not thorough and _ident(self.path) == self._ident:
+            return "ok"
+        with self._rlock, self._lock:
+            if _ident(self.path) == self._ident:
+                if not thorough:
+                    return "ok"
+                try:
+                    sound = self._db.execute("PRAGMA quick_check").fetchone()[0] == "ok"
+                except sqlite3.DatabaseError:
+                    sound = False
+                if sound:
+                    return "ok"
+                self._db.close()
+                self._move_aside()
+                self._db = self._open()
+                rebuilt = True
+            else:
+                copy = sqlite3.connect(":memory:")
+                self._db.backup(copy)
+                self._db.close()  # removes the -wal/-shm files of the vanished file
+                if self.path.exists():
+                    self._move_aside()
+                self._db = self._open()
+                copy.backup(self._db)
+                copy.close()
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._ident = _ident(self.path)
+                rebuilt = False
+            self._rdb.close()
+            self._rdb = self._reader()
+        if rebuilt:
+            self._rebuild_from_records()
+            self.recovered = "the store file was corrupt; rebuilt from the job directories"
+            return "rebuilt"
+        self.recovered = "the store file had gone; restored from the open connection"
+        return "restored"
+
+    def _rebuild_from_records(self) -> int:
+        """Insert every job and survey whose directory holds a record; how many jobs."""
+        jobs = 0
+        for kind, root in (("jobs", self.jobs_dir), ("surveys", self.surveys_dir)):
+            if root is None or not root.is_dir():
+                continue
+            for rec_path in sorted(root.glob(f"*/{RECORD}")):
+                try:
+                    rec = json.loads(rec_path.read_text())
+                except (OSError, ValueError):
+                    continue
+                if not isinstance(rec, dict) or rec.get("id") != rec_path.parent.name:
+                    continue
+                if kind == "jobs" and rec.get("status") == RUNNING:
+                    rec["status"] = ACCEPTED  # resumed by the scheduler
+                cols = _JOB_COLUMNS if kind == "jobs" else _SURVEY_COLUMNS
+                row = {c: rec.get(c) for c in cols}
+                for c in ("params", "inputs", "outputs", "files"):
+                    if c in row and not isinstance(row[c], str):
+                        row[c] = json.dumps(row[c] if row[c] is not None else [])
+                try:
+                    with self._tx() as db:
+                        db.execute(
+                            f"INSERT OR IGNORE INTO {kind} ({', '.join(cols)})"
+                            f" VALUES ({', '.join('?' * len(cols))})",
+                            [row[c] for c in cols],
+                        )
+                except sqlite3.Error:
+                    continue
+                jobs += kind == "jobs"
+        return jobs
+
+    def _write_record(self, job_id: str) -> None:
+        """Keep the job's row in its directory (when it has one)."""
+        if self.jobs_dir is None:
+            return
+        job_dir = self.jobs_dir / job_id
+        if not job_dir.is_dir():
+            return
+        with self._lock:
+            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        if row is not None:
+            _write_json(job_dir / RECORD, dict(row))
 
     def close(self) -> None:
-        with self._lock:
+        with self._rlock, self._lock:
+            self._rdb.close()
             self._db.close()
 
     @contextmanager
@@ -150,14 +298,15 @@ class JobStore:
                     ts,
                 ),
             )
+        self._write_record(job_id)
         job = self.get_job(job_id)
         assert job is not None
         return job
 
     def get_job(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""
-        with self._lock:
-            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
         return _job(row)
@@ -184,15 +333,15 @@ class JobStore:
             args.append(process_id)
         sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "")
         sql += " ORDER BY created DESC, rowid DESC LIMIT ? OFFSET ?"
-        with self._lock:
-            rows = self._db.execute(sql, (*args, limit, offset)).fetchall()
+        with self._read() as db:
+            rows = db.execute(sql, (*args, limit, offset)).fetchall()
         return [_job(r) for r in rows]
 
     def jobs_with_status(self, *statuses: str) -> list[Job]:
         """Jobs in any of ``statuses``, oldest first (the scheduler's queue order)."""
         marks = ",".join("?" * len(statuses))
-        with self._lock:
-            rows = self._db.execute(
+        with self._read() as db:
+            rows = db.execute(
                 f"SELECT * FROM jobs WHERE status IN ({marks}) ORDER BY created, rowid", statuses
             ).fetchall()
         return [_job(r) for r in rows]
@@ -217,6 +366,8 @@ class JobStore:
                 " WHERE id = ? AND status = ?",
                 (RUNNING, "processing", ts, ts, job_id, ACCEPTED),
             )
+        if cur.rowcount == 1:
+            self._write_record(job_id)
         return cur.rowcount == 1
 
     def set_progress(self, job_id: str, progress: int, message: str | None = None) -> None:
@@ -242,6 +393,8 @@ class JobStore:
                 " WHERE id = ? AND status IN (?, ?)",
                 (status, message, json.dumps(outputs or []), ts, ts, job_id, *ACTIVE),
             )
+        if cur.rowcount == 1:
+            self._write_record(job_id)
         return cur.rowcount == 1
 
     def dismiss(self, job_id: str, message: str = "dismissed by request") -> Job | None:
@@ -253,6 +406,7 @@ class JobStore:
                 " updated = ? WHERE id = ? AND status != ?",
                 (DISMISSED, message, ts, ts, job_id, DISMISSED),
             )
+        self._write_record(job_id)
         return self.get_job(job_id)
 
     # -- surveys ----------------------------------------------------------
@@ -266,11 +420,14 @@ class JobStore:
                 "INSERT INTO surveys (id, tenant, files, params, created) VALUES (?, ?, ?, ?, ?)",
                 (survey_id, tenant, json.dumps(files), json.dumps(params), ts),
             )
+        if self.surveys_dir is not None:
+            record = {"id": survey_id, "tenant": tenant, "files": files, "params": params}
+            _write_json(self.surveys_dir / survey_id / RECORD, {**record, "created": ts})
         return Survey(survey_id, tenant, files, params, ts)
 
     def get_survey(self, survey_id: str, tenant: str | None = None) -> Survey | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()
+        with self._read() as db:
+            row = db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
         return Survey(
@@ -282,11 +439,49 @@ class JobStore:
         )
 
     def survey_jobs(self, survey_id: str) -> list[Job]:
-        with self._lock:
-            rows = self._db.execute(
+        with self._read() as db:
+            rows = db.execute(
                 "SELECT * FROM jobs WHERE survey_id = ? ORDER BY created, rowid", (survey_id,)
             ).fetchall()
         return [_job(r) for r in rows]
+
+
+_JOB_COLUMNS = (
+    "id",
+    "tenant",
+    "process_id",
+    "status",
+    "message",
+    "progress",
+    "params",
+    "inputs",
+    "outputs",
+    "survey_id",
+    "created",
+    "started",
+    "finished",
+    "updated",
+)
+_SURVEY_COLUMNS = ("id", "tenant", "files", "params", "created")
+
+
+def _ident(path: Path) -> tuple[int, int] | None:
+    """Device and inode of ``path``: tells a deleted or replaced file from ours."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino)
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(data))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # the record is a spare copy; the store itself is committed
 
 
 def _job(row: sqlite3.Row) -> Job:

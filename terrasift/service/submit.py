@@ -8,7 +8,6 @@ row is committed before the caller answers 201.
 from __future__ import annotations
 
 import inspect
-import json
 import shutil
 import uuid
 from collections.abc import Mapping
@@ -18,6 +17,7 @@ from typing import Any
 from pydantic_core import to_jsonable_python
 
 from terrasift.errors import ParameterError
+from terrasift.service.guard import CONTROL_CHARS, RequestRefused, load_json
 from terrasift.service.problems import Problem
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.settings import Settings
@@ -35,11 +35,11 @@ def parse_params(text: str | None) -> dict[str, Any]:
     if text is None or not text.strip():
         return {}
     try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ParameterError(
-            f"params is not JSON: {exc.msg} at line {exc.lineno} column {exc.colno}"
-        ) from None
+        value = load_json(text, "params")
+    except RequestRefused as exc:
+        if exc.slug == "invalid-request":
+            raise ParameterError(str(exc)) from None
+        raise Problem(exc.slug, str(exc)) from None
     if not isinstance(value, dict):
         raise ParameterError(
             f"params must be a JSON object of parameters, not {type(value).__name__}"
@@ -66,6 +66,8 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
                 "invalid-request", f"a file must be a path string or {{'href': path}}, not {item!r}"
             )
         text = text.removeprefix("file://")
+        if CONTROL_CHARS.search(text):
+            raise Problem("invalid-request", f"path {text!r} holds a control character")
         real = (root_real / text).resolve()  # an absolute `text` replaces the root, then is checked
         if not real.is_relative_to(root_real):
             raise Problem("forbidden-path", f"{text!r} is outside the input root")
@@ -83,6 +85,18 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
     if len(out) > settings.max_files:
         raise Problem("invalid-request", f"{len(out)} files; the limit is {settings.max_files}")
     return out
+
+
+def inside_root(settings: Settings, paths: list[Path]) -> None:
+    """Re-check, when files are about to be opened, that each still lies in the input root.
+
+    A registered file may since have been replaced by a symlink to somewhere else.
+    """
+    root = settings.input_root
+    for p in paths:
+        real = Path(p).resolve()
+        if root is None or not real.is_relative_to(root.resolve()):
+            raise Problem("forbidden-path", f"{Path(p).name!r} now lies outside the input root")
 
 
 def check_inputs(

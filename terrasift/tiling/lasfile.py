@@ -10,6 +10,7 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import laspy
 import numpy as np
@@ -18,6 +19,7 @@ from numpy.typing import NDArray
 from terrasift.errors import InputError
 
 LAS_HEADER_MIN = 227
+LAS14_HEADER = 375
 MAX_ABS_COORD = 1e9  # metres (or feet): beyond anything on Earth in any projected CRS
 MAX_EXTENT = 200_000.0  # one tile wider than 200 km is a broken header, not a survey
 
@@ -57,7 +59,7 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     except OSError as exc:
         raise InputError(f"{name}: cannot read file ({exc.strerror})") from None
     with open(path, "rb") as fh:
-        head = fh.read(LAS_HEADER_MIN)
+        head = fh.read(LAS14_HEADER)
     if len(head) < 4 or head[:4] != b"LASF":
         raise InputError(
             f"{name}: not a LAS/LAZ file (signature is {head[:4]!r}, expected b'LASF')"
@@ -72,6 +74,9 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     compressed = bool(raw_format & 0xC0)
     if point_format > 10:
         raise InputError(f"{name}: unsupported point data format {point_format} (0 to 10 are read)")
+    # Every count and offset is checked against the file's size before laspy
+    # reads anything, so a header cannot make it allocate or loop beyond that.
+    laszip = _check_structure(path, name, size, head, minor, point_format)
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header
@@ -86,19 +91,41 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     offset = int(header.offset_to_point_data)
     record = int(header.point_format.size)
     if not header.are_points_compressed:
-        room = (size - offset) // record if size > offset else 0
+        end = _point_data_end(head, minor, size, offset)
+        room = (end - offset) // record if end > offset else 0
         if room < count:
             raise InputError(
                 f"{name}: header claims {count} points but the file holds only {max(room, 0)} "
                 f"({size} bytes; the file is truncated or the header is wrong)"
             )
+        if room > count:
+            raise InputError(
+                f"{name}: header claims {count} points but the file holds {room} "
+                "(the header's point count is wrong)"
+            )
     else:
-        _check_laz_chunk_table(path, name, offset, size)
+        if laszip is None:
+            raise InputError(f"{name}: compressed points but no laszip VLR to decode them")
+        _check_laz_chunk_table(path, name, offset, size, count, laszip)
+    # Writers get the per-return counts slightly wrong (one point off in lidR's
+    # Topography.laz): a small gap is a warning, a large one a wrong count.
+    by_return = _points_by_return(head, minor)
+    count_warning = None
+    if by_return and by_return != count:
+        text = (
+            f"{name}: header claims {count} points but its counts per return add up to {by_return}"
+        )
+        if abs(by_return - count) > max(1, 0.01 * count):
+            raise InputError(text + " (the header is wrong)")
+        count_warning = text + f"; {count} points are read"
 
     scales = tuple(float(s) for s in header.scales)
     for axis, s in zip("xyz", scales, strict=True):
         if not np.isfinite(s) or s <= 0 or s < 1e-9 or s > 10:
             raise InputError(f"{name}: absurd {axis} scale factor {s} in the header")
+    for axis, o in zip("xyz", (float(v) for v in header.offsets), strict=True):
+        if not np.isfinite(o) or abs(o) > MAX_ABS_COORD:
+            raise InputError(f"{name}: absurd {axis} offset {o} in the header")
     mins = tuple(float(v) for v in header.mins)
     maxs = tuple(float(v) for v in header.maxs)
     for axis, lo, hi in zip("xyz", mins, maxs, strict=True):
@@ -116,7 +143,7 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
             f"more than {MAX_EXTENT:.0f} for one tile"
         )
 
-    warnings: list[str] = []
+    warnings: list[str] = [count_warning] if count_warning else []
     crs_wkt = None
     try:
         crs = header.parse_crs()
@@ -141,20 +168,155 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     )
 
 
-def _check_laz_chunk_table(path: Path, name: str, offset: int, size: int) -> None:
-    # A LAZ file starts its point data with the 8-byte offset of the chunk
-    # table, which laszip writes at the end: an offset past the end of the
-    # file means the file was cut short.
+# Smallest point record of each format (LAS 1.4 R15 table 7 onwards)
+POINT_RECORD_MIN = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)
+VLR_HEADER = 54
+EVLR_HEADER = 60
+MAX_VLR_BYTES = 64 * 1024**2  # CRS, laszip and extra-bytes records are kilobytes
+LASZIP_USER = b"laszip encoded"
+LASZIP_RECORD = 22204
+VARIABLE_CHUNKS = 0xFFFFFFFF
+
+
+def _check_structure(
+    path: Path, name: str, size: int, head: bytes, minor: int, point_format: int
+) -> int | None:
+    """Header size, point offset, record length, VLRs and EVLRs against the file's size.
+
+    Returns the laszip chunk size (None without a laszip record). Reads at most
+    the header and the VLR headers (bounded by MAX_VLR_BYTES).
+    """
+    header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+    (record,) = struct.unpack_from("<H", head, 105)
+    minimum = {0: 227, 1: 227, 2: 227, 3: 235}.get(minor, 375)
+    if header_size < minimum or header_size > size:
+        raise InputError(
+            f"{name}: header size {header_size} is impossible for LAS 1.{minor} in a "
+            f"{size}-byte file (at least {minimum})"
+        )
+    if offset < header_size or offset > size:
+        raise InputError(
+            f"{name}: point data offset {offset} lies outside the file ({header_size} to {size})"
+        )
+    if record < POINT_RECORD_MIN[point_format]:
+        raise InputError(
+            f"{name}: point record length {record} is shorter than format {point_format} "
+            f"needs ({POINT_RECORD_MIN[point_format]})"
+        )
+    if offset - header_size > MAX_VLR_BYTES:
+        raise InputError(f"{name}: {offset - header_size} bytes of VLRs; at most {MAX_VLR_BYTES}")
+    if n_vlrs * VLR_HEADER > offset - header_size:
+        raise InputError(
+            f"{name}: header claims {n_vlrs} VLRs, but only {offset - header_size} bytes "
+            "lie between header and points"
+        )
+    chunk_size = None
+    with open(path, "rb") as fh:
+        fh.seek(header_size)
+        vlrs = fh.read(offset - header_size)
+        pos = 0
+        for i in range(n_vlrs):
+            if pos + VLR_HEADER > len(vlrs):
+                raise InputError(f"{name}: VLR {i + 1} of {n_vlrs} runs past the point data")
+            user = vlrs[pos + 2 : pos + 18].rstrip(b"\0")
+            record_id, length = struct.unpack_from("<HH", vlrs, pos + 18)
+            body = pos + VLR_HEADER
+            if body + length > len(vlrs):
+                raise InputError(
+                    f"{name}: VLR {i + 1} of {n_vlrs} claims {length} bytes, past the point data"
+                )
+            if user == LASZIP_USER and record_id == LASZIP_RECORD and length >= 16:
+                (chunk_size,) = struct.unpack_from("<I", vlrs, body + 12)
+            pos = body + length
+        if minor >= 4:
+            start, n_evlrs = struct.unpack_from("<QI", head, 235)
+            _check_evlrs(fh, name, size, offset, start, n_evlrs)
+    return chunk_size
+
+
+def _check_evlrs(fh: BinaryIO, name: str, size: int, offset: int, start: int, count: int) -> None:
+    if count == 0:
+        return
+    if start < offset or start + count * EVLR_HEADER > size:
+        raise InputError(
+            f"{name}: header claims {count} extended VLRs from byte {start}; "
+            f"the file has {size} bytes"
+        )
+    pos = start
+    for i in range(count):
+        fh.seek(pos)
+        raw = fh.read(EVLR_HEADER)
+        if len(raw) < EVLR_HEADER:
+            raise InputError(f"{name}: extended VLR {i + 1} of {count} runs past the file's end")
+        (length,) = struct.unpack_from("<Q", raw, 20)
+        pos += EVLR_HEADER + length
+        if pos > size:
+            raise InputError(
+                f"{name}: extended VLR {i + 1} of {count} claims {length} bytes, past the file's end"
+            )
+
+
+def _points_by_return(head: bytes, minor: int) -> int:
+    """Sum of the header's points-by-return counts (0 when the writer left them empty)."""
+    legacy = sum(struct.unpack_from("<5I", head, 111))
+    if minor >= 4:
+        extended = sum(struct.unpack_from("<15Q", head, 255))
+        return extended or legacy
+    return legacy
+
+
+def _point_data_end(head: bytes, minor: int, size: int, offset: int) -> int:
+    """Where uncompressed point records end: the first EVLR (or waveform data) after them."""
+    ends = [size]
+    if minor >= 4:
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and start >= offset:
+            ends.append(start)
+    if minor >= 3:
+        (waveform,) = struct.unpack_from("<Q", head, 227)
+        if waveform >= offset and head[6] & 0x02:  # global encoding: waveform data internal
+            ends.append(waveform)
+    return min(ends)
+
+
+def _check_laz_chunk_table(
+    path: Path, name: str, offset: int, size: int, count: int, chunk_size: int | None
+) -> None:
+    """The chunk table's place and chunk count against the file and the point count.
+
+    A LAZ file starts its point data with the 8-byte offset of the chunk
+    table, which laszip writes at the end; the table starts with its version
+    and number of chunks. A decoder allocates per chunk, so a count the file
+    cannot hold is refused here (every chunk holds at least one byte).
+    """
     with open(path, "rb") as fh:
         fh.seek(offset)
         raw = fh.read(8)
-    if len(raw) < 8:
-        raise InputError(f"{name}: LAZ file is truncated before its point data")
-    (table_offset,) = struct.unpack("<q", raw)
-    if table_offset != -1 and (table_offset < offset or table_offset + 8 > size):
+        if len(raw) < 8:
+            raise InputError(f"{name}: LAZ file is truncated before its point data")
+        (table_offset,) = struct.unpack("<q", raw)
+        if table_offset == -1:
+            return  # no table (a stream): chunks are found by reading them
+        if table_offset < offset + 8 or table_offset + 8 > size:
+            raise InputError(
+                f"{name}: LAZ file is truncated (chunk table expected at byte {table_offset}, "
+                f"file has {size} bytes)"
+            )
+        fh.seek(table_offset)
+        _version, chunks = struct.unpack("<II", fh.read(8))
+    if chunks > table_offset - offset - 8:
         raise InputError(
-            f"{name}: LAZ file is truncated (chunk table expected at byte {table_offset}, file has {size} bytes)"
+            f"{name}: LAZ chunk table claims {chunks} chunks in {table_offset - offset - 8} "
+            "bytes of point data"
         )
+    if chunk_size and chunk_size != VARIABLE_CHUNKS:
+        expected = -(-count // chunk_size)
+        if chunks != expected:
+            raise InputError(
+                f"{name}: header claims {count} points, which fill {expected} chunks of "
+                f"{chunk_size}, but the LAZ chunk table lists {chunks} (the point count "
+                "or the file is wrong)"
+            )
 
 
 @dataclass(frozen=True)
@@ -203,6 +365,11 @@ def iter_chunks(
         if scan_dim and scan_dim not in names:
             raise InputError(f"{Path(path).name}: no dimension {scan_dim!r} for scan ids")
         pos = start
+        # a point beyond the header's bounds (by more than rounding) means a
+        # corrupt payload or a wrong header: its coordinates are not to be trusted
+        tol = 2 * np.asarray(reader.header.scales, float) + 0.01
+        lo = np.asarray(reader.header.mins, float) - tol
+        hi = np.asarray(reader.header.maxs, float) + tol
         try:
             if start:
                 reader.seek(start)
@@ -215,6 +382,13 @@ def iter_chunks(
                 xyz[:, 0] = pts.x
                 xyz[:, 1] = pts.y
                 xyz[:, 2] = pts.z
+                outside = int(np.count_nonzero(~((xyz >= lo) & (xyz <= hi)).all(axis=1)))
+                if outside:
+                    raise InputError(
+                        f"{Path(path).name}: {outside} of points {pos} to {pos + n} lie outside "
+                        "the header's bounds (or are not finite); the point data is corrupt "
+                        "or the header is wrong"
+                    )
                 scan = (
                     np.asarray(pts[dim], dtype=np.uint16)
                     if dim in names

@@ -9,18 +9,18 @@ stages, which works on any worker that shares the data directory.
 from __future__ import annotations
 
 import importlib
-import multiprocessing
 import os
 import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED
 from concurrent.futures import wait as cf_wait
 from pathlib import Path
 from typing import Any, Protocol
 
 from terrasift.errors import TerrasiftError
+from terrasift.workers.pool import WorkerPool
 
 
 class Future(Protocol):
@@ -70,46 +70,62 @@ def _os_thread_count() -> int:
         return 0
 
 
-def _ready() -> None:
-    """A no-op task: its submission launches the pool's workers."""
-
-
 class LocalExecutor:
-    """A process pool with one worker per core (or ``workers``).
+    """A pool of disposable worker processes, one per core (or ``workers``).
 
     Workers are forked (Linux) when this process has a single thread, native
     threads included, so they start with the task modules imported instead of
     importing them each (~0.7 s of CPU per worker, on the critical path of a
     short CLI job), and spawned otherwise: forking a threaded process (the
     service, or one that has run a parallel LAZ decoder) can deadlock a child
-    on a lock another thread held.
+    on a lock another thread held. A worker that dies is replaced by a spawned
+    one (``terrasift.workers.pool``).
     """
 
-    def __init__(self, workers: int | None = None, start_method: str | None = None):
+    def __init__(
+        self,
+        workers: int | None = None,
+        start_method: str | None = None,
+        *,
+        nice: int = 0,
+        memory_limit: int | None = None,
+        pid_dir: Path | None = None,
+    ):
         self.workers = workers or os.cpu_count() or 1
         single_threaded_blas()
         if start_method is None:
             fork_safe = sys.platform == "linux" and _os_thread_count() == 1
             start_method = "fork" if fork_safe else "spawn"
         self.start_method = start_method
-        ctx = multiprocessing.get_context(start_method)
-        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
         if start_method == "fork":
             for name in TASK_MODULES:
                 importlib.import_module(name)
-            # The first submission forks every worker, before any thread
-            # (the pool's own, a progress bar's) exists.
-            self._pool.submit(_ready).result()
+        self.pool = WorkerPool(
+            self.workers,
+            start_method=start_method,
+            nice=nice,
+            memory_limit=memory_limit,
+            pid_dir=pid_dir,
+        )
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
-        return self._pool.submit(fn, *args)
+        return self.pool.submit(fn, *args)
+
+    def submit_limited(self, timeout: float | None, fn: Callable[..., Any], *args: Any) -> Future:
+        """``submit`` with a time limit in seconds: past it the worker is killed and the task fails."""
+        return self.pool.submit(fn, *args, timeout=timeout)
+
+    def cancel_running(self, futures: Iterable[Future]) -> int:
+        """Cancel queued futures and stop running ones by replacing their workers."""
+        return self.pool.cancel(futures)  # type: ignore[arg-type]
 
     def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
         done, _ = cf_wait(list(futures), timeout=timeout, return_when=FIRST_COMPLETED)  # type: ignore[arg-type]
         return set(done)
 
-    def shutdown(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+    def shutdown(self, *, kill: bool = False) -> None:
+        """Wait for running tasks (``kill``: stop them now); queued ones are cancelled."""
+        self.pool.shutdown(wait=True, kill=kill)
 
 
 NO_WORKERS_TIMEOUT = 60.0
@@ -277,12 +293,14 @@ def make_executor(
     workers: int | None = None,
     dask_scheduler: str | None = None,
     no_workers_timeout: float | None = None,
+    **pool: Any,
 ) -> Executor:
-    """Dask when a scheduler address is given (or in ``TERRASIFT_DASK_SCHEDULER``), else a local pool."""
+    """Dask when a scheduler address is given (or in ``TERRASIFT_DASK_SCHEDULER``), else a local
+    pool; ``pool`` holds LocalExecutor's options (nice, memory_limit, pid_dir)."""
     address = dask_scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if address:
         return DaskExecutor(address, no_workers_timeout)
-    return LocalExecutor(workers)
+    return LocalExecutor(workers, **pool)
 
 
 class InlineExecutor:

@@ -75,7 +75,7 @@ def list_jobs(
     request: Request,
     who: Annotated[str, Depends(tenant)],
     limit: Annotated[int, Query(ge=1, le=1000)] = 10,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
     status: Annotated[list[str] | None, Query(description="filter by status (repeatable)")] = None,
     processID: Annotated[
         list[str] | None, Query(description="filter by process (repeatable)")

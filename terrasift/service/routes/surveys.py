@@ -29,6 +29,7 @@ from terrasift.service.store import Survey
 from terrasift.service.submit import (
     check_inputs,
     create_job,
+    inside_root,
     new_id,
     parse_params,
     resolve_server_paths,
@@ -121,6 +122,8 @@ def run_survey(
     survey = _survey(svc, survey_id, who)
     params = {**survey.params, **(body.params if body else {})}
     files = [Path(f) for f in survey.files]
+    uploads = svc.settings.surveys_dir / survey.id
+    inside_root(svc.settings, [f for f in files if not f.is_relative_to(uploads)])
     missing = [f.name for f in files if not f.is_file()]
     if missing:
         raise Problem(

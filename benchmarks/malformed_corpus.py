@@ -1,0 +1,65 @@
+"""The malformed-file corpus through the real app (``make bench-malformed``).
+
+Uploads every variant of ``terrasift.synthetic.malformed.corpus`` to ``POST /jobs``
+of an app with two workers and a 1 GiB worker memory limit, waits for each
+accepted job, and prints the counts by outcome, the peak RSS of the workers
+and of the API process, and what each case gave (``--verbose``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fastapi.testclient import TestClient  # noqa: E402
+
+from terrasift.service.app import create_app  # noqa: E402
+from terrasift.service.settings import Settings  # noqa: E402
+from terrasift.synthetic.malformed import corpus, run_through_app, write_pair  # noqa: E402
+
+PARAMS = {"block_size": 40, "buffer": 4, "resolution": 1.0, "features": "none"}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--verbose", action="store_true")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="terrasift-malformed-") as tmp:
+        tmp = Path(tmp)
+        cases = list(corpus(*write_pair(tmp)))
+        settings = Settings(
+            _env_file=None,
+            data_dir=tmp / "data",
+            workers=2,
+            worker_memory=1024**3,
+            max_concurrent_jobs=4,
+            task_seconds=60,
+        )
+        t = time.monotonic()
+        with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+            outcomes = run_through_app(client, cases, PARAMS)
+            pool = client.app.state.svc.scheduler.executor.pool
+            worker_peak, replaced = pool.peak_rss, pool.replaced
+        seconds = time.monotonic() - t
+    counts = Counter(kind for kind, _ in outcomes.values())
+    api_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"{len(cases)} malformed files in {seconds:.0f} s: {dict(counts)}")
+    print(
+        f"peak RSS: workers {worker_peak / 2**20:.0f} MiB (polled), API process {api_peak / 2**20:.0f} MiB"
+    )
+    print(f"workers replaced: {replaced}")
+    if args.verbose:
+        for name, (kind, message) in outcomes.items():
+            print(f"{kind:12s} {name}: {message}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,476 @@
+"""A process pool whose workers are disposable.
+
+``concurrent.futures.ProcessPoolExecutor`` breaks for good when one worker
+dies (an abort in a decoder, the OOM killer, ``kill -9``): every later task
+fails. Here each worker has its own pipe, a manager thread knows which task
+each worker runs, and a worker that dies, overruns its time limit, grows past
+its memory limit or runs a task whose job was dismissed is killed and
+replaced. Only that task fails; a task whose worker died is tried once more
+(the death may have been someone else's fault, e.g. the OOM killer).
+
+Workers run at a lower CPU priority than the process that owns the pool, die
+with it (``PR_SET_PDEATHSIG`` and a thread watching the parent pid), and
+leave a pid file so that the next start can kill any that outlived a crash.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import itertools
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any
+
+from terrasift.errors import JobCancelled, ProcessingError
+
+log = logging.getLogger(__name__)
+
+PR_SET_PDEATHSIG = 1
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+WALL_FACTOR = 4  # a task's wall-clock limit, in multiples of its CPU limit
+
+
+class WorkerLost(ProcessingError):
+    """The worker running a task died (a crash, an abort, the OOM killer, a kill)."""
+
+
+class TaskTimeout(ProcessingError):
+    """A task ran longer than its time limit."""
+
+
+class TaskOutOfMemory(ProcessingError, MemoryError):
+    """A task's worker grew past the memory limit."""
+
+
+def describe(fn: Callable[..., Any], args: tuple) -> str:
+    """A task in words for error messages: its function and the names among its arguments."""
+    names = [Path(a).name for a in args if isinstance(a, str) and a]
+    return f"{getattr(fn, '__name__', 'task')}({', '.join(names)})"
+
+
+# ------------------------------------------------------------------ worker side
+
+
+def _proc_start_time(pid: int) -> str | None:
+    """Start time of ``pid`` in clock ticks since boot (tells a pid from a reused one)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _die_with_parent(parent: int) -> None:
+    """Get SIGKILL when the parent goes (Linux), and watch its pid as a fallback."""
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _worker_main(conn: Connection, parent: int, nice: int, pid_dir: str | None) -> None:
+    """Run tasks from ``conn`` until told to stop; each reply is (task id, ok, value)."""
+    _die_with_parent(parent)
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
+    pid_file = None
+    if pid_dir:
+        pid_file = Path(pid_dir) / str(os.getpid())
+        with contextlib.suppress(OSError):
+            pid_file.write_text(f"{_proc_start_time(os.getpid())}\n")
+    try:
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                return
+            if msg is None:
+                return
+            task_id, fn, args = msg
+            try:
+                reply = (task_id, True, fn(*args))
+            except BaseException as exc:  # noqa: BLE001 - the caller gets it through the future
+                reply = (task_id, False, exc)
+            try:
+                conn.send(reply)
+            except Exception as exc:  # noqa: BLE001 - an unpicklable result or exception
+                conn.send((task_id, False, ProcessingError(f"result not transferable: {exc!r}")))
+    finally:
+        if pid_file is not None:
+            with contextlib.suppress(OSError):
+                pid_file.unlink()
+
+
+def reap_leftovers(pid_dir: Path) -> list[int]:
+    """Kill workers a crashed owner left behind (their pid files say who); the pids killed."""
+    killed = []
+    for entry in Path(pid_dir).glob("[0-9]*"):
+        pid = int(entry.name)
+        try:
+            started = entry.read_text().strip()
+        except OSError:
+            started = ""
+        if started and _proc_start_time(pid) == started and pid != os.getpid():
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+        with contextlib.suppress(OSError):
+            entry.unlink()
+    return killed
+
+
+# ------------------------------------------------------------------ pool side
+
+
+@dataclass(eq=False)
+class _Task:
+    id: int
+    fn: Callable[..., Any]
+    args: tuple
+    future: Future
+    timeout: float | None
+    tries: int = 0
+    started: float = 0.0
+    cpu0: float = 0.0  # the worker's CPU seconds when the task started
+    kill: BaseException | None = None  # why the manager must kill the worker running it
+
+
+@dataclass(eq=False)
+class _Worker:
+    proc: Any
+    conn: Connection
+    task: _Task | None = None
+    lost: bool = False
+    peak_rss: int = field(default=0)
+
+
+class WorkerPool:
+    """``workers`` processes; ``submit`` returns a ``concurrent.futures.Future``.
+
+    ``memory_limit`` (bytes of resident memory per worker, None = none) and a
+    task's ``timeout`` (seconds) fail the task with a message naming it;
+    ``cancel`` stops queued and running tasks alike.
+    """
+
+    def __init__(
+        self,
+        workers: int,
+        *,
+        start_method: str = "spawn",
+        nice: int = 0,
+        memory_limit: int | None = None,
+        retries: int = 1,
+        pid_dir: Path | None = None,
+    ):
+        self.workers = workers
+        self.start_method = start_method
+        self.nice = nice
+        self.memory_limit = memory_limit
+        self.retries = retries
+        self.pid_dir = pid_dir
+        if pid_dir is not None:
+            Path(pid_dir).mkdir(parents=True, exist_ok=True)
+        self.replaced = 0
+        self.peak_rss = 0
+        self._ids = itertools.count()
+        self._queue: deque[_Task] = deque()
+        self._tasks: dict[Future, _Task] = {}
+        self._lock = threading.Lock()
+        self._closing = False
+        self._wake_r, self._wake_w = multiprocessing.Pipe(duplex=False)
+        self._workers: list[_Worker] = []
+        # A replacement is always spawned: by then the owner may run threads.
+        self._spawn_ctx = multiprocessing.get_context("spawn")
+        if start_method == "fork":
+            ctx = multiprocessing.get_context("fork")
+            self._workers = [self._start(ctx) for _ in range(workers)]
+        self._manager = threading.Thread(target=self._manage, name="worker-pool", daemon=True)
+        self._manager.start()
+
+    # -- public -----------------------------------------------------------
+
+    def submit(self, fn: Callable[..., Any], *args: Any, timeout: float | None = None) -> Future:
+        future: Future = Future()
+        task = _Task(next(self._ids), fn, args, future, timeout)
+        with self._lock:
+            if self._closing:
+                raise RuntimeError("the worker pool is shut down")
+            self._tasks[future] = task
+            self._queue.append(task)
+        self._wake()
+        return future
+
+    def cancel(self, futures: Iterable[Future], reason: str = "the job was dismissed") -> int:
+        """Cancel queued futures and kill the workers running the others; how many were stopped."""
+        stopped = 0
+        with self._lock:
+            for f in futures:
+                task = self._tasks.get(f)
+                if task is None or f.done():
+                    continue
+                if f.cancel():
+                    stopped += 1
+                elif task.kill is None:
+                    task.kill = JobCancelled(reason)
+                    stopped += 1
+        self._wake()
+        return stopped
+
+    def shutdown(self, wait: bool = True, *, kill: bool = False) -> None:
+        """Stop taking tasks; queued ones are cancelled, running ones finish (or are killed)."""
+        with self._lock:
+            self._closing = True
+            for task in self._queue:
+                task.future.cancel()
+            self._queue.clear()
+            if kill:
+                for task in self._tasks.values():
+                    if not task.future.done() and task.kill is None:
+                        task.kill = JobCancelled("the service is shutting down")
+        self._wake()
+        if wait:
+            self._manager.join()
+
+    def worker_pids(self) -> list[int]:
+        """Pids of the live workers (for tests and the health check)."""
+        return [w.proc.pid for w in list(self._workers) if w.proc.pid and not w.lost]
+
+    def busy_pids(self) -> list[int]:
+        """Pids of the workers running a task."""
+        return [w.proc.pid for w in list(self._workers) if w.task is not None and not w.lost]
+
+    # -- manager thread ---------------------------------------------------
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_w.send_bytes(b".")
+
+    def _start(self, ctx: Any) -> _Worker:
+        parent_end, child_end = ctx.Pipe(duplex=True)
+        proc = ctx.Process(
+            target=_worker_main,
+            args=(child_end, os.getpid(), self.nice, str(self.pid_dir) if self.pid_dir else None),
+            name="terrasift-worker",
+            daemon=True,
+        )
+        proc.start()
+        child_end.close()
+        return _Worker(proc, parent_end)
+
+    def _manage(self) -> None:
+        try:
+            while len(self._workers) < self.workers:
+                self._workers.append(self._start(self._spawn_ctx))
+            while True:
+                self._dispatch()
+                with self._lock:
+                    busy = any(w.task is not None for w in self._workers)
+                    if self._closing and not busy and not self._queue:
+                        break
+                ready = wait(
+                    [self._wake_r]
+                    + [w.conn for w in self._workers]
+                    + [w.proc.sentinel for w in self._workers],
+                    timeout=0.25,
+                )
+                if self._wake_r in ready:
+                    with contextlib.suppress(OSError, EOFError):
+                        while self._wake_r.poll():
+                            self._wake_r.recv_bytes()
+                for w in list(self._workers):
+                    if w.conn in ready:
+                        self._receive(w)
+                for w in list(self._workers):
+                    if w.proc.sentinel in ready or not w.proc.is_alive():
+                        self._lost(w)
+                self._police()
+        except BaseException:  # noqa: BLE001 - the pool must not hang its callers
+            log.exception("worker pool manager failed")
+            with self._lock:
+                for task in self._tasks.values():
+                    if not task.future.done():
+                        task.future.set_exception(ProcessingError("the worker pool failed"))
+        finally:
+            self._stop_workers()
+
+    def _dispatch(self) -> None:
+        with self._lock:
+            for w in self._workers:
+                while w.task is None and self._queue and not w.lost:
+                    task = self._queue.popleft()
+                    if task.future.done():
+                        continue  # cancelled after a retry was queued
+                    if task.tries == 0 and not task.future.set_running_or_notify_cancel():
+                        self._tasks.pop(task.future, None)
+                        continue
+                    try:
+                        w.conn.send((task.id, task.fn, task.args))
+                    except Exception as exc:  # noqa: BLE001 - unpicklable task or a dead pipe
+                        if isinstance(exc, (BrokenPipeError, OSError)):
+                            self._queue.appendleft(task)
+                            w.lost = True
+                            break
+                        self._settle(task, exc)
+                        continue
+                    task.tries += 1
+                    task.started = time.monotonic()
+                    task.cpu0 = _cpu_seconds(w.proc.pid)
+                    w.task = task
+
+    def _receive(self, w: _Worker) -> None:
+        try:
+            task_id, ok, value = w.conn.recv()
+        except (EOFError, OSError):
+            w.lost = True
+            return
+        except Exception as exc:  # noqa: BLE001 - a reply that cannot be unpickled
+            task_id, ok, value = (w.task.id if w.task else -1), False, exc
+        task = w.task
+        if task is None or task.id != task_id:
+            return
+        w.task = None
+        if ok:
+            self._settle(task, None, value)
+        else:
+            self._settle(task, value)
+
+    def _settle(self, task: _Task, exc: BaseException | None, value: Any = None) -> None:
+        with self._lock:
+            self._tasks.pop(task.future, None)
+        if task.future.done():
+            return
+        if exc is None:
+            task.future.set_result(value)
+        else:
+            task.future.set_exception(exc)
+
+    def _lost(self, w: _Worker) -> None:
+        """Replace a dead worker; its task is tried again once, or fails naming it."""
+        if w in self._workers:
+            self._workers.remove(w)
+        with contextlib.suppress(Exception):
+            w.proc.join(0.1)
+        code = w.proc.exitcode
+        self._forget(w)
+        task = w.task
+        if task is not None:
+            if task.kill is not None:
+                self._settle(task, task.kill)
+            elif task.tries <= self.retries and not self._closing:
+                log.warning(
+                    "worker %s died (exit %s) in %s; trying it again",
+                    w.proc.pid,
+                    code,
+                    describe(task.fn, task.args),
+                )
+                with self._lock:
+                    self._queue.appendleft(task)
+            else:
+                how = (
+                    f"signal {signal.Signals(-code).name}"
+                    if code and code < 0
+                    else f"exit code {code}"
+                )
+                self._settle(
+                    task,
+                    WorkerLost(
+                        f"the worker running {describe(task.fn, task.args)} died ({how}) "
+                        f"{task.tries} time(s); the input may be corrupt or too large for the memory limit"
+                    ),
+                )
+        if not self._closing:
+            self.replaced += 1
+            self._workers.append(self._start(self._spawn_ctx))
+
+    def _forget(self, w: _Worker) -> None:
+        with contextlib.suppress(Exception):
+            w.conn.close()
+        if self.pid_dir is not None and w.proc.pid:
+            with contextlib.suppress(OSError):
+                (Path(self.pid_dir) / str(w.proc.pid)).unlink()
+
+    def _police(self) -> None:
+        """Kill workers whose task was dismissed, ran out of time or grew past the memory limit."""
+        now = time.monotonic()
+        for w in list(self._workers):
+            task = w.task
+            if task is None:
+                continue
+            # The limit is CPU time, so a busy machine does not fail honest tasks;
+            # a task that waits instead of computing is stopped at WALL_FACTOR times it.
+            if task.kill is None and task.timeout is not None:
+                cpu = _cpu_seconds(w.proc.pid) - task.cpu0
+                wall = now - task.started
+                if cpu > task.timeout or wall > WALL_FACTOR * task.timeout:
+                    task.kill = TaskTimeout(
+                        f"{describe(task.fn, task.args)} ran longer than its limit of "
+                        f"{task.timeout:.0f} s of CPU ({WALL_FACTOR * task.timeout:.0f} s in all) "
+                        f"and was stopped after {cpu:.0f} s of CPU, {wall:.0f} s in all"
+                    )
+            if task.kill is None:
+                rss = _rss(w.proc.pid)
+                self.peak_rss = max(self.peak_rss, rss)
+                if self.memory_limit is not None and rss > self.memory_limit:
+                    task.kill = TaskOutOfMemory(
+                        f"{describe(task.fn, task.args)} needed more than the worker memory limit "
+                        f"of {self.memory_limit / 2**30:.1f} GiB and was stopped; the input may be "
+                        "corrupt, or the limit (TERRASIFT_WORKER_MEMORY) too low"
+                    )
+            if task.kill is not None:
+                with contextlib.suppress(OSError):
+                    os.kill(w.proc.pid, signal.SIGKILL)
+
+    def _stop_workers(self) -> None:
+        for w in self._workers:
+            with contextlib.suppress(Exception):
+                w.conn.send(None)
+        deadline = time.monotonic() + 5.0
+        for w in self._workers:
+            w.proc.join(max(0.0, deadline - time.monotonic()))
+            if w.proc.is_alive():
+                w.proc.kill()
+                w.proc.join(1.0)
+            self._forget(w)
+        self._workers = []
+
+
+def _cpu_seconds(pid: int | None) -> float:
+    """User and system CPU seconds of ``pid`` so far (0 when unknown)."""
+    if not pid:
+        return 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _TICKS
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def _rss(pid: int | None) -> int:
+    """Resident bytes of ``pid`` (0 when unknown)."""
+    if not pid:
+        return 0
+    try:
+        return int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * _PAGE
+    except (OSError, IndexError, ValueError):
+        return 0

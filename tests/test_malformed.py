@@ -1,0 +1,168 @@
+"""Malformed tiles through the real app and process pool, under a worker memory limit:
+every file is refused with a 4xx or its job ends (failed with a message, or successful with
+a DTM); never a 5xx, never a stuck job. Then kill -9 of a worker mid-job, and a good job."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections import Counter
+from collections.abc import Iterator
+
+import pytest
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from terrasift.errors import InputError
+from terrasift.service.app import create_app
+from terrasift.service.settings import Settings
+from terrasift.synthetic.malformed import corpus, run_through_app, write_pair
+from terrasift.tiling.lasfile import iter_chunks, read_tile_info
+from terrasift.workers.pool import TaskOutOfMemory, WorkerLost, WorkerPool
+
+PARAMS = {"block_size": 40, "buffer": 4, "resolution": 1.0, "features": "none"}
+MEMORY_LIMIT = 1024**3
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, bytes]:
+    return write_pair(tmp_path_factory.mktemp("malformed"))
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    data = tmp_path_factory.mktemp("malformed-app") / "data"
+    settings = Settings(
+        _env_file=None,
+        data_dir=data,
+        workers=2,
+        worker_memory=MEMORY_LIMIT,
+        max_concurrent_jobs=4,
+        task_seconds=60,
+    )
+    with TestClient(create_app(settings), raise_server_exceptions=False) as c:
+        yield c
+
+
+def test_malformed_corpus_through_the_app(client: TestClient, good: tuple[bytes, bytes]) -> None:
+    cases = list(corpus(*good))
+    assert len(cases) > 150
+    outcomes = run_through_app(client, cases, PARAMS)
+    counts = Counter(kind for kind, _ in outcomes.values())
+    print("malformed corpus outcomes:", dict(counts))
+    assert counts["http-5xx"] == 0 and counts["stuck"] == 0, outcomes
+    assert counts["refused-4xx"] > 100
+    for name, (kind, message) in outcomes.items():
+        assert kind in ("refused-4xx", "failed", "successful"), (name, kind)
+        if kind != "successful":
+            # the message names the file (or the task reading it), never a bare "internal error"
+            assert "t.la" in message, (name, message)
+            assert "Traceback" not in message
+    # the cases the issue found accepted or fatal are refused before any job runs
+    for name in (
+        "laz-chunk-count-2147483647",
+        "laz-chunk-count-4294967295",
+        "las-vlrs-0xffffffff",
+        "laz-vlrs-0xffffffff",
+        "laz-x_offset=1e+300",
+        "laz-z_offset=nan",
+        "las-point-count-1680-of-3360",
+    ):
+        assert outcomes[name][0] == "refused-4xx", (name, outcomes[name])
+    for name in ("laz-payload-zeroed-0", "laz-payload-random-2", "las-point-outside-bounds"):
+        assert outcomes[name][0] == "failed", (name, outcomes[name])
+    # a count one point short of the data goes on, saying so in the status (and the report)
+    kind, message = outcomes["laz-point-count-3359-of-3360"]
+    assert kind == "successful" and "counts per return add up to 3360" in message, message
+    pool = client.app.state.svc.scheduler.executor.pool
+    print(f"peak worker RSS {pool.peak_rss / 2**20:.0f} MiB, workers replaced {pool.replaced}")
+    assert pool.peak_rss < MEMORY_LIMIT
+
+
+def test_kill_9_of_a_worker_then_jobs_succeed(
+    client: TestClient, good: tuple[bytes, bytes]
+) -> None:
+    from terrasift.synthetic.terrain import make_scene, write_las
+
+    scheduler = client.app.state.svc.scheduler
+    tile = write_las(
+        make_scene(size=80, density=6, seed=2),
+        scheduler.jobs_dir.parent / "bigger.laz",
+        crs="EPSG:32632",
+    ).read_bytes()
+    outcomes = {}
+    for attempt in range(2):
+        r = client.post(
+            "/jobs",
+            files=[("file", ("t.laz", tile))],
+            data={
+                "params": '{"block_size": 20, "buffer": 2, "resolution": 1.0, "features": "none"}'
+            },
+        )
+        job_id = r.json()["jobID"]
+        killed = None
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            pool = getattr(scheduler.executor, "pool", None)
+            busy = pool.busy_pids() if pool else []
+            if attempt == 0 and busy and killed is None:
+                killed = busy[0]
+                os.kill(killed, signal.SIGKILL)
+            info = client.get(f"/jobs/{job_id}").json()
+            if info["status"] not in ("accepted", "running"):
+                break
+            time.sleep(0.02)
+        outcomes[attempt] = (info["status"], info.get("message"), killed)
+    assert outcomes[0][2] is not None  # a worker was killed mid-job
+    assert outcomes[0][0] == "successful", outcomes  # its task ran again on a replacement
+    assert outcomes[1][0] == "successful", outcomes
+    assert killed not in scheduler.executor.pool.worker_pids()
+
+
+def _read_all(path: str) -> int:
+    """Every point of the tile, as a shard task reads it (runs in a worker)."""
+    return sum(len(c.xyz) for c in iter_chunks(path, 100_000))
+
+
+@pytest.fixture(scope="module")
+def reader_pool() -> Iterator[WorkerPool]:
+    pool = WorkerPool(1, memory_limit=MEMORY_LIMIT)
+    yield pool
+    pool.shutdown(kill=True)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    which=st.sampled_from(["las", "laz"]),
+    edits=st.lists(
+        st.tuples(st.integers(0, 600), st.binary(min_size=1, max_size=8)), min_size=1, max_size=4
+    ),
+)
+def test_header_fuzz_is_an_input_error_or_a_readable_tile(
+    tmp_path_factory: pytest.TempPathFactory,
+    good: tuple[bytes, bytes],
+    reader_pool: WorkerPool,
+    which: str,
+    edits,
+) -> None:
+    """Random bytes anywhere in the header and VLRs: the header check (which runs in the API
+    process) refuses cleanly or passes; reading the points then, in a disposable worker as the
+    service does, gives every point, a clean refusal, or a lost worker (a decoder that aborts)
+    that the pool replaces."""
+    data = bytearray(good[0] if which == "las" else good[1])
+    for at, raw in edits:
+        data[at : at + len(raw)] = raw
+    path = tmp_path_factory.getbasetemp() / f"fuzz.{which}"
+    path.write_bytes(bytes(data))
+    try:
+        info = read_tile_info(path)
+    except InputError:
+        return
+    assert info.point_count > 0
+    try:
+        read = reader_pool.submit(_read_all, str(path), timeout=30).result(timeout=120)
+    except (InputError, WorkerLost, TaskOutOfMemory):
+        return
+    assert read == info.point_count

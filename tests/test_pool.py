@@ -1,0 +1,147 @@
+"""Disposable workers: a worker that dies, overruns or grows is replaced and only its task fails."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures import CancelledError
+from pathlib import Path
+
+import pytest
+
+from terrasift.errors import JobCancelled
+from terrasift.workers.pool import (
+    TaskOutOfMemory,
+    TaskTimeout,
+    WorkerLost,
+    WorkerPool,
+    reap_leftovers,
+)
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def die() -> None:
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def abort() -> None:
+    os.abort()
+
+
+def sleep(seconds: float) -> float:
+    time.sleep(seconds)
+    return seconds
+
+
+def spin() -> None:
+    while True:
+        pass
+
+
+def grow() -> None:
+    held = []
+    while True:
+        held.append(bytearray(20_000_000))
+        time.sleep(0.02)
+
+
+def raises() -> None:
+    raise ValueError("bad block")
+
+
+@pytest.fixture(scope="module")
+def pool():
+    p = WorkerPool(2, memory_limit=300_000_000)
+    yield p
+    p.shutdown()
+
+
+def test_a_dying_worker_fails_only_its_task(pool: WorkerPool) -> None:
+    before = pool.replaced
+    for fn in (die, abort):
+        with pytest.raises(WorkerLost, match=rf"{fn.__name__}\(\) died \(signal SIG"):
+            pool.submit(fn).result(timeout=60)
+    assert pool.replaced - before == 4  # each task was tried twice
+    assert [f.result(timeout=60) for f in [pool.submit(square, i) for i in range(6)]] == [
+        0,
+        1,
+        4,
+        9,
+        16,
+        25,
+    ]
+    assert len(pool.worker_pids()) == 2
+
+
+def test_an_exception_is_the_task_s_own(pool: WorkerPool) -> None:
+    with pytest.raises(ValueError, match="bad block"):
+        pool.submit(raises).result(timeout=60)
+
+
+def test_time_limit_and_dismiss_stop_a_running_call(pool: WorkerPool) -> None:
+    t = time.monotonic()
+    with pytest.raises(TaskTimeout, match=r"spin\(\) ran longer than its limit of 1 s of CPU"):
+        pool.submit(spin, timeout=1.0).result(timeout=30)
+    assert time.monotonic() - t < 10
+    # a task that waits instead of computing meets the wall-clock limit (4 x)
+    with pytest.raises(TaskTimeout, match=r"sleep\(\) ran longer .* \(4 s in all\)"):
+        pool.submit(sleep, 60, timeout=1.0).result(timeout=30)
+    running = pool.submit(sleep, 60)
+    queued = [pool.submit(sleep, 60) for _ in range(2)]
+    while not pool.busy_pids():
+        time.sleep(0.05)
+    busy = set(pool.busy_pids())
+    t = time.monotonic()
+    assert pool.cancel([running, *queued]) == 3
+    with pytest.raises(JobCancelled):
+        running.result(timeout=10)
+    assert time.monotonic() - t < 5
+    for f in queued:  # one of them was running on the other worker
+        with pytest.raises((JobCancelled, CancelledError)):
+            f.result(timeout=5)
+    assert pool.submit(square, 3).result(timeout=60) == 9
+    assert not busy & set(pool.worker_pids())  # the workers that ran them are gone
+
+
+def test_memory_limit_names_the_task(pool: WorkerPool) -> None:
+    with pytest.raises(TaskOutOfMemory, match=r"grow\(\) needed more than the worker memory limit"):
+        pool.submit(grow).result(timeout=60)
+    assert pool.peak_rss < 300_000_000 + 200_000_000  # stopped within a few polls
+    assert pool.submit(square, 4).result(timeout=60) == 16
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="PR_SET_PDEATHSIG is Linux")
+def test_workers_die_with_their_owner_and_leftovers_are_reaped(tmp_path: Path) -> None:
+    pid_dir = tmp_path / "workers"
+    code = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from terrasift.workers.pool import WorkerPool\n"
+        f"p = WorkerPool(2, pid_dir=Path({str(pid_dir)!r}))\n"
+        "while len(list(Path(p.pid_dir).iterdir())) < 2: time.sleep(0.05)\n"
+        "print(' '.join(map(str, p.worker_pids())), flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    owner = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    pids = [int(p) for p in owner.stdout.readline().split()]
+    assert len(pids) == 2
+    owner.kill()
+    owner.wait()
+    end = time.monotonic() + 10
+    while any(Path(f"/proc/{p}").exists() for p in pids) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{p}").exists() for p in pids)
+    # their pid files stay behind; a restart reaps what they name (here: only a live stand-in)
+    stand_in = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    stat = Path(f"/proc/{stand_in.pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    (pid_dir / str(stand_in.pid)).write_text(stat + "\n")
+    (pid_dir / "999999999").write_text("1\n")
+    assert reap_leftovers(pid_dir) == [stand_in.pid]
+    assert stand_in.wait(timeout=10) == -signal.SIGKILL
+    assert not list(pid_dir.iterdir())
