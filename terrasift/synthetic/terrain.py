@@ -187,8 +187,24 @@ def make_scene(
         ret = np.r_[ret, np.ones(n_out, np.uint8)]
         nret = np.r_[nret, np.ones(n_out, np.uint8)]
 
-    # Shuffle so point order carries no hint of the class, as in a real file
-    # (flight-line order is not class order).
+    return shuffled_scene(rng, (x, y, z), truth, ret, nret, surf, origin, (w, h))
+
+
+def shuffled_scene(
+    rng: np.random.Generator,
+    xyz_local: tuple[NDArray, NDArray, NDArray],
+    truth: NDArray[np.uint8],
+    ret: NDArray[np.uint8],
+    nret: NDArray[np.uint8],
+    surf: Callable[[NDArray, NDArray], NDArray],
+    origin: tuple[float, float],
+    extent: tuple[float, float],
+    extra: dict[str, NDArray] | None = None,
+) -> Scene:
+    """A Scene of points made in local coordinates: shuffled, so point order
+    carries no hint of the class as in a real file (flight-line order is not
+    class order), and moved to ``origin`` with the true surface moved along."""
+    x, y, z = xyz_local
     order = rng.permutation(x.size)
     ox0, oy0 = origin
     xyz = np.column_stack([x[order] + ox0, y[order] + oy0, z[order]])
@@ -202,7 +218,8 @@ def make_scene(
         return_number=ret[order],
         number_of_returns=nret[order],
         surface=absolute_surface,
-        bounds=(ox0, oy0, ox0 + w, oy0 + h),
+        bounds=(ox0, oy0, ox0 + extent[0], oy0 + extent[1]),
+        extra=extra or {},
     )
 
 

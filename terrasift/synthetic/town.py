@@ -32,6 +32,7 @@ from terrasift.synthetic.terrain import (
     Scene,
     Surface,
     _veg_class,
+    shuffled_scene,
 )
 
 
@@ -221,20 +222,15 @@ def make_town(
         truth = np.r_[truth, np.full(n_out, NOISE, np.uint8)]
         ret, nret = np.r_[ret, np.ones(n_out, np.uint8)], np.r_[nret, np.ones(n_out, np.uint8)]
 
-    order = rng.permutation(x.size)
-    ox0, oy0 = origin
-    xyz = np.column_stack([x[order] + ox0, y[order] + oy0, z[order]])
-
-    def absolute_surface(ax: NDArray, ay: NDArray) -> NDArray[np.float64]:
-        return surf(np.asarray(ax) - ox0, np.asarray(ay) - oy0)
-
-    return Scene(
-        xyz=xyz,
-        truth=truth[order],
-        return_number=ret[order],
-        number_of_returns=nret[order],
-        surface=absolute_surface,
-        bounds=(ox0, oy0, ox0 + size, oy0 + size),
+    return shuffled_scene(
+        rng,
+        (x, y, z),
+        truth,
+        ret,
+        nret,
+        surf,
+        origin,
+        (size, size),
         extra={"houses": np.array([h.length for h in houses])},
     )
 
