@@ -74,3 +74,32 @@ def test_queue_position_and_stage(tmp_path: Path) -> None:
         fake.gate.set()
         final = poll(c, third, "successful")
         assert "queuePosition" not in final and "stage" not in final
+
+
+class _StagedPipeline(FakePipeline):
+    """Reports a stage and a warning before its gated tasks, as the real pipeline does."""
+
+    def run_job(self, job_dir: Path, executor: object, progress: object = None) -> list[str]:
+        if callable(progress):
+            info = {"stage": "blocks", "message": "block 0 of 2", "warnings": ["a.las: no CRS"]}
+            progress(0, 2, info)
+        return super().run_job(job_dir, executor, progress)
+
+
+def test_stage_and_warnings_come_from_the_store(tmp_path: Path) -> None:
+    fake = _StagedPipeline(tasks=2, free_tasks=0)
+    with client_for(tmp_path, fake) as c:
+        job_id = upload(c, ("a.las", las_bytes())).json()["jobID"]
+        poll(c, job_id, "running")
+        for _ in range(200):
+            doc = c.get(f"/jobs/{job_id}").json()
+            if doc.get("stage"):
+                break
+        assert doc["stage"] == "blocks" and doc["warnings"] == ["a.las: no CRS"]
+        listed = c.get("/jobs").json()["jobs"][0]
+        assert listed["stage"] == "blocks" and listed["warnings"] == ["a.las: no CRS"]
+        # nothing but the store answers: the job directory holds no progress file
+        assert not list(tmp_path.rglob("progress.json"))
+        fake.gate.set()
+        final = poll(c, job_id, "successful")
+        assert "stage" not in final and final["warnings"] == ["a.las: no CRS"]

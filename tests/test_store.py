@@ -162,3 +162,47 @@ def test_a_lost_or_corrupt_store_is_rebuilt_from_the_job_directories(tmp_path: P
     assert got["j0"].outputs == ["dtm.tif"] and got["j0"].params == {"resolution": 1.0}
     assert rebuilt.get_survey("s1", "alice").files == ["/in/0.las"]
     assert rebuilt._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_stage_and_warnings_live_in_the_row_and_its_record(tmp_path: Path) -> None:
+    jobs = tmp_path / "jobs"
+    (jobs / "j").mkdir(parents=True)
+    store = JobStore(tmp_path / "jobs.sqlite", jobs)
+    store.create_job("j", "t", {}, [])
+    store.mark_running("j")
+    store.set_progress("j", 30, "ground 3 of 9", stage="ground", warnings=["a.laz: 1 point short"])
+    store.set_progress("j", 40, "ground 4 of 9")  # stage and warnings kept
+    job = store.get_job("j")
+    assert (job.progress, job.stage, job.warnings) == (40, "ground", ["a.laz: 1 point short"])
+    assert store.queue_position(job) is None
+    store.close()
+    # the record follows a change of stage: a store rebuilt from it keeps both
+    (tmp_path / "jobs.sqlite").unlink()
+    again = JobStore(tmp_path / "jobs.sqlite", jobs)
+    job = again.get_job("j")
+    assert (job.status, job.stage, job.warnings) == (ACCEPTED, "ground", ["a.laz: 1 point short"])
+    again.close()
+
+
+def test_a_store_without_the_stage_columns_is_upgraded(tmp_path: Path) -> None:
+    import sqlite3
+
+    db = sqlite3.connect(tmp_path / "old.sqlite")
+    db.execute(
+        "CREATE TABLE jobs (id TEXT PRIMARY KEY, tenant TEXT NOT NULL, process_id TEXT NOT NULL,"
+        " status TEXT NOT NULL, message TEXT, progress INTEGER NOT NULL DEFAULT 0,"
+        " params TEXT NOT NULL, inputs TEXT NOT NULL, outputs TEXT NOT NULL DEFAULT '[]',"
+        " survey_id TEXT, created TEXT NOT NULL, started TEXT, finished TEXT, updated TEXT NOT NULL)"
+    )
+    db.execute(
+        "INSERT INTO jobs (id, tenant, process_id, status, params, inputs, created, updated)"
+        " VALUES ('old', 't', 'terrain', 'accepted', '{}', '[]', '2026-01-01', '2026-01-01')"
+    )
+    db.commit()
+    db.close()
+    store = JobStore(tmp_path / "old.sqlite")
+    store.create_job("new", "t", {}, [])
+    old, new = store.get_job("old"), store.get_job("new")
+    assert (old.stage, old.warnings) == (None, [])
+    assert store.queue_position(old) == 0 and store.queue_position(new) == 1
+    store.close()

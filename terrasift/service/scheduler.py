@@ -23,7 +23,6 @@ from types import ModuleType
 from typing import Any
 
 from terrasift.errors import JobCancelled, TerrasiftError
-from terrasift.service.jobinfo import write_detail
 from terrasift.service.store import ACCEPTED, DISMISSED, FAILED, SUCCESSFUL, JobStore
 from terrasift.workers.executors import Executor
 
@@ -301,17 +300,20 @@ class Scheduler:
             pct = min(99, (100 * done) // total) if total > 0 else 0
             message = info.get("message") if info else f"{done} of {total} tasks done"
             now = time.monotonic()
-            detail = (info.get("stage"), info.get("warnings")) if info else None
+            detail = (info.get("stage"), list(info.get("warnings") or [])) if info else None
+            changed = info is not None and detail != last[3]
             # counts change often: a new message alone is stored at most once a second,
-            # except when the stage changes, so message and stage agree
-            if pct != last[0] or (
-                message != last[1] and (now - last[2] >= 1.0 or detail != last[3])
-            ):
+            # except when the stage or warnings change, so message and stage agree
+            if pct != last[0] or changed or (message != last[1] and now - last[2] >= 1.0):
                 last[:3] = [pct, message, now]
-                self.store.set_progress(job_id, pct, message)
-            if info and detail != last[3]:
-                last[3] = detail
-                write_detail(job_dir, info)
+                if changed:
+                    assert detail is not None
+                    last[3] = detail
+                    self.store.set_progress(
+                        job_id, pct, message, stage=detail[0] or "", warnings=detail[1]
+                    )
+                else:
+                    self.store.set_progress(job_id, pct, message)
 
         try:
             names = self.pipeline.run_job(job_dir, ex, progress)

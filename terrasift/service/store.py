@@ -37,6 +37,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     status      TEXT NOT NULL,
     message     TEXT,
     progress    INTEGER NOT NULL DEFAULT 0,
+    stage       TEXT,
+    warnings    TEXT NOT NULL DEFAULT '[]',
     params      TEXT NOT NULL,
     inputs      TEXT NOT NULL,
     outputs     TEXT NOT NULL DEFAULT '[]',
@@ -77,6 +79,8 @@ class Job:
     updated: str
     message: str | None = None
     progress: int = 0
+    stage: str | None = None
+    warnings: list[str] = field(default_factory=list)
     outputs: list[str] = field(default_factory=list)
     survey_id: str | None = None
     started: str | None = None
@@ -101,8 +105,8 @@ class JobStore:
     """Thread-safe access to the SQLite job store (one connection, one lock).
 
     With ``jobs_dir``/``surveys_dir`` every job and survey also keeps its row as
-    ``record.json`` in its directory (written on creation and on every change of
-    status, not on progress), so a store whose file was deleted or corrupted is
+    ``record.json`` in its directory (written on creation, on every change of
+    status and of stage or warnings, not on progress), so a store whose file was deleted or corrupted is
     rebuilt from them; ``check`` notices either while the service runs.
     """
 
@@ -133,6 +137,7 @@ class JobStore:
                 # in WAL mode a commit survives a crash of the service without an fsync each
                 db.execute("PRAGMA synchronous=NORMAL")
                 db.executescript(_SCHEMA)
+                _add_missing_columns(db)
                 if db.execute("PRAGMA quick_check").fetchone()[0] != "ok":
                     raise sqlite3.DatabaseError("quick_check failed")
             except sqlite3.DatabaseError:
@@ -225,7 +230,7 @@ class JobStore:
                     rec["status"] = ACCEPTED  # resumed by the scheduler
                 cols = _JOB_COLUMNS if kind == "jobs" else _SURVEY_COLUMNS
                 row = {c: rec.get(c) for c in cols}
-                for c in ("params", "inputs", "outputs", "files"):
+                for c in ("params", "inputs", "outputs", "files", "warnings"):
                     if c in row and not isinstance(row[c], str):
                         row[c] = json.dumps(row[c] if row[c] is not None else [])
                 try:
@@ -370,14 +375,51 @@ class JobStore:
             self._write_record(job_id)
         return cur.rowcount == 1
 
-    def set_progress(self, job_id: str, progress: int, message: str | None = None) -> None:
-        """Record progress (0–100) of a running job; ignored once it left ``running``."""
+    def set_progress(
+        self,
+        job_id: str,
+        progress: int,
+        message: str | None = None,
+        *,
+        stage: str | None = None,
+        warnings: list[str] | None = None,
+    ) -> None:
+        """Record progress (0–100) of a running job, and its stage and warnings when
+        given (the record in its directory follows them); ignored once it left ``running``.
+
+        Status reads come from this row only: nothing a poller asks for touches job files.
+        """
         progress = max(0, min(100, int(progress)))
+        detail = stage is not None or warnings is not None
         with self._tx() as db:
-            db.execute(
-                "UPDATE jobs SET progress = ?, message = COALESCE(?, message), updated = ? WHERE id = ? AND status = ?",
-                (progress, message, now(), job_id, RUNNING),
+            cur = db.execute(
+                "UPDATE jobs SET progress = ?, message = COALESCE(?, message),"
+                " stage = COALESCE(?, stage), warnings = COALESCE(?, warnings), updated = ?"
+                " WHERE id = ? AND status = ?",
+                (
+                    progress,
+                    message,
+                    stage,
+                    None if warnings is None else json.dumps([str(w) for w in warnings]),
+                    now(),
+                    job_id,
+                    RUNNING,
+                ),
             )
+        if detail and cur.rowcount == 1:
+            self._write_record(job_id)
+
+    def queue_position(self, job: Job) -> int | None:
+        """Accepted jobs ahead of this accepted one (0: next to start); None when not queued."""
+        if job.status != ACCEPTED:
+            return None
+        with self._read() as db:
+            row = db.execute(
+                "SELECT COUNT(*) FROM jobs WHERE status = ? AND (created < ?"
+                " OR (created = ? AND rowid < (SELECT rowid FROM jobs WHERE id = ?)))",
+                (ACCEPTED, job.created, job.created, job.id),
+            ).fetchone()
+        return int(row[0])
 
     def finish(
         self, job_id: str, status: str, message: str, outputs: list[str] | None = None
@@ -453,6 +495,8 @@ _JOB_COLUMNS = (
     "status",
     "message",
     "progress",
+    "stage",
+    "warnings",
     "params",
     "inputs",
     "outputs",
@@ -463,6 +507,15 @@ _JOB_COLUMNS = (
     "updated",
 )
 _SURVEY_COLUMNS = ("id", "tenant", "files", "params", "created")
+
+
+def _add_missing_columns(db: sqlite3.Connection) -> None:
+    """Bring a store written by an older version up to the current ``jobs`` columns."""
+    have = {r[1] for r in db.execute("PRAGMA table_info(jobs)")}
+    if "stage" not in have:
+        db.execute("ALTER TABLE jobs ADD COLUMN stage TEXT")
+    if "warnings" not in have:
+        db.execute("ALTER TABLE jobs ADD COLUMN warnings TEXT NOT NULL DEFAULT '[]'")
 
 
 def _ident(path: Path) -> tuple[int, int] | None:
@@ -492,6 +545,8 @@ def _job(row: sqlite3.Row) -> Job:
         status=row["status"],
         message=row["message"],
         progress=row["progress"],
+        stage=row["stage"],
+        warnings=json.loads(row["warnings"] or "[]"),
         params=json.loads(row["params"]),
         inputs=json.loads(row["inputs"]),
         outputs=json.loads(row["outputs"]),

@@ -71,7 +71,7 @@ async def submit_upload(request: Request, who: Annotated[str, Depends(tenant)]) 
     response_model_exclude_none=True,
     responses=problem_responses(400, 401),
 )
-def list_jobs(
+async def list_jobs(
     request: Request,
     who: Annotated[str, Depends(tenant)],
     limit: Annotated[int, Query(ge=1, le=1000)] = 10,
@@ -82,6 +82,18 @@ def list_jobs(
     ] = None,  # noqa: N803 - OGC name
 ) -> dict[str, Any]:
     """Newest first; `next` link while more remain."""
+    return jobs_doc(request, who, limit, offset, status, processID)
+
+
+def jobs_doc(
+    request: Request,
+    who: str,
+    limit: int = 10,
+    offset: int = 0,
+    status: list[str] | None = None,
+    processID: list[str] | None = None,  # noqa: N803 - OGC name
+) -> dict[str, Any]:
+    """The job list document (also rendered by the HTML page)."""
     bad = sorted(set(status or []) - set(STATUSES))
     if bad:
         raise Problem(
@@ -111,7 +123,9 @@ def list_jobs(
     response_model_exclude_none=True,
     responses=problem_responses(401, 404),
 )
-def job_status(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> JSONResponse:
+async def job_status(
+    job_id: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> JSONResponse:
     """statusInfo: integer progress of the work done (points × measured stage cost), the
     current stage and counts in `message`, plus `stage`, `warnings` and `queuePosition`."""
     return JSONResponse(status_doc(request, _job(request, job_id, who)))
@@ -141,10 +155,15 @@ def dismiss(job_id: str, request: Request, who: Annotated[str, Depends(tenant)])
     response_model=dict[str, OutputReference],
     responses=problem_responses(401, 404, 410, 422),
 )
-def job_results(
+async def job_results(
     job_id: str, request: Request, who: Annotated[str, Depends(tenant)]
 ) -> dict[str, Any]:
     """Each output by reference (href and media type) once the job is successful."""
+    return results_doc(request, job_id, who)
+
+
+def results_doc(request: Request, job_id: str, who: str) -> dict[str, Any]:
+    """The results document (also rendered by the HTML page)."""
     job = _finished(_job(request, job_id, who))
     return ogc.results(job, base_url(request))
 
@@ -179,7 +198,7 @@ def head_output(
 def status_doc(request: Request, job: Job) -> dict[str, Any]:
     """The statusInfo of ``job`` with terrasift's extra members."""
     svc = service(request)
-    extra = jobinfo.extras(svc.store, svc.scheduler.job_dir(job.id), job)
+    extra = jobinfo.extras(svc.store, job)
     return ogc.status_info(job, base_url(request), extra)
 
 

@@ -99,7 +99,7 @@ def process(process_id: str, request: Request) -> HTMLResponse:
 def jobs(
     request: Request, who: Annotated[str, Depends(tenant)], limit: int = 50, offset: int = 0
 ) -> HTMLResponse:
-    doc = job_routes.list_jobs(request, who, min(max(limit, 1), 1000), max(offset, 0))
+    doc = job_routes.jobs_doc(request, who, min(max(limit, 1), 1000), max(offset, 0))
     return _page(request, html.jobs_page(doc))
 
 
@@ -119,7 +119,7 @@ def job(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> 
 
 @router.get("/jobs/{job_id}/results")
 def results(job_id: str, request: Request, who: Annotated[str, Depends(tenant)]) -> HTMLResponse:
-    return _page(request, html.results_page(job_id, job_routes.job_results(job_id, request, who)))
+    return _page(request, html.results_page(job_id, job_routes.results_doc(request, job_id, who)))
 
 
 @router.post("/jobs")
