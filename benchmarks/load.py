@@ -5,6 +5,11 @@ measures p50/p99 of the status read with the pollers while the service is idle,
 then again while two jobs run, and prints both. Every loop is bounded: pollers
 stop at ``--seconds`` or after ``--max-requests`` each, and the server is stopped
 with SIGTERM while the jobs run (its exit time and leftover workers are printed).
+Beside what the pollers see it prints the server's own time per request (its
+``Server-Timing`` header) and the CPU share of the API process and of the
+pollers: the difference between the two latencies is time spent waiting for a
+CPU or the event loop, not in the request path. ``--profile FILE`` records the
+API process with py-spy while the jobs run (collapsed stacks).
 """
 
 from __future__ import annotations
@@ -61,9 +66,11 @@ def start_server(data: Path, port: int, pythonpath: str | None = None) -> subpro
 
 async def poll(
     base: str, job_ids: list[str], pollers: int, seconds: float, interval: float, cap: int
-) -> list[float]:
-    """Latencies (s) of GET /jobs/{id} from ``pollers`` clients, each every ``interval`` s."""
+) -> tuple[list[float], list[float]]:
+    """Latencies (s) of GET /jobs/{id} from ``pollers`` clients, each every ``interval`` s,
+    and the server's own time for each (its ``Server-Timing`` header)."""
     latencies: list[float] = []
+    app_times: list[float] = []  # the server's own time (Server-Timing), when it sends it
 
     async def one(i: int) -> None:
         async with httpx.AsyncClient(base_url=base, timeout=60) as client:
@@ -78,15 +85,27 @@ async def poll(
                 r = await client.get(f"/jobs/{job_ids[i % len(job_ids)]}")
                 latencies.append(time.perf_counter() - t)
                 r.raise_for_status()
+                timing = r.headers.get("server-timing", "")
+                if "dur=" in timing:
+                    app_times.append(float(timing.split("dur=")[1].split(",")[0]) / 1000)
                 await asyncio.sleep(interval)
 
     await asyncio.gather(*(one(i) for i in range(pollers)))
-    return latencies
+    return latencies, app_times
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far (0 when it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def summary(lat: list[float]) -> str:
     if len(lat) < 2:
-        return f"n={len(lat)}"
+        return "not reported" if not lat else f"n={len(lat)}"
     q = statistics.quantiles(lat, n=100)
     return f"n={len(lat)} p50={1000 * statistics.median(lat):.1f} ms p99={1000 * q[98]:.1f} ms max={1000 * max(lat):.1f} ms"
 
@@ -98,6 +117,10 @@ def main() -> None:
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between a poller's reads")
     ap.add_argument("--max-requests", type=int, default=1000, help="per poller")
     ap.add_argument("--size", type=float, default=200.0, help="edge of each job's tile in metres")
+    ap.add_argument(
+        "--profile",
+        help="record the API process with py-spy while the jobs run (collapsed stacks to this file)",
+    )
     ap.add_argument(
         "--baseline", help="a directory holding another terrasift package to measure first"
     )
@@ -156,11 +179,37 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
                 ):
                     time.sleep(0.2)
                 time.sleep(2)  # past the workers' start
+                spy = None
+                if args.profile:
+                    out = f"{args.profile}.{'baseline' if pythonpath else 'tree'}"
+                    spy = subprocess.Popen(
+                        [
+                            *(
+                                [
+                                    "py-spy",
+                                    "record",
+                                    "--nonblocking",
+                                    "--format",
+                                    "raw",
+                                    "--rate",
+                                    "250",
+                                ]
+                            ),
+                            *("--pid", str(server.pid), "--duration", str(int(args.seconds))),
+                            *("--output", out),
+                        ],
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
+                cpu0 = (time.process_time(), cpu_seconds(server.pid), time.monotonic())
                 busy = asyncio.run(
                     poll(
                         base, busy_ids, args.pollers, args.seconds, args.interval, args.max_requests
                     )
                 )
+                cpu1 = (time.process_time(), cpu_seconds(server.pid), time.monotonic())
+                if spy is not None:
+                    spy.wait(timeout=60)
                 states = [c.get(f"/jobs/{j}").json() for j in busy_ids]
                 still = [s["progress"] for s in states if s["status"] == "running"]
                 workers = [int(p.name) for p in (tmp / "data" / "workers").glob("[0-9]*")]
@@ -179,9 +228,16 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
         print(
             f"{args.pollers} pollers, one read each every {args.interval} s; load average {load:.1f}"
         )
-        print(f"idle (jobs dismissed):        {summary(idle)}")
+        print(f"idle (jobs dismissed):        {summary(idle[0])}")
+        print(f"  server's own time:          {summary(idle[1])}")
         print(
-            f"two jobs running ({len(still)} still running at the end, progress {still}): {summary(busy)}"
+            f"two jobs running ({len(still)} still running at the end, progress {still}): {summary(busy[0])}"
+        )
+        print(f"  server's own time:          {summary(busy[1])}")
+        wall = cpu1[2] - cpu0[2]
+        print(
+            f"  CPU while polling: API process {100 * (cpu1[1] - cpu0[1]) / wall:.0f} %, "
+            f"pollers {100 * (cpu1[0] - cpu0[0]) / wall:.0f} % of one core"
         )
         print(
             f"SIGTERM with both jobs running to exit: {stop_seconds:.1f} s; "

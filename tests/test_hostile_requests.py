@@ -146,3 +146,9 @@ def test_a_symlink_swapped_in_after_registration_is_refused(
     registered.symlink_to(outside)
     body = _problem(client.post(f"/surveys/{survey}/runs"), 403)
     assert "outside the input root" in body["detail"]
+
+
+def test_every_response_carries_the_apps_own_time(client: TestClient) -> None:
+    for r in (client.get("/conformance"), client.get("/jobs/nope"), client.get("/jobs/%00")):
+        timing = r.headers["server-timing"]
+        assert timing.startswith("app;dur=") and 0 <= float(timing.split("=")[1]) < 10_000

@@ -5,12 +5,17 @@ number or 100 000 nested brackets would otherwise escape as a 500 from the
 parser); URLs, query strings and JSON strings may not hold NUL or other
 control characters (a path with a NUL cannot be opened, a name with one
 cannot be stored). Each refusal is a 4xx problem response.
+
+Every response carries ``Server-Timing: app;dur=<ms>``, the time from the
+request reaching the app to its response starting: a client that sees more
+than that waited for the network, the event loop or a CPU.
 """
 
 from __future__ import annotations
 
 import json
 import re
+import time
 from typing import Any
 from urllib.parse import unquote
 
@@ -107,6 +112,7 @@ class RequestGuard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        send = _timed(send, time.perf_counter())
         try:
             self._check_url(scope)
             ctype = _header(scope, b"content-type").split(";")[0].strip().lower()
@@ -127,6 +133,19 @@ class RequestGuard:
         query = unquote(scope.get("query_string", b"").decode("latin-1"))
         if CONTROL_CHARS.search(path) or CONTROL_CHARS.search(query):
             raise RequestRefused("invalid-request", "the URL holds a control character")
+
+
+def _timed(send: Send, start: float) -> Send:
+    """``send`` that adds the app's time so far to the response headers."""
+
+    async def timed(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            ms = 1000 * (time.perf_counter() - start)
+            headers = [*message.get("headers", []), (b"server-timing", b"app;dur=%.2f" % ms)]
+            message = {**message, "headers": headers}
+        await send(message)
+
+    return timed
 
 
 def _header(scope: Scope, name: bytes) -> str:
