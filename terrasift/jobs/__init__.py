@@ -10,13 +10,20 @@ jobs through the names exported here.
 """
 
 from terrasift.files import load_json
-from terrasift.jobs.dirs import check_cancel, clear_outputs, output_path, request_cancel
+from terrasift.jobs.dirs import (
+    cancel_marker,
+    check_cancel,
+    clear_outputs,
+    output_path,
+    request_cancel,
+)
 from terrasift.jobs.params import validate_params
 from terrasift.jobs.paths import dtm_path_profile, job_path_profile
-from terrasift.jobs.plan import inspect_inputs, prepare_job
+from terrasift.jobs.plan import inspect_inputs, prepare_job, set_input_roots
 from terrasift.jobs.run import run_job
 
 __all__ = [
+    "cancel_marker",
     "check_cancel",
     "clear_outputs",
     "dtm_path_profile",
@@ -25,6 +32,7 @@ __all__ = [
     "load_json",
     "output_path",
     "prepare_job",
+    "set_input_roots",
     "request_cancel",
     "run_job",
     "validate_params",

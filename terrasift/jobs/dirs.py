@@ -32,6 +32,11 @@ def block_results(job_dir: Path) -> list[Path]:
     return sorted((Path(job_dir) / "blocks").glob("*.npz"), key=lambda p: p.name)
 
 
+def cancel_marker(job_dir: Path) -> Path:
+    """The file whose existence means the job was dismissed (watched by guarded tasks)."""
+    return Path(job_dir) / CANCEL_MARKER
+
+
 def request_cancel(job_dir: Path) -> None:
     """Mark the job dismissed; running tasks stop at their next stage boundary."""
     Path(job_dir).mkdir(parents=True, exist_ok=True)

@@ -289,7 +289,14 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
             f"{name}: {missing} points got no label and {twice} got more than one"
         )
     params = load_json(job / "job.json")["params"]
-    write_classified_copy(tile["path"], out, labels, crs=params.get("crs"), chunk_size=chunk_size)
+    write_classified_copy(
+        tile["path"],
+        out,
+        labels,
+        crs=params.get("crs"),
+        chunk_size=chunk_size,
+        roots=plan.get("input_roots"),
+    )
     return name
 
 

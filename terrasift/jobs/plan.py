@@ -7,7 +7,7 @@ and the block grid laid over the union of the tiles.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,7 @@ from terrasift.errors import InputError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.params import grid_alignment, resolve_buffer
 from terrasift.tiling.blocks import BlockGrid
-from terrasift.tiling.lasfile import TileInfo, read_tile_info
+from terrasift.tiling.lasfile import TileInfo, open_input, read_tile_info
 
 
 def inspect_inputs(
@@ -93,12 +93,24 @@ def prepare_job(
     write_json(job_dir / "job.json", job, indent=2)
 
 
+def set_input_roots(job_dir: Path, roots: Sequence[str | Path]) -> None:
+    """Confine the job's inputs to ``roots``: every task that opens an input
+    checks, on the opened file, that it still lies inside one of them."""
+    path = Path(job_dir) / "job.json"
+    job = load_json(path)
+    job["input_roots"] = [str(Path(r).resolve()) for r in roots]
+    write_json(path, job, indent=2)
+
+
 def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     """The job's ``plan.json`` (tiles, CRS, density, block grid), made from the tiles' headers once."""
     path = job_dir / "plan.json"
     if path.exists():
         return load_json(path)
     params = job["params"]
+    roots = job.get("input_roots")
+    for p in job["inputs"]:
+        open_input(p, roots).close()  # still inside the input root (see set_input_roots)
     infos = [read_tile_info(p) for p in job["inputs"]]
     crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
     mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
@@ -119,5 +131,7 @@ def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
         "grid": grid.to_dict(),
         "warnings": warnings,
     }
+    if roots is not None:
+        plan["input_roots"] = list(roots)
     write_json(path, plan, indent=2)
     return plan

@@ -107,6 +107,7 @@ def run_job(
             params.get("scan_dimension"),
             p.start,
             p.stop,
+            plan.get("input_roots"),
         )
         for p in todo
     ]

@@ -35,8 +35,16 @@ GENERIC_FAILURE = "processing failed on an internal error; the service log has t
 class JobExecutor:
     """One job's view of the shared executor: remembers its futures so they can be cancelled."""
 
-    def __init__(self, inner: Any, task_timeout: Callable[[], float | None] | None = None):
+    def __init__(
+        self,
+        inner: Any,
+        task_timeout: Callable[[], float | None] | None = None,
+        cancel_marker: Path | None = None,
+    ):
+        """``task_timeout`` gives each task's CPU-second limit; ``cancel_marker`` is the file
+        whose appearance stops running tasks on executors that watch it (Dask)."""
         self._inner = inner
+        self._cancel_marker = str(cancel_marker) if cancel_marker is not None else None
         self._futures: list[Any] = []
         self._lock = threading.Lock()
         self._task_timeout = task_timeout
@@ -47,8 +55,13 @@ class JobExecutor:
             if self.cancelled:
                 raise JobCancelled("the job was dismissed")
             limited = getattr(self._inner, "submit_limited", None)
-            if limited is not None and self._task_timeout is not None and not kwargs:
-                future = limited(self._task_timeout(), fn, *args)
+            guarded = self._task_timeout is not None or self._cancel_marker is not None
+            if limited is not None and guarded and not kwargs:
+                timeout = self._task_timeout() if self._task_timeout is not None else None
+                if self._cancel_marker is not None:
+                    future = limited(timeout, fn, *args, cancel_marker=self._cancel_marker)
+                else:
+                    future = limited(timeout, fn, *args)
             else:
                 future = self._inner.submit(fn, *args, **kwargs)
             self._futures = [f for f in self._futures if not f.done()]
@@ -282,7 +295,12 @@ class Scheduler:
             self.store.finish(job_id, FAILED, f"input {escaped} now lies outside the input root")
             return
         try:
-            ex = JobExecutor(self._executor_or_create(), self._time_limit(job_dir))
+            marker = getattr(self.pipeline, "cancel_marker", None)
+            ex = JobExecutor(
+                self._executor_or_create(),
+                self._time_limit(job_dir),
+                marker(job_dir) if callable(marker) else None,
+            )
         except Exception as exc:  # noqa: BLE001 - e.g. Dask scheduler unreachable
             log.exception("cannot create the executor for job %s", job_id)
             self.store.finish(job_id, FAILED, f"no workers available: {exc}")
@@ -335,6 +353,11 @@ class Scheduler:
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:
             self.purge(job_dir)
+
+    @property
+    def input_roots(self) -> list[Path] | None:
+        """Where inputs may lie (data directories and the input root); None: anywhere."""
+        return None if self._input_roots is None else list(self._input_roots)
 
     def _escaped_input(self, job_id: str) -> str | None:
         """The name of an input that resolves outside the allowed roots (a symlink swapped in)."""

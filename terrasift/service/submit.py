@@ -141,6 +141,9 @@ def create_job(
             scheduler.pipeline.prepare_job(job_dir, inputs, params)
         else:
             scheduler.pipeline.prepare_job(job_dir, inputs, params, outputs=outputs)
+        confine = getattr(scheduler.pipeline, "set_input_roots", None)
+        if callable(confine) and scheduler.input_roots is not None:
+            confine(job_dir, scheduler.input_roots)  # re-checked by every task that opens one
         job = store.create_job(
             job_id,
             tenant,

@@ -9,6 +9,7 @@ core lies within ``buffer`` of it, corners included.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -168,9 +169,11 @@ def shard_tile(
     scan_dim: str | None = None,
     start: int = 0,
     stop: int | None = None,
+    roots: Sequence[str] | None = None,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
-    files ``out_dir/<block>.bin``.
+    files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
+    of them when it is opened (``open_input``).
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -178,7 +181,7 @@ def shard_tile(
     core_counts: dict[str, int] = {}
     with atomic_path(out_dir) as tmp:
         tmp.mkdir()
-        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop):
+        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots):
             x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
             p, bid, core = assign_blocks(grid, x, y)
             # Stable, so a block's points keep file order; on 16-bit ids numpy

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 from pathlib import Path
 
 import laspy
@@ -11,6 +12,7 @@ import pyproj
 from numpy.typing import NDArray
 
 from terrasift.files import atomic_path
+from terrasift.tiling.lasfile import open_input
 
 
 def write_classified_copy(
@@ -20,16 +22,18 @@ def write_classified_copy(
     *,
     crs: str | None = None,
     chunk_size: int = 1_000_000,
+    roots: Sequence[str] | None = None,
 ) -> Path:
     """Copy ``src`` to ``dst`` (LAZ) with ``classes[i]`` as point i's classification.
 
     The source is streamed in chunks, so memory follows the chunk and the
     labels, not the file. ``crs`` (any pyproj string) is written into the
     header when given. LAS 1.0 input is written as 1.2, which shares its
-    header and point records of formats 0 and 1.
+    header and point records of formats 0 and 1. With ``roots`` the source
+    must lie inside one of them when it is opened (``open_input``).
     """
     dst = Path(dst)
-    with atomic_path(dst) as tmp, laspy.open(str(src)) as reader:
+    with atomic_path(dst) as tmp, laspy.open(open_input(src, roots), closefd=True) as reader:
         header = copy.deepcopy(reader.header)
         if str(header.version) == "1.0":
             # laspy writes from 1.1 on

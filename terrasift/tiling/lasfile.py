@@ -6,8 +6,11 @@ the message goes straight into a 4xx problem body or a failed job.
 
 from __future__ import annotations
 
+import errno
+import os
+import stat
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -43,6 +46,53 @@ class TileInfo:
     @property
     def area(self) -> float:
         return max(self.maxs[0] - self.mins[0], 0.0) * max(self.maxs[1] - self.mins[1], 0.0)
+
+
+def open_input(path: str | Path, roots: Sequence[str] | None = None) -> BinaryIO:
+    """Open a tile for reading; with ``roots``, only a regular file inside one of them.
+
+    The check is made on the opened file itself, not on its name: the last
+    component may not be a symbolic link (``O_NOFOLLOW``), and the path the
+    kernel reports for the open descriptor must lie under a root. A file or
+    folder swapped for a link to somewhere else between submission and this
+    open is refused, whenever the swap happened. ``roots`` are resolved paths.
+    """
+    path = Path(path)
+    name = path.name
+    if roots is None:
+        return open(path, "rb")
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(path, flags | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(
+                f"{name}: is now a symbolic link; inputs are read only from inside the input root"
+            ) from None
+        raise InputError(f"{name}: cannot open for reading ({exc.strerror})") from None
+    fh = os.fdopen(fd, "rb")
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputError(f"{name}: is no longer a regular file")
+        real = _real_path(fd, path)
+        if real is None or not any(real.is_relative_to(r) for r in roots):
+            raise InputError(f"{name}: now lies outside the input root")
+    except BaseException:
+        fh.close()
+        raise
+    return fh
+
+
+def _real_path(fd: int, path: Path) -> Path | None:
+    """Where the open descriptor ``fd`` really is (None when that cannot be told)."""
+    try:
+        return Path(os.readlink(f"/proc/self/fd/{fd}"))
+    except OSError:  # no /proc: the resolved name must still be this very file
+        real = Path(os.path.realpath(path))
+        try:
+            return real if os.path.samestat(os.fstat(fd), os.stat(real)) else None
+        except OSError:
+            return None
 
 
 def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileInfo:
@@ -337,25 +387,31 @@ def iter_chunks(
     scan_dim: str | None = None,
     start: int = 0,
     stop: int | None = None,
+    roots: Sequence[str] | None = None,
 ) -> Iterator[PointChunk]:
     """Yield the tile's points ``start``..``stop`` (default: all) in file order,
-    ``chunk_size`` at a time.
+    ``chunk_size`` at a time; with ``roots`` the file is opened by ``open_input``.
 
     Only the dimensions the science uses are decompressed. ``scan_dim`` names a
     dimension holding a scan-position id (default: point_source_id, 0 if absent).
     A LAZ reader seeks to ``start`` through the chunk table.
     """
+    sel = laspy.DecompressionSelection
+    wanted = (
+        sel.XY_RETURNS_CHANNEL
+        | sel.Z
+        | sel.POINT_SOURCE_ID
+        | sel.CLASSIFICATION
+        | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+    )
     try:
-        sel = laspy.DecompressionSelection
-        wanted = (
-            sel.XY_RETURNS_CHANNEL
-            | sel.Z
-            | sel.POINT_SOURCE_ID
-            | sel.CLASSIFICATION
-            | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
-        )
-        reader = laspy.open(str(path), decompression_selection=wanted)
+        source = open_input(path, roots)
+    except OSError as exc:
+        raise InputError(f"{Path(path).name}: cannot open for reading ({exc.strerror})") from None
+    try:
+        reader = laspy.open(source, closefd=True, decompression_selection=wanted)
     except Exception as exc:
+        source.close()
         raise InputError(f"{Path(path).name}: cannot open for reading: {exc}") from None
     with reader:
         total = int(reader.header.point_count)

@@ -111,8 +111,15 @@ class LocalExecutor:
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         return self.pool.submit(fn, *args)
 
-    def submit_limited(self, timeout: float | None, fn: Callable[..., Any], *args: Any) -> Future:
-        """``submit`` with a time limit in seconds: past it the worker is killed and the task fails."""
+    def submit_limited(
+        self,
+        timeout: float | None,
+        fn: Callable[..., Any],
+        *args: Any,
+        cancel_marker: str | None = None,
+    ) -> Future:
+        """``submit`` with a time limit in seconds: past it the worker is killed and the task
+        fails. ``cancel_marker`` is not needed here: ``cancel_running`` kills the workers."""
         return self.pool.submit(fn, *args, timeout=timeout)
 
     def cancel_running(self, futures: Iterable[Future]) -> int:
@@ -175,15 +182,29 @@ class DaskExecutor:
     ``no_workers_timeout`` (seconds) bounds how long a job waits with no worker
     in the cluster, before it starts and while it runs; past it the job fails
     with :class:`NoWorkersError` instead of sitting at 0 % forever.
+
+    Every task runs guarded (``terrasift.workers.guarded``): in a disposable
+    process of the Dask worker, under ``memory_limit`` (bytes per process),
+    the CPU seconds of ``submit_limited``, and stopped when the cancel marker
+    it was given appears, as on the local pool.
     """
 
-    def __init__(self, address: str, no_workers_timeout: float | None = None):
+    def __init__(
+        self,
+        address: str,
+        no_workers_timeout: float | None = None,
+        *,
+        memory_limit: int | None = None,
+        nice: int = 0,
+    ):
         from distributed import Client  # imported lazily: the default path needs no Dask
 
         if no_workers_timeout is None:
             env = os.environ.get("TERRASIFT_DASK_NO_WORKERS_TIMEOUT")
             no_workers_timeout = float(env) if env else NO_WORKERS_TIMEOUT
         self.no_workers_timeout = no_workers_timeout
+        self.memory_limit = memory_limit
+        self.nice = nice
         self.address = address
         self._client = Client(address, set_as_default=False)
         self._workers_seen = time.monotonic()
@@ -258,9 +279,23 @@ class DaskExecutor:
             shutil.rmtree(folder, ignore_errors=True)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        return self.submit_limited(None, fn, *args)
+
+    def submit_limited(
+        self,
+        timeout: float | None,
+        fn: Callable[..., Any],
+        *args: Any,
+        cancel_marker: str | None = None,
+    ) -> Future:
+        """``fn(*args)`` guarded on a worker: at most ``timeout`` CPU seconds, the memory
+        limit, and stopped within a fraction of a second once ``cancel_marker`` exists."""
+        from terrasift.workers.guarded import Guard, run_guarded
+
+        guard = Guard(timeout, self.memory_limit, cancel_marker, self.nice)
         # pure=False gives every submission a fresh key, so a retried task is
         # never confused with the failed one.
-        return self._client.submit(fn, *args, pure=False)
+        return self._client.submit(run_guarded, fn, args, guard, pure=False)
 
     def wait_any(self, futures: Iterable[Future], timeout: float) -> set[Future]:
         """Futures done within ``timeout``; raises NoWorkersError once the cluster
@@ -299,7 +334,12 @@ def make_executor(
     pool; ``pool`` holds LocalExecutor's options (nice, memory_limit, pid_dir)."""
     address = dask_scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if address:
-        return DaskExecutor(address, no_workers_timeout)
+        return DaskExecutor(
+            address,
+            no_workers_timeout,
+            memory_limit=pool.get("memory_limit"),
+            nice=pool.get("nice", 0),
+        )
     return LocalExecutor(workers, **pool)
 
 
