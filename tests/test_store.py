@@ -206,3 +206,24 @@ def test_a_store_without_the_stage_columns_is_upgraded(tmp_path: Path) -> None:
     assert (old.stage, old.warnings) == (None, [])
     assert store.queue_position(old) == 0 and store.queue_position(new) == 1
     store.close()
+
+
+def test_reads_do_not_wait_behind_a_check_waiting_for_a_commit(store: JobStore) -> None:
+    """A status read runs on the event loop: a health check queued behind a slow commit
+    (a WAL checkpoint on a busy disk) must not hold the readers meanwhile."""
+    import threading
+    import time
+
+    store.create_job("j", "t", {}, [])
+    store._lock.acquire()  # a commit that takes a while
+    release = threading.Timer(1.0, store._lock.release)
+    release.start()
+    check = threading.Thread(target=store.check)
+    check.start()
+    time.sleep(0.2)  # the check is now waiting for the writer
+    t = time.monotonic()
+    assert store.get_job("j") is not None
+    assert time.monotonic() - t < 0.5
+    release.join()
+    check.join(10)
+    assert not check.is_alive()

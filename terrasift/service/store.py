@@ -181,7 +181,9 @@ class JobStore:
         """
         if not thorough and _ident(self.path) == self._ident:
             return "ok"
-        with self._rlock, self._lock:
+        # the writer first: readers (status requests on the event loop) must not wait
+        # behind a commit or checkpoint this check would otherwise queue for
+        with self._lock, self._rlock:
             if _ident(self.path) == self._ident:
                 if not thorough:
                     return "ok"
@@ -261,7 +263,7 @@ class JobStore:
             _write_json(job_dir / RECORD, dict(row))
 
     def close(self) -> None:
-        with self._rlock, self._lock:
+        with self._lock, self._rlock:
             self._rdb.close()
             self._db.close()
 
