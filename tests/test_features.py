@@ -479,7 +479,7 @@ def test_step_filter_runs_on_overlapping_tiles_and_height_tests_the_relief():
     tt = Affine(cell, 0, 0, 0, -cell, n * cell)
     cats, stepped = categories_for(z, cell, [flt])
     assert (cats.inclination == 0).all()  # on 2 m tiles no step registers
-    assert stepped[1.0].spacing == 1.0 and stepped[1.0].shape == (100, 100)
+    assert stepped[(1.0, None)].spacing == 1.0 and stepped[(1.0, None)].shape == (100, 100)
     (road,) = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
     x0, _, x1, _ = road.geometry.bounds
     assert 42 <= x0 <= 43 and 47 <= x1 <= 48 and road.length_m > 90
@@ -621,3 +621,27 @@ def test_job_parameters_check_filter_sizes_against_the_tile_size():
     assert validate_params({"features": "hill", "categories.tile_size": 4.0})
     with pytest.raises(FilterSyntaxError, match="63 tiles at 1 m"):
         validate_params({"features": "hill", "categories.tile_size": 1.0})
+
+
+def test_detrend_and_fill_hull_parse_format_and_need_their_grid():
+    text = (
+        "step 1m\ndetrend 24m\nbeginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\n"
+        "state any\norientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple 4m -1 -1 -1\nfill hull\n"
+    )
+    flt = parse_filter(text)
+    assert flt.detrend == Metres(24) and flt.hull
+    assert parse_filter(format_filter(flt)) == flt
+    with pytest.raises(FilterSyntaxError, match="fill takes"):
+        parse_filter(text.replace("fill hull", "fill holes"))
+    # a ring of marked tiles open on one side: the hull closes it (and is measured whole)
+    marks = np.zeros((20, 20), dtype=bool)
+    yy, xx = np.mgrid[0:20, 0:20]
+    r = np.hypot(yy - 9.5, xx - 9.5)
+    marks[(r > 6) & (r < 8) & (xx < 14)] = True
+    labels = C.simple(marks)
+    tt = Affine(2, 0, 0, 0, -2, 40)
+    (ring,) = objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0, hull=True)
+    (open_ring,) = objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0)
+    assert ring.geometry.area > 1.5 * open_ring.geometry.area
+    assert ring.length_m / ring.width_m < 1.4

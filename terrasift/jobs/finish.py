@@ -191,13 +191,21 @@ def _write_categories(job: Path) -> list[str]:
         transform, height, width = ds.transform, ds.height, ds.width
         rows = max(1, BAND_CELLS // width)  # DTM rows per band: memory follows this, not the job
 
-        def grid(step: float | None) -> cat.Categories:
+        def grid(step: float | None, window: float | None = None) -> cat.Categories:
             return cat.categories_by_bands(
-                lambda r0, r1: _read_rows(ds, r0, r1), height, abs(transform.a), cparams, rows, step
+                lambda r0, r1: _read_rows(ds, r0, r1),
+                height,
+                abs(transform.a),
+                cparams,
+                rows,
+                step,
+                window,
             )
 
         cats = grid(None)
-        stepped = {st: grid(st) for st in feat.step_sizes(filters)}
+        if cparams.noise is None:  # every grid judges flatness against the DTM's own noise
+            cparams = cparams.model_copy(update={"noise": cats.noise})
+        stepped = {key: grid(*key) for key in feat.grid_keys(filters)}
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(

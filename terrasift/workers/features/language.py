@@ -204,6 +204,13 @@ class Filter:
     join: Length | Literal["width"] | None = None
     step: Metres | None = None
     """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
+    hull: bool = False
+    """``fill hull``: each object is the convex hull of its tiles (an outline found on part of
+    its ring, as a hill's on a slope, closed) before it is measured and limited."""
+    detrend: Metres | None = None
+    """``detrend <metres>``: run on categories of tiles set on their regional slope (the
+    median tile gradient over a window this wide), so a narrow object on a slope is
+    categorised as on level ground."""
 
     @property
     def makes_objects(self) -> bool:
@@ -281,6 +288,8 @@ class _Parser:
         aspect: Aspect | None = None
         join: Length | Literal["width"] | None = None
         step: Metres | None = None
+        detrend: Metres | None = None
+        hull = False
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -316,6 +325,17 @@ class _Parser:
                 if len(args) != 1 or not args[0].endswith("m"):
                     raise self.error("step takes one length in metres, e.g. step 1m", no)
                 step = self.lengths(args, no, "step", lo=1)[0]
+            elif key == "detrend":
+                if steps or segments or detrend is not None:
+                    raise self.error("detrend comes once, before the segments", no)
+                if len(args) != 1 or not args[0].endswith("m"):
+                    raise self.error("detrend takes one window in metres, e.g. detrend 24m", no)
+                detrend = self.lengths(args, no, "detrend", lo=1)[0]
+            elif key == "fill":
+                if hull or args != ["hull"]:
+                    raise self.error("fill takes 'hull', once", no)
+                hull = True
+                steps.append("fill")
             elif key == "join":
                 if join is not None or len(args) != 1:
                     raise self.error("join takes one gap (tiles, metres or 'width') once", no)
@@ -336,10 +356,20 @@ class _Parser:
                 raise self.error(f"unexpected {key!r} outside a segment", no)
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
-        if (aspect is not None or join is not None) and connect is None:
-            raise self.error("aspect and join need a connect step", last_line)
+        if (aspect is not None or join is not None or hull) and connect is None:
+            raise self.error("aspect, join and fill need a connect step", last_line)
         return Filter(
-            self.name, tuple(segments), h_and_v, connect, rect, tuple(steps), aspect, join, step
+            self.name,
+            tuple(segments),
+            h_and_v,
+            connect,
+            rect,
+            tuple(steps),
+            aspect,
+            join,
+            step,
+            hull,
+            detrend,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -487,6 +517,8 @@ class _Parser:
 def format_filter(f: Filter) -> str:
     """The filter as text that parses back to an equal Filter."""
     out: list[str] = [f"step {f.step.text()}"] if f.step is not None else []
+    if f.detrend is not None:
+        out.append(f"detrend {f.detrend.text()}")
     for seg in f.segments:
         head = (
             "beginsegment"
@@ -533,6 +565,8 @@ def format_filter(f: Filter) -> str:
             out.append(f"aspect {lo:g} {hi:g}")
         elif step == "join" and f.join is not None:
             out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
+        elif step == "fill" and f.hull:
+            out.append("fill hull")
     return "\n".join(out) + "\n"
 
 
@@ -546,6 +580,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("aspect")
     if f.join is not None:
         steps.append("join")
+    if f.hull:
+        steps.append("fill")
     return tuple(steps)
 
 

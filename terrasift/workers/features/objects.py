@@ -149,6 +149,7 @@ def objects_from_labels(
     measure: str = "auto",
     aspect: tuple[float | None, float | None] = (None, None),
     join: float | str | None = None,
+    hull: bool = False,
 ) -> list[Feature]:
     """Features for every label whose length/width (in tiles) lie within ``limits``.
 
@@ -156,7 +157,8 @@ def objects_from_labels(
     flanks); ``measure`` ``rectangle`` sizes every object by the rectangle with
     its second area moments (areas made of rectangular windows), ``auto`` as
     ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
-    ``"width"``) joins pieces first (``join_pieces``).
+    ``"width"``) joins pieces first (``join_pieces``); ``hull`` replaces each
+    object by its convex hull (an outline closed where a part of its ring is missing).
     """
     labels = labels.astype(np.int32)
     if fill_holes:
@@ -192,6 +194,13 @@ def objects_from_labels(
         pieces.append(Feature(kind, poly, float(length), float(width), int(counts[lab])))
     if join is not None and len(pieces) > 1:
         pieces = join_pieces(pieces, join, tile_size)
+    if hull:
+        pieces = [
+            Feature(
+                p.kind, p.geometry.convex_hull, *rectangle_size(p.geometry.convex_hull), p.tiles
+            )
+            for p in pieces
+        ]
     feats = []
     lo_a, hi_a = aspect
     for f in pieces:
