@@ -627,10 +627,10 @@ def test_detrend_and_fill_hull_parse_format_and_need_their_grid():
     text = (
         "step 1m\ndetrend 24m\nbeginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\n"
         "state any\norientation any\nendcategory\nendsubsegment\nendsegment\n"
-        "connect simple 4m -1 -1 -1\nfill hull\n"
+        "connect simple 4m -1 -1 -1\nfill hull\nsolidity 0.8\n"
     )
     flt = parse_filter(text)
-    assert flt.detrend == Metres(24) and flt.hull
+    assert flt.detrend == Metres(24) and flt.hull and flt.solidity == 0.8
     assert parse_filter(format_filter(flt)) == flt
     with pytest.raises(FilterSyntaxError, match="fill takes"):
         parse_filter(text.replace("fill hull", "fill holes"))
@@ -645,3 +645,7 @@ def test_detrend_and_fill_hull_parse_format_and_need_their_grid():
     (open_ring,) = objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0)
     assert ring.geometry.area > 1.5 * open_ring.geometry.area
     assert ring.length_m / ring.width_m < 1.4
+    # the open ring fills little of its hull and solidity drops it
+    assert not objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0, solidity=0.8)
+    with pytest.raises(FilterSyntaxError, match="solidity"):
+        parse_filter(text.replace("solidity 0.8", "solidity 1.5"))

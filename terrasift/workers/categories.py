@@ -399,10 +399,10 @@ def regional_gradient(
         pinv0, *_ = _models(k, cell)
         coef = np.nan_to_num(t @ pinv0.T)  # tiles with nodata: 0 gradient
         size = max(1, int(round(window / (k * cell))))
-        gx, gy = (
-            ndimage.median_filter(coef[:, i].reshape(rows, cols), size=size, mode="nearest")
-            for i in (1, 2)
-        )
+        # a wide window takes its median over every stride-th tile (at most ~16 a
+        # side), so the cost does not grow with the window's area
+        stride = max(1, size // 16)
+        gx, gy = (_strided_median(coef[:, i].reshape(rows, cols), size, stride) for i in (1, 2))
     s = k if step is None else max(1, min(k, int(round(step / cell))))
     out_r, out_c = -(-z.shape[0] // s), -(-z.shape[1] // s)
     # the abutting tile holding each output tile's centre (clamped at the border)
@@ -411,6 +411,21 @@ def regional_gradient(
     if rows == 0 or cols == 0:
         return np.zeros((out_r, out_c)), np.zeros((out_r, out_c))
     return gx[np.ix_(ri, ci)], gy[np.ix_(ri, ci)]
+
+
+def _strided_median(a: NDArray, size: int, stride: int) -> NDArray:
+    """Median over ``size`` × ``size`` windows of ``a``; with ``stride`` > 1 over the
+    samples every ``stride`` tiles, taken on that coarse grid and spread back."""
+    if stride == 1:
+        return ndimage.median_filter(a, size=size, mode="nearest")
+    coarse = ndimage.median_filter(
+        a[stride // 2 :: stride, stride // 2 :: stride],
+        size=max(1, -(-size // stride)),
+        mode="nearest",
+    )
+    r = np.minimum(np.arange(a.shape[0]) // stride, coarse.shape[0] - 1)
+    c = np.minimum(np.arange(a.shape[1]) // stride, coarse.shape[1] - 1)
+    return coarse[np.ix_(r, c)]
 
 
 def categories_by_bands(

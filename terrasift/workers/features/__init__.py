@@ -261,6 +261,7 @@ def _run_filter(
             aspect=aspect,
             join=flt.join,
             hull=flt.hull,
+            solidity=flt.solidity,
         )
     else:
         result.marked[flt.name] = marks

@@ -205,6 +205,9 @@ class Filter:
     step: Metres | None = None
     """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
     hull: bool = False
+    solidity: float | None = None
+    """``solidity <min>``: objects covering at least this share of their convex hull (a
+    closed outline filled, not the open half-ring at a ridge's end)."""
     """``fill hull``: each object is the convex hull of its tiles (an outline found on part of
     its ring, as a hill's on a slope, closed) before it is measured and limited."""
     detrend: Metres | None = None
@@ -290,6 +293,7 @@ class _Parser:
         step: Metres | None = None
         detrend: Metres | None = None
         hull = False
+        solidity: float | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -331,6 +335,13 @@ class _Parser:
                 if len(args) != 1 or not args[0].endswith("m"):
                     raise self.error("detrend takes one window in metres, e.g. detrend 24m", no)
                 detrend = self.lengths(args, no, "detrend", lo=1)[0]
+            elif key == "solidity":
+                if solidity is not None or len(args) != 1:
+                    raise self.error("solidity takes one share (0-1) once", no)
+                (solidity,) = self.numbers(args, no, "solidity")
+                if not 0 < solidity <= 1:
+                    raise self.error("solidity is a share above 0 and at most 1", no)
+                steps.append("solidity")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -356,8 +367,10 @@ class _Parser:
                 raise self.error(f"unexpected {key!r} outside a segment", no)
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
-        if (aspect is not None or join is not None or hull) and connect is None:
-            raise self.error("aspect, join and fill need a connect step", last_line)
+        if (
+            aspect is not None or join is not None or hull or solidity is not None
+        ) and connect is None:
+            raise self.error("aspect, join, fill and solidity need a connect step", last_line)
         return Filter(
             self.name,
             tuple(segments),
@@ -369,6 +382,7 @@ class _Parser:
             join,
             step,
             hull,
+            solidity,
             detrend,
         )
 
@@ -567,6 +581,8 @@ def format_filter(f: Filter) -> str:
             out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
         elif step == "fill" and f.hull:
             out.append("fill hull")
+        elif step == "solidity" and f.solidity is not None:
+            out.append(f"solidity {f.solidity:g}")
     return "\n".join(out) + "\n"
 
 
@@ -582,6 +598,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("join")
     if f.hull:
         steps.append("fill")
+    if f.solidity is not None:
+        steps.append("solidity")
     return tuple(steps)
 
 

@@ -150,6 +150,7 @@ def objects_from_labels(
     aspect: tuple[float | None, float | None] = (None, None),
     join: float | str | None = None,
     hull: bool = False,
+    solidity: float | None = None,
 ) -> list[Feature]:
     """Features for every label whose length/width (in tiles) lie within ``limits``.
 
@@ -158,7 +159,8 @@ def objects_from_labels(
     its second area moments (areas made of rectangular windows), ``auto`` as
     ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
     ``"width"``) joins pieces first (``join_pieces``); ``hull`` replaces each
-    object by its convex hull (an outline closed where a part of its ring is missing).
+    object by its convex hull (an outline closed where a part of its ring is missing);
+    ``solidity`` keeps objects covering at least that share of their convex hull.
     """
     labels = labels.astype(np.int32)
     if fill_holes:
@@ -217,6 +219,8 @@ def objects_from_labels(
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
             continue
         if (min_w is not None and wt < min_w) or (max_w is not None and wt > max_w):
+            continue
+        if solidity is not None and f.geometry.area < solidity * f.geometry.convex_hull.area:
             continue
         ratio = f.length_m / max(f.width_m, 1e-9)
         if (lo_a is not None and ratio < lo_a) or (hi_a is not None and ratio > hi_a):
