@@ -649,3 +649,28 @@ def test_detrend_and_fill_hull_parse_format_and_need_their_grid():
     assert not objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0, solidity=0.8)
     with pytest.raises(FilterSyntaxError, match="solidity"):
         parse_filter(text.replace("solidity 0.8", "solidity 1.5"))
+
+
+def test_join_lines_up_pieces_end_to_end_across_a_longer_gap_only():
+    lab = np.zeros((40, 100), dtype=np.int32)
+    lab[18:20, 5:40] = 1
+    lab[18:20, 48:90] = 2  # the same line, 8 tiles (16 m) further on
+    lab[24:26, 10:45] = 3  # a parallel piece beside piece 1, 4 tiles away
+    tt = Affine(2, 0, 0, 0, -2, 80)
+    limits = (15, None, None, 8)
+
+    def sizes(aligned):
+        fs = objects_from_labels(lab, "ditch", tt, 2.0, limits, join="width", join_aligned=aligned)
+        return sorted(round(f.length_m) for f in fs)
+
+    assert sizes(None) == [69, 69, 83]
+    joined = sizes(10)
+    assert len(joined) == 2 and joined[1] >= 165  # 70 + 16 + 84 m, the parallel piece apart
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 -1 -1\njoin width 20m\n"
+    )
+    assert flt.join == "width" and flt.join_aligned == Metres(20)
+    assert parse_filter(format_filter(flt)) == flt
+    assert resolve_lengths(flt, 2.0).join_aligned == 10

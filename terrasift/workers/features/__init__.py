@@ -260,6 +260,7 @@ def _run_filter(
             params.simplify_tiles,
             aspect=aspect,
             join=flt.join,
+            join_aligned=flt.join_aligned,
             hull=flt.hull,
             solidity=flt.solidity,
         )

@@ -202,6 +202,10 @@ class Filter:
     steps: tuple[str, ...] = field(default=(), compare=False)
     aspect: Aspect | None = None
     join: Length | Literal["width"] | None = None
+    join_aligned: Length | None = None
+    """``join <gap> <aligned gap>``: pieces lined up end to end (long axes within 20° of
+    each other and of the gap between them) also join across gaps up to the second
+    length (a ditch whose middle the categories miss)."""
     step: Metres | None = None
     """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
     hull: bool = False
@@ -290,6 +294,7 @@ class _Parser:
         rect: Rectangle | None = None
         aspect: Aspect | None = None
         join: Length | Literal["width"] | None = None
+        join_aligned: Length | None = None
         step: Metres | None = None
         detrend: Metres | None = None
         hull = False
@@ -348,9 +353,15 @@ class _Parser:
                 hull = True
                 steps.append("fill")
             elif key == "join":
-                if join is not None or len(args) != 1:
-                    raise self.error("join takes one gap (tiles, metres or 'width') once", no)
+                if join is not None or len(args) not in (1, 2):
+                    raise self.error(
+                        "join takes a gap (tiles, metres or 'width') and optionally a gap for"
+                        " pieces lined up end to end, once",
+                        no,
+                    )
                 join = "width" if args[0] == "width" else self.lengths(args, no, "join", lo=1)[0]
+                if len(args) == 2:
+                    join_aligned = self.lengths(args[1:], no, "join", lo=1)[0]
                 steps.append("join")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
@@ -380,6 +391,7 @@ class _Parser:
             tuple(steps),
             aspect,
             join,
+            join_aligned,
             step,
             hull,
             solidity,
@@ -578,7 +590,8 @@ def format_filter(f: Filter) -> str:
             lo, hi = (-1 if v is None else v for v in (f.aspect.min, f.aspect.max))
             out.append(f"aspect {lo:g} {hi:g}")
         elif step == "join" and f.join is not None:
-            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
+            aligned = "" if f.join_aligned is None else f" {_text(f.join_aligned)}"
+            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}{aligned}")
         elif step == "fill" and f.hull:
             out.append("fill hull")
         elif step == "solidity" and f.solidity is not None:
@@ -698,4 +711,12 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     if rect is not None:
         rect = replace(rect, width=t(rect.width, "size"), height=t(rect.height, "size"))
     join = f.join if f.join == "width" else t(f.join, "size")
-    return replace(f, segments=tuple(segs), connect=connect, rectangle=rect, join=join)
+    aligned = t(f.join_aligned, "size")
+    return replace(
+        f,
+        segments=tuple(segs),
+        connect=connect,
+        rectangle=rect,
+        join=join,
+        join_aligned=aligned,
+    )
