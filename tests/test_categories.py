@@ -11,6 +11,7 @@ from terrasift.workers.categories import (
     EDGES,
     NODATA,
     CategoryParams,
+    category_grids,
     compute_categories,
     regional_gradient,
 )
@@ -207,3 +208,19 @@ def test_regional_slope_shows_a_ditch_on_a_slope_and_leaves_a_bend_a_bend():
     cats = compute_categories(bend, cell, p, 1.0, regional_gradient(bend, cell, p, 24.0, 1.0))
     # only the bend's own tile (a concave edge) is not level: no banks either side of it
     assert np.count_nonzero(cats.inclination[40, :-1]) == 1 and cats.state[40, 39] == 2
+
+
+def test_grids_of_one_step_share_their_fits_and_match_separate_runs():
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:80, 0:80] * 0.5
+    z = 0.12 * x + 0.3 * np.sin(y / 3) + rng.normal(0, 0.02, x.shape)
+    p = CategoryParams(noise=0.02)
+    trend = regional_gradient(z, 0.5, p, 24.0, 1.0)
+    both = category_grids(z, 0.5, p, 1.0, [None, trend])
+    for got, want in zip(
+        both,
+        (compute_categories(z, 0.5, p, 1.0), compute_categories(z, 0.5, p, 1.0, trend)),
+        strict=True,
+    ):
+        assert (got.bands() == want.bands()).all()
+    assert not (both[0].inclination == both[1].inclination).all()

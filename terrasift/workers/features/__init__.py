@@ -31,6 +31,7 @@ from terrasift.errors import ParameterError
 from terrasift.workers.categories import (
     Categories,
     CategoryParams,
+    category_grids,
     compute_categories,
     measure_noise,
     regional_gradient,
@@ -139,12 +140,17 @@ def categories_for(
     params = params or CategoryParams()
     if params.noise is None:  # one noise for every grid: the DTM's own
         params = params.model_copy(update={"noise": measure_noise(dtm, cell, params)})
-    cats = compute_categories(dtm, cell, params)
+    keys = grid_keys(filters)
     others: dict[GridKey, Categories] = {}
-    for key in grid_keys(filters):
-        step, window = key
-        trend = None if window is None else regional_gradient(dtm, cell, params, window, step)
-        others[key] = compute_categories(dtm, cell, params, step, trend)
+    cats = compute_categories(dtm, cell, params)
+    for step in sorted({k[0] for k in keys}, key=lambda v: v or 0.0):
+        # the grids of one step share their plane fits (category_grids)
+        mine = [k for k in keys if k[0] == step]
+        trends = [
+            None if w is None else regional_gradient(dtm, cell, params, w, step) for _, w in mine
+        ]
+        for key, grid in zip(mine, category_grids(dtm, cell, params, step, trends), strict=True):
+            others[key] = grid
     return cats, others
 
 
