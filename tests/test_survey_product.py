@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from terrasift.errors import InputError
+from terrasift.errors import NothingChanged
 from terrasift.jobs import run_job, validate_params
 from terrasift.jobs.survey import current_version, plan_survey_run, product_files
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
@@ -67,7 +67,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out["files"] = product_files(v1)
     out["vrt"] = (v1 / "dtm.vrt").read_text()
     out["collection"] = json.loads((v1 / "collection.json").read_text())
-    with pytest.raises(InputError, match="no tile changed"):
+    with pytest.raises(NothingChanged, match="no tile changed"):
         plan_survey_run(root / "r-none", sdir, tiles, params)
     # a 1.5 m mound in the corner tile t0_0
     las = laspy.read(tiles[0])

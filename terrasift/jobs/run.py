@@ -140,7 +140,7 @@ def run_job(
     sizes: dict[str, int] = {}
     for shard in (
         p
-        for d in shard_root.iterdir()
+        for d in (shard_root.iterdir() if shard_root.is_dir() else ())
         if d.is_dir() and not d.name.startswith(".")
         for p in d.glob("*.bin")
     ):

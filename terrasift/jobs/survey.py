@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from terrasift.errors import InputError, ProcessingError
+from terrasift.errors import InputError, NothingChanged, ProcessingError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.dirs import block_result_path
 from terrasift.jobs.params import grid_alignment, resolve_buffer, stage_params
@@ -178,7 +178,7 @@ def plan_survey_run(
 ) -> dict[str, Any]:
     """Decide what a run redoes and write its ``job.json``; return a summary.
 
-    Raises InputError when nothing changed (an incremental run with nothing to do).
+    Raises NothingChanged for an incremental run with nothing to do.
     """
     if mode not in ("incremental", "full"):
         raise InputError(f"mode must be 'incremental' or 'full', not {mode!r}")
@@ -240,7 +240,7 @@ def plan_survey_run(
         outputs = [n for n in by_name if touched & set(window_blocks(grid, windows[n]))]
         reason = "incremental"
         if not outputs and not regions:
-            raise InputError(
+            raise NothingChanged(
                 'no tile changed since the last run (send {"mode": "full"} to redo all)'
             )
     needed = sorted({b for n in outputs for b in window_blocks(grid, windows[n])})
