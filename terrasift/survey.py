@@ -153,9 +153,9 @@ class _Session:
         tiles = local_tiles(self.folder)
         if not tiles and "survey" not in self.state:
             raise SurveyClientError(f"no .las/.laz tiles in {self.folder}")
-        for job_id in self._in_flight():  # a run a stopped call left: wait for it, never resubmit
-            print(f"terrasift survey: resuming run {job_id}")
-            self._wait(job_id)
+        for left in self._in_flight():  # a run a stopped call left: wait for it, never resubmit
+            print(f"terrasift survey: resuming run {left}")
+            self._wait(left)
         sums = {n: checksum(p, self.state.get("tiles", {}).get(n)) for n, p in tiles.items()}
         if "survey" not in self.state:
             self._create(tiles, sums, params)
