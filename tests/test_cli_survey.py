@@ -11,6 +11,7 @@ import httpx
 import laspy
 import numpy as np
 import pytest
+import rasterio
 from live_server import live_server
 
 from terrasift.service.settings import Settings
@@ -40,6 +41,12 @@ def test_survey_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         out = folder / OUT_DIR
         assert (out / "dtm.vrt").exists() and (out / "tiles/t0_0/classified.laz").exists()
         assert len(_runs(server, sid)) == 1
+        # the mosaic reads in place over HTTP: GDAL resolves the VRT's relative tile paths
+        url = f"/vsicurl/{server}/surveys/{sid}/outputs/dtm.vrt"
+        with rasterio.Env(GDAL_DISABLE_READDIR_ON_OPEN="EMPTY_DIR"), rasterio.open(url) as ds:
+            remote = ds.read(1)
+        with rasterio.open(out / "dtm.vrt") as ds:
+            assert np.array_equal(remote, ds.read(1)) and (remote != ds.nodata).mean() > 0.9
 
         # touch changes nothing: no upload, no run
         os.utime(paths[0])

@@ -19,7 +19,7 @@ import rasterio
 
 from terrasift.errors import NothingChanged
 from terrasift.jobs import run_job, validate_params
-from terrasift.jobs.survey import current_version, plan_survey_run, product_files
+from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
 from terrasift.workers.executors import InlineExecutor
 
@@ -82,6 +82,10 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
     out["v3"] = _product(v3)
+    # stopped after the switch, before its summary: publishing again finds itself current
+    (root / "r3" / "outputs" / "survey.json").unlink()
+    out["republished"] = publish(str(root / "r3"))
+    out["v3_again"] = current_version(sdir)
     out["versions"] = sorted(p.name for p in (sdir / "product").glob("v-*"))
     return out
 
@@ -119,6 +123,11 @@ def test_incremental_run_redoes_the_tile_and_its_halo_neighbours(survey: dict) -
     assert np.nanmax(diff) > 1.0
     # only the last version is kept
     assert len(survey["versions"]) == 1
+
+
+def test_publish_again_after_the_switch_is_a_no_op(survey: dict) -> None:
+    assert survey["republished"]["version"] == survey["v3_again"].name
+    assert survey["republished"]["mode"] == "full"
 
 
 def test_incremental_product_equals_a_full_run(survey: dict) -> None:

@@ -435,11 +435,15 @@ def publish(job_dir: str) -> dict[str, Any]:
         if summary_path.exists():
             return load_json(summary_path)
         prev = current_version(survey_dir)
+        new = root / f"v-{job.name}"
+        if prev == new:  # switched, then stopped before the summary: done
+            summary = _summary(survey_dir, new, s)
+            write_json(summary_path, summary, indent=2)
+            return summary
         if (None if prev is None else prev.name) != s["base"]:
             raise ProcessingError(
                 "another run of this survey published since this run was planned; run it again"
             )
-        new = root / f"v-{job.name}"
         shutil.rmtree(new, ignore_errors=True)
         for name in s["tiles"]:
             stem = tile_stem(name)
@@ -471,16 +475,21 @@ def publish(job_dir: str) -> dict[str, Any]:
         for old in root.glob("v-*"):
             if old != new:
                 shutil.rmtree(old, ignore_errors=True)
-        summary = {
-            "survey": survey_dir.name,
-            "version": new.name,
-            "mode": s["mode"],
-            "outputs": s["outputs"],
-            "sources": s["sources"],
-            "blocks": len(s["blocks"]),
-        }
+        summary = _summary(survey_dir, new, s)
         write_json(summary_path, summary, indent=2)
     return summary
+
+
+def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str, Any]:
+    """What a run did: its product version, and the tiles it redid and read."""
+    return {
+        "survey": survey_dir.name,
+        "version": version.name,
+        "mode": s["mode"],
+        "outputs": s["outputs"],
+        "sources": s["sources"],
+        "blocks": len(s["blocks"]),
+    }
 
 
 def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> float:
