@@ -82,6 +82,10 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
     out["v3"] = _product(v3)
+    # a finished run keeps only its summary: the tiles live on in the product
+    out["run_left"] = sorted(
+        str(p.relative_to(root / "r3")) for p in (root / "r3").rglob("*") if p.is_file()
+    )
     # stopped after the switch, before its summary: publishing again finds itself current
     (root / "r3" / "outputs" / "survey.json").unlink()
     out["republished"] = publish(str(root / "r3"))
@@ -123,6 +127,10 @@ def test_incremental_run_redoes_the_tile_and_its_halo_neighbours(survey: dict) -
     assert np.nanmax(diff) > 1.0
     # only the last version is kept
     assert len(survey["versions"]) == 1
+
+
+def test_a_finished_run_keeps_only_its_records(survey: dict) -> None:
+    assert survey["run_left"] == ["job.json", "outputs/survey.json", "plan.json"]
 
 
 def test_publish_again_after_the_switch_is_a_no_op(survey: dict) -> None:

@@ -177,8 +177,8 @@ def run_job(
     )
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
-    if survey:  # published into the survey's product; the run keeps its summary
-        for sub in ("shards", "blocks", "work"):
+    if survey:  # published into the survey's product; the run keeps its summary only
+        for sub in ("shards", "blocks", "work", "outputs/tiles"):
             shutil.rmtree(job_dir / sub, ignore_errors=True)
         meter.done("report", "report")
         return ["survey.json"]
