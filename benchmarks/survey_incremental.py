@@ -7,7 +7,12 @@ run, then a full run of the same tiles. Reported per scene and as worst /
 10th percentile / median: the share of DTM cells equal within 1 mm, label,
 category and feature differences, and how many tiles the incremental run redid.
 
-    .venv/bin/python benchmarks/survey_incremental.py [--scenes 12] [--out DIR]
+    .venv/bin/python benchmarks/survey_incremental.py [--scenes 12] [--out DIR] [--one-tile]
+
+``--one-tile`` also runs each mound scene's changed tile as a job of its own
+(what a client sending only changed tiles as plain jobs gets) and compares its
+DTM with the full product on that tile's cells: the baseline the survey runs
+replace.
 """
 
 from __future__ import annotations
@@ -42,7 +47,30 @@ def _product(version: Path) -> dict:
     return {"dtm": dtm, "cats": cats, "labels": labels, "features": feats}
 
 
-def scene_case(i: int, rng: np.random.Generator, root: Path) -> dict:
+def one_tile_agreement(root: Path, tile: Path, params: dict, version: Path) -> dict:
+    """The changed tile as a job of its own (no neighbours, its own density), as a client
+    sending only changed tiles gets it, against the survey's full product on its cells."""
+    from terrasift import jobs
+
+    job = root / "one-tile"
+    jobs.prepare_job(job, [tile], params)
+    run_job(job, InlineExecutor())
+    with (
+        rasterio.open(jobs.output_path(job, "dtm.tif")) as a,
+        rasterio.open(version / "dtm.vrt") as b,
+    ):
+        da = a.read(1, masked=True).filled(np.nan)
+        cols, rows = np.meshgrid(np.arange(a.width) + 0.5, np.arange(a.height) + 0.5)
+        x, y = a.transform * (cols.ravel(), rows.ravel())
+        r, c = rasterio.transform.rowcol(b.transform, x, y)
+        db = b.read(1, masked=True).filled(np.nan)[np.asarray(r), np.asarray(c)]
+    db = db.reshape(da.shape)
+    both = ~np.isnan(da) & ~np.isnan(db)
+    d = np.abs(da - db)[both]
+    return {"one_tile_within_1mm": float(np.mean(d <= 1e-3)), "one_tile_max_m": float(d.max())}
+
+
+def scene_case(i: int, rng: np.random.Generator, root: Path, one_tile: bool = False) -> dict:
     tile = float(rng.choice([20.0, 30.0, 40.0]))
     density = float(rng.uniform(2.0, 6.0))
     block = float(rng.choice([20.0, 40.0]))
@@ -88,6 +116,7 @@ def scene_case(i: int, rng: np.random.Generator, root: Path) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None
     b = _product(v3)
+    extra = one_tile_agreement(root, target, params, v3) if one_tile and kind == "mound" else {}
     same_shape = a["dtm"].shape == b["dtm"].shape
     both = ~np.isnan(a["dtm"]) & ~np.isnan(b["dtm"]) if same_shape else np.zeros(1, bool)
     within = (
@@ -114,6 +143,7 @@ def scene_case(i: int, rng: np.random.Generator, root: Path) -> dict:
         "features_equal": a["features"] == b["features"],
         "incremental_s": round(inc_s, 1),
         "full_s": round(full_s, 1),
+        **extra,
     }
 
 
@@ -122,6 +152,11 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=12)
     ap.add_argument("--seed", type=int, default=26)
     ap.add_argument("--out", type=Path, default=None, help="keep the scenes here")
+    ap.add_argument(
+        "--one-tile",
+        action="store_true",
+        help="also run each mound scene's changed tile as a job of its own (a baseline)",
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     base = args.out or Path(tempfile.mkdtemp(prefix="survey-bench-"))
@@ -129,7 +164,7 @@ def main() -> None:
     for i in range(args.scenes):
         root = base / f"scene{i:02d}"
         shutil.rmtree(root, ignore_errors=True)
-        row = scene_case(i, rng, root)
+        row = scene_case(i, rng, root, args.one_tile)
         rows.append(row)
         print(json.dumps(row), flush=True)
         if args.out is None:
