@@ -540,7 +540,7 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
         vrt(r, 1, "float32", FLOAT_NODATA)
     vrt("coverage", f, "uint8", COVERAGE_NODATA)
 
-    from terrasift.jobs.finish import BAND_CELLS, _read_rows
+    from terrasift.jobs.finish import dtm_category_grids
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
     from terrasift.workers import terrain
@@ -578,19 +578,9 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
             )
             sm.write(0, 0, slope[rr - lo_r : rr - lo_r + rows, cc - lo_c : cc - lo_c + cols])
             sm.close_as_cog(new / "tiles" / tile_stem(n) / "slope.tif")
-        band = max(1, BAND_CELLS // width)
         filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
-
-        def grid_of(step: float | None) -> cat.Categories:
-            return cat.categories_by_bands(
-                lambda a, b: _read_rows(ds, a, b), height, res, cparams, band, step
-            )
-
-        cats = grid_of(None)
-        noise = float(cats.noise)
-        if cparams.noise is None:
-            cparams = cparams.model_copy(update={"noise": noise})
-        stepped = {st: grid_of(st) for st in feat.step_sizes(filters)}
+        cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
+        noise = float(cparams.noise)
         transform = ds.transform
     vrt("slope", 1, "float32", FLOAT_NODATA)
     # Categories per tile: slices of the survey's category grid (tiles aligned to it).
