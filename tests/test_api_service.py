@@ -458,6 +458,8 @@ def test_surveys_from_uploads_and_paths(tmp_path: Path) -> None:
         assert poll(c, job_id, "successful")["status"] == "successful"
         again = c.post(f"/surveys/{survey['id']}/runs")
         assert again.status_code == 201
+        # one run at a time: the next request waits for this one to end
+        assert poll(c, again.json()["jobID"], "successful")["status"] == "successful"
         assert [j["jobID"] for j in c.get(f"/surveys/{survey['id']}").json()["jobs"]] == [
             job_id,
             again.json()["jobID"],
