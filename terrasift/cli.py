@@ -42,11 +42,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--quiet", action="store_true")
 
-    p = sub.add_parser("survey", help="submit a folder of tiles to a server and wait")
+    p = sub.add_parser(
+        "survey",
+        help="keep a server survey in step with a folder of tiles, run it, download the product",
+    )
     p.add_argument("folder", type=Path)
     p.add_argument("--server", required=True)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--token", default=None)
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="where the product goes (default: FOLDER/terrasift-out, if FOLDER is writable)",
+    )
+    p.add_argument(
+        "--server-path",
+        default=None,
+        metavar="PATH",
+        help="the folder as the server sees it under its input root: name tiles, do not upload",
+    )
 
     p = sub.add_parser("path", help="pitch and roll along GeoJSON lines over a DTM")
     p.add_argument("dtm", type=Path, help="a DTM GeoTIFF, e.g. OUT/dtm.tif from `process`")
@@ -110,7 +125,12 @@ def main(argv: list[str] | None = None) -> int:
             from terrasift.survey import run_survey
 
             return run_survey(
-                args.folder, args.server, parse_cli_params(args.param), token=args.token
+                args.folder,
+                args.server,
+                parse_cli_params(args.param),
+                token=args.token,
+                out=args.out,
+                server_path=args.server_path,
             )
         if args.command == "path":
             import json

@@ -20,6 +20,12 @@ class InputError(TerrasiftError, ValueError):
     problem = "invalid-input"
 
 
+class NothingChanged(TerrasiftError):
+    """An incremental survey run was asked for and no tile or parameter changed."""
+
+    problem = "survey-unchanged"
+
+
 class ParameterError(TerrasiftError, ValueError):
     """A job parameter is unknown or out of range."""
 

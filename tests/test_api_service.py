@@ -424,14 +424,23 @@ def test_execution_with_server_paths(tmp_path: Path) -> None:
         assert_problem(r, 403, "forbidden-path", "INPUT_ROOT")
 
 
+def _real_las(tmp_path: Path, seed: int) -> bytes:
+    """A tiny real LAS tile: survey runs plan from the tiles' headers."""
+    from terrasift.synthetic.terrain import make_scene, write_las
+
+    path = write_las(make_scene(20.0, 1.0, n_buildings=0, seed=seed), tmp_path / f"s{seed}.las")
+    return path.read_bytes()
+
+
 def test_surveys_from_uploads_and_paths(tmp_path: Path) -> None:
     root = tmp_path / "incoming"
     root.mkdir()
     (root / "t1.las").write_bytes(las_bytes())
+    x, y = _real_las(tmp_path, 1), _real_las(tmp_path, 2)
     with client_for(tmp_path, FakePipeline(tasks=1), input_root=root) as c:
         r = c.post(
             "/surveys",
-            files=[("file", ("x.las", las_bytes())), ("file", ("y.las", las_bytes()))],
+            files=[("file", ("x.las", x)), ("file", ("y.las", y))],
             data={"params": json.dumps({"resolution": 1.0})},
         )
         assert r.status_code == 201, r.text
@@ -449,6 +458,8 @@ def test_surveys_from_uploads_and_paths(tmp_path: Path) -> None:
         assert poll(c, job_id, "successful")["status"] == "successful"
         again = c.post(f"/surveys/{survey['id']}/runs")
         assert again.status_code == 201
+        # one run at a time: the next request waits for this one to end
+        assert poll(c, again.json()["jobID"], "successful")["status"] == "successful"
         assert [j["jobID"] for j in c.get(f"/surveys/{survey['id']}").json()["jobs"]] == [
             job_id,
             again.json()["jobID"],

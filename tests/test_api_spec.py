@@ -43,6 +43,9 @@ def test_spec_documents_the_contract() -> None:
         "/jobs/{job_id}/outputs/{name}": {"get", "head"},
         "/surveys": {"post"},
         "/surveys/{survey_id}/runs": {"post"},
+        "/surveys/{survey_id}/tiles/{name}": {"put", "delete"},
+        "/surveys/{survey_id}/results": {"get"},
+        "/surveys/{survey_id}/outputs/{path}": {"get", "head"},
     }.items():
         assert methods <= set(paths[path]), path
     upload = paths["/jobs"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]

@@ -200,7 +200,7 @@ def test_compose_topology_as_processes_runs_a_survey(tmp_path: Path, small_scene
     """docker-compose.yml's topology as separate processes on loopback: a Dask
     scheduler, two `terrasift worker`s and `terrasift serve` with a relative data
     directory (the workers run elsewhere, so it must reach them absolute); the
-    survey CLI's job gives the same labels as the same tiles run in-process."""
+    survey CLI's product gives the same labels as the same survey run in-process."""
     import laspy
     import numpy as np
 
@@ -278,16 +278,21 @@ def test_compose_topology_as_processes_runs_a_survey(tmp_path: Path, small_scene
     finally:
         for proc in reversed(procs):
             _stop(proc)
-    outs = [p for p in tiles.rglob("classified-part0.laz")]
-    assert len(outs) == 1, sorted(str(p) for p in tiles.rglob("*"))
-    out = outs[0].parent
-    assert (out / "dtm.tif").exists()
+    out = tiles / "terrasift-out"
+    assert (out / "dtm.vrt").exists() and (out / "collection.json").exists()
+
+    # the same survey run in-process: the same labels per tile
+    from terrasift.jobs.survey import current_version, plan_survey_run
 
     job = tmp_path / "inline"
-    jobs.prepare_job(job, sorted(tiles.glob("*.laz")), jobs.validate_params(params))
+    plan_survey_run(
+        job, tmp_path / "inline-survey", sorted(tiles.glob("*.laz")), jobs.validate_params(params)
+    )
     jobs.run_job(job, InlineExecutor())
+    version = current_version(tmp_path / "inline-survey")
+    assert version is not None
     for i in range(2):
-        name = f"classified-part{i}.laz"
+        name = f"tiles/part{i}/classified.laz"
         got = np.asarray(laspy.read(out / name).classification)
-        want = np.asarray(laspy.read(jobs.output_path(job, name)).classification)
+        want = np.asarray(laspy.read(version / name).classification)
         assert np.array_equal(got, want)

@@ -5,7 +5,8 @@
 resumes) the tasks; ``block`` is the block task; ``finish`` the mosaics, COGs,
 categories, features and classified copies; ``report`` the report, steep
 blocks and STAC item; ``paths`` pitch and roll over a finished DTM; ``dirs``
-the directory layout and the cancel marker. The CLI and the service drive
+the directory layout and the cancel marker; ``survey`` the runs of a survey
+(incremental, seamless) and its one current product. The CLI and the service drive
 jobs through the names exported here.
 """
 

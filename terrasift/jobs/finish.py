@@ -173,6 +173,56 @@ def write_categories(job_dir: str) -> list[str]:
         return _write_categories(Path(job_dir))
 
 
+def dtm_category_grids(ds: Any, cparams: Any, filters: list) -> tuple[Any, dict, Any]:
+    """The category grid of an open DTM and the grids the ``filters`` search (by their
+    step and regional window), read in bands; with the parameters used, whose ``noise``
+    is the one given or else measured on this DTM."""
+    from terrasift.workers import categories as cat
+    from terrasift.workers import features as feat
+
+    transform, height, width = ds.transform, ds.height, ds.width
+    rows = max(1, BAND_CELLS // width)  # DTM rows per band: memory follows this, not the job
+
+    def grids(step: float | None, windows: list[float | None]) -> list[cat.Categories]:
+        return cat.categories_by_bands(
+            lambda r0, r1: _read_rows(ds, r0, r1),
+            height,
+            abs(transform.a),
+            cparams,
+            rows,
+            step,
+            windows,
+        )
+
+    keys = feat.grid_keys(filters)
+    if cparams.noise is None:  # every grid judges flatness against the DTM's own noise
+        cparams = cparams.model_copy(
+            update={
+                "noise": cat.measure_noise_by_bands(
+                    lambda r0, r1: _read_rows(ds, r0, r1),
+                    height,
+                    abs(transform.a),
+                    cparams,
+                    rows,
+                )
+            }
+        )
+    stepped: dict = {}
+    cats = None
+    for step in sorted({k[0] for k in keys} | {None}, key=lambda v: v or 0.0):
+        # the grids of one step share their plane fits
+        mine = [k for k in keys if k[0] == step]
+        windows = [w for _, w in mine]
+        if step is None:
+            windows = [None, *windows]
+        made = grids(step, windows)
+        if step is None:
+            cats, made = made[0], made[1:]
+        stepped.update(zip(mine, made, strict=True))
+    assert cats is not None
+    return cats, stepped, cparams
+
+
 def _write_categories(job: Path) -> list[str]:
     import rasterio
 
@@ -188,46 +238,8 @@ def _write_categories(job: Path) -> list[str]:
     work.mkdir(exist_ok=True)
     filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
     with rasterio.open(out / "dtm.tif") as ds:
-        transform, height, width = ds.transform, ds.height, ds.width
-        rows = max(1, BAND_CELLS // width)  # DTM rows per band: memory follows this, not the job
-
-        def grids(step: float | None, windows: list[float | None]) -> list[cat.Categories]:
-            return cat.categories_by_bands(
-                lambda r0, r1: _read_rows(ds, r0, r1),
-                height,
-                abs(transform.a),
-                cparams,
-                rows,
-                step,
-                windows,
-            )
-
-        keys = feat.grid_keys(filters)
-        if cparams.noise is None:  # every grid judges flatness against the DTM's own noise
-            cparams = cparams.model_copy(
-                update={
-                    "noise": cat.measure_noise_by_bands(
-                        lambda r0, r1: _read_rows(ds, r0, r1),
-                        height,
-                        abs(transform.a),
-                        cparams,
-                        rows,
-                    )
-                }
-            )
-        stepped: dict = {}
-        cats = None
-        for step in sorted({k[0] for k in keys} | {None}, key=lambda v: v or 0.0):
-            # the grids of one step share their plane fits
-            mine = [k for k in keys if k[0] == step]
-            windows = [w for _, w in mine]
-            if step is None:
-                windows = [None, *windows]
-            made = grids(step, windows)
-            if step is None:
-                cats, made = made[0], made[1:]
-            stepped.update(zip(mine, made, strict=True))
-        assert cats is not None
+        transform = ds.transform
+        cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(

@@ -107,6 +107,12 @@ def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     path = job_dir / "plan.json"
     if path.exists():
         return load_json(path)
+    if job.get("survey"):  # a survey run: the survey's grid and density, not the run's
+        from terrasift.jobs.survey import survey_plan
+
+        plan = survey_plan(job_dir, job)
+        write_json(path, plan, indent=2)
+        return plan
     params = job["params"]
     roots = job.get("input_roots")
     for p in job["inputs"]:

@@ -11,6 +11,7 @@ service both drive jobs through ``run_job``.
 from __future__ import annotations
 
 import heapq
+import shutil
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from typing import Any
 from terrasift.errors import ProcessingError
 from terrasift.files import load_json
 from terrasift.jobs import finish, report
+from terrasift.jobs import survey as surveys
 from terrasift.jobs.block import run_block
 from terrasift.jobs.dirs import check_cancel, output_path
 from terrasift.jobs.plan import plan_job
@@ -60,6 +62,15 @@ def run_job(
     # last, from whatever the tasks before them wrote.
     want = finishing_wanted(job.get("outputs"), products)
     finishing: list[Task] = []
+    survey = job.get("survey")
+    if survey:  # a survey run: per-tile outputs of its output tiles, then the product
+        finishing = [
+            Task(fn, (str(job_dir), n))
+            for fn in (surveys.write_tile_rasters, surveys.write_tile_classified)
+            for n in survey["outputs"]
+        ]
+        finishing.append(Task(surveys.publish, (str(job_dir),), after=tuple(range(len(finishing)))))
+        want = set()
     if "classified" in want:
         finishing = [Task(finish.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
     if want - {"classified"}:
@@ -90,6 +101,11 @@ def run_job(
         meter.add("shard", p.name, "shard", p.stop - p.start, done=p not in todo)
     for i, task in enumerate(finishing):
         kind = task.fn.__name__.removeprefix("write_")
+        if survey:
+            kind, weight = _SURVEY_COST[kind]
+            tile_points = survey["tiles"][task.args[1]]["points"] if len(task.args) > 1 else points
+            meter.add("finish", i, kind, weight * tile_points)
+            continue
         tile_points = plan["tiles"][task.args[1]]["point_count"] if kind == "classified" else 0
         meter.add("finish", i, kind, tile_points or points)
     meter.add("report", "report", "report", points)
@@ -126,13 +142,16 @@ def run_job(
     sizes: dict[str, int] = {}
     for shard in (
         p
-        for d in shard_root.iterdir()
+        for d in (shard_root.iterdir() if shard_root.is_dir() else ())
         if d.is_dir() and not d.name.startswith(".")
         for p in d.glob("*.bin")
     ):
         sizes[shard.stem] = sizes.get(shard.stem, 0) + shard.stat().st_size
     # Largest blocks first, so the last tasks to finish are short ones and
     # workers do not idle at the end of the job.
+    if survey:  # only the blocks of the output tiles; the others' points are halo only
+        wanted = set(survey["blocks"])
+        sizes = {n: v for n, v in sizes.items() if n in wanted}
     names = sorted(sizes, key=lambda n: (-sizes[n], n))
     meter.split("blocks", sizes, "block")
     meter.enter("blocks")
@@ -160,6 +179,11 @@ def run_job(
     )
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
+    if survey:  # published into the survey's product; the run keeps its summary only
+        for sub in ("shards", "blocks", "work", "outputs/tiles"):
+            shutil.rmtree(job_dir / sub, ignore_errors=True)
+        meter.done("report", "report")
+        return ["survey.json"]
     _require_ground(output_path(job_dir, "dtm.tif"))
     timings = {
         "shard": shard_seconds,
@@ -179,6 +203,13 @@ def run_job(
         ]
     return names_out
 
+
+#: progress kind and weight (per tile point) of a survey run's finishing tasks
+_SURVEY_COST = {
+    "tile_rasters": ("raster", 4.0),
+    "tile_classified": ("classified", 1.0),
+    "publish": ("categories", 1.0),
+}
 
 #: finishing work each selectable output needs (outputs not named need none beyond the report)
 OUTPUT_TASKS = {

@@ -27,6 +27,7 @@ MEDIA_TYPES = {
     ".json": "application/json",
     ".png": "image/png",
     ".html": "text/html; charset=utf-8",
+    ".vrt": "application/xml",
 }
 # a STAC Item is a GeoJSON Feature
 MEDIA_TYPE_BY_NAME = {"item.json": "application/geo+json"}

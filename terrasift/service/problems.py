@@ -61,6 +61,8 @@ PROBLEM_TYPES: dict[str, ProblemType] = {
         ProblemType("no-such-output", 404, "No such output"),
         ProblemType("result-not-ready", 404, "The job has not finished"),
         ProblemType("method-not-allowed", 405, "Method not allowed"),
+        ProblemType("survey-busy", 409, "A run of this survey is in progress"),
+        ProblemType("survey-unchanged", 409, "Nothing changed since the survey's last run"),
         ProblemType("job-dismissed", 410, "The job was dismissed"),
         ProblemType("job-failed", 422, "The job failed"),
         ProblemType("payload-too-large", 413, "The upload exceeds the size limit"),
@@ -79,6 +81,7 @@ EXCEPTION_PROBLEMS: dict[type[BaseException], str] = {
     errors.InputError: "invalid-input",
     errors.ProcessingError: "processing-failed",
     errors.JobCancelled: "job-dismissed",
+    errors.NothingChanged: "survey-unchanged",
     errors.TerrasiftError: "invalid-request",
 }
 

@@ -108,11 +108,24 @@ class SurveyRequest(BaseModel):
 
 
 class RunRequest(BaseModel):
-    """Parameters of one survey run, on top of the survey's own."""
+    """One survey run: incremental (default) or full; ``params`` on top of the survey's own."""
 
     model_config = ConfigDict(extra="forbid")
 
+    mode: Literal["incremental", "full"] = Field(
+        "incremental",
+        description="incremental: the tiles whose content or parameters changed and the "
+        "neighbours their halo reaches; full: every tile",
+    )
     params: dict[str, Any] = Field(default_factory=dict)
+
+
+class TileRequest(BaseModel):
+    """A tile from a server path (JSON); a raw LAS/LAZ body uploads it instead."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    href: str = Field(description="path under the input root")
 
 
 class SurveyInfo(BaseModel):
@@ -120,6 +133,9 @@ class SurveyInfo(BaseModel):
     created: str
     files: list[str]
     params: dict[str, Any]
+    product: dict[str, Any] | None = Field(
+        None, description="the current product: its version and the run that made it"
+    )
     jobs: list[StatusInfo]
     links: list[Link]
 

@@ -472,6 +472,22 @@ class JobStore:
             _write_json(self.surveys_dir / survey_id / RECORD, {**record, "created": ts})
         return Survey(survey_id, tenant, files, params, ts)
 
+    def set_survey_files(self, survey_id: str, files: list[str]) -> Survey | None:
+        """Replace a survey's tile list (a tile added, replaced or removed)."""
+        with self._tx() as db:
+            db.execute("UPDATE surveys SET files = ? WHERE id = ?", (json.dumps(files), survey_id))
+        survey = self.get_survey(survey_id)
+        if survey is not None and self.surveys_dir is not None:
+            record = {
+                "id": survey.id,
+                "tenant": survey.tenant,
+                "files": survey.files,
+                "params": survey.params,
+                "created": survey.created,
+            }
+            _write_json(self.surveys_dir / survey_id / RECORD, record)
+        return survey
+
     def get_survey(self, survey_id: str, tenant: str | None = None) -> Survey | None:
         with self._read() as db:
             row = db.execute("SELECT * FROM surveys WHERE id = ?", (survey_id,)).fetchone()

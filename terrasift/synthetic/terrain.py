@@ -269,3 +269,29 @@ def write_las(
         las.truth = scene.truth
     las.write(str(path))
     return path
+
+
+def write_tiles(
+    scene: Scene, out_dir: str | Path, tile_size: float, *, suffix: str = ".laz"
+) -> list[Path]:
+    """Cut ``scene`` into square tiles of ``tile_size`` from its lower-left corner and
+    write each as ``t<col>_<row><suffix>`` (a synthetic survey); returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    x0, y0 = scene.bounds[0], scene.bounds[1]
+    col = np.floor((scene.xyz[:, 0] - x0) / tile_size).astype(np.int64)
+    row = np.floor((scene.xyz[:, 1] - y0) / tile_size).astype(np.int64)
+    paths = []
+    for c, r in sorted({(int(a), int(b)) for a, b in zip(col, row, strict=True)}):
+        m = (col == c) & (row == r)
+        part = Scene(
+            scene.xyz[m],
+            scene.truth[m],
+            scene.return_number[m],
+            scene.number_of_returns[m],
+            scene.surface,
+            scene.bounds,
+            {k: v[m] for k, v in scene.extra.items()},
+        )
+        paths.append(write_las(part, out / f"t{c}_{r}{suffix}"))
+    return paths

@@ -1,34 +1,43 @@
-"""Surveys: register many tiles once (uploads or server paths), run them as one job."""
+"""Surveys: tiles registered once (uploads or server paths), changed one by one, run
+incrementally into one current product per survey (``terrasift.jobs.survey``)."""
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
 from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
+from pydantic_core import to_jsonable_python
 from starlette.concurrency import run_in_threadpool
 
+from terrasift.errors import InputError
+from terrasift.jobs import survey as surveys
+from terrasift.jobs import validate_params
 from terrasift.service import ogc
 from terrasift.service.auth import tenant
 from terrasift.service.context import Service, base_url, service
+from terrasift.service.outputs import file_response, media_type
 from terrasift.service.problems import Problem
 from terrasift.service.routes.jobs import created
 from terrasift.service.schemas import (
+    OutputReference,
     RunRequest,
     StatusInfo,
     SurveyInfo,
     SurveyRequest,
+    TileRequest,
     multipart_body,
     problem_responses,
 )
-from terrasift.service.store import Survey
+from terrasift.service.store import ACTIVE, Survey
 from terrasift.service.submit import (
     check_inputs,
-    create_job,
     inside_root,
     new_id,
     parse_params,
@@ -105,11 +114,11 @@ def get_survey(
 
 @router.post(
     "/surveys/{survey_id}/runs",
-    summary="Run a survey as one job",
+    summary="Run a survey (incremental by default)",
     status_code=201,
     response_model=StatusInfo,
     response_model_exclude_none=True,
-    responses=problem_responses(400, 401, 404, 422),
+    responses=problem_responses(400, 401, 404, 409, 422),
 )
 def run_survey(
     survey_id: str,
@@ -117,10 +126,204 @@ def run_survey(
     who: Annotated[str, Depends(tenant)],
     body: Annotated[RunRequest | None, Body()] = None,
 ) -> JSONResponse:
-    """All the survey's tiles in one job; `params` here override the survey's."""
+    """One job over the tiles whose content or parameters changed since the product was
+    made and the neighbours their halo reaches (`{"mode": "full"}`: every tile), reading
+    neighbour points for every halo; it updates the survey's product atomically.
+    `params` here override the survey's. 409 when a run is in progress or nothing changed."""
     svc = service(request)
     survey = _survey(svc, survey_id, who)
-    params = {**survey.params, **(body.params if body else {})}
+    _not_busy(svc, survey)
+    body = body or RunRequest()
+    files = _present_files(svc, survey)
+    job_id = new_id()
+    job_dir = svc.scheduler.job_dir(job_id)
+    try:
+        raw = {**survey.params, **body.params}
+        check_inputs(svc.settings, files, raw, svc.scheduler.pipeline)
+        params = validate_params(raw)  # the survey's planning needs every resolved field
+        summary = surveys.plan_survey_run(
+            job_dir,
+            svc.settings.surveys_dir / survey.id,
+            files,
+            params,
+            mode=body.mode,
+            max_points=svc.settings.max_points,
+        )
+        inputs = [Path(p) for n, p in _by_name(files).items() if n in summary["sources"]]
+        job = svc.store.create_job(
+            job_id,
+            who,
+            to_jsonable_python(params, fallback=str),
+            [str(p) for p in inputs],
+            survey_id=survey.id,
+        )
+    except BaseException:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        raise
+    svc.scheduler.wake()
+    return created(request, job)
+
+
+@router.put(
+    "/surveys/{survey_id}/tiles/{name}",
+    summary="Add or replace a tile",
+    response_model=SurveyInfo,
+    responses={
+        201: {"description": "the tile was added", "model": SurveyInfo},
+        **problem_responses(400, 401, 403, 404, 409, 413, 415, 422),
+    },
+    openapi_extra={
+        "requestBody": {
+            "content": {
+                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+                "application/json": {"schema": TileRequest.model_json_schema()},
+            }
+        }
+    },
+)
+async def put_tile(
+    survey_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> JSONResponse:
+    """The LAS/LAZ file as the raw body, or JSON `{"href": path under the input root}`
+    (its file name must be `name`). The next incremental run redoes it and its neighbours."""
+    svc = service(request)
+    survey = _survey(svc, survey_id, who)
+    _check_name(name)
+    _not_busy(svc, survey)
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    inputs = svc.settings.surveys_dir / survey.id / "inputs"
+    tmp = inputs / f".{name}.{new_id()}.part"
+    try:
+        if ctype == "application/json":
+            try:
+                ref = TileRequest.model_validate_json(await request.body())
+            except ValidationError as exc:
+                raise RequestValidationError(exc.errors()) from None
+            (path,) = await run_in_threadpool(resolve_server_paths, svc.settings, [ref.href])
+            if path.name != name:
+                raise Problem("invalid-request", f"{ref.href!r} is not named {name!r}")
+        elif ctype in ("application/octet-stream", "application/vnd.laszip", "application/vnd.las"):
+            await _receive_body(request, tmp, svc.settings.max_upload_bytes)
+            path = tmp
+        else:
+            raise Problem(
+                "unsupported-media-type",
+                "send the tile as application/octet-stream, or JSON naming a server path",
+            )
+        await run_in_threadpool(
+            check_inputs, svc.settings, [path], survey.params, svc.scheduler.pipeline
+        )
+        if path == tmp:
+            path = inputs / name
+            os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    files = [f for f in survey.files if Path(f).name != name]
+    old = [f for f in survey.files if Path(f).name == name]
+    for f in old:
+        if Path(f).resolve() != path.resolve():
+            _forget_upload(svc, survey, Path(f))
+    updated = svc.store.set_survey_files(survey.id, [*files, str(path)])
+    assert updated is not None
+    return JSONResponse(
+        _survey_doc(svc, updated, base_url(request)), status_code=200 if old else 201
+    )
+
+
+@router.delete(
+    "/surveys/{survey_id}/tiles/{name}",
+    summary="Remove a tile",
+    response_model=SurveyInfo,
+    responses=problem_responses(401, 404, 409),
+)
+def delete_tile(
+    survey_id: str, name: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> dict[str, Any]:
+    """The next incremental run drops it from the product and redoes the neighbours it reached."""
+    svc = service(request)
+    survey = _survey(svc, survey_id, who)
+    _not_busy(svc, survey)
+    old = [f for f in survey.files if Path(f).name == name]
+    if not old:
+        raise Problem("not-found", f"survey {survey_id} has no tile {name!r}")
+    for f in old:
+        _forget_upload(svc, survey, Path(f))
+    updated = svc.store.set_survey_files(
+        survey.id, [f for f in survey.files if Path(f).name != name]
+    )
+    assert updated is not None
+    return _survey_doc(svc, updated, base_url(request))
+
+
+@router.get(
+    "/surveys/{survey_id}/results",
+    summary="The survey's current product",
+    response_model=dict[str, OutputReference],
+    responses=problem_responses(401, 404),
+)
+def survey_results(
+    survey_id: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> dict[str, Any]:
+    """VRT mosaics over per-tile COGs, merged features, per-tile classified LAZ and STAC
+    Items, and `collection.json`; each by reference. The product changes only when a
+    run finishes, all at once."""
+    svc = service(request)
+    survey = _survey(svc, survey_id, who)
+    version = _version(svc, survey)
+    base = f"{base_url(request)}/surveys/{survey.id}/outputs"
+    return {
+        name: {"href": f"{base}/{name}", "type": media_type(name)}
+        for name in surveys.product_files(version)
+    }
+
+
+_OUTPUT_DOC: dict[str, Any] = dict(
+    response_class=Response,
+    responses={
+        200: {"description": "the file", "content": {"application/octet-stream": {}}},
+        206: {"description": "one byte range of the file"},
+        304: {"description": "not modified (If-None-Match)"},
+        **problem_responses(401, 404, 416),
+    },
+)
+
+
+@router.get(
+    "/surveys/{survey_id}/outputs/{path:path}", summary="Download a product file", **_OUTPUT_DOC
+)
+def get_product_file(
+    survey_id: str, path: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> Response:
+    """A file of the current product, or one `Range` of it (VRTs and COGs read in place)."""
+    return _product_file(request, survey_id, path, who)
+
+
+@router.head(
+    "/surveys/{survey_id}/outputs/{path:path}", summary="Product file size and ETag", **_OUTPUT_DOC
+)
+def head_product_file(
+    survey_id: str, path: str, request: Request, who: Annotated[str, Depends(tenant)]
+) -> Response:
+    """Headers of the GET, without the body."""
+    return _product_file(request, survey_id, path, who)
+
+
+_TILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}\.(las|laz)", re.IGNORECASE)
+
+
+def _check_name(name: str) -> None:
+    if not _TILE_NAME.fullmatch(name):
+        raise Problem(
+            "invalid-request",
+            f"tile name {name!r}: letters, digits, '.', '_' or '-', ending .las or .laz",
+        )
+
+
+def _by_name(files: list[Path]) -> dict[str, Path]:
+    return {surveys.tile_name(f): f for f in files}
+
+
+def _present_files(svc: Service, survey: Survey) -> list[Path]:
     files = [Path(f) for f in survey.files]
     uploads = svc.settings.surveys_dir / survey.id
     inside_root(svc.settings, [f for f in files if not f.is_relative_to(uploads)])
@@ -130,15 +333,75 @@ def run_survey(
             "invalid-input",
             f"tiles of this survey are gone from the server: {', '.join(missing[:10])}",
         )
-    job = create_job(
-        svc.settings, svc.store, svc.scheduler, who, new_id(), files, params, survey_id=survey.id
-    )
-    return created(request, job)
+    return files
+
+
+def _not_busy(svc: Service, survey: Survey) -> None:
+    active = [j.id for j in svc.store.survey_jobs(survey.id) if j.status in ACTIVE]
+    if active:
+        raise Problem(
+            "survey-busy",
+            f"run {active[0]} of this survey is in progress; wait for it or dismiss it",
+        )
+
+
+def _forget_upload(svc: Service, survey: Survey, path: Path) -> None:
+    """Remove an uploaded tile's file (server paths are the owner's, never removed)."""
+    if path.resolve().is_relative_to((svc.settings.surveys_dir / survey.id).resolve()):
+        path.unlink(missing_ok=True)
+
+
+async def _receive_body(request: Request, dest: Path, max_bytes: int) -> None:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > max_bytes:
+        raise Problem(
+            "payload-too-large", f"the request declares {declared} bytes; the limit is {max_bytes}"
+        )
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    size = 0
+    with open(dest, "wb") as fh:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > max_bytes:
+                raise Problem("payload-too-large", f"the tile exceeds {max_bytes} bytes")
+            await run_in_threadpool(fh.write, chunk)
+    if size == 0:
+        raise Problem("invalid-request", "the request body is empty: send the LAS/LAZ file")
+
+
+def _version(svc: Service, survey: Survey) -> Path:
+    version = surveys.current_version(svc.settings.surveys_dir / survey.id)
+    if version is None:
+        raise Problem(
+            "result-not-ready",
+            f"survey {survey.id} has no product yet; POST /surveys/{survey.id}/runs",
+        )
+    return version
+
+
+def _product_file(request: Request, survey_id: str, path: str, who: str) -> Response:
+    svc = service(request)
+    version = _version(svc, _survey(svc, survey_id, who))
+    parts = Path(path).parts
+    if (
+        not parts
+        or any(p in ("..", "") or p.startswith(".") for p in parts)
+        or path == "state.json"
+    ):
+        raise Problem("no-such-output", f"the product has no file {path!r}")
+    target = (version / path).resolve()
+    if not target.is_relative_to(version) or not target.is_file():
+        raise Problem("no-such-output", f"the product has no file {path!r}")
+    return file_response(request, target, path)
 
 
 def _register(
     svc: Service, who: str, survey_id: str, files: list[Path], raw: dict[str, Any]
 ) -> Survey:
+    names = [surveys.tile_name(f) for f in files]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise InputError(f"tiles of a survey need distinct file names: {', '.join(twice[:10])}")
     check_inputs(svc.settings, files, raw, svc.scheduler.pipeline)
     # the client's own parameters are kept: each run validates them again merged with its own
     return svc.store.create_survey(survey_id, who, [str(f) for f in files], dict(raw))
@@ -157,11 +420,20 @@ def _survey_doc(svc: Service, survey: Survey, base: str) -> dict[str, Any]:
         "created": survey.created,
         "files": [Path(f).name for f in survey.files],
         "params": survey.params,
+        "product": _product_info(svc, survey),
         "jobs": [ogc.status_info(j, base) for j in svc.store.survey_jobs(survey.id)],
         "links": [
             ogc.link(f"{base}/surveys/{survey.id}", "self"),
             ogc.link(
                 f"{base}/surveys/{survey.id}/runs", "runs", title="POST here to run the survey"
             ),
+            ogc.link(f"{base}/surveys/{survey.id}/results", "results", title="the current product"),
         ],
     }
+
+
+def _product_info(svc: Service, survey: Survey) -> dict[str, Any] | None:
+    state = surveys.current_state(svc.settings.surveys_dir / survey.id)
+    if state is None:
+        return None
+    return {"version": state["version"], "job": state["job"], "tiles": len(state["tiles"])}

@@ -1,0 +1,152 @@
+"""Survey runs: an incremental run after a one-tile change gives the product a full run gives.
+
+A 3 × 3 synthetic survey (20 m tiles, 20 m blocks): a first (full) run, a
+mound added to a corner tile, an incremental run, then a full run of the same
+tiles. The incremental run must redo the changed tile and the neighbours its
+halo reaches only, keep the other tiles' files, and leave a product equal to
+the full run's: DTM cells, categories, labels and merged features.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import rasterio
+
+from terrasift.errors import NothingChanged
+from terrasift.jobs import run_job, validate_params
+from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
+from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
+from terrasift.workers.executors import InlineExecutor
+
+TILE = 20.0
+PARAMS = {"block_size": 20, "resolution": 0.5}
+
+
+def _product(version: Path) -> dict:
+    with rasterio.open(version / "dtm.vrt") as ds:
+        dtm = ds.read(1, masked=True).filled(np.nan)
+    with rasterio.open(version / "categories.vrt") as ds:
+        cats = ds.read()
+    labels = {
+        p.parent.name: np.asarray(laspy.read(p).classification)
+        for p in sorted((version / "tiles").glob("*/classified.laz"))
+    }
+    feats = json.loads((version / "features.native.geojson").read_text())["features"]
+    return {"dtm": dtm, "cats": cats, "labels": labels, "features": feats}
+
+
+def _inodes(version: Path) -> dict[str, int]:
+    return {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/dtm.tif")}
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    root = tmp_path_factory.mktemp("survey")
+    # a hill on the corner shared by four tiles: one object, across tile edges
+    scene = make_scene(
+        3 * TILE, 4.0, surface=Surface(hills=((TILE, TILE, 2.5, 4.0),)), n_buildings=0, seed=3
+    )
+    tiles = write_tiles(scene, root / "tiles", TILE)
+    params = validate_params(PARAMS)
+    sdir = root / "survey"
+
+    def run(name: str, mode: str = "incremental") -> dict:
+        summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode)
+        assert run_job(root / name, InlineExecutor()) == ["survey.json"]
+        return summary
+
+    out: dict = {"first": run("r1")}
+    v1 = current_version(sdir)
+    assert v1 is not None
+    out["v1"], out["inodes1"] = _product(v1), _inodes(v1)
+    out["files"] = product_files(v1)
+    out["vrt"] = (v1 / "dtm.vrt").read_text()
+    out["collection"] = json.loads((v1 / "collection.json").read_text())
+    with pytest.raises(NothingChanged, match="no tile changed"):
+        plan_survey_run(root / "r-none", sdir, tiles, params)
+    # a 1.5 m mound in the corner tile t0_0
+    las = laspy.read(tiles[0])
+    d = np.hypot(np.asarray(las.x) - scene.bounds[0] - 8, np.asarray(las.y) - scene.bounds[1] - 9)
+    las.z = np.asarray(las.z) + 1.5 * np.clip(1 - d / 6, 0, None)
+    las.write(tiles[0])
+    out["incremental"] = run("r2")
+    v2 = current_version(sdir)
+    assert v2 is not None
+    out["v2"], out["inodes2"] = _product(v2), _inodes(v2)
+    out["full"] = run("r3", "full")
+    v3 = current_version(sdir)
+    assert v3 is not None and v3 != v2
+    out["v3"] = _product(v3)
+    # a finished run keeps only its summary: the tiles live on in the product
+    out["run_left"] = sorted(
+        str(p.relative_to(root / "r3")) for p in (root / "r3").rglob("*") if p.is_file()
+    )
+    # stopped after the switch, before its summary: publishing again finds itself current
+    (root / "r3" / "outputs" / "survey.json").unlink()
+    out["republished"] = publish(str(root / "r3"))
+    out["v3_again"] = current_version(sdir)
+    out["versions"] = sorted(p.name for p in (sdir / "product").glob("v-*"))
+    return out
+
+
+def test_first_run_writes_the_whole_product(survey: dict) -> None:
+    first = survey["first"]
+    assert first["mode"] == "full" and len(first["outputs"]) == 9
+    files = survey["files"]
+    for name in ("dtm", "dsm", "chm", "slope", "coverage", "categories"):
+        assert f"{name}.vrt" in files
+    assert {"features.geojson", "collection.json"} <= set(files)
+    for stem in (f"t{c}_{r}" for c in range(3) for r in range(3)):
+        for f in ("dtm.tif", "slope.tif", "categories.tif", "classified.laz", "item.json"):
+            assert f"tiles/{stem}/{f}" in files
+    # sources relative to the VRT, so the product reads in place anywhere
+    assert 'relativeToVRT="1">tiles/t0_0/dtm.tif' in survey["vrt"] and "/tmp" not in survey["vrt"]
+    items = [ln["href"] for ln in survey["collection"]["links"] if ln["rel"] == "item"]
+    assert len(items) == 9 and survey["collection"]["type"] == "Collection"
+    # the hill across the four tiles' shared corner is one object, not four
+    hills = [f for f in survey["v1"]["features"] if f["properties"].get("kind") == "hill"]
+    assert len(hills) == 1, [f["properties"] for f in survey["v1"]["features"]]
+
+
+def test_incremental_run_redoes_the_tile_and_its_halo_neighbours(survey: dict) -> None:
+    inc = survey["incremental"]
+    assert inc["mode"] == "incremental"
+    assert sorted(inc["outputs"]) == ["t0_0.laz", "t0_1.laz", "t1_0.laz", "t1_1.laz"]
+    # unchanged tiles are the same files (hard links), the redone ones new
+    i1, i2 = survey["inodes1"], survey["inodes2"]
+    for stem in i1:
+        same = f"{stem}.laz" not in inc["outputs"]
+        assert (i1[stem] == i2[stem]) == same, stem
+    # the product moved: the mound is in the DTM
+    diff = np.abs(survey["v2"]["dtm"] - survey["v1"]["dtm"])
+    assert np.nanmax(diff) > 1.0
+    # only the last version is kept
+    assert len(survey["versions"]) == 1
+
+
+def test_a_finished_run_keeps_only_its_records(survey: dict) -> None:
+    assert survey["run_left"] == ["job.json", "outputs/survey.json", "plan.json"]
+
+
+def test_publish_again_after_the_switch_is_a_no_op(survey: dict) -> None:
+    assert survey["republished"]["version"] == survey["v3_again"].name
+    assert survey["republished"]["mode"] == "full"
+
+
+def test_incremental_product_equals_a_full_run(survey: dict) -> None:
+    a, b = survey["v2"], survey["v3"]
+    assert a["dtm"].shape == b["dtm"].shape
+    assert (np.isnan(a["dtm"]) == np.isnan(b["dtm"])).all()
+    both = ~np.isnan(a["dtm"])
+    close = np.abs(a["dtm"][both] - b["dtm"][both]) <= 1e-3
+    assert close.mean() >= 0.9999, close.mean()
+    assert (a["cats"] == b["cats"]).all()
+    assert a["labels"].keys() == b["labels"].keys() and len(a["labels"]) == 9
+    for k in a["labels"]:
+        assert (a["labels"][k] == b["labels"][k]).all(), k
+    assert a["features"] == b["features"]
