@@ -312,7 +312,8 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         # no ramp measured (too few resolved edges): the widest footprint of the
         # family's range; on the tune family a missed ramp cost more than edge beams
         fp = max(fp, GRID_FOOTPRINT)
-    reach = int(np.clip(np.ceil(2 * fp) + 1, 2, 7))
+    wide = fp
+    reach = int(np.clip(np.ceil(2 * wide) + 1, 2, 7))
     sigma = geo.range_sigma if np.isfinite(geo.range_sigma) else 0.01
     sigma = max(sigma, geo.las_scale / np.sqrt(12.0), 1e-4)
     return GridSettings(
@@ -323,7 +324,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         margin=float(p.margin_sigmas * sigma),
         reach=reach,
         max_gap=p.box_depth,
-        thin=int(min(np.ceil(2 * fp) + 1, reach + 1)),
+        thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
         footprint=float(fp),
         las_scale=geo.las_scale,
         resolve=GRID_RESOLVE,

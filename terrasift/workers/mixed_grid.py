@@ -96,39 +96,52 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     inv = 1.0 / r
     out = np.zeros(r.size, dtype=bool)
     for axis in s.axes:
-        stride = n_e if axis == 0 else 1
         pos = (key // n_e) if axis == 0 else (key % n_e)
-        out |= _mixed_along(key, r, inv, stride, s, pos)
+        out |= _mixed_along(
+            _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2), r, s, pos, axis
+        )
     marked[idx[order]] = out
     return marked, judged
 
 
+class _Line:
+    """Neighbours of every return along one axis of the grid: range and inverse range
+    at each beam offset (NaN where no return)."""
+
+    def __init__(self, key, r, inv, stride: int, reach: int) -> None:
+        n = key.size
+        self.R: dict[int, NDArray[np.float64]] = {0: r}
+        self.V: dict[int, NDArray[np.float64]] = {0: inv}
+        for k in range(1, reach + 1):
+            for sd in (1, -1):
+                want = key + sd * k * stride
+                j = np.minimum(np.searchsorted(key, want), n - 1)
+                hit = key[j] == want
+                self.R[sd * k] = np.where(hit, r[j], np.nan)
+                self.V[sd * k] = np.where(hit, inv[j], np.nan)
+
+
 def _mixed_along(
-    key: NDArray[np.int64],
+    line: _Line,
     r: NDArray[np.float64],
-    inv: NDArray[np.float64],
-    stride: int,
     s: GridSettings,
     pos: NDArray[np.int64],
+    axis: int,
 ) -> NDArray[np.bool_]:
-    """Mixed returns along one axis of the grid (``stride`` between neighbouring beams,
-    ``pos`` each return's index along the axis)."""
-    n = key.size
+    """Mixed returns along one axis of the grid (``pos`` each return's index along it)."""
+    n = r.size
     reach = s.reach
-    R: dict[int, NDArray[np.float64]] = {0: r}
-    V: dict[int, NDArray[np.float64]] = {0: inv}
-    for k in range(1, reach + 3):
-        for sd in (1, -1):
-            want = key + sd * k * stride
-            j = np.searchsorted(key, want)
-            j = np.minimum(j, n - 1)
-            hit = key[j] == want
-            R[sd * k] = np.where(hit, r[j], np.nan)
-            V[sd * k] = np.where(hit, inv[j], np.nan)
+    R, V = line.R, line.V
+    step = s.step_az if axis == 0 else s.step_el
+    # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
+    # range changes by d per beam that adds d × the blur in steps to its range scatter.
+    blur = s.las_scale / np.sqrt(12.0) / r / step
 
-    def spread(i: int) -> float:
-        """Scatter of a return about the surface through two beams continued i beams on."""
-        return s.sigmas * s.sigma * np.sqrt((1 + i) ** 2 + i**2 + 1)
+    def spread(i: int, slope: NDArray[np.float64] | float = 0.0) -> NDArray[np.float64]:
+        """Scatter of a return about the surface through two beams continued i beams on
+        (``slope``: the surface's range change per beam)."""
+        sd = np.sqrt(s.sigma**2 + (np.nan_to_num(slope) * blur) ** 2)
+        return s.sigmas * sd * np.sqrt((1 + i) ** 2 + i**2 + 1)
 
     def extrapolated(a: int, b: int, steps: float) -> NDArray[np.float64]:
         """Range of the surface through beams a and b (a nearer p) continued ``steps`` beyond a."""
@@ -145,17 +158,17 @@ def _mixed_along(
                 ra = R[a]
                 # on a surface: the line through its outer neighbours continues through
                 # it, or (a surface only two beams wide) its outer neighbour agrees
-                anchored = (np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1)) | (
-                    np.abs(R[a1] - ra) <= spread(0)
-                )
-                off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i)
+                anchored = (
+                    np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
+                ) | (np.abs(R[a1] - ra) <= spread(0))
+                # off its surface
+                off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i, np.abs(ra - R[a1]))
                 ok = anchored & off
                 near[sd] |= ok & (ra < r - s.margin) & (r - ra < s.max_gap)
                 far[sd] |= ok & (ra > r + s.margin) & (ra - r < s.max_gap)
     between = (near[1] & far[-1]) | (near[-1] & far[1])
     if s.thin > 0:
         between |= _thin_runs(R, V, r, s)
-    step = s.step_az if stride != 1 else s.step_el
     between |= _bleeding(R, V, r, s, step, pos)
     return between
 
