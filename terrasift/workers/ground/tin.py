@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numba
 import numpy as np
 import startinpy
 from numpy.typing import NDArray
@@ -35,14 +34,13 @@ from terrasift.workers.ground._kernels import (
     _adjacency,
     _band_kernel,
     _edge_neighbours,
-    _insertion_sort,
+    _judge_kernel,
     _surface_kernel,
     _walk_kernel,
 )
 
 IN_BAND, ABOVE, BELOW = _kernels.IN_BAND, _kernels.ABOVE, _kernels.BELOW  # codes of Tin.band
 _GUESS_K = 0.5
-_SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's sort)
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
 
@@ -654,61 +652,3 @@ def _judge(
     sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes[ids], dtype=np.float64)
     _judge_kernel(indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, bad)
     return bad
-
-
-@numba.njit(cache=True, nogil=True)
-def _judge_kernel(
-    indptr: NDArray,
-    indices: NDArray,
-    test: NDArray[np.int64],
-    z: NDArray[np.float64],
-    xy: NDArray[np.float64],
-    sl: NDArray[np.float64],
-    screen_tol: float,
-    low_tol: float,
-    bad: NDArray[np.bool_],
-) -> None:
-    """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
-    median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
-    the second lowest of their pit votes (see ``screen``).
-
-    With slopes ``sl`` (one row per vertex; none: zero rows), a neighbour u
-    votes z_u + g·(v - u) with g the mean of both ends' slopes (the
-    trapezoid rule: exact on any quadratic surface, so curved hills are not
-    taken for objects), and its pit vote uses u's own slope alone: the plane
-    of v's bin, tilted by an outlier at v, would vouch for it.
-    """
-    with_slopes = sl.shape[0] > 0
-    width = 0
-    for v in test:
-        width = max(width, indptr[v + 1] - indptr[v])
-    votes = np.empty(width)
-    pits = np.empty(width)
-    for v in test:
-        a = indptr[v]
-        deg = indptr[v + 1] - a
-        if deg == 0:
-            continue
-        for k in range(deg):
-            u = indices[a + k]
-            zu = z[u]
-            if with_slopes:
-                d0 = xy[v, 0] - xy[u, 0]
-                d1 = xy[v, 1] - xy[u, 1]
-                votes[k] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
-                pits[k] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
-            else:
-                votes[k] = zu
-                pits[k] = zu
-        vs = votes[:deg]
-        ps = pits[:deg]
-        if deg <= _SORT_WIDTH:
-            _insertion_sort(vs)
-            _insertion_sort(ps)
-        else:
-            vs.sort()
-            ps.sort()
-        med = 0.5 * (vs[(deg - 1) // 2] + vs[deg // 2])
-        second = ps[min(1, deg - 1)]
-        zv = z[v]
-        bad[v] = zv - med > screen_tol or (low_tol > 0 and second - zv > low_tol)
