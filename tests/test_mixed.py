@@ -214,3 +214,42 @@ def test_empty_and_degenerate_input():
     assert res.n_points == 0 and res.loss_rate == 0.0
     res = mark_mixed(np.zeros((4, 3)), MixedParams(), np.zeros(3))  # all at the sensor
     assert res.unclassified.all() and not res.marked.any()
+
+
+def _wall_grid(r_of_col, step=0.15, seed=0):
+    """A range image on a 0.15° grid: column c (azimuth c × step) at range r_of_col(c)
+    (NaN: no return), rows over ±6° elevation, 4 mm range noise."""
+    rng = np.random.default_rng(seed)
+    cols = np.arange(-40, 40)
+    az, el = np.meshgrid(
+        np.radians(cols * step), np.radians(np.arange(-6.0, 6.0, step)), indexing="ij"
+    )
+    col = np.broadcast_to(cols[:, None], az.shape).ravel()
+    az, el = az.ravel(), el.ravel()
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    r = np.array([r_of_col(c) for c in col]) + rng.normal(0.0, 0.004, col.size)
+    keep = np.isfinite(r)
+    return d[keep] * r[keep, None], col[keep]
+
+
+def test_grid_marks_a_thin_object_blended_in_every_beam():
+    # A pole narrower than the footprint: three columns blended between pole and wall,
+    # no return on the pole itself; nothing else in the image is marked.
+    ranges = {0: 9.3, 1: 8.9, 2: 9.4}
+    xyz, col = _wall_grid(lambda c: ranges.get(c, 10.0))
+    res = mark_mixed(xyz, MixedParams(footprint=0.3), np.zeros(3))
+    thin = np.isin(col, list(ranges))
+    assert res.marked[thin].mean() > 0.95
+    assert res.marked[~thin].mean() < 0.002
+
+
+def test_grid_marks_a_surface_bleeding_past_its_edge_by_half_a_footprint():
+    # A wall at 20 m ending at column 0, a background 10 m behind (too far to blend):
+    # a beam whose footprint still touches the wall returns its range on its own ray. With a footprint of
+    # three steps the last column lies up to 1.5 steps (8 cm) past the edge and is
+    # marked; with one step it lies at most half a step past and is kept.
+    xyz, col = _wall_grid(lambda c: 20.0 if c <= 0 else 30.0)
+    wide = mark_mixed(xyz, MixedParams(footprint=0.45), np.zeros(3)).marked
+    narrow = mark_mixed(xyz, MixedParams(footprint=0.15), np.zeros(3)).marked
+    assert wide[col == 0].mean() > 0.95 and not wide[col < 0].any()
+    assert not narrow.any()
