@@ -216,11 +216,11 @@ def main() -> None:
 
     print("\nstage alone, geometry measured per scan: worst / p10 / median")
     print(
-        f"{'trigger':<12}{'variant':<24}{'tpr':^18}{'fpr (worst=max, p90)':^20}{'precision':^18}{'F1':^18}"
+        f"{'trigger':<12}{'variant':<28}{'tpr':^18}{'fpr (worst=max, p90)':^20}{'precision':^18}{'F1':^18}"
     )
     dp = MixedParams(**overrides)
     default_rows = [score(tile.is_mixed, run_stage(tile, dp)) for _, tile in scenes]
-    print(f"{'default':<12}{'method=' + dp.method:<24}{fmt(summary(default_rows))}", flush=True)
+    print(f"{'default':<12}{'method=' + dp.method:<28}{fmt(summary(default_rows))}", flush=True)
     combos = (
         [(t, v) for t in TRIGGERS for v in VARIANTS]
         if args.variants == "all"
@@ -229,7 +229,7 @@ def main() -> None:
     for trig, var in combos:
         p = MixedParams(**{**overrides, "variant": var, "trigger": trig, "method": "box"})
         rows = [score(tile.is_mixed, run_stage(tile, p)) for _, tile in scenes]
-        print(f"{trig:<12}{'box ' + var:<24}{fmt(summary(rows))}", flush=True)
+        print(f"{trig:<12}{'box ' + var:<28}{fmt(summary(rows))}", flush=True)
 
     print("\ndefault per scene (stage alone" + ("" if args.no_job else " | whole job") + "):")
     job_rows = []

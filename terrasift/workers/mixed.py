@@ -54,6 +54,7 @@ from terrasift.workers.scan_geometry import ScanGeometry, measure_scan_geometry
 
 GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
+GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
 GRID_FOOTPRINT = 3.0  # footprint (steps) assumed by the grid when none was measured
 
 Variant = Literal[
@@ -326,6 +327,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         max_gap=p.box_depth,
         thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
         footprint=float(fp),
+        span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,
         resolve=GRID_RESOLVE,
     )

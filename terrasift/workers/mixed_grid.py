@@ -48,6 +48,7 @@ class GridSettings:
     max_gap: float  # largest foreground-background gap that still blends
     thin: int  # longest run of beams in front of a background marked as thin (0: off)
     footprint: float = 1.0  # beam footprint in steps (edges bleed by half of it)
+    span: int = 99  # most beams between the two surfaces of a blend
     las_scale: float = 0.0
     resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
@@ -149,8 +150,9 @@ def _mixed_along(
             v = V[a] + (V[a] - V[b]) * steps
             return np.where(v > 0, 1.0 / v, np.inf)
 
-    near = {1: np.zeros(n, bool), -1: np.zeros(n, bool)}
-    far = {1: np.zeros(n, bool), -1: np.zeros(n, bool)}
+    # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
+    near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
+    far: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -164,9 +166,19 @@ def _mixed_along(
                 # off its surface
                 off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i, np.abs(ra - R[a1]))
                 ok = anchored & off
-                near[sd] |= ok & (ra < r - s.margin) & (r - ra < s.max_gap)
-                far[sd] |= ok & (ra > r + s.margin) & (ra - r < s.max_gap)
-    between = (near[1] & far[-1]) | (near[-1] & far[1])
+                near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
+                far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
+    # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
+    # (a strip of ground seen between a board's top and the wall behind is longer).
+    between = np.zeros(n, dtype=bool)
+    for sd in (1, -1):
+        upto = np.zeros(n, dtype=bool)
+        nearer = []
+        for i in range(1, reach + 1):
+            upto = upto | near[-sd][i]
+            nearer.append(upto)
+        for j in range(1, min(reach, s.span) + 1):
+            between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
     if s.thin > 0:
         between |= _thin_runs(R, V, r, s)
     between |= _bleeding(R, V, r, s, step, pos)
