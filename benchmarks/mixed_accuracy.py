@@ -1,6 +1,6 @@
 """Mixed-measurement filter over a family of ground-based scans with exact truth.
 
-Run: ``python benchmarks/mixed_accuracy.py [--family report|tune] [--scenes 12]
+Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse] [--scenes 12]
 [--variants all|default] [--no-job] [--no-speed] [--params k=v ...]``.
 
 Each scene draws its scanner and its objects from the ranges of ROBUSTNESS.md:
@@ -9,7 +9,8 @@ spreads as a ramp over as many neighbouring beams), range noise 2–10 mm, LAS
 scale 1 mm–1 cm, 1–3 scan positions in one tile with masts of 1–3 m, boards and
 thin poles (ghost returns behind them) at 3–40 m with walls 1–2.5 m behind.
 The ``tune`` family (seeds 1000+, steps 0.05–0.3°, objects within 25 m) is the
-one parameters were chosen on; the ``report`` family (seeds 0+, the full
+one parameters were chosen on, with the ``coarse`` scans (seeds 2000+, the tune
+draw at steps 0.3–0.5°); the ``report`` family (seeds 0+, the full
 ranges) is what the figures come from.
 
 Printed: the default (grid method) and, for the interest boxes alone (method=box),
@@ -70,8 +71,9 @@ def score(truth: np.ndarray, marked: np.ndarray) -> dict[str, float]:
 def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
     """One scene of the family: its drawn parameters and its tile."""
     rng = np.random.default_rng(seed)
-    tune = family == "tune"
-    step = float(np.exp(rng.uniform(np.log(0.05 if tune else 0.03), np.log(0.3 if tune else 0.5))))
+    tune = family in ("tune", "coarse")
+    lo, hi = {"tune": (0.05, 0.3), "coarse": (0.3, 0.5)}.get(family, (0.03, 0.5))
+    step = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
     far = float(rng.uniform(10.0, 25.0 if tune else 40.0))
     near = float(rng.uniform(3.0, min(10.0, far - 5.0)))
     mast_hi = 3.0
@@ -182,7 +184,7 @@ def parse_overrides(items: list[str]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--family", choices=("report", "tune"), default="report")
+    ap.add_argument("--family", choices=("report", "tune", "coarse"), default="report")
     ap.add_argument("--scenes", type=int, default=12)
     ap.add_argument("--variants", choices=("all", "default"), default="all")
     ap.add_argument("--params", nargs="*", default=[], help="stage overrides, e.g. cell_angle=0.25")
@@ -192,7 +194,7 @@ def main() -> None:
     ap.add_argument("--cache", help="folder keeping the drawn scenes between runs")
     args = ap.parse_args()
     overrides = parse_overrides(args.params)
-    base = 0 if args.family == "report" else 1000
+    base = {"report": 0, "tune": 1000, "coarse": 2000}[args.family]
 
     scenes = []
     for i in range(args.scenes):
