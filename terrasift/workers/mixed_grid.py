@@ -14,14 +14,20 @@ A return p is mixed along one axis (azimuth or elevation) when on one side an
 *anchor* a (a return on a surface: the line through its two outer neighbours
 continues through it) lies nearer than p, on the other side an anchor b lies
 farther, both within ``max_gap`` in range, p is off a and b by more than the
-margin, and the surface of each anchor, extrapolated to p's beam, misses p.
+margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
+most ``span`` beams lie between the anchors (a blend spans about a footprint).
 Surfaces are continued in inverse range, which is linear in the angle along a
 plane seen from the sensor (exactly for the ground along elevation, however
 grazing), so far grazing ground passes as a surface, not as a ramp.
 
 Thin objects narrower than the footprint leave no correct return at all: along
-a line they are a run of at most ``footprint`` beams in front of one background
-surface that continues behind them. Such runs are marked as well (``thin``).
+a line they are a run of at most ``thin`` beams (about two footprints) in front
+of one background surface that continues behind them. Such runs are marked too.
+
+Where nothing answers behind an edge (no return, or a background farther than
+``max_gap``), a beam whose footprint still touches the surface returns its range
+on its own ray, up to half a footprint past the edge: those beams are marked
+when more likely than not displaced by more than the margin (``_bleeding``).
 
 Everything is array arithmetic on the points sorted by grid index; the only
 loops run over the few beam offsets within reach.
