@@ -17,6 +17,7 @@ VARIANTS = (
     "blind_window",
     "exclusive_blind_window",
 )
+BOX = {"method": "box"}  # the interest boxes everywhere: variants and triggers apply
 
 
 @pytest.fixture(scope="module")
@@ -44,20 +45,32 @@ def test_scan_truth_is_exact_and_mixed_points_lie_between_surfaces(scan):
 
 
 def test_default_marks_most_mixed_and_few_correct(scan):
-    # Measured on this scan: tpr 0.882, fpr 0.015 (the benchmark gives the full table).
+    # Measured on this scan: grid tpr 0.998, fpr 0.004; boxes alone tpr 0.907, fpr 0.010.
     res = mark_mixed(scan.xyz, MixedParams(), scan.origin)
     tpr, fpr = _rates(scan.is_mixed, res.marked)
-    assert tpr > 0.8
-    assert fpr < 0.02
+    assert res.geometry[0]["method"] == "grid" and res.geometry[0]["grid_share"] > 0.99
+    assert tpr > 0.9
+    assert fpr < 0.01
     assert res.n_marked == res.marked.sum()
     assert 0.0 <= res.loss_rate < 0.05
     assert not (res.marked & res.unclassified).any()
+    box = mark_mixed(scan.xyz, MixedParams(**BOX), scan.origin)
+    tpr_b, fpr_b = _rates(scan.is_mixed, box.marked)
+    assert tpr_b > 0.8 and fpr_b < 0.02
+
+
+def test_grid_finds_a_ramp_over_several_beams():
+    # A footprint of three steps blends the walls over three columns, a smooth ramp.
+    xyz, mixed = _two_walls(3)
+    res = mark_mixed(xyz, MixedParams(), np.zeros(3))
+    tpr, fpr = _rates(mixed, res.marked)
+    assert tpr > 0.9 and fpr < 0.002, (tpr, fpr)
 
 
 def test_cross_box_adds_horizontal_edges(scan):
     # The box rolled 90° also catches sheets along board tops and bottoms.
-    base = mark_mixed(scan.xyz, MixedParams(), scan.origin)
-    both = mark_mixed(scan.xyz, MixedParams(cross_box=True), scan.origin)
+    base = mark_mixed(scan.xyz, MixedParams(**BOX), scan.origin)
+    both = mark_mixed(scan.xyz, MixedParams(cross_box=True, **BOX), scan.origin)
     assert not (base.marked & ~both.marked).any()
     assert _rates(scan.is_mixed, both.marked)[0] > _rates(scan.is_mixed, base.marked)[0]
 
@@ -88,43 +101,49 @@ def _two_walls(mixed_columns: int, seed: int = 0):
 def test_clean_step_edge_marks_nothing():
     # Two walls and a jump edge without mixing: every point lies on a surface.
     xyz, _ = _two_walls(0)
-    res = mark_mixed(xyz, MixedParams(), np.zeros(3))
-    assert res.n_marked <= 0.001 * len(xyz)
+    for p in (MixedParams(), MixedParams(**BOX)):
+        res = mark_mixed(xyz, p, np.zeros(3))
+        assert res.n_marked <= 0.001 * len(xyz)
 
 
 def test_mixed_sheet_behind_an_edge_is_marked():
     # Returns blended between the walls along the edge (seed Fig. 7): a sheet
     # containing the rays, isolated in range from both walls.
     xyz, mixed = _two_walls(2)
-    res = mark_mixed(xyz, MixedParams(), np.zeros(3))
-    tpr, fpr = _rates(mixed, res.marked)
     assert mixed.sum() > 100
-    assert tpr > 0.9
-    assert fpr < 0.005
+    for p in (MixedParams(), MixedParams(**BOX)):
+        res = mark_mixed(xyz, p, np.zeros(3))
+        tpr, fpr = _rates(mixed, res.marked)
+        assert tpr > 0.9
+        assert fpr < 0.005
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_variants_run_and_nest(scan, variant):
-    p = MixedParams(variant=variant)
+    p = MixedParams(variant=variant, **BOX)
     res = mark_mixed(scan.xyz, p, scan.origin)
-    agg = mark_mixed(scan.xyz, MixedParams(variant="aggressive"), scan.origin)
+    agg = mark_mixed(scan.xyz, MixedParams(variant="aggressive", **BOX), scan.origin)
     # Every variant marks a subset of what aggressive marking marks.
     assert not (res.marked & ~agg.marked).any()
     assert res.n_triggered == agg.n_triggered
 
 
 def test_blind_window_variants_leave_the_interest_point_only_for_exclusive(scan):
-    bw = mark_mixed(scan.xyz, MixedParams(variant="blind_window"), scan.origin).marked
-    ebw = mark_mixed(scan.xyz, MixedParams(variant="exclusive_blind_window"), scan.origin).marked
-    naive = mark_mixed(scan.xyz, MixedParams(variant="naive"), scan.origin).marked
+    def run(v):
+        return mark_mixed(scan.xyz, MixedParams(variant=v, **BOX), scan.origin).marked
+
+    bw, ebw, naive = run("blind_window"), run("exclusive_blind_window"), run("naive")
     assert not (ebw & ~bw).any()
     assert not (naive & ~bw).any()  # blind window marks the interest points too
 
 
 def test_accumulator_needs_votes(scan):
-    one = mark_mixed(scan.xyz, MixedParams(variant="accumulator", votes=1), scan.origin).marked
-    agg = mark_mixed(scan.xyz, MixedParams(variant="aggressive"), scan.origin).marked
-    many = mark_mixed(scan.xyz, MixedParams(variant="accumulator", votes=5), scan.origin).marked
+    def run(**kw):
+        return mark_mixed(scan.xyz, MixedParams(**kw, **BOX), scan.origin).marked
+
+    one = run(variant="accumulator", votes=1)
+    agg = run(variant="aggressive")
+    many = run(variant="accumulator", votes=5)
     assert np.array_equal(one, agg)
     assert many.sum() < one.sum()
     assert not (many & ~one).any()
@@ -141,6 +160,8 @@ def test_uniform_random_points_are_not_marked(density):
                 pts, MixedParams(trigger=trigger, cross_box=cross), np.array([0.0, 0.0, 5.0])
             )
             assert res.n_marked <= 0.001 * len(pts)
+    # no scanner grid in a random cloud: the grid method leaves it to the boxes
+    assert res.geometry[0]["method"] == "box"
 
 
 def test_random_points_without_the_background_rule_do_fire():
@@ -148,7 +169,7 @@ def test_random_points_without_the_background_rule_do_fire():
     # clutter forms thin-looking boxes (this guards the test above from passing vacuously).
     rng = np.random.default_rng(150)
     pts = rng.uniform(0.0, 10.0, (15000, 3)) + [5.0, -5.0, 0.0]
-    res = mark_mixed(pts, MixedParams(background_share=0.0), np.array([0.0, 0.0, 5.0]))
+    res = mark_mixed(pts, MixedParams(background_share=0.0, **BOX), np.array([0.0, 0.0, 5.0]))
     assert res.n_marked > 0.01 * len(pts)
 
 
@@ -161,7 +182,7 @@ def test_several_origins_match_separate_runs():
     )
     xyz = np.vstack([b.xyz, a.xyz])
     ids = np.r_[np.ones(len(b), int), np.zeros(len(a), int)]
-    p = MixedParams(cell_angle=0.5, min_points=5)  # cells no finer than the coarse 0.4° scan
+    p = MixedParams(cell_angle=0.5, min_points=5)  # box cells no finer than the 0.4° scan
     both = mark_mixed(xyz, p, np.vstack([a.origin, b.origin]), ids)
     ra = mark_mixed(a.xyz, p, a.origin)
     rb = mark_mixed(b.xyz, p, b.origin)
@@ -193,3 +214,42 @@ def test_empty_and_degenerate_input():
     assert res.n_points == 0 and res.loss_rate == 0.0
     res = mark_mixed(np.zeros((4, 3)), MixedParams(), np.zeros(3))  # all at the sensor
     assert res.unclassified.all() and not res.marked.any()
+
+
+def _wall_grid(r_of_col, step=0.15, seed=0):
+    """A range image on a 0.15° grid: column c (azimuth c × step) at range r_of_col(c)
+    (NaN: no return), rows over ±6° elevation, 4 mm range noise."""
+    rng = np.random.default_rng(seed)
+    cols = np.arange(-40, 40)
+    az, el = np.meshgrid(
+        np.radians(cols * step), np.radians(np.arange(-6.0, 6.0, step)), indexing="ij"
+    )
+    col = np.broadcast_to(cols[:, None], az.shape).ravel()
+    az, el = az.ravel(), el.ravel()
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    r = np.array([r_of_col(c) for c in col]) + rng.normal(0.0, 0.004, col.size)
+    keep = np.isfinite(r)
+    return d[keep] * r[keep, None], col[keep]
+
+
+def test_grid_marks_a_thin_object_blended_in_every_beam():
+    # A pole narrower than the footprint: three columns blended between pole and wall,
+    # no return on the pole itself; nothing else in the image is marked.
+    ranges = {0: 9.3, 1: 8.9, 2: 9.4}
+    xyz, col = _wall_grid(lambda c: ranges.get(c, 10.0))
+    res = mark_mixed(xyz, MixedParams(footprint=0.3), np.zeros(3))
+    thin = np.isin(col, list(ranges))
+    assert res.marked[thin].mean() > 0.95
+    assert res.marked[~thin].mean() < 0.002
+
+
+def test_grid_marks_a_surface_bleeding_past_its_edge_by_half_a_footprint():
+    # A wall at 20 m ending at column 0, a background 10 m behind (too far to blend):
+    # a beam whose footprint still touches the wall returns its range on its own ray. With a footprint of
+    # three steps the last column lies up to 1.5 steps (8 cm) past the edge and is
+    # marked; with one step it lies at most half a step past and is kept.
+    xyz, col = _wall_grid(lambda c: 20.0 if c <= 0 else 30.0)
+    wide = mark_mixed(xyz, MixedParams(footprint=0.45), np.zeros(3)).marked
+    narrow = mark_mixed(xyz, MixedParams(footprint=0.15), np.zeros(3)).marked
+    assert wide[col == 0].mean() > 0.95 and not wide[col < 0].any()
+    assert not narrow.any()

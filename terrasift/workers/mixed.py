@@ -48,18 +48,37 @@ from pydantic import Field, model_validator
 
 from terrasift.errors import InputError, ParameterError
 from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
+from terrasift.workers.mixed_grid import GridSettings, mark_grid
 from terrasift.workers.registry import StageParams, register
-from terrasift.workers.scan_geometry import measure_scan_geometry
+from terrasift.workers.scan_geometry import ScanGeometry, measure_scan_geometry
+
+GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
+GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
+GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
+GRID_FOOTPRINT = 3.0  # footprint (steps) assumed by the grid when none was measured
 
 Variant = Literal[
     "naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"
 ]
 Trigger = Literal["surfaceness", "normal", "both"]
+Method = Literal["grid", "box"]
 
 
 class MixedParams(StageParams):
     """Parameters of the mixed-measurement filter (lengths in metres, angles in degrees)."""
 
+    method: Method = "grid"
+    """grid: returns between a nearer and a farther surface along the scan's own
+    angular grid (``mixed_grid``), with the interest boxes for the returns the grid
+    cannot place (LAS scale too coarse for their beam spacing) and for scans with no
+    measurable grid; box: the interest boxes of the seed everywhere (the variants
+    and triggers below apply to the boxes only)."""
+    grid_sigmas: float = Field(4.0, gt=0.0, le=50.0)
+    """grid: a surface continued to a beam passes through it when within grid_sigmas ×
+    the scatter of the continuation (from the measured range scatter)."""
+    margin_sigmas: float = Field(5.0, gt=0.0, le=50.0)
+    """grid: a mixed return lies more than margin_sigmas × the measured range scatter
+    off the surfaces either side of it."""
     variant: Variant = "exclusive_blind_window"
     """Marking: naive (the interest point), aggressive (the whole box), accumulator
     (points reported by at least ``votes`` boxes), exclusive (box but the interest
@@ -191,11 +210,32 @@ def mark_mixed(
         if rel.shape[0] == 0:
             continue
         derived = derive_params(rel, params, absolute=xyz[idx])
-        m, u, nr, nt = _mark_scan(rel, derived.params, derived.box_angle, derived.las_scale)
+        extra: dict[str, Any] = {"method": "box"}
+        if params.method == "grid" and derived.geometry is not None:
+            gs = grid_settings(derived.geometry, params)
+            m, judged = mark_grid(rel, gs)
+            u = np.zeros(rel.shape[0], dtype=bool)
+            nr, nt = int(judged.sum()), int(m.sum())
+            rest = ~judged
+            if np.count_nonzero(rest) > GRID_REST * rel.shape[0]:
+                mb, ub, nrb, ntb = _mark_scan(
+                    rel, derived.params, derived.box_angle, derived.las_scale
+                )
+                m |= mb & rest
+                u = ub & rest
+                nr, nt = nr + nrb, nt + ntb
+            extra = {
+                "method": "grid",
+                "grid_share": round(float(judged.mean()), 4),
+                "reach": gs.reach,
+                "thin": gs.thin,
+            }
+        else:
+            m, u, nr, nt = _mark_scan(rel, derived.params, derived.box_angle, derived.las_scale)
         marked[idx], unclassified[idx] = m, u
         n_regions += nr
         n_triggered += nt
-        geometry.append({"scan": k, "points": int(rel.shape[0]), **derived.report()})
+        geometry.append({"scan": k, "points": int(rel.shape[0]), **derived.report(), **extra})
     n_unc = int(unclassified.sum())
     return MixedResult(
         marked=marked,
@@ -244,7 +284,8 @@ def derive_params(
     Without enough points to measure, the values the filter was first tuned with
     (0.25° cells, 2 cm support, 15 cm boxes) stand in.
     """
-    if p.cell_angle is not None and p.support_tol is not None and p.box_width is not None:
+    fixed = p.cell_angle is not None and p.support_tol is not None and p.box_width is not None
+    if fixed and p.method == "box":
         return Derived(p, None, None)
     geo = measure_scan_geometry(rel, footprint=p.footprint, absolute=absolute)
     if geo is None:
@@ -260,6 +301,36 @@ def derive_params(
     )
     box = None if p.box_width is not None else np.radians(p.box_factor * (geo.footprint + cell))
     return Derived(p.model_copy(update={"cell_angle": cell, "support_tol": tol}), box, geo)
+
+
+def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
+    """Grid-method settings from the measured geometry: surfaces are looked for up to
+    2 footprints + 1 beams away (a ramp spans about a footprint, a thin object's blend
+    up to two), thin runs up to as long, gaps up to the box depth (the seed's mixing
+    distance)."""
+    fp = max(geo.footprint_steps, 1.0)
+    if geo.how.get("footprint", "").startswith("no mixing"):
+        # no ramp measured (too few resolved edges): the widest footprint of the
+        # family's range; on the tune family a missed ramp cost more than edge beams
+        fp = max(fp, GRID_FOOTPRINT)
+    wide = fp
+    reach = int(np.clip(np.ceil(2 * wide) + 1, 2, 7))
+    sigma = geo.range_sigma if np.isfinite(geo.range_sigma) else 0.01
+    sigma = max(sigma, geo.las_scale / np.sqrt(12.0), 1e-4)
+    return GridSettings(
+        step_az=float(np.radians(geo.step_az)),
+        step_el=float(np.radians(geo.step_el)),
+        sigma=float(sigma),
+        sigmas=p.grid_sigmas,
+        margin=float(p.margin_sigmas * sigma),
+        reach=reach,
+        max_gap=p.box_depth,
+        thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
+        footprint=float(fp),
+        span=int(np.ceil(fp)) + GRID_SPAN,
+        las_scale=geo.las_scale,
+        resolve=GRID_RESOLVE,
+    )
 
 
 def _scan_layout(

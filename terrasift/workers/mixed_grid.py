@@ -1,0 +1,255 @@
+"""Mixed measurements found in the scan's own angular grid (a sparse range image).
+
+A ground-based scanner casts its beams on lines of constant azimuth and
+elevation steps. With the steps measured from the points (``scan_geometry``),
+every return gets its beam's grid index (azimuth column, elevation row) and the
+scan becomes a range image. A mixed return blends a foreground and a background
+seen in one footprint, so along a scan line it lies *between* them: its range
+is farther than a surface on one side and nearer than a surface on the other,
+and it lies on neither of them. When the footprint spans several steps the
+blend spreads as a ramp of several beams; the surfaces are then looked for up
+to ``reach`` beams away on each side.
+
+A return p is mixed along one axis (azimuth or elevation) when on one side an
+*anchor* a (a return on a surface: the line through its two outer neighbours
+continues through it) lies nearer than p, on the other side an anchor b lies
+farther, both within ``max_gap`` in range, p is off a and b by more than the
+margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
+most ``span`` beams lie between the anchors (a blend spans about a footprint).
+Surfaces are continued in inverse range, which is linear in the angle along a
+plane seen from the sensor (exactly for the ground along elevation, however
+grazing), so far grazing ground passes as a surface, not as a ramp.
+
+Thin objects narrower than the footprint leave no correct return at all: along
+a line they are a run of at most ``thin`` beams (about two footprints) in front
+of one background surface that continues behind them. Such runs are marked too.
+
+Where nothing answers behind an edge (no return, or a background farther than
+``max_gap``), a beam whose footprint still touches the surface returns its range
+on its own ray, up to half a footprint past the edge: those beams are marked
+when more likely than not displaced by more than the margin (``_bleeding``).
+
+Everything is array arithmetic on the points sorted by grid index; the only
+loops run over the few beam offsets within reach.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class GridSettings:
+    """Lengths in metres, angles in radians."""
+
+    step_az: float
+    step_el: float
+    sigma: float  # range scatter of one return (noise and LAS quantisation)
+    sigmas: float  # a surface continued to a beam lands within sigmas × its own scatter
+    margin: float  # a mixed return lies this far off both surfaces
+    reach: int  # beams searched for the surfaces on each side
+    max_gap: float  # largest foreground-background gap that still blends
+    thin: int  # longest run of beams in front of a background marked as thin (0: off)
+    footprint: float = 1.0  # beam footprint in steps (edges bleed by half of it)
+    span: int = 99  # most beams between the two surfaces of a blend
+    las_scale: float = 0.0
+    resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
+    axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
+
+
+def grid_index(
+    az: NDArray[np.float64], step: float, off_grid: float = 0.35
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Grid index of each angle on a regular grid of ``step`` (phase from the data) and
+    whether the angle sits near its grid line (off by less than ``off_grid`` steps)."""
+    t = 2 * np.pi * az / step
+    phase = float(np.angle(np.mean(np.exp(1j * t))) / (2 * np.pi) * step)
+    f = (az - phase) / step
+    i = np.round(f).astype(np.int64)
+    return i, np.abs(f - i) < off_grid
+
+
+def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArray]:
+    """Mixed returns of one scan position (``rel`` relative to the sensor).
+
+    Returns (marked, judged): returns not judged (off the grid, too near for the
+    LAS scale to place them on their beam) are never marked.
+    """
+    n = rel.shape[0]
+    marked = np.zeros(n, dtype=bool)
+    r_all = np.linalg.norm(rel, axis=1)
+    az = np.arctan2(rel[:, 1], rel[:, 0])
+    el = np.arcsin(np.clip(rel[:, 2] / np.maximum(r_all, 1e-12), -1.0, 1.0))
+    ia, ok_a = grid_index(az, s.step_az)
+    ie, ok_e = grid_index(el, s.step_el)
+    judged = ok_a & ok_e & (r_all > 1e-6)
+    if s.las_scale > 0:
+        quant = s.las_scale / np.sqrt(12.0) / np.maximum(r_all, 1e-6)
+        judged &= quant <= s.resolve * min(s.step_az, s.step_el)
+    idx = np.flatnonzero(judged)
+    if idx.size < 3:
+        return marked, judged
+    ia, ie, r = ia[idx], ie[idx], r_all[idx]
+    pad = 2 * s.reach + 4
+    ia = ia - ia.min() + pad
+    ie = ie - ie.min() + pad
+    n_e = int(ie.max()) + pad + 1
+    key = ia * n_e + ie
+    order = np.argsort(key, kind="stable")
+    key, r = key[order], r[order]
+    inv = 1.0 / r
+    out = np.zeros(r.size, dtype=bool)
+    for axis in s.axes:
+        pos = (key // n_e) if axis == 0 else (key % n_e)
+        out |= _mixed_along(
+            _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2), r, s, pos, axis
+        )
+    marked[idx[order]] = out
+    return marked, judged
+
+
+class _Line:
+    """Neighbours of every return along one axis of the grid: range and inverse range
+    at each beam offset (NaN where no return)."""
+
+    def __init__(self, key, r, inv, stride: int, reach: int) -> None:
+        n = key.size
+        self.R: dict[int, NDArray[np.float64]] = {0: r}
+        self.V: dict[int, NDArray[np.float64]] = {0: inv}
+        for k in range(1, reach + 1):
+            for sd in (1, -1):
+                want = key + sd * k * stride
+                j = np.minimum(np.searchsorted(key, want), n - 1)
+                hit = key[j] == want
+                self.R[sd * k] = np.where(hit, r[j], np.nan)
+                self.V[sd * k] = np.where(hit, inv[j], np.nan)
+
+
+def _mixed_along(
+    line: _Line,
+    r: NDArray[np.float64],
+    s: GridSettings,
+    pos: NDArray[np.int64],
+    axis: int,
+) -> NDArray[np.bool_]:
+    """Mixed returns along one axis of the grid (``pos`` each return's index along it)."""
+    n = r.size
+    reach = s.reach
+    R, V = line.R, line.V
+    step = s.step_az if axis == 0 else s.step_el
+    # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
+    # range changes by d per beam that adds d × the blur in steps to its range scatter.
+    blur = s.las_scale / np.sqrt(12.0) / r / step
+
+    def spread(i: int, slope: NDArray[np.float64] | float = 0.0) -> NDArray[np.float64]:
+        """Scatter of a return about the surface through two beams continued i beams on
+        (``slope``: the surface's range change per beam)."""
+        sd = np.sqrt(s.sigma**2 + (np.nan_to_num(slope) * blur) ** 2)
+        return s.sigmas * sd * np.sqrt((1 + i) ** 2 + i**2 + 1)
+
+    def extrapolated(a: int, b: int, steps: float) -> NDArray[np.float64]:
+        """Range of the surface through beams a and b (a nearer p) continued ``steps`` beyond a."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            v = V[a] + (V[a] - V[b]) * steps
+            return np.where(v > 0, 1.0 / v, np.inf)
+
+    # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
+    near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
+    far: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
+    with np.errstate(invalid="ignore"):
+        for sd in (1, -1):
+            for i in range(1, reach + 1):
+                a, a1, a2 = sd * i, sd * (i + 1), sd * (i + 2)
+                ra = R[a]
+                # on a surface: the line through its outer neighbours continues through
+                # it, or (a surface only two beams wide) its outer neighbour agrees
+                anchored = (
+                    np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
+                ) | (np.abs(R[a1] - ra) <= spread(0))
+                # off its surface
+                off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i, np.abs(ra - R[a1]))
+                ok = anchored & off
+                near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
+                far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
+    # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
+    # (a strip of ground seen between a board's top and the wall behind is longer).
+    between = np.zeros(n, dtype=bool)
+    for sd in (1, -1):
+        upto = np.zeros(n, dtype=bool)
+        nearer = []
+        for i in range(1, reach + 1):
+            upto = upto | near[-sd][i]
+            nearer.append(upto)
+        for j in range(1, min(reach, s.span) + 1):
+            between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+    if s.thin > 0:
+        between |= _thin_runs(R, V, r, s)
+    between |= _bleeding(R, V, r, s, step, pos)
+    return between
+
+
+def _bleeding(
+    R: dict[int, NDArray[np.float64]],
+    V: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    s: GridSettings,
+    step: float,
+    pos: NDArray[np.int64],
+) -> NDArray[np.bool_]:
+    """Returns of a surface beyond its edge: where nothing answers behind an edge (no
+    return, or a background beyond ``max_gap``), a beam whose footprint still touches the
+    surface returns its range on its own central ray, up to half a footprint past the edge.
+    The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
+    evenly; it is marked when more likely than not past by more than the margin. Beams
+    outside the extent of the returns (the field of view) are not edges."""
+    out = np.zeros(r.size, dtype=bool)
+    half = s.footprint / 2.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for sd in (1, -1):
+            # on a surface seen from the inner side
+            inner = np.abs(1.0 / (2 * V[-sd] - V[-2 * sd]) - r) <= s.sigmas * s.sigma * np.sqrt(6)
+            same = np.ones(r.size, dtype=bool)
+            for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
+                beyond = R[sd * k]
+                inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
+                edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
+                shift = (half - k + 0.5) * step * r
+                out |= inner & same & edge & (shift > s.margin)
+                same &= np.abs(beyond - r) <= s.margin
+    return out
+
+
+def _thin_runs(
+    R: dict[int, NDArray[np.float64]],
+    V: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    s: GridSettings,
+) -> NDArray[np.bool_]:
+    """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
+    continues behind them (the surface either side, continued across the run, agrees)."""
+    n = r.size
+    out = np.zeros(n, dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for L in range(1, s.thin + 1):
+            # p at position q (0..L-1) within a run of L beams: background at -(q+1) and +(L-q)
+            for q in range(L):
+                lo, hi = -(q + 1), L - q
+                if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
+                    continue
+                rb0, rb1 = R[lo], R[hi]
+                behind = (rb0 > r + s.margin) & (rb1 > r + s.margin)
+                behind &= (rb0 - r < s.max_gap) & (rb1 - r < s.max_gap)
+                # the run's beams all lie in front of the background
+                for m in range(lo + 1, hi):
+                    behind &= R[m] < np.minimum(rb0, rb1) - s.margin
+                # the background continues behind the run: each side's surface,
+                # continued across the run, lands on the other side's beam
+                v_left = V[lo] + (V[lo] - V[lo - 1]) * (hi - lo)
+                v_right = V[hi] + (V[hi] - V[hi + 1]) * (hi - lo)
+                tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
+                cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
+                out |= behind & cont
+    return out
