@@ -160,13 +160,29 @@ class BinStats:
     lowest: NDArray[np.int64]  # index (into the input points) of each bin's lowest point
 
 
-def lowest_per_bin(flat: NDArray[np.int64], z: NDArray, size: int) -> NDArray[np.int64]:
+def lowest_per_bin(
+    flat: NDArray[np.int64],
+    z: NDArray,
+    size: int,
+    ties: tuple[NDArray, ...] | None = None,
+) -> NDArray[np.int64]:
     """Index of the lowest point of each bin (-1 for empty bins or flat == -1).
 
-    Ties go to the smaller index. One compiled pass (``_min_argmin``).
+    Ties in z go to the smaller index, one compiled pass (``_min_argmin``); with
+    ``ties`` (keys such as x, y) to the smallest first key, then the next, so the
+    choice does not depend on the order of the points.
     """
     flat = np.asarray(flat, dtype=np.int64)
-    return _min_argmin(flat, np.asarray(z, dtype=np.float64), size)[1]
+    zmin, low = _min_argmin(flat, np.asarray(z, dtype=np.float64), size)
+    if ties is None:
+        return low
+    inbin = flat >= 0
+    hit = np.flatnonzero(inbin & (np.asarray(z) == zmin[np.where(inbin, flat, 0)]))
+    hit = hit[np.lexsort(tuple(np.asarray(k)[hit] for k in reversed(ties)) + (flat[hit],))]
+    f = flat[hit]
+    first = np.r_[True, f[1:] != f[:-1]]
+    low[f[first]] = hit[first]
+    return low
 
 
 class BinGrid(Protocol):
