@@ -107,7 +107,7 @@ def auto(
             seeded=seeded,
             last_return=last_return,
         )
-        g = res.is_ground
+        g = reject_low_vegetation(xyz, res.is_ground, LowVegParams(), last_return)
         info["added"] = res.added
     info["total_s"] = time.perf_counter() - t0
     return g, info

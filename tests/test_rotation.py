@@ -261,11 +261,11 @@ def test_rotation_preset_follows_the_ground_method():
 
     assert rotation_params({}, "ground.ptd") == RotationParams()
     nist = rotation_params({}, "ground.nist")
-    assert (nist.angle, nist.second_angle) == (30.0, None) and not nist.rerun_unrotated
+    assert (nist.angle, nist.second_angle) == (30.0, 45.0) and not nist.rerun_unrotated
     assert nist.ground_preset == "conservative"
     # job overrides still go on top of the method's preset
-    two = rotation_params({"ground.rotation.second_angle": "45"}, "ground.nist")
-    assert two.second_angle == 45.0 and two.angle == 30.0
+    one = rotation_params({"ground.rotation.second_angle": "none"}, "ground.nist")
+    assert one.second_angle is None and one.angle == 30.0
     # a preset the stage does not have is an error, not the defaults
     with pytest.raises(ParameterError, match="unknown preset 'ground.ptd'"):
         stage_params({}, "ground.rotation", "ground.ptd")
@@ -294,7 +294,7 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
 
     monkeypatch.setattr(rotation, "classify_rotated", spy)
     pts = _plane(25.0)[::4]
-    for method, second in (("ptd", None), ("nist", None)):
+    for method, second in (("ptd", None), ("nist", 45.0)):
         seen.clear()
         models = block_models(validate_params({"ground": method, "rotation": "always"}))
         grid = BlockGrid.over(pts.min(0)[:2], pts.max(0)[:2], 0.5, 200.0, 20.0, 2.0)

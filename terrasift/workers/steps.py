@@ -156,7 +156,11 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
-    is_ground, low = without_low(np.asarray(result.is_ground, dtype=bool))
+    is_ground = np.asarray(result.is_ground, dtype=bool)
+    if models.lowveg is not None:
+        # Rotated runs add gentle ground within 1 m of the surface: bush edges too.
+        is_ground = lowveg.reject_low_vegetation(xyz, is_ground, models.lowveg, last)
+    is_ground, low = without_low(is_ground)
     return is_ground, low, steep_info
 
 
