@@ -44,7 +44,12 @@ _GUESS_K = 0.5
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
 
-def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Delaunay:
+def delaunay(
+    xy: NDArray[np.float64],
+    *,
+    coincident: bool = False,
+    order: NDArray[np.int64] | None = None,
+) -> Mesh | Delaunay:
     """Delaunay triangulation of the 2-D points ``xy``, as a ``Mesh`` or a scipy ``Delaunay``.
 
     startinpy (incremental insertion, robust predicates) builds it 3-4 times
@@ -55,11 +60,13 @@ def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Del
     result that does not check out as a triangulation are left to Qhull, which
     raises QhullError on collinear points as before. ``coincident``: the caller
     expects coincident points, so they are sorted out before triangulating
-    rather than after a first attempt.
+    rather than after a first attempt. ``order``: insert the points in this
+    order, one after the other, which decides the triangles where four or more
+    points are co-circular (the default picks an order for speed).
     """
     n = xy.shape[0]
     if n >= 3:
-        s = None if coincident else _startin(xy)
+        s = None if coincident else _startin(xy, order)
         if s is not None:
             mesh = Mesh.from_simplices(s, n, n)
         else:
@@ -76,15 +83,18 @@ def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Del
     return Delaunay(xy)
 
 
-def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
+def _startin(
+    xy: NDArray[np.float64], given: NDArray[np.int64] | None = None
+) -> NDArray[np.int32] | None:
     """startinpy's triangles (counter-clockwise, 0-based) over ``xy``, or None
-    when it merged points or found no triangle."""
+    when it merged points or found no triangle. ``given``: the insertion order."""
     n = xy.shape[0]
-    order = _insertion_order(xy)
+    order = _insertion_order(xy) if given is None else given.astype(np.int32)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
     dt.insert(
-        np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox"
+        np.column_stack([xy if order is None else xy[order], np.zeros(n)]),
+        insertionstrategy="BBox" if given is None else "AsIs",
     )
     if dt.number_of_vertices() != n:
         return None
@@ -161,8 +171,9 @@ class Tin:
         origin: NDArray[np.float64] | None = None,
         *,
         coincident: bool = False,
+        order: NDArray[np.int64] | None = None,
     ):
-        """``coincident``: points may share a position (see ``delaunay``)."""
+        """``coincident``: points may share a position; ``order``: of insertion (see ``delaunay``)."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.shape[0] < 3:
             raise ValueError("a TIN needs at least three points")
@@ -171,9 +182,8 @@ class Tin:
         )
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
-        self.tri = delaunay(
-            self.xy, coincident=coincident
-        )  # QhullError (collinear input) propagates to the caller
+        # QhullError (collinear input) propagates to the caller
+        self.tri = delaunay(self.xy, coincident=coincident, order=order)
         self._slopes: NDArray[np.float64] | None = None
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
