@@ -102,13 +102,14 @@ class RotationParams(StageParams):
     such cap; what a run adds is judged by the face itself (``face_*``). A cap
     of 4 m missed overhang fronts whose lowest surface steps up at the back of
     a cave, well behind the face."""
-    context: float | None = Field(10.0, ge=0.0, le=1000.0)
+    context: float | None = Field(20.0, ge=0.0, le=1000.0)
     """Metres: a rotated run sees only the points within this (+ ``steep_reach``
     when set) of the steep facets of the unrotated ground: the faces with their
     foot, rim and an overhang's depth, not the flats far from any face. This
-    keeps a steep block's cost near a flat one's. None: whole block. Shown on
-    faces 20–45 m high, overhangs 10 m and caves 14 m deep (the steep family):
-    10 m found as much face ground as 20 m at half the points per run."""
+    keeps a steep block's cost near a flat one's. None: whole block. It must
+    exceed an overhang's depth: over a 10 m lip the ground labels' steep facets
+    lie at the back wall, and 10 m missed a third of the front faces that 20 m
+    found (the steep family's overhang tiles)."""
     aspect_window: float | None = Field(45.0, gt=0.0, le=180.0)
     """Degrees: with ``context``, the run tipped toward azimuth θ sees only the
     points near steep facets that look within this of θ (a face looking
