@@ -52,6 +52,7 @@ from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.synthetic.cliffs import make_cliffs  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
 from terrasift.workers.ground.landforms import LandformParams, restore_landforms  # noqa: E402
+from terrasift.workers.ground.lowveg import LowVegParams, reject_low_vegetation  # noqa: E402
 from terrasift.workers.ground.rotation import (  # noqa: E402
     RotationParams,
     SteepParams,
@@ -81,14 +82,17 @@ def rotation_runs(**rotation) -> tuple[RotationParams, object, object]:
     return rp, ground(rp.ground_preset), ground(rp.ground_preset, seeded=True)
 
 
-def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
+def auto(
+    xyz: np.ndarray, last_return: np.ndarray | None = None, **rotation
+) -> tuple[np.ndarray, dict]:
     """The block flow: the default method, steepness on its ground; if steep, an
     unrotated and eight rotated runs with ``ground_preset`` OR'ed (seeded where
     the method can; with ``rerun_unrotated=False``, the default labels instead
     of the first), with the method's rotation preset and ``rotation`` on top."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
-    g = restore_landforms(xyz, g, LandformParams())
+    g = restore_landforms(xyz, g, LandformParams(), last_return)
+    g = reject_low_vegetation(xyz, g, LowVegParams(), last_return)
     t1 = time.perf_counter()
     test = steepness(xyz[g], SteepParams())
     t2 = time.perf_counter()
@@ -101,8 +105,9 @@ def auto(xyz: np.ndarray, **rotation) -> tuple[np.ndarray, dict]:
             rp,
             unrotated=None if rp.rerun_unrotated else g,
             seeded=seeded,
+            last_return=last_return,
         )
-        g = res.is_ground
+        g = reject_low_vegetation(xyz, res.is_ground, LowVegParams(), last_return)
         info["added"] = res.added
     info["total_s"] = time.perf_counter() - t0
     return g, info

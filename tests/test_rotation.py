@@ -308,9 +308,11 @@ def test_block_rotates_with_the_methods_preset(monkeypatch):
         )  # nist keeps its default labels
 
 
-def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
-    # Tipped by 30° only, the overhang stays steeper than ground.nist follows;
-    # the rerun conservative unrotated run drops terrain the default run keeps.
+def test_a_second_tip_finds_more_of_the_faces_without_face_evidence(cliffs):
+    # Without face evidence and with the 4 m reach, tipped by 30° only the
+    # overhang stays steeper than ground.nist follows; a second tip of 45°
+    # finds it (the rerun conservative unrotated run drops terrain the default
+    # run keeps). The preset has one tip since face evidence judges additions.
     from terrasift.jobs.params import stage_params
     from terrasift.workers.ground.rotation import bind_ground
     from terrasift.workers.registry import get_stage
@@ -322,7 +324,9 @@ def test_nist_rotation_preset_finds_more_of_the_faces(cliffs):
     # The angles alone: both with the 4 m reach and no face evidence.
     old = {"face_evidence": False, "steep_reach": 4.0, "context": 6.0}
     seed = classify_rotated(cliffs.xyz, plain, RotationParams(**old))
-    rp = stage_params({}, "ground.rotation", "ground.nist").model_copy(update=old)
+    rp = stage_params({}, "ground.rotation", "ground.nist").model_copy(
+        update={**old, "second_angle": 45.0}
+    )
     own = classify_rotated(cliffs.xyz, plain, rp, unrotated=default)
     missed_seed = np.mean(~seed.is_ground[steep])  # 0.94 measured
     missed_own = np.mean(~own.is_ground[steep])
@@ -429,3 +433,26 @@ def test_face_evidence_keeps_faces_and_drops_crowns_beside_them():
     lifted = xyz.copy()
     lifted[3000:5000, 2] += 20.0
     assert _on_faces(lifted, base, cand, foot, RotationParams())[3000:5000].mean() < 0.1
+
+
+def test_runs_see_only_the_faces_looking_their_way():
+    # A straight step rising toward +x (east) looks west: only the runs tipped
+    # toward 270° and its neighbours (225°, 315°: the step's facets, summed over
+    # 6 m, look 260–280°) see points; without the window every direction runs
+    # on the points near the step.
+    pts = _plane(25.0)
+    base = pts[:, 2] < 0.02 * (pts[:, 0] - 5e5) + 0.5 + np.where(pts[:, 0] > 5e5 + 75, 25.0, 0.0)
+    sizes: dict[str, list[int]] = {"window": [], "none": []}
+    for key, window in (("window", 45.0), ("none", None)):
+
+        def spy(p, key=key):
+            sizes[key].append(p.shape[0])
+            return np.zeros(p.shape[0], dtype=bool)
+
+        params = RotationParams(aspect_window=window, face_evidence=False)
+        res = classify_rotated(pts, spy, params, unrotated=base)
+        assert len(res.added) == 8
+    assert 1 <= len(sizes["window"]) <= 3 and len(sizes["none"]) == 8
+    assert sum(sizes["window"]) < 0.5 * sum(sizes["none"])
+    # A run sees the step with 20 m on either side (40 of 150 m), not the block.
+    assert 0.1 * len(pts) < max(sizes["window"]) < 0.4 * len(pts)

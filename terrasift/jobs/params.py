@@ -277,6 +277,7 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         if origins
         else None,
         landforms=stage_params(params, "ground.landforms"),
+        lowveg=stage_params(params, "ground.lowveg"),
     )
 
 

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from terrasift.tiling.blocks import BlockGrid
 from terrasift.workers.ground.landforms import LandformParams
 from terrasift.workers.ground.lowpoints import LowPointParams
+from terrasift.workers.ground.lowveg import LowVegParams
 from terrasift.workers.ground.rotation import RotationParams, SteepParams
 from terrasift.workers.mixed import MixedParams
 from terrasift.workers.objects import ObjectParams
@@ -52,6 +53,8 @@ class BlockModels:
     """Scan positions of a ground-based scan; None for airborne data."""
     landforms: LandformParams | None = None
     """The steep-landform rule after the ground stage (None: not run)."""
+    lowveg: LowVegParams | None = None
+    """The low-vegetation rule after the ground stage (None: not run)."""
 
 
 @dataclass

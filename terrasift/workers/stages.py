@@ -5,6 +5,7 @@ import terrasift.workers.categories  # noqa: F401
 import terrasift.workers.features  # noqa: F401
 import terrasift.workers.ground.landforms  # noqa: F401
 import terrasift.workers.ground.lowpoints  # noqa: F401
+import terrasift.workers.ground.lowveg  # noqa: F401
 import terrasift.workers.ground.nist  # noqa: F401
 import terrasift.workers.ground.ptd  # noqa: F401
 import terrasift.workers.ground.rotation  # noqa: F401

@@ -28,7 +28,7 @@ from terrasift.workers.block import (
     Block,
     BlockModels,
 )
-from terrasift.workers.ground import landforms, lowpoints, rotation
+from terrasift.workers.ground import landforms, lowpoints, lowveg, rotation
 from terrasift.workers.registry import block_step
 
 #: bins of the widest vegetation support window (15) reach this far beyond the core
@@ -120,10 +120,13 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
 
     with timer("ground"):
         is_ground = np.asarray(stage.run(xyz, models.ground_params, **kwargs), dtype=bool)
+        last = _last_return(block)
         if models.landforms is not None:
             # Mesas, buttes and steep hills the filter removed as if buildings.
-            last = _last_return(block)
             is_ground = landforms.restore_landforms(xyz, is_ground, models.landforms, last)
+        if models.lowveg is not None:
+            # Bush edges and grass in the filter's ground band, by echoes and roughness.
+            is_ground = lowveg.reject_low_vegetation(xyz, is_ground, models.lowveg, last)
     is_ground, low = without_low(is_ground)
     if models.rotation_mode == "off":
         return is_ground, low, steep_info
@@ -153,7 +156,11 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
-    is_ground, low = without_low(np.asarray(result.is_ground, dtype=bool))
+    is_ground = np.asarray(result.is_ground, dtype=bool)
+    if models.lowveg is not None:
+        # Rotated runs add gentle ground within 1 m of the surface: bush edges too.
+        is_ground = lowveg.reject_low_vegetation(xyz, is_ground, models.lowveg, last)
+    is_ground, low = without_low(is_ground)
     return is_ground, low, steep_info
 
 

@@ -106,20 +106,39 @@ class RotationParams(StageParams):
     """Metres: a rotated run sees only the points within this (+ ``steep_reach``
     when set) of the steep facets of the unrotated ground: the faces with their
     foot, rim and an overhang's depth, not the flats far from any face. This
-    keeps a steep block's cost near a flat one's. None: whole block."""
+    keeps a steep block's cost near a flat one's. None: whole block. It must
+    exceed an overhang's depth: over a 10 m lip the ground labels' steep facets
+    lie at the back wall, and 10 m missed a third of the front faces that 20 m
+    found (the steep family's overhang tiles)."""
+    aspect_window: float | None = Field(45.0, gt=0.0, le=180.0)
+    """Degrees: with ``context``, the run tipped toward azimuth θ sees only the
+    points near steep facets that look within this of θ (a face looking
+    toward θ is the one that tip flattens; at 45° a face lies in the window of
+    its one or two nearest directions of eight). A cliff band facing one way
+    then costs one or two runs per tip instead of eight; a direction no face
+    looks toward is not run. None: every run sees every steep facet's points."""
+    aspect_rise: float = Field(2.0, ge=0.0, le=100.0)
+    """Metres: with ``aspect_window``, only steep facets rising this much choose
+    which points a run sees (the steepness test's ``min_rise``): the lowest
+    ground steps by a few decimetres at bushes and trunks in every direction."""
     face_evidence: bool = True
     """Keep only the added points that lie on a surface (see ``face_rough``),
     connected to the unrotated ground through such points (``face_link``)."""
-    face_radius: float = Field(1.5, gt=0.0, le=20.0)
-    """Metres: an added point's plane is fitted to its nearest neighbours (3-D),
-    as many as the block's density puts in a disc of this radius (10–64): at
-    1.5 m a bush 1.6–4 m across bends away from any plane."""
-    face_rough: float = Field(0.15, gt=0.0, le=10.0)
-    """Metres: RMS of those neighbours about their plane above which the point is
-    in vegetation (crowns and bushes scatter in depth or bend away; a face with
-    a bush in front of it, too), not on a surface. Holds for faces planar to a
-    few cm over the neighbourhood (the synthetic family: 3 cm noise); rougher
-    rock needs more."""
+    face_neighbours: int = Field(12, ge=4, le=64)
+    """An added point's plane is fitted to this many nearest points (3-D) that
+    some run called ground: the face with its foot and rim, not the crowns and
+    bushes in front of it (no run takes them), which made a face 1–2 m from a
+    tree look like vegetation."""
+    face_trim: float = Field(0.6, gt=0.0, le=1.0)
+    """Share of those neighbours the plane is refitted to (the closest to it,
+    three times): where a face bends into its foot or rim, the plane of the
+    majority."""
+    face_rough: float = Field(0.10, gt=0.0, le=10.0)
+    """Metres: RMS of the kept neighbours about their plane above which the point
+    is in vegetation, not on a surface; the point itself must lie within the
+    larger of 3 RMS and this of the plane. Holds for faces planar to a few cm
+    over the neighbourhood (the synthetic family: 3 cm noise); rougher rock
+    needs more."""
     face_tilt: float = Field(50.0, ge=0.0, le=90.0)
     """Degrees: an added point whose plane is tilted less than this from level is
     no face: it counts only within ``face_ground`` of the ground surface (the
@@ -161,6 +180,9 @@ class RotationParams(StageParams):
     #:   ground.ptd (seed)      4.26 /  3.58 /  6.90 / 5.82  /  5.04  %, mean kappa 88.2
     #: The second tip doubles the rotated runs (benchmarks/rotation_accuracy.py
     #: --method ground.nist gives the cost).
+    #: Each run sees only the faces looking its way (``aspect_window``) within
+    #: ``context``, so both tips together cost less than one did on the whole
+    #: context (README, *Measured*).
     presets = {"ground.nist": {"angle": 30.0, "second_angle": 45.0, "rerun_unrotated": False}}
 
 
@@ -343,37 +365,56 @@ def classify_rotated(
     footing = None
     if params.edge_margin is None and base.any():
         footing = _ground_level(xyz, base)
+        # The footprint test needs the feet's extent, not every foot: one per
+        # 1 m voxel fills the 2 m cells of ``_over_ground`` at any tip.
+        vox = np.floor(footing - footing.min(axis=0)).astype(np.int64)
+        span = vox.max(axis=0) + 1
+        key = (vox[:, 0] * span[1] + vox[:, 1]) * span[2] + vox[:, 2]
+        _, first = np.unique(key, return_index=True)
+        feet_xyz = footing[first]
     near = None
     work: slice | NDArray[np.intp] = slice(None)
+    faces: _Faces | None = None
+    wide = None
     if (
         params.max_lift is not None or params.steep_reach is not None or params.context is not None
     ) and base.any():
         wide = None if params.context is None else (params.steep_reach or 0.0) + params.context
-        near, seen = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
+        near, seen, faces = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
         if seen is not None:
             work = np.flatnonzero(seen)
     angles = [params.angle] if params.second_angle is None else [params.angle, params.second_angle]
     runs = [(360.0 * k / params.directions, a) for a in angles for k in range(params.directions)]
+    views: dict[float, slice | NDArray[np.intp]] = {}
     for azimuth, angle in runs:
+        view = work
+        if faces is not None and params.aspect_window is not None and wide is not None:
+            if azimuth not in views:
+                views[azimuth] = faces.facing(
+                    xyz, azimuth, params.aspect_window, wide, params.aspect_rise
+                )
+            view = views[azimuth]
+        if not isinstance(view, slice) and view.size < 3:
+            added.append(0)
+            continue
         rot = rotation_matrix(azimuth, angle)
-        # (x − c) R^T + c, built in one new array: the only extra copy of the block.
-        turned = xyz @ rot.T
-        turned += centroid - rot @ centroid
+        shift = centroid - rot @ centroid
+        # (x − c) R^T + c of the points this run sees: the only extra copy.
+        part = _turn(xyz[view], rot, shift)
         labels = np.zeros(xyz.shape[0], dtype=bool)
-        if isinstance(work, slice) or work.size >= 3:
-            part = turned[work]
-            labels[work] = ground(part) if seeded is None else seeded(part, combined[work])
-        if labels.any() and footing is not None:
-            feet = footing @ rot.T + (centroid - rot @ centroid)
-            labels &= _over_ground(turned[:, :2], feet[:, :2])
-        elif labels.any() and params.edge_margin:
+        got = np.asarray(ground(part) if seeded is None else seeded(part, combined[view]), bool)
+        if got.any() and footing is not None:
+            feet = _turn(feet_xyz, rot[:2], shift[:2])
+            got &= _over_ground(part[:, :2], feet)
+        elif got.any() and params.edge_margin:
             margin = params.edge_margin
-            xy = turned[:, :2]
-            inner = np.all((xy > xy.min(axis=0) + margin) & (xy < xy.max(axis=0) - margin), axis=1)
-            labels &= inner
+            xy = _turn(xyz, rot[:2], shift[:2])
+            lo, hi = xy[:, :2].min(axis=0) + margin, xy[:, :2].max(axis=0) - margin
+            got &= np.all((part[:, :2] > lo) & (part[:, :2] < hi), axis=1)
+        labels[view] = got
         if near is not None:
             labels &= near | base
-        del turned
+        del part
         added.append(int(np.count_nonzero(labels & ~base)))
         combined |= labels
     if last_return is not None:
@@ -381,6 +422,15 @@ def classify_rotated(
     if params.face_evidence and (combined & ~base).any():
         combined = base | _on_faces(xyz, base, combined & ~base, footing, params)
     return RotatedResult(combined, added, int(np.count_nonzero(base)))
+
+
+def _turn(
+    points: NDArray[np.float64], rot: NDArray[np.float64], shift: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``points`` R^T + shift (R: the rows of the rotation wanted, e.g. x and y only)."""
+    out = np.einsum("ij,kj->ik", points, rot)
+    out += shift
+    return out
 
 
 def _on_faces(
@@ -399,19 +449,27 @@ def _on_faces(
     from scipy.spatial import cKDTree
 
     ci = np.flatnonzero(cand)
-    tree = cKDTree(xyz)
     span = np.ptp(xyz[:, :2], axis=0)
     density = xyz.shape[0] / max(float(span[0] * span[1]), 1.0)
-    k = int(np.clip(round(np.pi * params.face_radius**2 * density), 10, 64))
-    k = min(k, xyz.shape[0])
-    _, nb = tree.query(xyz[ci], k=k)
-    pts = xyz[nb]  # (m, k, 3)
-    pts = pts - pts.mean(axis=1, keepdims=True)
-    cov = np.einsum("mki,mkj->mij", pts, pts) / k
-    val, vec = np.linalg.eigh(cov)
+    called = np.flatnonzero(base | cand)
+    k = min(params.face_neighbours, called.size - 1)
+    if k < 3:
+        return np.zeros(xyz.shape[0], dtype=bool)
+    _, nb = cKDTree(xyz[called]).query(xyz[ci], k=k + 1)
+    near = xyz[called][nb[:, 1:]]  # (m, k, 3), the point itself left out
+    keep = max(3, int(round(params.face_trim * k)))
+    sub = near
+    for _ in range(3):
+        centre = sub.mean(axis=1, keepdims=True)
+        d = sub - centre
+        val, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d) / sub.shape[1])
+        normal = vec[:, :, 0]
+        off = np.abs(np.einsum("mki,mi->mk", near - centre, normal))
+        sub = np.take_along_axis(near, np.argsort(off, axis=1)[:, :keep, None], axis=1)
     rough = np.sqrt(np.maximum(val[:, 0], 0.0))
-    tilt = np.degrees(np.arccos(np.clip(np.abs(vec[:, 2, 0]), 0.0, 1.0)))
-    ok = rough <= params.face_rough
+    own = np.abs(np.einsum("mi,mi->m", xyz[ci] - centre[:, 0], normal))
+    tilt = np.degrees(np.arccos(np.clip(np.abs(normal[:, 2]), 0.0, 1.0)))
+    ok = (rough <= params.face_rough) & (own <= np.maximum(3.0 * rough, params.face_rough))
     gentle = tilt < params.face_tilt
     if footing is not None:
         ok &= ~gentle | (xyz[ci, 2] - footing[ci, 2] <= params.face_ground)
@@ -481,16 +539,66 @@ def _over_ground(
     return occ[pi[:, 1], pi[:, 0]]
 
 
+#: Metres: radius over which the steep facets' normals are summed for their aspect.
+_ASPECT_R = 6.0
+
+
+@dataclass(frozen=True)
+class _Faces:
+    """Vertices of the steep facets of the unrotated ground (x, y), the compass
+    azimuth (degrees) their facet looks toward and the facet's rise (metres)."""
+
+    xy: NDArray[np.float64]
+    aspect: NDArray[np.float64]
+    rise: NDArray[np.float64]
+    group: int = 3
+    """Cells looking within the window in the 5 × 5 cells around a face cell."""
+
+    def facing(
+        self,
+        xyz: NDArray[np.float64],
+        azimuth: float,
+        window: float,
+        wide: float,
+        min_rise: float = 0.0,
+        cell: float = 2.0,
+    ) -> NDArray[np.intp]:
+        """Points within ``wide`` (x, y, on a raster of ``cell``) of the facets
+        rising at least ``min_rise`` that look within ``window`` of ``azimuth``."""
+        from scipy import ndimage
+
+        off = np.abs((self.aspect - azimuth + 180.0) % 360.0 - 180.0)
+        pick = (off < window) & (self.rise >= min_rise)
+        if not pick.any():
+            return np.zeros(0, dtype=np.intp)
+        lo = xyz[:, :2].min(axis=0)
+        ij = ((xyz[:, :2] - lo) // cell).astype(np.int64)
+        shape = ij.max(axis=0) + 1
+        hit = np.ones((int(shape[1]), int(shape[0])), dtype=bool)
+        aj = np.clip(((self.xy[pick] - lo) // cell).astype(np.int64), 0, shape - 1)
+        hit[aj[:, 1], aj[:, 0]] = False
+        # A face is a run of cells looking the same way; a lone facet so
+        # turned is where a jagged face line or a trunk bends the lowest ground.
+        own = ndimage.uniform_filter((~hit).astype(np.float64), size=5, mode="constant") * 25
+        hit |= own < self.group - 0.5
+        if hit.all():
+            return np.zeros(0, dtype=np.intp)
+        dist = ndimage.distance_transform_edt(hit) * cell
+        # A cell's centre may lie up to a half-diagonal from a point in it.
+        return np.flatnonzero(dist[ij[:, 1], ij[:, 0]] <= wide + cell * 0.7072)
+
+
 def _near_surface(
     xyz: NDArray[np.float64],
     ground: NDArray[np.bool_],
     lift: float | None,
     reach: float | None,
     wide: float | None = None,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_] | None]:
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_] | None, _Faces | None]:
     """Points within ``lift`` of the surface through the lowest ``ground`` point
     per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°;
-    and the points within ``wide`` of those facets (None when not asked)."""
+    the points within ``wide`` of those facets (None when not asked); and the
+    facets themselves (``_Faces``, None when not asked)."""
     from scipy.spatial import cKDTree
 
     from terrasift.workers.surface import TinSurface
@@ -508,18 +616,37 @@ def _near_surface(
         try:
             tri = Delaunay(verts[:, :2])
         except (QhullError, ValueError):
-            return ok, None
+            return ok, None, None
         p = verts[tri.simplices]
         nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
         if not slope.any():
             none = np.zeros(xyz.shape[0], dtype=bool)
-            return (ok if reach is None else none), (none if wide is not None else None)
+            if wide is None:
+                return (ok if reach is None else none), None, None
+            empty = _Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+            return (ok if reach is None else none), none, empty
         anchors = np.unique(tri.simplices[slope])
         far = max(wide or 0.0, reach or 0.0)
         dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
         if reach is not None:
             ok &= dist <= reach
         if wide is not None:
-            return ok, np.isfinite(dist)
-    return ok, None
+            # The upward normal's horizontal part points where the facet looks;
+            # summed (area-weighted) over the steep facets within ``_ASPECT_R``,
+            # as a jagged face line in 2 m cells turns single facets by up to 60°.
+            up = nrm[slope] * np.sign(nrm[slope, 2:3] + (nrm[slope, 2:3] == 0))
+            mid = p[slope, :, :2].mean(axis=1)
+            near = cKDTree(mid).sparse_distance_matrix(
+                cKDTree(mid), _ASPECT_R, output_type="coo_matrix"
+            )
+            rows = np.r_[near.row, np.arange(mid.shape[0])]
+            cols = np.r_[near.col, np.arange(mid.shape[0])]
+            sx = np.bincount(rows, weights=up[cols, 0], minlength=mid.shape[0])
+            sy = np.bincount(rows, weights=up[cols, 1], minlength=mid.shape[0])
+            aspect = np.degrees(np.arctan2(sx, sy)) % 360.0
+            corners = tri.simplices[slope].ravel()
+            rise = np.repeat(np.ptp(p[slope, :, 2], axis=1), 3)
+            faces = _Faces(verts[corners, :2] + lo, np.repeat(aspect, 3), rise)
+            return ok, np.isfinite(dist), faces
+    return ok, None, None

@@ -1,0 +1,69 @@
+"""Low vegetation taken back from the ground labels (ground.lowveg)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terrasift.workers.ground.lowveg import LowVegParams, reject_low_vegetation
+
+
+def _field(seed: int = 0):
+    """Gently sloping ground (3 cm noise, 8 pts/m²) with bushes 1.2 m in radius:
+    60 % of the pulses into a bush give one return 0.15–0.45 m up (its thin
+    edge), the others two (first in the bush, last on the ground). Everything
+    starts as ground."""
+    rng = np.random.default_rng(seed)
+    n = 8 * 60 * 60
+    xy = rng.uniform(0, 60, (n, 2))
+    z = 0.03 * xy[:, 0] + rng.normal(0, 0.03, n)
+    one = np.ones(n, np.uint8)
+    parts = [(xy, z, one, one, np.zeros(n, bool))]
+    for c in rng.uniform(5, 55, (12, 2)):
+        m = 36
+        r = 1.2 * np.sqrt(rng.random(m))
+        a = rng.uniform(0, 2 * np.pi, m)
+        bxy = c + np.column_stack([np.cos(a), np.sin(a)]) * r[:, None]
+        two = rng.random(m) < 0.4
+        up = np.where(two, rng.uniform(0.3, 1.0, m), rng.uniform(0.15, 0.45, m))
+        nret = np.where(two, 2, 1).astype(np.uint8)
+        parts.append((bxy, 0.03 * bxy[:, 0] + up, np.ones(m, np.uint8), nret, np.ones(m, bool)))
+        g = bxy[two]
+        k = g.shape[0]
+        gz = 0.03 * g[:, 0] + rng.normal(0, 0.03, k)
+        parts.append((g, gz, np.full(k, 2, np.uint8), np.full(k, 2, np.uint8), np.zeros(k, bool)))
+    xyz = np.column_stack(
+        [np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])]
+    )
+    ret = np.concatenate([p[2] for p in parts])
+    nret = np.concatenate([p[3] for p in parts])
+    veg = np.concatenate([p[4] for p in parts])
+    return xyz, ret >= nret, veg
+
+
+def test_bush_edges_and_first_returns_are_taken_back():
+    xyz, last, veg = _field()
+    ground = np.ones(len(xyz), bool)
+    out = reject_low_vegetation(xyz, ground, LowVegParams(), last)
+    assert not out[veg & ~last].any()  # echoes: first of two returns
+    assert (
+        np.mean(out[veg & last]) < 0.5
+    )  # single returns 0.15-0.45 m up (all kept without the rule)
+    assert np.mean(out[~veg]) > 0.995  # the ground itself
+
+
+def test_ground_without_echoes_around_is_left_alone():
+    # A sharp ridge stands above the plane of its neighbours like a bush; with
+    # no vegetation echoes near it (or no return numbers at all) it stays.
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 60, (20000, 2))
+    z = 10.0 - 0.6 * np.abs(xy[:, 0] - 30.0) + rng.normal(0, 0.03, len(xy))
+    xyz = np.column_stack([xy, z])
+    ground = np.ones(len(xyz), bool)
+    assert reject_low_vegetation(xyz, ground, LowVegParams(), np.ones(len(xyz), bool)).all()
+    assert reject_low_vegetation(xyz, ground, LowVegParams(), None).all()
+
+
+def test_disabled_rule_keeps_the_labels():
+    xyz, last, _ = _field(2)
+    ground = np.ones(len(xyz), bool)
+    assert reject_low_vegetation(xyz, ground, LowVegParams(enabled=False), last).all()
