@@ -127,6 +127,15 @@ def fingerprint(out: Path) -> dict[str, str]:
             prints[name] = _sha(json.dumps(item, sort_keys=True).encode())
         elif name.endswith(".geojson") or name.endswith(".json"):
             prints[name] = _sha(json.dumps(json.loads(path.read_text()), sort_keys=True).encode())
+        elif name.endswith(".gpkg"):  # its bytes carry the time it was written
+            import pyogrio
+
+            for layer, _ in pyogrio.list_layers(path):
+                _, _, geometry, fields = pyogrio.raw.read(path, layer=layer)
+                prints[f"{name}:{layer}"] = _sha(
+                    *(np.asarray(g).tobytes() for g in geometry),
+                    *(np.asarray(f).astype(str).tobytes() for f in fields),
+                )
         else:
             prints[name] = _sha(path.read_bytes())
     return prints
@@ -138,6 +147,7 @@ def main() -> int:
     ap.add_argument("--compare", type=Path, help="fingerprints of an earlier run to compare with")
     ap.add_argument("--only", default="", help="run the jobs whose name contains this")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--keep", type=Path, help="write the jobs' outputs under this folder")
     args = ap.parse_args()
 
     from terrasift.cli import process
@@ -149,7 +159,7 @@ def main() -> int:
             if args.only not in name:
                 continue
             t = time.perf_counter()
-            out = folder / "out" / name  # the same job name on every run
+            out = (args.keep or folder / "out") / name  # the same job name on every run
             process(inputs, out, {**params, "workers": args.workers}, progress=False)
             result[name] = fingerprint(out)
             print(

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from terrasift.errors import ParameterError, TerrasiftError
+from terrasift.files import atomic_path
 from terrasift.jobs.params import parse_cli_params
 
 WORK_DIR = ".terrasift-work"
@@ -195,12 +196,14 @@ def _decompress(src: Path, dst: Path, chunk_size: int = 1_000_000) -> None:
     """Copy LAZ ``src`` to an uncompressed LAS at ``dst`` (atomically), chunk by chunk."""
     import laspy
 
-    tmp = dst.with_name(dst.name + ".part")
     reader = laspy.open(str(src))
-    with reader, laspy.open(str(tmp), mode="w", header=reader.header, do_compress=False) as writer:
+    with (
+        atomic_path(dst) as tmp,
+        reader,
+        laspy.open(str(tmp), mode="w", header=reader.header, do_compress=False) as writer,
+    ):
         for pts in reader.chunk_iterator(chunk_size):
             writer.write_points(pts)
-    os.replace(tmp, dst)
 
 
 def print_summary(report_path: Path) -> None:
@@ -278,7 +281,6 @@ def run_worker(
     Dask nanny, which also restarts a worker that dies.
     """
     import asyncio
-    import os
 
     from terrasift.workers.executors import single_threaded_blas
 

@@ -19,23 +19,31 @@ from typing import Any
 PARTIAL = ".part"
 
 
-def partial_path(path: Path) -> Path:
-    """The temporary sibling ``path`` is written under: ``.<name>.part``."""
+def partial_path(path: Path, keep_suffix: bool = False) -> Path:
+    """The temporary sibling ``path`` is written under: ``.<name>.part``, or
+    ``.<stem>.part<suffix>`` for writers that choose a format by suffix (GDAL)."""
+    if keep_suffix:
+        return path.with_name(f".{path.stem}{PARTIAL}{path.suffix}")
     return path.with_name(f".{path.name}{PARTIAL}")
 
 
 @contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(
+    path: str | Path, *, keep_suffix: bool = False, make_parents: bool = True
+) -> Iterator[Path]:
     """Yield a temporary sibling of ``path`` to write (a file or a folder) and
     rename it onto ``path`` when the block ends without an error.
 
     A stale temporary from an earlier crash is removed first; on an error the
     temporary is removed and ``path`` is left as it was. A folder replaces a
-    folder already at ``path``.
+    folder already at ``path``. Missing parent folders are created unless
+    ``make_parents`` is off (a folder that may have been removed on purpose,
+    such as a dismissed job's, is then not brought back: OSError instead).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = partial_path(path)
+    if make_parents:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = partial_path(path, keep_suffix)
     _remove(tmp)
     try:
         yield tmp

@@ -264,6 +264,23 @@ def test_multi_tile_job_has_no_seam(tmp_path, small_scene, finished_job):
             laspy.read(jobs.output_path(job, f"classified-part{i}.laz")).classification
         )
         assert np.array_equal(got, one[sel])
+    # Each tile's classified copy reads only the blocks under the tile: with the
+    # other blocks gone, tile 0's copy comes out the same.
+    from terrasift.jobs.dirs import block_results
+    from terrasift.jobs.finish import write_classified
+    from terrasift.tiling.blocks import BlockGrid, parse_block_name
+
+    plan = json.loads((job / "plan.json").read_text())
+    tile = plan["tiles"][0]
+    under = BlockGrid(**plan["grid"]).blocks_over(tile["mins"], tile["maxs"])
+    others = [p for p in block_results(job) if parse_block_name(p.stem) not in under]
+    assert others and len(under) < len(block_results(job))
+    for p in others:
+        p.unlink()
+    jobs.output_path(job, "classified-part0.laz").unlink()
+    write_classified(str(job), 0)
+    got = np.asarray(laspy.read(jobs.output_path(job, "classified-part0.laz")).classification)
+    assert np.array_equal(got, one[parts[0]])
 
 
 def test_tiles_with_different_crs_are_refused(tmp_path, small_scene):

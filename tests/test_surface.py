@@ -1,11 +1,12 @@
-"""The TIN surface: exact on planes inside the hull, nearest vertex outside."""
+"""The TIN surface: exact on planes inside the hull, nearest vertex outside; the CHM layers' TINs."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import Delaunay
 
-from terrasift.workers.surface import TinSurface, triangulate
+from terrasift.workers.chm import _triangulate
+from terrasift.workers.surface import TinSurface
 
 
 def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
@@ -28,11 +29,23 @@ def test_tin_of_a_plane_is_the_plane_inside_and_nearest_vertex_outside():
     )
 
 
-def test_triangulate_gives_delaunay_triangles_numbered_as_the_input():
+def test_coincident_points_keep_the_lowest_and_few_points_give_the_nearest():
+    xyz = np.array([[0.0, 0.0, 5.0], [0.0004, 0.0, 3.0], [10.0, 0.0, 1.0], [0.0, 10.0, 2.0]])
+    surface = TinSurface(xyz)
+    # the two points 0.4 mm apart are one vertex at the lower height
+    assert np.isclose(surface(np.array([0.0004]), np.array([0.0]))[0], 3.0)
+    assert np.isclose(surface(np.array([5.0]), np.array([0.0]))[0], 2.0, atol=1e-3)  # (3 + 1) / 2
+    two = TinSurface(np.array([[0.0, 0.0, 1.0], [10.0, 0.0, 4.0]]))
+    assert np.allclose(two(np.array([1.0, 9.0]), np.array([0.0, 0.0])), [1.0, 4.0])
+    collinear = TinSurface(np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 2.0], [10.0, 0.0, 4.0]]))
+    assert np.allclose(collinear(np.array([4.0]), np.array([1.0])), [2.0])
+
+
+def test_chm_layers_get_delaunay_triangles_numbered_as_the_input():
     rng = np.random.default_rng(5)
     xy = rng.uniform(0, 200, (5000, 2))
     xy = xy[np.argsort(xy[:, 0])]  # cloud order: sorted by x
-    tri, simplices = triangulate(xy)
+    tri, simplices = _triangulate(xy)
     reference = Delaunay(xy)
     assert {tuple(t) for t in np.sort(simplices, axis=1)} == {
         tuple(t) for t in np.sort(reference.simplices, axis=1)

@@ -17,7 +17,7 @@ from terrasift.errors import ProcessingError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.dirs import block_results
 from terrasift.jobs.params import stage_params
-from terrasift.tiling.blocks import BlockGrid
+from terrasift.tiling.blocks import BlockGrid, parse_block_name
 from terrasift.tiling.classified import write_classified_copy
 from terrasift.tiling.rasters import (
     RasterMosaic,
@@ -275,14 +275,12 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
         return name
     tile = plan["tiles"][tile_index]
     n = int(tile["point_count"])
-    labels = np.zeros(n, np.uint8)
-    seen = np.zeros(n, np.uint8)
-    for path in block_results(job):
-        with np.load(path) as data:
-            mine = data["tile"] == tile_index
-            idx = data["index"][mine]
-            labels[idx] = data["classes"][mine]
-            np.add.at(seen, idx, 1) if idx.size < 4096 else _count(seen, idx)
+    # The blocks under the tile's header box first; all blocks when that box
+    # lied (points outside it) and some points are still without a label.
+    mine_blocks = BlockGrid(**plan["grid"]).blocks_over(tile["mins"], tile["maxs"])
+    labels, seen = _gather_classes(job, tile_index, n, mine_blocks)
+    if not (seen == 1).all():
+        labels, seen = _gather_classes(job, tile_index, n, None)
     if not (seen == 1).all():
         missing, twice = int((seen == 0).sum()), int((seen > 1).sum())
         raise ProcessingError(
@@ -291,6 +289,24 @@ def write_classified(job_dir: str, tile_index: int, chunk_size: int = 1_000_000)
     params = load_json(job / "job.json")["params"]
     write_classified_copy(tile["path"], out, labels, crs=params.get("crs"), chunk_size=chunk_size)
     return name
+
+
+def _gather_classes(
+    job: Path, tile_index: int, n: int, blocks: set[tuple[int, int]] | None
+) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Classes of the tile's ``n`` points from the block results (of ``blocks``
+    only, when given), and how many results labelled each point."""
+    labels = np.zeros(n, np.uint8)
+    seen = np.zeros(n, np.uint8)
+    for path in block_results(job):
+        if blocks is not None and parse_block_name(path.stem) not in blocks:
+            continue
+        with np.load(path) as data:
+            mine = data["tile"] == tile_index
+            idx = data["index"][mine]
+            labels[idx] = data["classes"][mine]
+            np.add.at(seen, idx, 1) if idx.size < 4096 else _count(seen, idx)
+    return labels, seen
 
 
 def _count(seen: np.ndarray, idx: np.ndarray) -> None:

@@ -8,6 +8,7 @@ a worker thread reports late.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sqlite3
@@ -18,6 +19,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from terrasift.files import write_json
 
 ACCEPTED, RUNNING, SUCCESSFUL, FAILED, DISMISSED = (
     "accepted",
@@ -475,13 +478,8 @@ def _ident(path: Path) -> tuple[int, int] | None:
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(data))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # the record is a spare copy; the store itself is committed
+    with contextlib.suppress(OSError):  # the record is a spare copy; the store is committed
+        write_json(path, data)
 
 
 def _job(row: sqlite3.Row) -> Job:

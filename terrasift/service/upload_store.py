@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
+from terrasift.files import write_json
 from terrasift.service.problems import Problem
 
 META = "meta.json"
@@ -48,10 +49,7 @@ class UploadStore:
         stored = StoredUpload(
             upload_id, [p.name for p in files], tenant, time.time() + self.lifetime
         )
-        meta = self.directory(upload_id) / META
-        tmp = meta.with_name(META + ".tmp")
-        tmp.write_text(json.dumps(stored.__dict__))
-        os.replace(tmp, meta)
+        write_json(self.directory(upload_id) / META, stored.__dict__)
         return stored
 
     def get(self, upload_id: str, tenant: str) -> StoredUpload | None:

@@ -9,6 +9,7 @@ core lies within ``buffer`` of it, corners included.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -100,6 +101,16 @@ class BlockGrid:
         ix = np.floor((x - self.x0) / self.block_size).astype(np.int64)
         iy = np.floor((y - self.y0) / self.block_size).astype(np.int64)
         return np.clip(ix, 0, self.nx - 1), np.clip(iy, 0, self.ny - 1)
+
+    def blocks_over(self, mins: Sequence[float], maxs: Sequence[float]) -> set[tuple[int, int]]:
+        """The (ix, iy) of every block whose core may hold a point of the box
+        [mins, maxs]: a tile's blocks, so its classified copy reads only those."""
+        ix, iy = self.block_of(np.array([mins[0], maxs[0]]), np.array([mins[1], maxs[1]]))
+        return {
+            (i, j)
+            for i in range(int(ix[0]), int(ix[1]) + 1)
+            for j in range(int(iy[0]), int(iy[1]) + 1)
+        }
 
     def core_window(self, ix: int, iy: int) -> tuple[int, int, int, int]:
         """(row_off, col_off, rows, cols) of block (ix, iy) in the north-up job raster."""

@@ -67,12 +67,6 @@ FEATURE_COLOURS: dict[str, tuple[int, int, int]] = {
 OTHER_FEATURE = (255, 0, 255)
 
 
-def reduce(array: NDArray, max_side: int) -> NDArray:
-    """Every k-th cell so the long side is at most ``max_side`` (classes stay classes)."""
-    k = max(1, int(np.ceil(max(array.shape[:2]) / max_side)))
-    return array[::k, ::k]
-
-
 def hillshade(
     dem: NDArray, cell: float, azimuth: float = 315.0, altitude: float = 45.0, z: float = 1.0
 ) -> NDArray[np.float64]:
@@ -131,14 +125,6 @@ def over(base: RGBA, top: RGBA, opacity: float = 1.0) -> RGBA:
     rgb = base[..., :3] * (1 - a) + top[..., :3] * a
     alpha = np.maximum(base[..., 3], (a[..., 0] * 255).astype(np.uint8))
     return np.dstack([rgb.astype(np.uint8), alpha])
-
-
-def shaded(colours: RGBA, shade: NDArray, strength: float = 0.6) -> RGBA:
-    """Colours darkened by a hillshade, so relief reads through a class map."""
-    s = np.nan_to_num(np.asarray(shade, dtype=np.float64), nan=1.0)
-    factor = (1 - strength) + strength * s
-    rgb = np.clip(colours[..., :3] * factor[..., None], 0, 255).astype(np.uint8)
-    return np.dstack([rgb, colours[..., 3]])
 
 
 def png(image: RGBA) -> bytes:

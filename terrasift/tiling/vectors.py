@@ -9,7 +9,6 @@ that OGR honours when the CRS has an EPSG code.
 
 from __future__ import annotations
 
-import os
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,6 +18,8 @@ import numpy as np
 import pyproj
 import shapely
 from shapely.geometry import shape
+
+from terrasift.files import atomic_path
 
 
 def crs_member(crs_wkt: str | None) -> dict[str, Any] | None:
@@ -61,10 +62,8 @@ def write_geopackage(
         fields.append(arr)
     types = sorted({g.geom_type for g in geoms})
     geometry_type = types[0] if len(types) == 1 else ("Unknown" if types else "Polygon")
-    tmp = path.with_name(f".{path.stem}.part{path.suffix}")  # GDAL wants the .gpkg suffix
-    tmp.unlink(missing_ok=True)
-    with warnings.catch_warnings():
-        # without a CRS pyogrio warns; the job's report carries that warning
+    # GDAL wants the .gpkg suffix; without a CRS pyogrio warns (the job's report says so)
+    with atomic_path(path, keep_suffix=True) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         write(
             str(tmp),
@@ -76,5 +75,4 @@ def write_geopackage(
             layer=layer,
             geometry_type=geometry_type,
         )
-    os.replace(tmp, path)
     return path

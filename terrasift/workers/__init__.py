@@ -22,7 +22,8 @@ Where a part of the seeds (``../shared/seeds``) lives, and its stage id:
   the built-in filters); stage ``features``
 
 Besides: ``ground/lowpoints`` (isolated low points, ``ground.lowpoints``),
-``surface`` (Delaunay TINs and the ground surface). ``block`` runs the block
+``surface`` (the ground surface on the TIN of ``ground/tin``), ``scan_geometry`` (angular
+steps, range noise and footprint of ground-based scans). ``block`` runs the block
 steps of ``steps`` on one block with the parameter models the jobs room
 builds; ``registry`` holds the stages and steps; ``executors`` the process
 pool and Dask.

@@ -321,16 +321,3 @@ def _bridge(geoms: list, gap: float) -> Polygon | MultiPolygon:
     r = gap / 2 + 1e-6
     closed = g.buffer(r, join_style="mitre").buffer(-r, join_style="mitre")
     return closed if not closed.is_empty else g
-
-
-def rectangle_features(
-    rects: list[tuple[int, int, int, int]], kind: str, transform: Affine, tile_size: float
-) -> list[Feature]:
-    """Features for rectangles (row0, col0, rows, cols) on the tile grid."""
-    feats = []
-    for r, c, h, w in rects:
-        x0, y0 = transform @ (c, r)
-        x1, y1 = transform @ (c + w, r + h)
-        poly = Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
-        feats.append(Feature(kind, poly, max(h, w) * tile_size, min(h, w) * tile_size, h * w))
-    return feats

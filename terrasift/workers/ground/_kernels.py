@@ -1,5 +1,5 @@
 """Compiled kernels of the ground TIN (``tin``) and the supported-points passes
-(``support``), kept apart from the numpy code that calls them so an edit there
+(``support``), of TIN masking (``masking``), kept apart from the numpy code that calls them so an edit there
 does not make numba compile them again (its cache follows the source file).
 """
 
@@ -16,6 +16,7 @@ _U11 = np.uint64(11)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _LOCATE, _NEAREST, _EXTRAPOLATE = 0, 1, 2  # modes of _surface_kernel
 IN_BAND, ABOVE, BELOW = 0, 1, 2  # codes of Tin.band
+_SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's sort)
 
 
 # ------------------------------------------------------------ TIN (tin.py)
@@ -380,3 +381,134 @@ def _still_todo(
     for i in range(cell.size):
         out[i] = may[i] and not ground[i] and near[cell[i]]
     return out
+
+
+@numba.njit(cache=True)
+def _extremes(
+    x: NDArray[np.float64],
+    y: NDArray[np.float64],
+    z: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+) -> NDArray[np.int64]:
+    """Increasing indices of the points whose z is the min or max of their cell
+    (NaN propagating into a cell's min and max as with ``np.minimum.at``)."""
+    n = x.size
+    flat = np.empty(n, dtype=np.int64)
+    lo = np.full(nx * ny, np.inf)
+    hi = np.full(nx * ny, -np.inf)
+    for i in range(n):
+        b = np.int64(np.floor((y[i] - y0) / cell)) * nx + np.int64(np.floor((x[i] - x0) / cell))
+        flat[i] = b
+        zi = z[i]
+        if zi < lo[b] or np.isnan(zi):
+            lo[b] = zi
+        if zi > hi[b] or np.isnan(zi):
+            hi[b] = zi
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        b = flat[i]
+        if z[i] == lo[b] or z[i] == hi[b]:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def _top_k_per_group(
+    group: NDArray[np.int64], score: NDArray[np.float64], n_groups: int, k: int
+) -> NDArray[np.int64]:
+    """Rank by rank, in group order, the indices of the ``k`` largest positive
+    scores of each group (equal scores: smaller index first)."""
+    val = np.empty((n_groups, k))
+    idx = np.full((n_groups, k), -1, dtype=np.int64)
+    for i in range(group.size):
+        s = score[i]
+        if not s > 0:
+            continue
+        g = group[i]
+        j = 0
+        while j < k and idx[g, j] >= 0 and val[g, j] >= s:
+            j += 1
+        if j == k:
+            continue
+        for m in range(k - 1, j, -1):
+            val[g, m] = val[g, m - 1]
+            idx[g, m] = idx[g, m - 1]
+        val[g, j] = s
+        idx[g, j] = i
+    count = 0
+    for g in range(n_groups):
+        for r in range(k):
+            if idx[g, r] >= 0:
+                count += 1
+    out = np.empty(count, dtype=np.int64)
+    m = 0
+    for r in range(k):
+        for g in range(n_groups):
+            if idx[g, r] >= 0:
+                out[m] = idx[g, r]
+                m += 1
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _judge_kernel(
+    indptr: NDArray,
+    indices: NDArray,
+    test: NDArray[np.int64],
+    z: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    sl: NDArray[np.float64],
+    screen_tol: float,
+    low_tol: float,
+    bad: NDArray[np.bool_],
+) -> None:
+    """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
+    median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
+    the second lowest of their pit votes (see ``screen``).
+
+    With slopes ``sl`` (one row per vertex; none: zero rows), a neighbour u
+    votes z_u + g·(v - u) with g the mean of both ends' slopes (the
+    trapezoid rule: exact on any quadratic surface, so curved hills are not
+    taken for objects), and its pit vote uses u's own slope alone: the plane
+    of v's bin, tilted by an outlier at v, would vouch for it.
+    """
+    with_slopes = sl.shape[0] > 0
+    width = 0
+    for v in test:
+        width = max(width, indptr[v + 1] - indptr[v])
+    votes = np.empty(width)
+    pits = np.empty(width)
+    for v in test:
+        a = indptr[v]
+        deg = indptr[v + 1] - a
+        if deg == 0:
+            continue
+        for k in range(deg):
+            u = indices[a + k]
+            zu = z[u]
+            if with_slopes:
+                d0 = xy[v, 0] - xy[u, 0]
+                d1 = xy[v, 1] - xy[u, 1]
+                votes[k] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
+                pits[k] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
+            else:
+                votes[k] = zu
+                pits[k] = zu
+        vs = votes[:deg]
+        ps = pits[:deg]
+        if deg <= _SORT_WIDTH:
+            _insertion_sort(vs)
+            _insertion_sort(ps)
+        else:
+            vs.sort()
+            ps.sort()
+        med = 0.5 * (vs[(deg - 1) // 2] + vs[deg // 2])
+        second = ps[min(1, deg - 1)]
+        zv = z[v]
+        bad[v] = zv - med > screen_tol or (low_tol > 0 and second - zv > low_tol)

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import QhullError
 
 from terrasift.workers.bins import bounds
+from terrasift.workers.ground._kernels import _extremes, _top_k_per_group
 from terrasift.workers.ground.tin import Tin
 
 
@@ -42,41 +42,6 @@ def extremes_per_cell(xyz: NDArray[np.float64], cell: float) -> NDArray[np.int64
     nx = int(np.floor((x1 - x0) / cell)) + 1
     ny = int(np.floor((y1 - y0) / cell)) + 1
     return _extremes(x, y, z, x0, y0, float(cell), nx, ny)
-
-
-@numba.njit(cache=True)
-def _extremes(
-    x: NDArray[np.float64],
-    y: NDArray[np.float64],
-    z: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
-) -> NDArray[np.int64]:
-    """Increasing indices of the points whose z is the min or max of their cell
-    (NaN propagating into a cell's min and max as with ``np.minimum.at``)."""
-    n = x.size
-    flat = np.empty(n, dtype=np.int64)
-    lo = np.full(nx * ny, np.inf)
-    hi = np.full(nx * ny, -np.inf)
-    for i in range(n):
-        b = np.int64(np.floor((y[i] - y0) / cell)) * nx + np.int64(np.floor((x[i] - x0) / cell))
-        flat[i] = b
-        zi = z[i]
-        if zi < lo[b] or np.isnan(zi):
-            lo[b] = zi
-        if zi > hi[b] or np.isnan(zi):
-            hi[b] = zi
-    out = np.empty(n, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        b = flat[i]
-        if z[i] == lo[b] or z[i] == hi[b]:
-            out[m] = i
-            m += 1
-    return out[:m].copy()
 
 
 def partial_tin(
@@ -161,44 +126,6 @@ def _worst_per_triangle(
     return _top_k_per_group(
         np.asarray(ti, dtype=np.int64), np.asarray(score, dtype=np.float64), n_tri, k
     )
-
-
-@numba.njit(cache=True)
-def _top_k_per_group(
-    group: NDArray[np.int64], score: NDArray[np.float64], n_groups: int, k: int
-) -> NDArray[np.int64]:
-    """Rank by rank, in group order, the indices of the ``k`` largest positive
-    scores of each group (equal scores: smaller index first)."""
-    val = np.empty((n_groups, k))
-    idx = np.full((n_groups, k), -1, dtype=np.int64)
-    for i in range(group.size):
-        s = score[i]
-        if not s > 0:
-            continue
-        g = group[i]
-        j = 0
-        while j < k and idx[g, j] >= 0 and val[g, j] >= s:
-            j += 1
-        if j == k:
-            continue
-        for m in range(k - 1, j, -1):
-            val[g, m] = val[g, m - 1]
-            idx[g, m] = idx[g, m - 1]
-        val[g, j] = s
-        idx[g, j] = i
-    count = 0
-    for g in range(n_groups):
-        for r in range(k):
-            if idx[g, r] >= 0:
-                count += 1
-    out = np.empty(count, dtype=np.int64)
-    m = 0
-    for r in range(k):
-        for g in range(n_groups):
-            if idx[g, r] >= 0:
-                out[m] = idx[g, r]
-                m += 1
-    return out
 
 
 def _areas(tin: Tin) -> NDArray[np.float64]:

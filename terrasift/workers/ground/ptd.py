@@ -34,6 +34,7 @@ from terrasift.workers.bins import ANCHOR, Grid, lowest_per_bin
 from terrasift.workers.ground.lowpoints import LowPointParams, isolated_low_points
 from terrasift.workers.ground.tin import Tin
 from terrasift.workers.registry import StageParams, register
+from terrasift.workers.surface import spatial_order
 
 
 class PtdParams(StageParams):
@@ -178,21 +179,13 @@ def classify_ground(
 
 
 def _lowest_per_cell(local: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
-    """Index of the lowest point of every occupied ``cell``-sized cell (local
-    coordinates, cells anchored at 0), in cell order. Ties in z go to the
-    smaller x, then y, so the choice does not depend on the order of the points."""
-    ix = np.floor(local[:, 0] / cell).astype(np.int64)
-    iy = np.floor(local[:, 1] / cell).astype(np.int64)
-    ix -= ix.min()
-    iy -= iy.min()
-    flat = iy * (int(ix.max()) + 1) + ix
-    zmin = np.full(int(flat.max()) + 1, np.inf)
-    np.minimum.at(zmin, flat, local[:, 2])
-    hit = np.flatnonzero(local[:, 2] == zmin[flat])
-    o = np.lexsort((local[hit, 1], local[hit, 0], flat[hit]))
-    hit = hit[o]
-    f = flat[hit]
-    return hit[np.r_[True, f[1:] != f[:-1]]]
+    """Index of the lowest point of every occupied ``cell``-sized cell (cells
+    anchored on multiples of ``cell``), in cell order. Ties in z go to the smaller
+    x, then y, so the choice does not depend on the order of the points."""
+    grid = Grid.covering(local[:, 0], local[:, 1], cell)
+    x, y = local[:, 0], local[:, 1]
+    low = lowest_per_bin(grid.index(x, y), local[:, 2], grid.size, ties=(x, y))
+    return low[low >= 0]
 
 
 # --------------------------------------------------------------------- seeds
@@ -354,17 +347,6 @@ def _refit_frame(verts: NDArray[np.float64], nf: int, nv: int, k: int = 8) -> No
     verts[:nf, 2] = np.clip(z, lo, hi)
 
 
-def _spatial_order(xy: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
-    """Row-major order of ``cell``-sized bins, serpentine, so consecutive points are close."""
-    ix = np.floor(xy[:, 0] / cell).astype(np.int64)
-    iy = np.floor(xy[:, 1] / cell).astype(np.int64)
-    ix -= ix.min()
-    iy -= iy.min()
-    nx = int(ix.max()) + 1
-    ix = np.where(iy % 2 == 1, nx - 1 - ix, ix)
-    return np.argsort(iy * nx + ix, kind="stable")
-
-
 def _tin(verts: NDArray[np.float64]) -> Tin:
     """The current TIN through ``verts`` (local coordinates): startinpy's
     triangulation (Qhull for degenerate input) and the compiled walk of ``tin.py``."""
@@ -511,7 +493,7 @@ def _densify(
     if tin is not None:
         rest = np.flatnonzero(~ground & ~excluded)
         if rest.size:
-            rest = rest[_spatial_order(local[rest, :2], 8.0)]
+            rest = rest[spatial_order(local[rest, :2], 8.0)]
             _, ok, _ = _judge(tin, local[rest], params, scores=False)
             ground[rest[ok]] = True
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import numba
 import numpy as np
 import startinpy
 from numpy.typing import NDArray
@@ -35,18 +34,22 @@ from terrasift.workers.ground._kernels import (
     _adjacency,
     _band_kernel,
     _edge_neighbours,
-    _insertion_sort,
+    _judge_kernel,
     _surface_kernel,
     _walk_kernel,
 )
 
 IN_BAND, ABOVE, BELOW = _kernels.IN_BAND, _kernels.ABOVE, _kernels.BELOW  # codes of Tin.band
 _GUESS_K = 0.5
-_SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's sort)
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
 
 
-def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Delaunay:
+def delaunay(
+    xy: NDArray[np.float64],
+    *,
+    coincident: bool = False,
+    order: NDArray[np.int64] | None = None,
+) -> Mesh | Delaunay:
     """Delaunay triangulation of the 2-D points ``xy``, as a ``Mesh`` or a scipy ``Delaunay``.
 
     startinpy (incremental insertion, robust predicates) builds it 3-4 times
@@ -57,11 +60,13 @@ def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Del
     result that does not check out as a triangulation are left to Qhull, which
     raises QhullError on collinear points as before. ``coincident``: the caller
     expects coincident points, so they are sorted out before triangulating
-    rather than after a first attempt.
+    rather than after a first attempt. ``order``: insert the points in this
+    order, one after the other, which decides the triangles where four or more
+    points are co-circular (the default picks an order for speed).
     """
     n = xy.shape[0]
     if n >= 3:
-        s = None if coincident else _startin(xy)
+        s = None if coincident else _startin(xy, order)
         if s is not None:
             mesh = Mesh.from_simplices(s, n, n)
         else:
@@ -78,15 +83,18 @@ def delaunay(xy: NDArray[np.float64], *, coincident: bool = False) -> Mesh | Del
     return Delaunay(xy)
 
 
-def _startin(xy: NDArray[np.float64]) -> NDArray[np.int32] | None:
+def _startin(
+    xy: NDArray[np.float64], given: NDArray[np.int64] | None = None
+) -> NDArray[np.int32] | None:
     """startinpy's triangles (counter-clockwise, 0-based) over ``xy``, or None
-    when it merged points or found no triangle."""
+    when it merged points or found no triangle. ``given``: the insertion order."""
     n = xy.shape[0]
-    order = _insertion_order(xy)
+    order = _insertion_order(xy) if given is None else given.astype(np.int32)
     dt = startinpy.DT()
     dt.snap_tolerance = _SNAP
     dt.insert(
-        np.column_stack([xy if order is None else xy[order], np.zeros(n)]), insertionstrategy="BBox"
+        np.column_stack([xy if order is None else xy[order], np.zeros(n)]),
+        insertionstrategy="BBox" if given is None else "AsIs",
     )
     if dt.number_of_vertices() != n:
         return None
@@ -163,8 +171,9 @@ class Tin:
         origin: NDArray[np.float64] | None = None,
         *,
         coincident: bool = False,
+        order: NDArray[np.int64] | None = None,
     ):
-        """``coincident``: points may share a position (see ``delaunay``)."""
+        """``coincident``: points may share a position; ``order``: of insertion (see ``delaunay``)."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.shape[0] < 3:
             raise ValueError("a TIN needs at least three points")
@@ -173,9 +182,8 @@ class Tin:
         )
         self.xy = xyz[:, :2] - self.origin
         self.z = xyz[:, 2].copy()
-        self.tri = delaunay(
-            self.xy, coincident=coincident
-        )  # QhullError (collinear input) propagates to the caller
+        # QhullError (collinear input) propagates to the caller
+        self.tri = delaunay(self.xy, coincident=coincident, order=order)
         self._slopes: NDArray[np.float64] | None = None
         self._trans: NDArray[np.float64] | None = None
         self._guess: tuple[float, float, float, int, int, NDArray[np.int64]] | None = None
@@ -654,61 +662,3 @@ def _judge(
     sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes[ids], dtype=np.float64)
     _judge_kernel(indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, bad)
     return bad
-
-
-@numba.njit(cache=True, nogil=True)
-def _judge_kernel(
-    indptr: NDArray,
-    indices: NDArray,
-    test: NDArray[np.int64],
-    z: NDArray[np.float64],
-    xy: NDArray[np.float64],
-    sl: NDArray[np.float64],
-    screen_tol: float,
-    low_tol: float,
-    bad: NDArray[np.bool_],
-) -> None:
-    """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
-    median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
-    the second lowest of their pit votes (see ``screen``).
-
-    With slopes ``sl`` (one row per vertex; none: zero rows), a neighbour u
-    votes z_u + g·(v - u) with g the mean of both ends' slopes (the
-    trapezoid rule: exact on any quadratic surface, so curved hills are not
-    taken for objects), and its pit vote uses u's own slope alone: the plane
-    of v's bin, tilted by an outlier at v, would vouch for it.
-    """
-    with_slopes = sl.shape[0] > 0
-    width = 0
-    for v in test:
-        width = max(width, indptr[v + 1] - indptr[v])
-    votes = np.empty(width)
-    pits = np.empty(width)
-    for v in test:
-        a = indptr[v]
-        deg = indptr[v + 1] - a
-        if deg == 0:
-            continue
-        for k in range(deg):
-            u = indices[a + k]
-            zu = z[u]
-            if with_slopes:
-                d0 = xy[v, 0] - xy[u, 0]
-                d1 = xy[v, 1] - xy[u, 1]
-                votes[k] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
-                pits[k] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
-            else:
-                votes[k] = zu
-                pits[k] = zu
-        vs = votes[:deg]
-        ps = pits[:deg]
-        if deg <= _SORT_WIDTH:
-            _insertion_sort(vs)
-            _insertion_sort(ps)
-        else:
-            vs.sort()
-            ps.sort()
-        med = 0.5 * (vs[(deg - 1) // 2] + vs[deg // 2])
-        second = ps[min(1, deg - 1)]
-        zv = z[v]
-        bad[v] = zv - med > screen_tol or (low_tol > 0 and second - zv > low_tol)
