@@ -678,6 +678,12 @@ def test_rise_makes_a_platform_seen_across_a_hole_a_walled_segment():
     assert not raised_segments(xyz, tri, 0.3, 10.0, walls=0.5).any()
     drop = raised_segments(xyz, tri, 0.3, 10.0, walls=0.5, rise=0.3)
     assert np.array_equal(drop, is_platform)
+    # The same patch 0.6–1.8 m high, rolling gently (no step inside it, RMS ~0.4 m
+    # about its plane): terrain seen across a hole, not a flat top; long edges
+    # alone do not cut it off (they would without the flatness rule).
+    rolling = xyz.copy()
+    rolling[is_platform, 2] += 0.2 + 0.6 * np.sin(rolling[is_platform, 1] / 10.0)
+    assert not raised_segments(rolling, tri, 0.3, 10.0, walls=0.5, rise=0.3).any()
 
 
 @pytest.mark.skipif(

@@ -186,12 +186,10 @@ class NistParams(StageParams):
     their steps on ISPRS, 1.0 in the synthetic town); a hilltop that slope edges cut off at
     some bin phases is not (0.42 on ISPRS samp52 moved by (0, 5) m)."""
     raised_rise: float = Field(0.3, ge=0, le=100)
-    """An edge of the final TIN rising this many metres more than the slope at its foot predicts
-    over its run is a step and a wall whatever its gradient (0: off; 0.3 m as ``raised_step``).
-    A platform 0.8–1.3 m high whose neighbours (wagons, cars) left holes in the TIN meets the
-    ground 5–9 m away at 6–10°, under ``raised_slope``: railway-yard scenes (seeds 0–11)
-    Type II worst 29.6 % off, 6.2 % at 1 m… 0.5 m, 2.0 % at 0.3–0.4 m; ISPRS mean kappa
-    90.28 off, 90.26 at 0.3 m."""
+    """An edge of the final TIN, gentler than ``raised_slope``, that rises this many metres more
+    than the slope at its foot predicts over its run is a step and a wall (0: off; 0.3 m, as
+    ``raised_step``). A platform 0.8–1.3 m high whose neighbours (wagons, cars) left a hole in
+    the TIN meets the ground 5–9 m away at 6–10°; README *Measured* has the family figures."""
     raised_share: float = Field(0.7, ge=0.5, le=1)
     """A segment that is the upper side of at least this share of its steps is raised too, when
     it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut

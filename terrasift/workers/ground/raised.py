@@ -65,7 +65,10 @@ def raised_segments(
     ``rise`` > 0: an edge rising at least this much more than the slope at its
     foot predicts over its run is a step and a wall however gentle its gradient:
     a 1 m platform whose neighbours (wagons, cars) were dropped meets the
-    ground 5–9 m away, at 6–10° (walls then count with ``walls``).
+    ground 5–9 m away, at 6–10° (walls then count with ``walls``). A segment the
+    upper side of such an edge goes only when it is also flat (its vertices within
+    ``step`` RMS of their least-squares plane): a platform or a row of wagons is,
+    a hillside that long edges happen to cut off is not.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -103,6 +106,8 @@ def raised_segments(
     cross = lo != hi
     lo, hi, lo_v, hi_v = lo[cross], hi[cross], lo_v[cross], hi_v[cross]
     is_wall = wall[is_step][cross]
+    is_big = big[is_step][cross]
+    flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
     gone = np.zeros(n_seg, dtype=bool)
     for _ in range(rounds):
         live = ~gone[lo] & ~gone[hi]
@@ -114,6 +119,9 @@ def raised_segments(
         if walls > 0:
             n_wall = np.bincount(hi[live & is_wall], minlength=n_seg)
             raised &= (n_up == 0) | (n_wall >= walls * n_up)
+        if is_big.any():
+            n_big = np.bincount(hi[live & is_big], minlength=n_seg)
+            raised &= (n_big == 0) | flat
         partly = raised & (share < 1.0)
         if partly.any():
             # The foot of each step seen from its segment: the lower end seen
@@ -125,6 +133,35 @@ def raised_segments(
             break
         gone |= raised
     return gone[seg]
+
+
+def _flat(
+    xyz: NDArray[np.float64], seg: NDArray[np.int64], n_seg: int, tol: float
+) -> NDArray[np.bool_]:
+    """Per segment: its vertices lie within ``tol`` RMS of their least-squares plane
+    (segments of fewer than four vertices count as flat)."""
+    size = np.maximum(np.bincount(seg, minlength=n_seg), 1)
+    cx = np.bincount(seg, xyz[:, 0], n_seg) / size
+    cy = np.bincount(seg, xyz[:, 1], n_seg) / size
+    u, v, z = xyz[:, 0] - cx[seg], xyz[:, 1] - cy[seg], xyz[:, 2]
+
+    def b(a: NDArray[np.float64]) -> NDArray:
+        return np.bincount(seg, a, n_seg)
+
+    cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
+    m = np.stack(
+        [np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)],
+        -2,
+    )
+    r = np.stack([b(z), b(u * z), b(v * z)], -1)
+    coef = np.zeros((n_seg, 3))
+    coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
+    ok = (cnt >= 4) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
+    if ok.any():
+        coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
+    res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
+    rms = np.sqrt(b(res**2) / size)
+    return (cnt < 4) | (rms <= tol)
 
 
 def _median_per_vertex(
