@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed bench-driver openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -50,6 +50,9 @@ bench-load: $(STAMP)
 
 bench-malformed: $(STAMP)
 	$(PY) benchmarks/malformed_corpus.py
+
+bench-driver: $(STAMP)
+	$(PY) benchmarks/driver_overhead.py
 
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py

@@ -123,7 +123,8 @@ def fingerprint(out: Path) -> dict[str, str]:
                 prints[f"report:{key}"] = _sha(json.dumps(value, sort_keys=True).encode())
         elif name == "item.json":
             item = json.loads(path.read_text())
-            item["properties"].pop("datetime", None)
+            for key in ("datetime", "created"):
+                item["properties"].pop(key, None)
             prints[name] = _sha(json.dumps(item, sort_keys=True).encode())
         elif name.endswith(".geojson") or name.endswith(".json"):
             prints[name] = _sha(json.dumps(json.loads(path.read_text()), sort_keys=True).encode())

@@ -10,6 +10,7 @@ service both drive jobs through ``run_job``.
 
 from __future__ import annotations
 
+import heapq
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -242,47 +243,52 @@ def _run_mixed_tasks(
     """Submit every task as soon as the tasks it comes after are done; wait for
     all and return their results in list order.
 
-    With ``in_flight``, at most that many tasks are submitted at a time and a
-    free slot goes to the first ready task in list order: the list is a
-    priority order (a pool runs what it was given first-come, first-served).
+    At most ``in_flight`` tasks (default: four per worker, at least 16) are
+    submitted at a time, and a free slot goes to the first ready task in list
+    order: the list is a priority order (a pool runs what it was given
+    first-come, first-served). Each wait looks at the submitted tasks only, so
+    the driver's work grows linearly with the number of tasks.
     ``on_done(position, result)`` follows each task; ``heartbeat`` each wait.
     The first failure cancels the rest and is raised; so is a dismissal seen
     between waits (running tasks see the marker themselves).
     """
     results: dict[int, Any] = {}
-    futures: dict[int, Future] = {}
-    position: dict[int, int] = {}  # id(future) -> task position
-    waiting = set(range(len(tasks)))
-    limit = in_flight or len(tasks)
+    running: dict[Future, int] = {}
+    dependents: dict[int, list[int]] = {}
+    blocked = [len(t.after) for t in tasks]
+    for i, t in enumerate(tasks):
+        for j in t.after:
+            dependents.setdefault(j, []).append(i)
+    ready = [i for i, n in enumerate(blocked) if n == 0]
+    heapq.heapify(ready)
 
     def submit_ready() -> None:
-        for i in sorted(waiting):
-            if len(futures) - len(results) >= limit:
-                return
-            if all(j in results for j in tasks[i].after):
-                futures[i] = executor.submit(tasks[i].fn, *tasks[i].args)
-                position[id(futures[i])] = i
-                waiting.discard(i)
+        limit = in_flight or max(4 * executor.workers, 16)
+        while ready and len(running) < limit:
+            i = heapq.heappop(ready)
+            running[executor.submit(tasks[i].fn, *tasks[i].args)] = i
 
     try:
         submit_ready()
         while len(results) < len(tasks):
-            running = [f for i, f in futures.items() if i not in results]
             if not running:
-                raise RuntimeError(f"tasks {sorted(waiting)} wait on tasks that never run")
-            done = executor.wait_any(running, timeout=0.5)
-            for f in done:
-                i = position[id(f)]
+                waiting = sorted(set(range(len(tasks))) - set(results))
+                raise RuntimeError(f"tasks {waiting} wait on tasks that never run")
+            for f in executor.wait_any(list(running), timeout=0.5):
+                i = running.pop(f)
                 results[i] = f.result()
                 on_done(i, results[i])
+                for k in dependents.get(i, ()):
+                    blocked[k] -= 1
+                    if blocked[k] == 0:
+                        heapq.heappush(ready, k)
             if heartbeat is not None:
                 heartbeat()
             submit_ready()
             check_cancel(job_dir)
     except BaseException:
-        for i, f in futures.items():
-            if i not in results:
-                f.cancel()
+        for f in running:
+            f.cancel()
         raise
     return [results[i] for i in range(len(tasks))]
 
