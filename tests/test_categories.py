@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from terrasift.errors import ParameterError
-from terrasift.workers.categories import _POINTS, EDGES, NODATA, CategoryParams, compute_categories
+from terrasift.workers.categories import (
+    _POINTS,
+    EDGES,
+    NODATA,
+    CategoryParams,
+    category_grids,
+    compute_categories,
+    regional_gradient,
+)
 
 CELL = 0.5
 K = 4  # cells per 2 m tile
@@ -176,3 +184,43 @@ def test_parameters_are_validated():
     with pytest.raises(ParameterError):
         CategoryParams.preset("default", flat_height=-1)
     assert CategoryParams.preset("rough").flat_height == 0.3
+
+
+def test_regional_slope_shows_a_ditch_on_a_slope_and_leaves_a_bend_a_bend():
+    """A 3 m ditch across a 15 % slope: on its regional slope (median tile gradient
+    over 24 m) the slope is level, the uphill bank falls and the downhill one
+    rises. A bend from level ground to a 33 % flank stays one concave tile between
+    level tiles (the window's least-squares plane would leave a dip with banks)."""
+    cell, n = 0.5, 160
+    x = (np.arange(n) + 0.5) * cell
+    ditch = -0.5 * np.clip(1 - np.abs(x - 40) / 1.5, 0, None)
+    z = np.tile(0.15 * x + ditch, (n, 1))  # rises east
+    p = CategoryParams(noise=0)
+    raw = compute_categories(z, cell, p, step=1.0)
+    trend = regional_gradient(z, cell, p, 24.0, step=1.0)
+    assert np.allclose(trend[0][10:-10, 10:-10], 0.15, atol=1e-6)
+    on_slope = compute_categories(z, cell, p, step=1.0, trend=trend)
+    row_raw, row = raw.inclination[40, 30:50], on_slope.inclination[40, 30:50]
+    assert (row_raw[:5] == 1).all()  # the raw slope rises east
+    assert np.isin(row, (4, 5, 6)).any() and np.isin(row, (8, 1, 2)).any()
+    assert (on_slope.inclination[40, 5:30] == 0).all()  # the slope itself is level
+    bend = np.tile(0.33 * np.clip(x - 40, 0, None), (n, 1))
+    cats = compute_categories(bend, cell, p, 1.0, regional_gradient(bend, cell, p, 24.0, 1.0))
+    # only the bend's own tile (a concave edge) is not level: no banks either side of it
+    assert np.count_nonzero(cats.inclination[40, :-1]) == 1 and cats.state[40, 39] == 2
+
+
+def test_grids_of_one_step_share_their_fits_and_match_separate_runs():
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:80, 0:80] * 0.5
+    z = 0.12 * x + 0.3 * np.sin(y / 3) + rng.normal(0, 0.02, x.shape)
+    p = CategoryParams(noise=0.02)
+    trend = regional_gradient(z, 0.5, p, 24.0, 1.0)
+    both = category_grids(z, 0.5, p, 1.0, [None, trend])
+    for got, want in zip(
+        both,
+        (compute_categories(z, 0.5, p, 1.0), compute_categories(z, 0.5, p, 1.0, trend)),
+        strict=True,
+    ):
+        assert (got.bands() == want.bands()).all()
+    assert not (both[0].inclination == both[1].inclination).all()

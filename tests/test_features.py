@@ -479,7 +479,7 @@ def test_step_filter_runs_on_overlapping_tiles_and_height_tests_the_relief():
     tt = Affine(cell, 0, 0, 0, -cell, n * cell)
     cats, stepped = categories_for(z, cell, [flt])
     assert (cats.inclination == 0).all()  # on 2 m tiles no step registers
-    assert stepped[1.0].spacing == 1.0 and stepped[1.0].shape == (100, 100)
+    assert stepped[(1.0, None)].spacing == 1.0 and stepped[(1.0, None)].shape == (100, 100)
     (road,) = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
     x0, _, x1, _ = road.geometry.bounds
     assert 42 <= x0 <= 43 and 47 <= x1 <= 48 and road.length_m > 90
@@ -621,3 +621,56 @@ def test_job_parameters_check_filter_sizes_against_the_tile_size():
     assert validate_params({"features": "hill", "categories.tile_size": 4.0})
     with pytest.raises(FilterSyntaxError, match="63 tiles at 1 m"):
         validate_params({"features": "hill", "categories.tile_size": 1.0})
+
+
+def test_detrend_and_fill_hull_parse_format_and_need_their_grid():
+    text = (
+        "step 1m\ndetrend 24m\nbeginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\n"
+        "state any\norientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple 4m -1 -1 -1\nfill hull\nsolidity 0.8\n"
+    )
+    flt = parse_filter(text)
+    assert flt.detrend == Metres(24) and flt.hull and flt.solidity == 0.8
+    assert parse_filter(format_filter(flt)) == flt
+    with pytest.raises(FilterSyntaxError, match="fill takes"):
+        parse_filter(text.replace("fill hull", "fill holes"))
+    # a ring of marked tiles open on one side: the hull closes it (and is measured whole)
+    marks = np.zeros((20, 20), dtype=bool)
+    yy, xx = np.mgrid[0:20, 0:20]
+    r = np.hypot(yy - 9.5, xx - 9.5)
+    marks[(r > 6) & (r < 8) & (xx < 14)] = True
+    labels = C.simple(marks)
+    tt = Affine(2, 0, 0, 0, -2, 40)
+    (ring,) = objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0, hull=True)
+    (open_ring,) = objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0)
+    assert ring.geometry.area > 1.5 * open_ring.geometry.area
+    assert ring.length_m / ring.width_m < 1.4
+    # the open ring fills little of its hull and solidity drops it
+    assert not objects_from_labels(labels, "hill", tt, 2.0, simplify_tiles=0, solidity=0.8)
+    with pytest.raises(FilterSyntaxError, match="solidity"):
+        parse_filter(text.replace("solidity 0.8", "solidity 1.5"))
+
+
+def test_join_lines_up_pieces_end_to_end_across_a_longer_gap_only():
+    lab = np.zeros((40, 100), dtype=np.int32)
+    lab[18:20, 5:40] = 1
+    lab[18:20, 48:90] = 2  # the same line, 8 tiles (16 m) further on
+    lab[24:26, 10:45] = 3  # a parallel piece beside piece 1, 4 tiles away
+    tt = Affine(2, 0, 0, 0, -2, 80)
+    limits = (15, None, None, 8)
+
+    def sizes(aligned):
+        fs = objects_from_labels(lab, "ditch", tt, 2.0, limits, join="width", join_aligned=aligned)
+        return sorted(round(f.length_m) for f in fs)
+
+    assert sizes(None) == [69, 69, 83]
+    joined = sizes(10)
+    assert len(joined) == 2 and joined[1] >= 165  # 70 + 16 + 84 m, the parallel piece apart
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 -1 -1\njoin width 20m\n"
+    )
+    assert flt.join == "width" and flt.join_aligned == Metres(20)
+    assert parse_filter(format_filter(flt)) == flt
+    assert resolve_lengths(flt, 2.0).join_aligned == 10

@@ -191,13 +191,43 @@ def _write_categories(job: Path) -> list[str]:
         transform, height, width = ds.transform, ds.height, ds.width
         rows = max(1, BAND_CELLS // width)  # DTM rows per band: memory follows this, not the job
 
-        def grid(step: float | None) -> cat.Categories:
+        def grids(step: float | None, windows: list[float | None]) -> list[cat.Categories]:
             return cat.categories_by_bands(
-                lambda r0, r1: _read_rows(ds, r0, r1), height, abs(transform.a), cparams, rows, step
+                lambda r0, r1: _read_rows(ds, r0, r1),
+                height,
+                abs(transform.a),
+                cparams,
+                rows,
+                step,
+                windows,
             )
 
-        cats = grid(None)
-        stepped = {st: grid(st) for st in feat.step_sizes(filters)}
+        keys = feat.grid_keys(filters)
+        if cparams.noise is None:  # every grid judges flatness against the DTM's own noise
+            cparams = cparams.model_copy(
+                update={
+                    "noise": cat.measure_noise_by_bands(
+                        lambda r0, r1: _read_rows(ds, r0, r1),
+                        height,
+                        abs(transform.a),
+                        cparams,
+                        rows,
+                    )
+                }
+            )
+        stepped: dict = {}
+        cats = None
+        for step in sorted({k[0] for k in keys} | {None}, key=lambda v: v or 0.0):
+            # the grids of one step share their plane fits
+            mine = [k for k in keys if k[0] == step]
+            windows = [w for _, w in mine]
+            if step is None:
+                windows = [None, *windows]
+            made = grids(step, windows)
+            if step is None:
+                cats, made = made[0], made[1:]
+            stepped.update(zip(mine, made, strict=True))
+        assert cats is not None
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(

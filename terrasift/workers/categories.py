@@ -31,7 +31,7 @@ Tiles with any nodata cell, and partial tiles at the right/bottom border, carry
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 from rasterio import Affine
+from scipy import ndimage
 
 from terrasift.errors import ParameterError
 from terrasift.workers.registry import StageParams, register
@@ -187,7 +188,11 @@ def _direction_code(gx: NDArray, gy: NDArray) -> NDArray[np.uint8]:
     "Terrain categories on a 2 m tile grid: inclination, edge, state, height",
 )
 def compute_categories(
-    dtm: NDArray, cell: float, params: CategoryParams | None = None, step: float | None = None
+    dtm: NDArray,
+    cell: float,
+    params: CategoryParams | None = None,
+    step: float | None = None,
+    trend: tuple[NDArray, NDArray] | None = None,
 ) -> Categories:
     """Fit one or two planes to every tile of ``dtm`` (north-up, NaN nodata, ``cell`` m).
 
@@ -196,7 +201,24 @@ def compute_categories(
     shoulder) lies whole inside some tile wherever the grid falls. Tile i then
     covers cells [i·step, i·step + k) and stands for the step-sized cell at its
     centre (``Categories.transform``).
+
+    ``trend`` (east and north gradients per output tile, ``regional_gradient``)
+    is subtracted from every tile before it is categorised: the tile as it lies
+    on its regional slope.
     """
+    return category_grids(dtm, cell, params, step, [trend])[0]
+
+
+def category_grids(
+    dtm: NDArray,
+    cell: float,
+    params: CategoryParams | None = None,
+    step: float | None = None,
+    trends: list[tuple[NDArray, NDArray] | None] | None = None,
+) -> list[Categories]:
+    """``compute_categories`` for each of ``trends`` (None: the tiles as they lie) on one
+    tile grid. The residuals from one plane and the two-plane fits do not change when a
+    plane is taken off a tile, so they are computed once for all the grids."""
     params = params or CategoryParams()
     k = max(2, int(round(params.tile_size / cell)))
     if abs(k * cell - params.tile_size) > 0.5 * cell:
@@ -215,10 +237,9 @@ def compute_categories(
     nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
     z = np.where(nodata[:, None], 0.0, z)
     z = z - z.mean(axis=1, keepdims=True)
-    height = z.max(axis=1) - z.min(axis=1)
 
     pinv0, resid0, h, hnorm, plane_of_hinge = _models(k, cell)
-    coef0 = z @ pinv0.T  # (n, 3): c, gx, gy
+    coef_raw = z @ pinv0.T  # (n, 3): c, gx, gy
     r0 = z @ resid0
     rss0 = (r0 * r0).sum(axis=1)
     proj = r0 @ h  # (n, 16)
@@ -235,67 +256,81 @@ def compute_categories(
     gate = max(params.edge_min_rms, params.edge_noise * sigma)
     two = (rms0 > gate) & (rss0 - best_gain <= params.edge_ratio * rss0)
 
-    # the height flatness is judged on: the model's range where it explains the tile
-    fitted = z - r0
-    if two.any():
-        fitted[two] += c3[two, None] * h[:, best[two]].T
-    rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
-    explained = rms_model <= params.flat_noise * sigma
-    model_height = fitted.max(axis=1) - fitted.min(axis=1)
-    relief = np.where(explained, model_height, height)
-    flat = relief < params.flat_height
-    gx, gy = coef0[:, 1], coef0[:, 2]
-    rise = np.hypot(gx, gy) * k * cell
-    inclination = _direction_code(gx, gy)
-    # A one-plane tile that is not flat always has a direction; an edged tile only
-    # when its mean plane rises enough (a symmetric V or Λ has none).
-    inclination[two & (rise < params.incline_height)] = 0
+    out = []
+    for trend in trends or [None]:
+        zt = z
+        coef0 = coef_raw
+        if trend is not None:
+            c = (np.arange(k) + 0.5) * cell - k * cell / 2
+            xx, yy = np.meshgrid(c, -c)
+            tx, ty = trend[0].reshape(-1, 1), trend[1].reshape(-1, 1)
+            zt = np.where(nodata[:, None], 0.0, z - tx * xx.ravel() - ty * yy.ravel())
+            coef0 = zt @ pinv0.T
+        height = zt.max(axis=1) - zt.min(axis=1)
+        # the height flatness is judged on: the model's range where it explains the tile
+        fitted = zt - r0
+        if two.any():
+            fitted[two] += c3[two, None] * h[:, best[two]].T
+        rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
+        explained = rms_model <= params.flat_noise * sigma
+        model_height = fitted.max(axis=1) - fitted.min(axis=1)
+        relief = np.where(explained, model_height, height)
+        flat = relief < params.flat_height
+        gx, gy = coef0[:, 1], coef0[:, 2]
+        rise = np.hypot(gx, gy) * k * cell
+        inclination = _direction_code(gx, gy)
+        # A one-plane tile that is not flat always has a direction; an edged tile only
+        # when its mean plane rises enough (a symmetric V or Λ has none).
+        inclination[two & (rise < params.incline_height)] = 0
 
-    edges = np.array(EDGES, dtype=np.uint8)
-    orientation = np.where(two, edges[best], 0).astype(np.uint8)
-    state = np.where(two, np.where(c3 < 0, 1, 2), 0).astype(np.uint8)
+        edges = np.array(EDGES, dtype=np.uint8)
+        orientation = np.where(two, edges[best], 0).astype(np.uint8)
+        state = np.where(two, np.where(c3 < 0, 1, 2), 0).astype(np.uint8)
 
-    # Extreme points: an E–W / N–S hinge whose slope along the edge dominates the
-    # slope across it ends at a side midpoint: the highest one for a convex edge,
-    # the lowest for a concave one.
-    for code, (lo, hi) in ((15, (5, 1)), (37, (7, 3))):
-        sel = two & (orientation == code)
-        if not sel.any():
-            continue
-        # plane part of the hinge model, then its slope along the edge (from a=1|3 toward b=5|7)
-        e = EDGES.index(code)
-        gxh = gx[sel] - c3[sel] * plane_of_hinge[1, e]
-        gyh = gy[sel] - c3[sel] * plane_of_hinge[2, e]
-        d = _edge_direction(code)
-        along = gxh * d[0] + gyh * d[1]  # rise per metre toward b
-        ext = np.abs(along) > params.extreme_ratio * np.abs(c3[sel])
-        rises_to_b = along > 0
-        high_end = np.where(rises_to_b, lo, hi)  # b is 5 or 7 (lo), a is 1 or 3 (hi)
-        low_end = np.where(rises_to_b, hi, lo)
-        end = np.where(state[sel] == 1, high_end, low_end)
-        ori = orientation[sel]
-        ori[ext] = (11 * end[ext]).astype(np.uint8)
-        orientation[sel] = ori
+        # Extreme points: an E–W / N–S hinge whose slope along the edge dominates the
+        # slope across it ends at a side midpoint: the highest one for a convex edge,
+        # the lowest for a concave one.
+        for code, (lo, hi) in ((15, (5, 1)), (37, (7, 3))):
+            sel = two & (orientation == code)
+            if not sel.any():
+                continue
+            # plane part of the hinge model, then its slope along the edge (from a=1|3 toward b=5|7)
+            e = EDGES.index(code)
+            gxh = gx[sel] - c3[sel] * plane_of_hinge[1, e]
+            gyh = gy[sel] - c3[sel] * plane_of_hinge[2, e]
+            d = _edge_direction(code)
+            along = gxh * d[0] + gyh * d[1]  # rise per metre toward b
+            ext = np.abs(along) > params.extreme_ratio * np.abs(c3[sel])
+            rises_to_b = along > 0
+            high_end = np.where(rises_to_b, lo, hi)  # b is 5 or 7 (lo), a is 1 or 3 (hi)
+            low_end = np.where(rises_to_b, hi, lo)
+            end = np.where(state[sel] == 1, high_end, low_end)
+            ori = orientation[sel]
+            ori[ext] = (11 * end[ext]).astype(np.uint8)
+            orientation[sel] = ori
 
-    inclination[flat] = 0
-    orientation[flat] = 0
-    state[flat] = 0
-    height10 = np.clip(np.round(height * 10), 0, 254).astype(np.uint8)
-    relief10 = np.clip(np.round(relief * 10), 0, 254).astype(np.uint8)
-    for band in (inclination, orientation, state, height10, relief10):
-        band[nodata] = NODATA
-    shape = (rows, cols)
-    return Categories(
-        inclination.reshape(shape),
-        orientation.reshape(shape),
-        state.reshape(shape),
-        height10.reshape(shape),
-        k,
-        k * cell,
-        float(sigma),
-        relief10.reshape(shape),
-        None if s == k else s,
-    )
+        inclination[flat] = 0
+        orientation[flat] = 0
+        state[flat] = 0
+        height10 = np.clip(np.round(height * 10), 0, 254).astype(np.uint8)
+        relief10 = np.clip(np.round(relief * 10), 0, 254).astype(np.uint8)
+        for band in (inclination, orientation, state, height10, relief10):
+            band[nodata] = NODATA
+        shape = (rows, cols)
+        out.append(
+            Categories(
+                inclination.reshape(shape),
+                orientation.reshape(shape),
+                state.reshape(shape),
+                height10.reshape(shape),
+                k,
+                k * cell,
+                float(sigma),
+                relief10.reshape(shape),
+                None if s == k else s,
+            )
+        )
+    return out
 
 
 def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
@@ -337,6 +372,12 @@ def plane_residuals(dtm: NDArray, cell: float, params: CategoryParams) -> NDArra
     return np.sqrt((r0 * r0).sum(axis=1) / (k * k))
 
 
+def measure_noise(dtm: NDArray, cell: float, params: CategoryParams) -> float:
+    """The DTM's noise σ as ``compute_categories`` measures it (``noise=None``)."""
+    k = max(2, int(round(params.tile_size / cell)))
+    return _noise([plane_residuals(dtm, cell, params)], k)
+
+
 def _noise(residuals: list[NDArray], k: int) -> float:
     """Noise σ from one-plane residual RMS of tiles: their median, corrected for the 3 fitted
     parameters; 0 with fewer than MIN_NOISE_TILES tiles."""
@@ -346,6 +387,85 @@ def _noise(residuals: list[NDArray], k: int) -> float:
     return float(np.median(r)) * float(np.sqrt(k * k / (k * k - 3)))
 
 
+def regional_gradient(
+    dtm: NDArray,
+    cell: float,
+    params: CategoryParams,
+    window: float,
+    step: float | None = None,
+) -> tuple[NDArray, NDArray]:
+    """The regional slope (east, north gradients) under every tile of
+    ``compute_categories(dtm, cell, params, step)``: the median, over a ``window``
+    (metres) square, of the one-plane gradients of the abutting tiles.
+
+    A narrow object on a slope (a ditch across a 12 % slope: at 2 m tiles the
+    slope adds 0.24 m across each tile and dominates the ditch's banks, Sjövall
+    §5.1.1) is categorised on this slope as on level ground. The median, not the
+    window's least-squares plane: at the foot of a ridge or a hillside the mean
+    slope lies between the two sides and leaves a ditch-like dip in the bend; the
+    median follows the side that fills most of the window, so a bend stays a bend.
+    """
+    k = max(2, int(round(params.tile_size / cell)))
+    z = np.asarray(dtm, dtype=np.float64)
+    rows, cols = z.shape[0] // k, z.shape[1] // k
+    if rows == 0 or cols == 0:
+        gx = gy = np.zeros((rows, cols))
+    else:
+        t: NDArray[np.float64] = (
+            z[: rows * k, : cols * k]
+            .reshape(rows, k, cols, k)
+            .transpose(0, 2, 1, 3)
+            .reshape(rows * cols, k * k)
+        )
+        pinv0, *_ = _models(k, cell)
+        coef = np.nan_to_num(t @ pinv0.T)  # tiles with nodata: 0 gradient
+        size = max(1, int(round(window / (k * cell))))
+        # a wide window takes its median over every stride-th tile (at most ~16 a
+        # side), so the cost does not grow with the window's area
+        stride = max(1, size // 16)
+        gx, gy = (_strided_median(coef[:, i].reshape(rows, cols), size, stride) for i in (1, 2))
+    s = k if step is None else max(1, min(k, int(round(step / cell))))
+    out_r, out_c = -(-z.shape[0] // s), -(-z.shape[1] // s)
+    # the abutting tile holding each output tile's centre (clamped at the border)
+    ri = np.clip((np.arange(out_r) * s + k // 2) // k, 0, max(rows - 1, 0))
+    ci = np.clip((np.arange(out_c) * s + k // 2) // k, 0, max(cols - 1, 0))
+    if rows == 0 or cols == 0:
+        return np.zeros((out_r, out_c)), np.zeros((out_r, out_c))
+    return gx[np.ix_(ri, ci)], gy[np.ix_(ri, ci)]
+
+
+def _strided_median(a: NDArray, size: int, stride: int) -> NDArray:
+    """Median over ``size`` × ``size`` windows of ``a``; with ``stride`` > 1 over the
+    samples every ``stride`` tiles, taken on that coarse grid and spread back."""
+    if stride == 1:
+        return ndimage.median_filter(a, size=size, mode="nearest")
+    coarse = ndimage.median_filter(
+        a[stride // 2 :: stride, stride // 2 :: stride],
+        size=max(1, -(-size // stride)),
+        mode="nearest",
+    )
+    r = np.minimum(np.arange(a.shape[0]) // stride, coarse.shape[0] - 1)
+    c = np.minimum(np.arange(a.shape[1]) // stride, coarse.shape[1] - 1)
+    return coarse[np.ix_(r, c)]
+
+
+def measure_noise_by_bands(
+    read_rows: Callable[[int, int], NDArray],
+    height: int,
+    cell: float,
+    params: CategoryParams,
+    band_rows: int,
+) -> float:
+    """The DTM's noise σ measured over bands as ``categories_by_bands`` measures it."""
+    k = max(2, int(round(params.tile_size / cell)))
+    band = max(k, band_rows // k * k)
+    res = [
+        plane_residuals(read_rows(r, min(height, r + band)), cell, params)
+        for r in range(0, height, band)
+    ]
+    return _noise(res, k)
+
+
 def categories_by_bands(
     read_rows: Callable[[int, int], NDArray],
     height: int,
@@ -353,23 +473,43 @@ def categories_by_bands(
     params: CategoryParams,
     band_rows: int,
     step: float | None = None,
-) -> Categories:
+    windows: Sequence[float | None] = (None,),
+) -> list[Categories]:
     """Categories of a DTM read in bands of about ``band_rows`` rows (``read_rows(r0, r1)``),
-    so memory follows the band. Overlapping tiles (``step``) read a tile's overlap
-    beyond each band; the tiles starting there belong to the next band."""
+    so memory follows the band, one grid per entry of ``windows``: None for the tiles
+    as they lie, a window in metres for tiles set on their regional slope
+    (``regional_gradient``, read with half a window of rows around each band).
+    Overlapping tiles (``step``) read a tile's overlap beyond each band; the tiles
+    starting there belong to the next band."""
     k = max(2, int(round(params.tile_size / cell)))
     s = k if step is None else max(1, min(k, int(round(step / cell))))
     whole = int(np.lcm(k, s))
     band = max(whole, band_rows // whole * whole)  # whole tiles and whole steps
-    if params.noise is None:  # measured once over all bands, as over the whole DTM
+    if params.noise is None:  # measured once over all bands, as over the whole DTM (the raw DTM's)
         res = [
             plane_residuals(read_rows(r, min(height, r + band)), cell, params)
             for r in range(0, height, band)
         ]
         params = params.model_copy(update={"noise": _noise(res, k)})
-    parts, keep = [], []
+    # the regional slope of a band reads half a window (whole steps and tiles) around it
+    widest = max((w for w in windows if w is not None), default=None)
+    margin = 0 if widest is None else -(-int(round(widest / cell / 2)) // whole) * whole
+    parts: list[list[Categories]] = [[] for _ in windows]
+    keep = []
     for r in range(0, height, band):
         stop = min(height, r + band + (k - s))
-        parts.append(compute_categories(read_rows(r, stop), cell, params, step))
+        trends: list[tuple[NDArray, NDArray] | None] = []
+        if widest is not None:
+            a, b = max(0, r - margin), min(height, stop + margin)
+            around = read_rows(a, b)
+            first, n = (r - a) // s, -(-(stop - r) // s)
+        for w in windows:
+            if w is None:
+                trends.append(None)
+                continue
+            gx, gy = regional_gradient(around, cell, params, w, step)
+            trends.append((gx[first : first + n], gy[first : first + n]))
+        for i, cats in enumerate(category_grids(read_rows(r, stop), cell, params, step, trends)):
+            parts[i].append(cats)
         keep.append(-(-min(band, height - r) // s))
-    return stack_rows(parts, keep)
+    return [stack_rows(p, keep) for p in parts]

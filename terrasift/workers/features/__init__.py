@@ -28,7 +28,14 @@ from shapely.geometry import mapping
 from shapely.geometry.polygon import orient
 
 from terrasift.errors import ParameterError
-from terrasift.workers.categories import Categories, CategoryParams, compute_categories
+from terrasift.workers.categories import (
+    Categories,
+    CategoryParams,
+    category_grids,
+    compute_categories,
+    measure_noise,
+    regional_gradient,
+)
 from terrasift.workers.features import connect as _connect
 from terrasift.workers.features.language import (
     Filter,
@@ -51,12 +58,16 @@ __all__ = [
     "detect_features",
     "features_geojson",
     "format_filter",
+    "grid_key",
+    "grid_keys",
     "load_filter",
     "parse_filter",
     "resolve_filters",
     "resolve_lengths",
-    "step_sizes",
 ]
+
+#: the extra category grid a filter runs on: (step, detrend window) in metres, None for none
+GridKey = tuple[float | None, float | None]
 
 _BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
 
@@ -122,12 +133,25 @@ def _tile_transform(cats: Categories, transform: Affine, tile_size: float) -> Af
 )
 def categories_for(
     dtm: NDArray, cell: float, filters: list[Filter], params: CategoryParams | None = None
-) -> tuple[Categories, dict[float, Categories]]:
-    """Categories of ``dtm`` on the tile grid and on every overlapping grid ``filters`` ask for,
-    ready for ``detect_features(cats, filters, ..., stepped=stepped)``."""
+) -> tuple[Categories, dict[GridKey, Categories]]:
+    """Categories of ``dtm`` on the tile grid and on every other grid ``filters`` ask for
+    (overlapping tiles, a detrended DTM), ready for
+    ``detect_features(cats, filters, ..., stepped=stepped)``."""
     params = params or CategoryParams()
+    if params.noise is None:  # one noise for every grid: the DTM's own
+        params = params.model_copy(update={"noise": measure_noise(dtm, cell, params)})
+    keys = grid_keys(filters)
+    others: dict[GridKey, Categories] = {}
     cats = compute_categories(dtm, cell, params)
-    return cats, {s: compute_categories(dtm, cell, params, step=s) for s in step_sizes(filters)}
+    for step in sorted({k[0] for k in keys}, key=lambda v: v or 0.0):
+        # the grids of one step share their plane fits (category_grids)
+        mine = [k for k in keys if k[0] == step]
+        trends = [
+            None if w is None else regional_gradient(dtm, cell, params, w, step) for _, w in mine
+        ]
+        for key, grid in zip(mine, category_grids(dtm, cell, params, step, trends), strict=True):
+            others[key] = grid
+    return cats, others
 
 
 def check_filters(filters: list[Filter], tile_size: float) -> None:
@@ -137,9 +161,20 @@ def check_filters(filters: list[Filter], tile_size: float) -> None:
         resolve_lengths(f, f.step.value if f.step is not None else tile_size)
 
 
-def step_sizes(filters: list[Filter]) -> list[float]:
-    """Steps (metres) of the overlapping tile grids the filters run on (``step``)."""
-    return sorted({f.step.value for f in filters if f.step is not None})
+def grid_key(flt: Filter) -> GridKey | None:
+    """The grid ``flt`` runs on other than the tile grid: (``step``, ``detrend``) in metres."""
+    if flt.step is None and flt.detrend is None:
+        return None
+    return (
+        None if flt.step is None else flt.step.value,
+        None if flt.detrend is None else flt.detrend.value,
+    )
+
+
+def grid_keys(filters: list[Filter]) -> list[GridKey]:
+    """The other grids the filters run on (overlapping tiles, detrended DTM), each once."""
+    keys = {k for f in filters if (k := grid_key(f)) is not None}
+    return sorted(keys, key=lambda k: (k[0] or 0.0, k[1] or 0.0))
 
 
 def detect_features(
@@ -149,31 +184,32 @@ def detect_features(
     tile_size: float,
     params: FeatureParams | None = None,
     *,
-    stepped: dict[float, Categories] | None = None,
+    stepped: dict[GridKey, Categories] | None = None,
 ) -> FeatureResult:
     """Run ``filters`` over the category grid.
 
     ``transform`` is the DTM's geotransform or the tile grid's (told apart by
     cell size); polygons come out in its CRS. Objects of all filters go to
     ``objects``; filters without connect/findrectangle mark tiles in ``marked``.
-    Filters with a ``step`` run on ``stepped[step]``: categories of overlapping
-    tiles (``compute_categories(..., step=step)``), which need the DTM's transform.
+    Filters with a ``step`` or ``detrend`` run on ``stepped[grid_key(filter)]``:
+    categories of overlapping tiles (``compute_categories(..., step=step)``, which
+    need the DTM's transform) or of the detrended DTM (``categories_for`` makes them).
     """
     params = params or FeatureParams()
     tt = _tile_transform(categories, transform, tile_size)
     result = FeatureResult()
     for flt in filters:
         cats, grid = categories, tt
-        if flt.step is not None:
-            found = (stepped or {}).get(flt.step.value)
+        key = grid_key(flt)
+        if key is not None:
+            found = (stepped or {}).get(key)
             if found is None:
-                raise ParameterError(
-                    f"filter {flt.name} runs every {flt.step.text()}: pass its categories"
-                )
+                raise ParameterError(f"filter {flt.name} runs on grid {key}: pass its categories")
             cats = found
-            if not np.isclose(abs(transform.a) * cats.cells_per_tile, cats.tile_size):
-                raise ParameterError(f"filter {flt.name} needs the DTM's transform")
-            grid = cats.transform(transform)
+            if found.step_cells is not None:
+                if not np.isclose(abs(transform.a) * cats.cells_per_tile, cats.tile_size):
+                    raise ParameterError(f"filter {flt.name} needs the DTM's transform")
+                grid = cats.transform(transform)
         flt = resolve_lengths(flt, cats.spacing)
         result.objects += _run_filter(cats, flt, grid, params, result)
     return result
@@ -230,6 +266,9 @@ def _run_filter(
             params.simplify_tiles,
             aspect=aspect,
             join=flt.join,
+            join_aligned=flt.join_aligned,
+            hull=flt.hull,
+            solidity=flt.solidity,
         )
     else:
         result.marked[flt.name] = marks

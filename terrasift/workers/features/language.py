@@ -202,8 +202,22 @@ class Filter:
     steps: tuple[str, ...] = field(default=(), compare=False)
     aspect: Aspect | None = None
     join: Length | Literal["width"] | None = None
+    join_aligned: Length | None = None
+    """``join <gap> <aligned gap>``: pieces lined up end to end (long axes within 20° of
+    each other and of the gap between them) also join across gaps up to the second
+    length (a ditch whose middle the categories miss)."""
     step: Metres | None = None
     """``step <metres>``: run on tiles starting every step (overlapping tiles), finer than the tile grid."""
+    hull: bool = False
+    solidity: float | None = None
+    """``solidity <min>``: objects covering at least this share of their convex hull (a
+    closed outline filled, not the open half-ring at a ridge's end)."""
+    """``fill hull``: each object is the convex hull of its tiles (an outline found on part of
+    its ring, as a hill's on a slope, closed) before it is measured and limited."""
+    detrend: Metres | None = None
+    """``detrend <metres>``: run on categories of tiles set on their regional slope (the
+    median tile gradient over a window this wide), so a narrow object on a slope is
+    categorised as on level ground."""
 
     @property
     def makes_objects(self) -> bool:
@@ -280,7 +294,11 @@ class _Parser:
         rect: Rectangle | None = None
         aspect: Aspect | None = None
         join: Length | Literal["width"] | None = None
+        join_aligned: Length | None = None
         step: Metres | None = None
+        detrend: Metres | None = None
+        hull = False
+        solidity: float | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -316,10 +334,34 @@ class _Parser:
                 if len(args) != 1 or not args[0].endswith("m"):
                     raise self.error("step takes one length in metres, e.g. step 1m", no)
                 step = self.lengths(args, no, "step", lo=1)[0]
+            elif key == "detrend":
+                if steps or segments or detrend is not None:
+                    raise self.error("detrend comes once, before the segments", no)
+                if len(args) != 1 or not args[0].endswith("m"):
+                    raise self.error("detrend takes one window in metres, e.g. detrend 24m", no)
+                detrend = self.lengths(args, no, "detrend", lo=1)[0]
+            elif key == "solidity":
+                if solidity is not None or len(args) != 1:
+                    raise self.error("solidity takes one share (0-1) once", no)
+                (solidity,) = self.numbers(args, no, "solidity")
+                if not 0 < solidity <= 1:
+                    raise self.error("solidity is a share above 0 and at most 1", no)
+                steps.append("solidity")
+            elif key == "fill":
+                if hull or args != ["hull"]:
+                    raise self.error("fill takes 'hull', once", no)
+                hull = True
+                steps.append("fill")
             elif key == "join":
-                if join is not None or len(args) != 1:
-                    raise self.error("join takes one gap (tiles, metres or 'width') once", no)
+                if join is not None or len(args) not in (1, 2):
+                    raise self.error(
+                        "join takes a gap (tiles, metres or 'width') and optionally a gap for"
+                        " pieces lined up end to end, once",
+                        no,
+                    )
                 join = "width" if args[0] == "width" else self.lengths(args, no, "join", lo=1)[0]
+                if len(args) == 2:
+                    join_aligned = self.lengths(args[1:], no, "join", lo=1)[0]
                 steps.append("join")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
@@ -336,10 +378,24 @@ class _Parser:
                 raise self.error(f"unexpected {key!r} outside a segment", no)
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
-        if (aspect is not None or join is not None) and connect is None:
-            raise self.error("aspect and join need a connect step", last_line)
+        if (
+            aspect is not None or join is not None or hull or solidity is not None
+        ) and connect is None:
+            raise self.error("aspect, join, fill and solidity need a connect step", last_line)
         return Filter(
-            self.name, tuple(segments), h_and_v, connect, rect, tuple(steps), aspect, join, step
+            self.name,
+            tuple(segments),
+            h_and_v,
+            connect,
+            rect,
+            tuple(steps),
+            aspect,
+            join,
+            join_aligned,
+            step,
+            hull,
+            solidity,
+            detrend,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -487,6 +543,8 @@ class _Parser:
 def format_filter(f: Filter) -> str:
     """The filter as text that parses back to an equal Filter."""
     out: list[str] = [f"step {f.step.text()}"] if f.step is not None else []
+    if f.detrend is not None:
+        out.append(f"detrend {f.detrend.text()}")
     for seg in f.segments:
         head = (
             "beginsegment"
@@ -532,7 +590,12 @@ def format_filter(f: Filter) -> str:
             lo, hi = (-1 if v is None else v for v in (f.aspect.min, f.aspect.max))
             out.append(f"aspect {lo:g} {hi:g}")
         elif step == "join" and f.join is not None:
-            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}")
+            aligned = "" if f.join_aligned is None else f" {_text(f.join_aligned)}"
+            out.append(f"join {f.join if f.join == 'width' else _text(f.join)}{aligned}")
+        elif step == "fill" and f.hull:
+            out.append("fill hull")
+        elif step == "solidity" and f.solidity is not None:
+            out.append(f"solidity {f.solidity:g}")
     return "\n".join(out) + "\n"
 
 
@@ -546,6 +609,10 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("aspect")
     if f.join is not None:
         steps.append("join")
+    if f.hull:
+        steps.append("fill")
+    if f.solidity is not None:
+        steps.append("solidity")
     return tuple(steps)
 
 
@@ -644,4 +711,12 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     if rect is not None:
         rect = replace(rect, width=t(rect.width, "size"), height=t(rect.height, "size"))
     join = f.join if f.join == "width" else t(f.join, "size")
-    return replace(f, segments=tuple(segs), connect=connect, rectangle=rect, join=join)
+    aligned = t(f.join_aligned, "size")
+    return replace(
+        f,
+        segments=tuple(segs),
+        connect=connect,
+        rectangle=rect,
+        join=join,
+        join_aligned=aligned,
+    )

@@ -149,6 +149,9 @@ def objects_from_labels(
     measure: str = "auto",
     aspect: tuple[float | None, float | None] = (None, None),
     join: float | str | None = None,
+    join_aligned: float | None = None,
+    hull: bool = False,
+    solidity: float | None = None,
 ) -> list[Feature]:
     """Features for every label whose length/width (in tiles) lie within ``limits``.
 
@@ -156,7 +159,9 @@ def objects_from_labels(
     flanks); ``measure`` ``rectangle`` sizes every object by the rectangle with
     its second area moments (areas made of rectangular windows), ``auto`` as
     ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
-    ``"width"``) joins pieces first (``join_pieces``).
+    ``"width"``) joins pieces first (``join_pieces``); ``hull`` replaces each
+    object by its convex hull (an outline closed where a part of its ring is missing);
+    ``solidity`` keeps objects covering at least that share of their convex hull.
     """
     labels = labels.astype(np.int32)
     if fill_holes:
@@ -175,6 +180,7 @@ def objects_from_labels(
             reach = int(
                 np.ceil(max_w if join == "width" and max_w else 8 if join == "width" else join)
             )
+            reach = max(reach, int(np.ceil(join_aligned or 0)))
             short &= ~_near_other(labels, reach, counts.size) | (counts < 3)
         small |= short
     if min_w is not None:
@@ -191,7 +197,14 @@ def objects_from_labels(
         length, width = rectangle_size(poly)
         pieces.append(Feature(kind, poly, float(length), float(width), int(counts[lab])))
     if join is not None and len(pieces) > 1:
-        pieces = join_pieces(pieces, join, tile_size)
+        pieces = join_pieces(pieces, join, tile_size, join_aligned)
+    if hull:
+        pieces = [
+            Feature(
+                p.kind, p.geometry.convex_hull, *rectangle_size(p.geometry.convex_hull), p.tiles
+            )
+            for p in pieces
+        ]
     feats = []
     lo_a, hi_a = aspect
     for f in pieces:
@@ -208,6 +221,8 @@ def objects_from_labels(
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
             continue
         if (min_w is not None and wt < min_w) or (max_w is not None and wt > max_w):
+            continue
+        if solidity is not None and f.geometry.area < solidity * f.geometry.convex_hull.area:
             continue
         ratio = f.length_m / max(f.width_m, 1e-9)
         if (lo_a is not None and ratio < lo_a) or (hi_a is not None and ratio > hi_a):
@@ -228,12 +243,15 @@ def _near_other(labels: NDArray[np.int32], reach: int, n: int) -> NDArray[np.boo
     return out
 
 
-def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> list[Feature]:
+def join_pieces(
+    pieces: list[Feature], join: float | str, tile_size: float, aligned: float | None = None
+) -> list[Feature]:
     """Pieces closer than ``join`` tiles (``"width"``: the narrower piece's width) joined.
 
     A pair joins when the gap between them runs within 45° of both pieces'
     long axes: two ends of one broken ditch line up, two parallel ditches lie
-    side by side. Sizes here are the cheap staircase ones (``rectangle_size``);
+    side by side. Pieces lined up end to end (long axes within 20° of each
+    other and of the gap) join across gaps up to ``aligned`` tiles. Sizes here are the cheap staircase ones (``rectangle_size``);
     ``objects_from_labels`` measures the objects that remain.
     """
     import shapely
@@ -242,6 +260,8 @@ def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> l
     geoms = [p.geometry for p in pieces]
     widths = np.array([p.width_m for p in pieces])
     reach = widths.max() if join == "width" else float(join) * tile_size
+    long_gap = 0.0 if aligned is None else float(aligned) * tile_size
+    reach = max(reach, long_gap)
     tree = STRtree(geoms)
     a, b = tree.query(geoms, predicate="dwithin", distance=reach)
     keep = a < b
@@ -251,17 +271,36 @@ def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> l
     ga, gb = np.asarray(geoms, dtype=object)[a], np.asarray(geoms, dtype=object)[b]
     gap = shapely.distance(ga, gb)
     allowed = np.minimum(widths[a], widths[b]) if join == "width" else np.full(a.size, reach)
-    ok = gap <= allowed
+    ok = gap <= np.maximum(allowed, long_gap)
     axes = np.array([_axis_angle(g) for g in geoms])
     lines = shapely.shortest_line(ga[ok], gb[ok])
     xy = shapely.get_coordinates(lines).reshape(-1, 2, 2)
     d = xy[:, 1] - xy[:, 0]
     phi = np.arctan2(d[:, 1], d[:, 0])
     tiny = np.hypot(d[:, 0], d[:, 1]) < 0.5 * tile_size
-    along = (_angle_diff(phi, axes[a[ok]]) <= np.pi / 4) & (
-        _angle_diff(phi, axes[b[ok]]) <= np.pi / 4
+    ax_a, ax_b = axes[a[ok]], axes[b[ok]]
+    short = gap[ok] <= allowed[ok]
+    along = short & (_angle_diff(phi, ax_a) <= np.pi / 4) & (_angle_diff(phi, ax_b) <= np.pi / 4)
+    lined = np.radians(20)
+    end_to_end = (
+        (_angle_diff(ax_a, ax_b) <= lined)
+        & (_angle_diff(phi, ax_a) <= lined)
+        & (_angle_diff(phi, ax_b) <= lined)
     )
-    pairs = np.flatnonzero(ok)[tiny | along]
+    keep_pair = (tiny & short) | along | end_to_end
+    pairs = np.flatnonzero(ok)[keep_pair]
+    # a gap longer than the short join is bridged by a strip as wide as the narrower piece
+    strips = {
+        int(k): shapely.buffer(line, w / 2, cap_style="flat")
+        for k, line, w, sh in zip(
+            pairs.tolist(),
+            lines[keep_pair],
+            np.minimum(widths[a], widths[b])[pairs],
+            short[keep_pair],
+            strict=True,
+        )
+        if not sh
+    }
     parent = list(range(len(pieces)))
 
     def root(i: int) -> int:
@@ -271,11 +310,17 @@ def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> l
         return i
 
     bridged: dict[int, float] = {}
+    extra: dict[int, list] = {}
     for k in pairs.tolist():
         ri, rj = root(int(a[k])), root(int(b[k]))
         if ri != rj:
             parent[rj] = ri
-            bridged[ri] = max(bridged.get(ri, 0.0), bridged.pop(rj, 0.0), float(gap[k]))
+            extra[ri] = extra.get(ri, []) + extra.pop(rj, [])
+            if k in strips:
+                extra[ri].append(strips[k])
+                bridged[ri] = max(bridged.get(ri, 0.0), bridged.pop(rj, 0.0))
+            else:
+                bridged[ri] = max(bridged.get(ri, 0.0), bridged.pop(rj, 0.0), float(gap[k]))
     groups: dict[int, list[int]] = {}
     for i in range(len(pieces)):
         groups.setdefault(root(i), []).append(i)
@@ -284,7 +329,7 @@ def join_pieces(pieces: list[Feature], join: float | str, tile_size: float) -> l
         if len(members) == 1:
             out.append(pieces[members[0]])
             continue
-        geom = _bridge([geoms[m] for m in members], bridged.get(r, 0.0))
+        geom = _bridge([geoms[m] for m in members] + extra.get(r, []), bridged.get(r, 0.0))
         length, width = rectangle_size(geom)
         tiles = sum(pieces[m].tiles for m in members)
         out.append(Feature(pieces[0].kind, geom, float(length), float(width), tiles))
