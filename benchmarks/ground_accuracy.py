@@ -53,7 +53,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from terrasift.jobs.params import JobParams  # noqa: E402
 from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.synthetic import rural, slopes  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
@@ -191,6 +190,12 @@ CANDIDATES: dict[str, list[dict]] = {
         {"snap_cells": False},
         {"raised_relative": True},
         {"raised_slope": 20.0},
+        {"raised_walls": 0.0},
+        {"raised_walls": 0.34},
+        {"raised_walls": 0.67},
+        {"raised_rise": 0.0},
+        {"raised_rise": 0.5},
+        {"raised_rise": 1.0},
     ],
 }
 
@@ -427,7 +432,7 @@ def main() -> None:
     parts = a.only.split(",")
     # The ground methods are the choices of the job parameter; other stages
     # under "ground." (low points, the steepness test) take other arguments.
-    methods = typing.get_args(JobParams.model_fields["ground"].annotation)
+    methods = registry.ground_methods()
     for stage in (registry.get_stage(f"ground.{m}") for m in methods):
         if a.method and stage.id != a.method:
             continue

@@ -46,6 +46,8 @@ def raised_segments(
     min_lift: float = 0.0,
     rounds: int = 4,
     relative: bool = False,
+    walls: float = 0.0,
+    rise: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -54,20 +56,41 @@ def raised_segments(
     median gradient of the edges going down from its lower end by
     tan(``step_slope_deg``): a wall rises out of the terrain at its foot, a
     slope edge of steep terrain continues the slope below it.
+    ``walls`` > 0 keeps the steps measured against level (so the segments stay
+    the same) but drops a segment only when at least this share of the steps it
+    is the upper side of are walls in that relative sense: the verdict is taken
+    over the whole border, so one steep slope edge more or less (where the bins
+    fell) does not cut a hilltop off, while a roof or platform, walled all round,
+    still goes.
+    ``rise`` > 0: an edge rising at least this much more than the slope at its
+    foot predicts over its run is a step and a wall however gentle its gradient:
+    a 1 m platform whose neighbours (wagons, cars) were dropped meets the
+    ground 5–9 m away, at 6–10° (walls then count with ``walls``). A segment the
+    upper side of such an edge goes only when it is also flat (its vertices within
+    ``step`` RMS of their least-squares plane): a platform or a row of wagons is,
+    a hillside that long edges happen to cut off is not.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
     dz = xyz[e[:, 1], 2] - xyz[e[:, 0], 2]
     run = np.hypot(*(xyz[e[:, 1], :2] - xyz[e[:, 0], :2]).T)
     grad = np.abs(dz) / np.maximum(run, 1e-9)
-    base = np.zeros(n)
-    if relative:
+    tan_step = np.tan(np.radians(step_slope_deg))
+    wall = grad >= tan_step
+    big = np.zeros(e.shape[0], dtype=bool)
+    if relative or walls > 0 or rise > 0:
         # The terrain at an edge's foot: the edges going down from its lower end.
         upper = np.where(dz > 0, e[:, 1], e[:, 0])
         base = _median_per_vertex(upper, grad, n)
         lower = np.where(dz > 0, e[:, 0], e[:, 1])
-        grad = grad - base[lower]
-    is_step = (np.abs(dz) >= step) & (grad >= np.tan(np.radians(step_slope_deg)))
+        wall = grad - base[lower] >= tan_step
+        if rise > 0:
+            # Only edges under the step gradient: steeper ones are judged as walls above.
+            big = (grad < tan_step) & (np.abs(dz) - base[lower] * run >= rise)
+            wall |= big
+        if relative:
+            grad = grad - base[lower]
+    is_step = (np.abs(dz) >= step) & ((grad >= tan_step) | big)
     gentle = e[~is_step]
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
@@ -82,6 +105,9 @@ def raised_segments(
     lo, hi = seg[lo_v], seg[hi_v]
     cross = lo != hi
     lo, hi, lo_v, hi_v = lo[cross], hi[cross], lo_v[cross], hi_v[cross]
+    is_wall = wall[is_step][cross]
+    is_big = big[is_step][cross]
+    flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
     gone = np.zeros(n_seg, dtype=bool)
     for _ in range(rounds):
         live = ~gone[lo] & ~gone[hi]
@@ -90,6 +116,12 @@ def raised_segments(
         # Share of its steps a segment is the upper side of (1 with none left).
         share = np.where(n_down > 0, n_up / np.maximum(n_up + n_down, 1), 1.0)
         raised = ~fixed & ~gone & (share >= up_share)
+        if walls > 0:
+            n_wall = np.bincount(hi[live & is_wall], minlength=n_seg)
+            raised &= (n_up == 0) | (n_wall >= walls * n_up)
+        if is_big.any():
+            n_big = np.bincount(hi[live & is_big], minlength=n_seg)
+            raised &= (n_big == 0) | flat
         partly = raised & (share < 1.0)
         if partly.any():
             # The foot of each step seen from its segment: the lower end seen
@@ -101,6 +133,35 @@ def raised_segments(
             break
         gone |= raised
     return gone[seg]
+
+
+def _flat(
+    xyz: NDArray[np.float64], seg: NDArray[np.int64], n_seg: int, tol: float
+) -> NDArray[np.bool_]:
+    """Per segment: its vertices lie within ``tol`` RMS of their least-squares plane
+    (segments of fewer than four vertices count as flat)."""
+    size = np.maximum(np.bincount(seg, minlength=n_seg), 1)
+    cx = np.bincount(seg, xyz[:, 0], n_seg) / size
+    cy = np.bincount(seg, xyz[:, 1], n_seg) / size
+    u, v, z = xyz[:, 0] - cx[seg], xyz[:, 1] - cy[seg], xyz[:, 2]
+
+    def b(a: NDArray[np.float64]) -> NDArray:
+        return np.bincount(seg, a, n_seg)
+
+    cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
+    m = np.stack(
+        [np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)],
+        -2,
+    )
+    r = np.stack([b(z), b(u * z), b(v * z)], -1)
+    coef = np.zeros((n_seg, 3))
+    coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
+    ok = (cnt >= 4) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
+    if ok.any():
+        coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
+    res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
+    rms = np.sqrt(b(res**2) / size)
+    return (cnt < 4) | (rms <= tol)
 
 
 def _median_per_vertex(
