@@ -43,7 +43,7 @@ def _field(seed: int = 0):
 def test_bush_edges_and_first_returns_are_taken_back():
     xyz, last, veg = _field()
     ground = np.ones(len(xyz), bool)
-    out = reject_low_vegetation(xyz, ground, LowVegParams(), last)
+    out = reject_low_vegetation(xyz, ground, LowVegParams(enabled=True), last)
     assert not out[veg & ~last].any()  # echoes: first of two returns
     assert (
         np.mean(out[veg & last]) < 0.5
@@ -59,8 +59,8 @@ def test_ground_without_echoes_around_is_left_alone():
     z = 10.0 - 0.6 * np.abs(xy[:, 0] - 30.0) + rng.normal(0, 0.03, len(xy))
     xyz = np.column_stack([xy, z])
     ground = np.ones(len(xyz), bool)
-    assert reject_low_vegetation(xyz, ground, LowVegParams(), np.ones(len(xyz), bool)).all()
-    assert reject_low_vegetation(xyz, ground, LowVegParams(), None).all()
+    assert reject_low_vegetation(xyz, ground, LowVegParams(enabled=True), np.ones(len(xyz), bool)).all()
+    assert reject_low_vegetation(xyz, ground, LowVegParams(enabled=True), None).all()
 
 
 def test_disabled_rule_keeps_the_labels():

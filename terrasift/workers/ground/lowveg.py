@@ -44,7 +44,7 @@ from terrasift.workers.registry import StageParams, register
 class LowVegParams(StageParams):
     """Parameters of the low-vegetation rule after the ground stage."""
 
-    enabled: bool = True
+    enabled: bool = False
     """Run the rule (false: the filter's labels as they are)."""
     echoes: bool = True
     """Take back ground returns that are not the last of their pulse (where known)."""
