@@ -59,7 +59,9 @@ def test_ground_without_echoes_around_is_left_alone():
     z = 10.0 - 0.6 * np.abs(xy[:, 0] - 30.0) + rng.normal(0, 0.03, len(xy))
     xyz = np.column_stack([xy, z])
     ground = np.ones(len(xyz), bool)
-    assert reject_low_vegetation(xyz, ground, LowVegParams(enabled=True), np.ones(len(xyz), bool)).all()
+    assert reject_low_vegetation(
+        xyz, ground, LowVegParams(enabled=True), np.ones(len(xyz), bool)
+    ).all()
     assert reject_low_vegetation(xyz, ground, LowVegParams(enabled=True), None).all()
 
 
