@@ -144,9 +144,26 @@ def _flat(
     cx = np.bincount(seg, xyz[:, 0], n_seg) / size
     cy = np.bincount(seg, xyz[:, 1], n_seg) / size
     u, v, z = xyz[:, 0] - cx[seg], xyz[:, 1] - cy[seg], xyz[:, 2]
+    coef, cnt = _plane_per_group(seg, u, v, z, n_seg, 4)
+    res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
+    rms = np.sqrt(np.bincount(seg, res**2, n_seg) / size)
+    return (cnt < 4) | (rms <= tol)
+
+
+def _plane_per_group(
+    group: NDArray[np.int64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    z: NDArray[np.float64],
+    n: int,
+    least: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Least-squares plane z = c0 + c1 u + c2 v of each of ``n`` groups of points
+    (``group`` per point) and the points per group; the mean level where a group
+    has fewer than ``least`` points or they do not span a plane."""
 
     def b(a: NDArray[np.float64]) -> NDArray:
-        return np.bincount(seg, a, n_seg)
+        return np.bincount(group, a, n)
 
     cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
     m = np.stack(
@@ -154,14 +171,12 @@ def _flat(
         -2,
     )
     r = np.stack([b(z), b(u * z), b(v * z)], -1)
-    coef = np.zeros((n_seg, 3))
+    coef = np.zeros((n, 3))
     coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
-    ok = (cnt >= 4) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
+    ok = (cnt >= least) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
     if ok.any():
         coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
-    res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
-    rms = np.sqrt(b(res**2) / size)
-    return (cnt < 4) | (rms <= tol)
+    return coef, cnt
 
 
 def _median_per_vertex(
@@ -194,21 +209,7 @@ def _lift(
     cx = np.bincount(seg, xyz[:, 0], n_seg) / size
     cy = np.bincount(seg, xyz[:, 1], n_seg) / size
     u, v, z = xyz[vv, 0] - cx[ss], xyz[vv, 1] - cy[ss], xyz[vv, 2]
-
-    def b(a: NDArray[np.float64]) -> NDArray:
-        return np.bincount(ss, a, n_seg)
-
-    cnt, su, sv, suu, svv, suv = b(np.ones_like(u)), b(u), b(v), b(u * u), b(v * v), b(u * v)
-    m = np.stack(
-        [np.stack([cnt, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)],
-        -2,
-    )
-    r = np.stack([b(z), b(u * z), b(v * z)], -1)
-    coef = np.zeros((n_seg, 3))
-    coef[:, 0] = r[:, 0] / np.maximum(cnt, 1)
-    ok = (cnt >= 3) & (np.linalg.det(m) > 1e-6 * cnt * (suu + svv) ** 2)
-    if ok.any():
-        coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
+    coef, _ = _plane_per_group(ss, u, v, z, n_seg, 3)
     plane = (
         coef[seg, 0] + coef[seg, 1] * (xyz[:, 0] - cx[seg]) + coef[seg, 2] * (xyz[:, 1] - cy[seg])
     )
