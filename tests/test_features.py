@@ -704,3 +704,29 @@ def test_ridge_on_a_slope_is_found_and_a_pond_rim_on_it_is_not():
     plain = parse_filter(format_filter(flt).replace("detrend 120m\n", ""))
     got = detect_features(cats, [plain], tt, cats.tile_size).objects
     assert any(abs(f.geometry.centroid.x - px) < 25 for f in got)
+
+
+def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
+    h = np.zeros((40, 40), dtype=bool)
+    v = np.zeros((40, 40), dtype=bool)
+    # a bowl: rows and columns cross the same disc
+    yy, xx = np.mgrid[0:40, 0:40]
+    disc = np.hypot(yy - 10, xx - 10) < 7
+    h |= disc
+    v |= disc
+    h[10:12, 8:13] = True  # a little more one way
+    # a row-strip and a column-strip crossing in a corner
+    h[25:30, 15:40] = True
+    v[20:40, 15:20] = True
+    assert C.h_and_v(h, v)[25:30, 15:20].all()
+    kept = C.h_and_v(h, v, 0.15)
+    assert kept[disc].all() and not kept[25:30, 15:20].any()
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 0\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\nh-and-v 0.15\n"
+    )
+    flt = parse_filter(text)
+    assert flt.h_and_v and flt.h_and_v_share == 0.15
+    assert parse_filter(format_filter(flt)) == flt
+    with pytest.raises(FilterSyntaxError, match="h-and-v"):
+        parse_filter(text.replace("h-and-v 0.15", "h-and-v 1.5"))
