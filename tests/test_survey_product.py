@@ -55,8 +55,8 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     params = validate_params(PARAMS)
     sdir = root / "survey"
 
-    def run(name: str, mode: str = "incremental") -> dict:
-        summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode)
+    def run(name: str, mode: str = "incremental", **kw: object) -> dict:
+        summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode, **kw)
         assert run_job(root / name, InlineExecutor()) == ["survey.json"]
         return summary
 
@@ -74,7 +74,11 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     d = np.hypot(np.asarray(las.x) - scene.bounds[0] - 8, np.asarray(las.y) - scene.bounds[1] - 9)
     las.z = np.asarray(las.z) + 1.5 * np.clip(1 - d / 6, 0, None)
     las.write(tiles[0])
-    out["incremental"] = run("r2")
+    out["incremental"] = run("r2", keep_intermediates=True)
+    out["kept"] = {
+        sub: sum(1 for p in (root / "r2" / sub).rglob("*") if p.is_file())
+        for sub in ("shards", "blocks", "outputs/tiles")
+    }
     v2 = current_version(sdir)
     assert v2 is not None
     out["v2"], out["inodes2"] = _product(v2), _inodes(v2)
@@ -131,6 +135,13 @@ def test_incremental_run_redoes_the_tile_and_its_halo_neighbours(survey: dict) -
 
 def test_a_finished_run_keeps_only_its_records(survey: dict) -> None:
     assert survey["run_left"] == ["job.json", "outputs/survey.json", "plan.json"]
+
+
+def test_retention_keeps_the_intermediates(survey: dict) -> None:
+    # the incremental run was planned with keep_intermediates: shards, blocks and its tiles stay
+    kept = survey["kept"]
+    assert kept["shards"] > 0 and kept["blocks"] > 0, kept
+    assert kept["outputs/tiles"] >= 4 * 5, kept  # 4 redone tiles x (4 rasters + classified.laz)
 
 
 def test_publish_again_after_the_switch_is_a_no_op(survey: dict) -> None:

@@ -175,10 +175,13 @@ def plan_survey_run(
     *,
     mode: str = "incremental",
     max_points: int | None = None,
+    keep_intermediates: bool = False,
 ) -> dict[str, Any]:
     """Decide what a run redoes and write its ``job.json``; return a summary.
 
-    Raises NothingChanged for an incremental run with nothing to do.
+    ``keep_intermediates`` keeps the run's shards, block results and per-tile
+    outputs after it published (by default they are removed then). Raises
+    NothingChanged for an incremental run with nothing to do.
     """
     if mode not in ("incremental", "full"):
         raise InputError(f"mode must be 'incremental' or 'full', not {mode!r}")
@@ -275,6 +278,7 @@ def plan_survey_run(
             "sources": sources,
             "outputs": outputs,
             "blocks": [block_name(ix, iy) for ix, iy in needed],
+            "keep_intermediates": bool(keep_intermediates),
         },
     }
     Path(job_dir).mkdir(parents=True, exist_ok=True)

@@ -148,6 +148,7 @@ def run_survey(
             params,
             mode=body.mode,
             max_points=svc.settings.max_points,
+            keep_intermediates=svc.settings.keep_intermediates,
         )
         inputs = [Path(p) for n, p in _by_name(files).items() if n in summary["sources"]]
         job = svc.store.create_job(
