@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from terrasift.errors import NothingChanged
+from terrasift.errors import InputError, NothingChanged
 from terrasift.jobs import run_job, validate_params
 from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
@@ -161,3 +161,75 @@ def test_incremental_product_equals_a_full_run(survey: dict) -> None:
     for k in a["labels"]:
         assert (a["labels"][k] == b["labels"][k]).all(), k
     assert a["features"] == b["features"]
+
+
+@pytest.fixture(scope="module")
+def batched(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A 4 x 1 strip of 20 m tiles run under a limit of 80 % of its points, and in one run."""
+    root = tmp_path_factory.mktemp("batched")
+    scene = make_scene(
+        4 * TILE,
+        4.0,
+        height=TILE,
+        surface=Surface(hills=((2 * TILE, 10.0, 2.5, 4.0),)),
+        n_buildings=0,
+        seed=5,
+    )
+    tiles = write_tiles(scene, root / "tiles", TILE)
+    params = validate_params(PARAMS)
+    points = {p.name: laspy.open(p).header.point_count for p in tiles}
+    limit = int(0.8 * sum(points.values()))
+    out: dict = {"limit": limit, "batches": []}
+    for i in range(len(tiles)):
+        batch = plan_survey_run(root / f"b{i}", root / "s", tiles, params, max_points=limit)
+        batch["points"] = sum(points[n] for n in batch["sources"])
+        run_job(root / f"b{i}", InlineExecutor())
+        out["batches"].append(batch)
+        version = current_version(root / "s")
+        assert version is not None
+        if i == 0:
+            out["mid_tiles"] = sorted(p.name for p in (version / "tiles").iterdir())
+        if not batch["pending"]:
+            break
+    with pytest.raises(NothingChanged):  # nothing left once the last batch published
+        plan_survey_run(root / "b-none", root / "s", tiles, params, max_points=limit)
+    out["batched"] = _product(version)
+    out["batched_state"] = json.loads((version / "state.json").read_text())
+    plan_survey_run(root / "one-job", root / "one" / "s", tiles, params)  # same survey id: "s"
+    run_job(root / "one-job", InlineExecutor())
+    version = current_version(root / "one" / "s")
+    assert version is not None
+    out["one"] = _product(version)
+    out["one_state"] = json.loads((version / "state.json").read_text())
+    return out
+
+
+def test_a_survey_over_the_limit_runs_in_batches_into_the_full_product(batched: dict) -> None:
+    batches, limit = batched["batches"], batched["limit"]
+    assert len(batches) >= 2, [b["outputs"] for b in batches]
+    assert all(b["points"] <= limit for b in batches)  # each run reads at most the limit
+    done = [n for b in batches for n in b["outputs"]]
+    assert sorted(done) == sorted(set(done)) and len(done) == 4  # every tile once
+    assert batches[-1]["pending"] == []
+    # between batches the product holds the tiles done so far only
+    assert batched["mid_tiles"] == sorted(n.removesuffix(".laz") for n in batches[0]["outputs"])
+    # the last batch's product is the product of one run over all tiles (the category
+    # noise measured on the whole DTM, not on the first batch's part)
+    a, b = batched["batched"], batched["one"]
+    assert batched["batched_state"]["noise"] == batched["one_state"]["noise"]
+    assert batched["batched_state"]["pending"] == []
+    assert np.array_equal(a["dtm"], b["dtm"], equal_nan=True)
+    assert (a["cats"] == b["cats"]).all()
+    assert a["labels"].keys() == b["labels"].keys() and len(a["labels"]) == 4
+    for k in a["labels"]:
+        assert (a["labels"][k] == b["labels"][k]).all(), k
+    assert a["features"] == b["features"]
+
+
+def test_a_tile_whose_halo_alone_exceeds_the_limit_is_refused(tmp_path: Path) -> None:
+    scene = make_scene(2 * TILE, 4.0, height=TILE, n_buildings=0, seed=6)
+    tiles = write_tiles(scene, tmp_path / "tiles", TILE)
+    with pytest.raises(InputError, match="a run takes at most 2500"):
+        plan_survey_run(
+            tmp_path / "j", tmp_path / "s", tiles, validate_params(PARAMS), max_points=2500
+        )

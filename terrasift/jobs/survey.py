@@ -240,15 +240,30 @@ def plan_survey_run(
             for iy in range(grid.ny)
             if any(_overlaps(_reach(grid, ix, iy), r) for r in regions)
         }
-        outputs = [n for n in by_name if touched & set(window_blocks(grid, windows[n]))]
+        # tiles an earlier batch left for later, plus those this change makes stale
+        left = set(state.get("pending", [])) & set(by_name)
+        outputs = [
+            n for n in by_name if n in left or touched & set(window_blocks(grid, windows[n]))
+        ]
         reason = "incremental"
         if not outputs and not regions:
             raise NothingChanged(
                 'no tile changed since the last run (send {"mode": "full"} to redo all)'
             )
+
+    def reads(names: list[str]) -> list[str]:
+        """Source tiles: every tile a block of the ``names`` tiles reads points from."""
+        reaches = [
+            _reach(grid, ix, iy)
+            for ix, iy in {b for n in names for b in window_blocks(grid, windows[n])}
+        ]
+        return [m for m in by_name if any(_overlaps(bounds[m], r) for r in reaches)]
+
+    outputs, pending = _batch(
+        outputs, reads, {n: infos[n].point_count for n in by_name}, windows, max_points
+    )
     needed = sorted({b for n in outputs for b in window_blocks(grid, windows[n])})
-    reaches = [_reach(grid, ix, iy) for ix, iy in needed]
-    sources = [n for n in by_name if any(_overlaps(bounds[n], r) for r in reaches)]
+    sources = reads(outputs)
     base = current_version(survey_dir)
     tiles = {
         n: {
@@ -277,13 +292,57 @@ def plan_survey_run(
             "tiles": tiles,
             "sources": sources,
             "outputs": outputs,
+            "pending": pending,
             "blocks": [block_name(ix, iy) for ix, iy in needed],
             "keep_intermediates": bool(keep_intermediates),
         },
     }
     Path(job_dir).mkdir(parents=True, exist_ok=True)
     write_json(Path(job_dir) / "job.json", job, indent=2)
-    return {"mode": reason, "outputs": outputs, "sources": sources, "blocks": len(needed)}
+    return {
+        "mode": reason,
+        "outputs": outputs,
+        "sources": sources,
+        "blocks": len(needed),
+        "pending": pending,
+    }
+
+
+def _batch(
+    outputs: list[str],
+    reads: Any,
+    points: Mapping[str, int],
+    windows: Mapping[str, Window],
+    max_points: int | None,
+) -> tuple[list[str], list[str]]:
+    """The output tiles of this run and those left for the next (``pending``).
+
+    A run reads at most ``max_points`` points (its source tiles, halo included):
+    output tiles are taken row by row across the survey while their sources fit,
+    so one batch reads a compact area and neighbouring batches share few sources.
+    The product of the last batch equals a run of all tiles at once, since every
+    block still reads exactly the tiles it reads in a full run.
+    """
+    if max_points is None or sum(points[n] for n in reads(outputs)) <= max_points:
+        return outputs, []
+    order = sorted(outputs, key=lambda n: (windows[n][0], windows[n][1], n))
+    taken: list[str] = []
+    sources: set[str] = set()
+    for n in order:
+        more = sources | set(reads([n]))
+        if sum(points[m] for m in more) > max_points:
+            break
+        taken.append(n)
+        sources = more
+    if not taken:
+        first = order[0]
+        total = sum(points[m] for m in reads([first]))
+        raise InputError(
+            f"{first} with the neighbours its halo reads holds {total} points; "
+            f"a run takes at most {max_points}"
+        )
+    chosen = set(taken)
+    return [n for n in outputs if n in chosen], [n for n in outputs if n not in chosen]
 
 
 def survey_plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
@@ -449,12 +508,20 @@ def publish(job_dir: str) -> dict[str, Any]:
                 "another run of this survey published since this run was planned; run it again"
             )
         shutil.rmtree(new, ignore_errors=True)
+        present = []
         for name in s["tiles"]:
             stem = tile_stem(name)
-            src = _run_out(job, name) if name in s["outputs"] else prev / "tiles" / stem  # type: ignore[operator]
+            if name in s["outputs"]:
+                src = _run_out(job, name)
+            elif prev is not None and (prev / "tiles" / stem).is_dir():
+                src = prev / "tiles" / stem
+            else:
+                continue  # added, and left for a later batch: not in the product yet
             _link_tree(src, new / "tiles" / stem, DERIVED)
+            present.append(name)
         grid = BlockGrid(**s["grid"])
-        noise = _derived_products(new, spec, grid)
+        pending = list(s.get("pending", []))
+        noise = _derived_products(new, spec, grid, present)
         state = {
             "version": new.name,
             "job": job.name,
@@ -467,7 +534,9 @@ def publish(job_dir: str) -> dict[str, Any]:
             "density": s["density"],
             "anchor": s["anchor"],
             "grid_step": [grid.block_size, grid.resolution],
-            "noise": noise,
+            # measured on a whole product only: a batch's DTM still lacks the pending tiles
+            "noise": None if pending else noise,
+            "pending": pending,
         }
         write_json(new / STATE, state, indent=2)
         link = root / CURRENT
@@ -493,18 +562,22 @@ def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str,
         "outputs": s["outputs"],
         "sources": s["sources"],
         "blocks": len(s["blocks"]),
+        "pending": list(s.get("pending", [])),
     }
 
 
-def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> float:
+def _derived_products(
+    new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str]
+) -> float:
     """VRTs, slope and categories per tile, merged features and the STAC collection of a
-    version; returns the category noise used (the survey's, else measured now)."""
+    version over its ``present`` tiles; returns the category noise used (the survey's,
+    else measured now)."""
     import rasterio
     from affine import Affine
 
     s = spec["survey"]
     params = spec["params"]
-    tiles = s["tiles"]
+    tiles = {n: s["tiles"][n] for n in present}
     windows = {n: tuple(t["window"]) for n, t in tiles.items()}
     r0 = min(w[0] for w in windows.values())
     c0 = min(w[1] for w in windows.values())
@@ -632,11 +705,11 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
                 feat.features_geojson(result, crs, survey_id, to_wgs84=True),
             )
     shutil.rmtree(work, ignore_errors=True)
-    _write_stac(new, s)
+    _write_stac(new, s, tiles)
     return noise
 
 
-def _write_stac(new: Path, s: Mapping[str, Any]) -> None:
+def _write_stac(new: Path, s: Mapping[str, Any], tiles: Mapping[str, Any]) -> None:
     """One STAC Item per tile (its files) and a Collection linking them."""
     from terrasift.tiling.stac import STAC_VERSION, stac_item
 
@@ -644,7 +717,7 @@ def _write_stac(new: Path, s: Mapping[str, Any]) -> None:
     crs_wkt = s["crs_wkt"]
     links: list[dict[str, Any]] = []
     boxes = []
-    for n, t in sorted(s["tiles"].items()):
+    for n, t in sorted(tiles.items()):
         d = new / "tiles" / tile_stem(n)
         names = sorted(p.name for p in d.iterdir() if p.is_file() and p.name != "item.json")
         item = stac_item(
