@@ -19,6 +19,8 @@ import rasterio
 
 from terrasift.errors import InputError, NothingChanged
 from terrasift.jobs import run_job, validate_params
+from terrasift.jobs.finish import dtm_category_grids
+from terrasift.jobs.params import stage_params
 from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
 from terrasift.workers.executors import InlineExecutor
@@ -86,6 +88,11 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
     out["v3"] = _product(v3)
+    # the per-tile categories against one category grid over the whole DTM mosaic
+    noise = json.loads((v3 / "state.json").read_text())["noise"]
+    cparams = stage_params(params, "categories").model_copy(update={"noise": noise})
+    with rasterio.open(v3 / "dtm.vrt") as ds:
+        out["whole_cats"] = dtm_category_grids(ds, cparams, [])[0].bands()
     # a finished run keeps only its summary: the tiles live on in the product
     out["run_left"] = sorted(
         str(p.relative_to(root / "r3")) for p in (root / "r3").rglob("*") if p.is_file()
@@ -201,6 +208,25 @@ def batched(tmp_path_factory: pytest.TempPathFactory) -> dict:
     assert version is not None
     out["one"] = _product(version)
     out["one_state"] = json.loads((version / "state.json").read_text())
+    version = current_version(root / "s")
+    assert version is not None
+    before = {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/slope.tif")}
+    # a mound on the east end tile: the tiles away from it keep their slope and categories
+    east = max(tiles, key=lambda p: laspy.open(p).header.mins[0])
+    las = laspy.read(east)
+    d = np.hypot(
+        np.asarray(las.x) - las.header.maxs[0] + 6, np.asarray(las.y) - las.header.mins[1] - 10.0
+    )
+    las.z = np.asarray(las.z) + 1.0 * np.clip(1 - d / 5, 0, None)
+    las.write(east)
+    out["east"] = east.stem
+    out["inc"] = plan_survey_run(root / "inc", root / "s", tiles, params)
+    run_job(root / "inc", InlineExecutor())
+    version = current_version(root / "s")
+    assert version is not None
+    out["inc_summary"] = json.loads((root / "inc" / "outputs" / "survey.json").read_text())
+    after = {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/slope.tif")}
+    out["slope_same"] = sorted(n for n in before if before[n] == after[n])
     return out
 
 
@@ -233,3 +259,17 @@ def test_a_tile_whose_halo_alone_exceeds_the_limit_is_refused(tmp_path: Path) ->
         plan_survey_run(
             tmp_path / "j", tmp_path / "s", tiles, validate_params(PARAMS), max_points=2500
         )
+
+
+def test_per_tile_categories_equal_one_grid_over_the_survey(survey: dict) -> None:
+    assert np.array_equal(survey["v3"]["cats"], survey["whole_cats"])
+
+
+def test_a_publish_redoes_slope_and_categories_near_changed_cells_only(batched: dict) -> None:
+    summary = batched["inc_summary"]
+    derived = {n.removesuffix(".laz") for n in summary["derived"]}
+    redone = {n.removesuffix(".laz") for n in summary["outputs"]}
+    assert batched["east"] in redone
+    assert redone <= derived and len(derived) < 4, summary
+    # the tiles away from the change keep the previous version's files (same inodes)
+    assert batched["slope_same"] == sorted({f"t{i}_0" for i in range(4)} - derived)

@@ -16,9 +16,14 @@ source tiles are every tile any of those blocks reads points from. Each block
 therefore reads exactly the points it reads in a full run, in the same order
 (tiles by name), so its result is the same, and a tile's result does not
 depend on which tiles ran with it. Unchanged tiles' files are hard links into
-the new version. Slope, categories (with the survey's fixed noise) and
-features are made again over the whole survey from the new DTM mosaic, since
-they read across tile edges; that is raster work, not point work.
+the new version. Slope and categories (with the survey's fixed noise) are
+made per tile from the new DTM mosaic, only for tiles within the slope's
+margin of changed cells; features are searched over the whole survey's
+category grids, since an object may cross any number of tile edges.
+
+A run reads at most ``max_points`` points: a larger set of output tiles is
+taken in batches (``pending`` in ``state.json`` carries the rest to the next
+run), and the last batch's product equals one run over all tiles.
 """
 
 from __future__ import annotations
@@ -521,12 +526,15 @@ def publish(job_dir: str) -> dict[str, Any]:
             present.append(name)
         grid = BlockGrid(**s["grid"])
         pending = list(s.get("pending", []))
-        noise = _derived_products(new, spec, grid, present)
+        noise, derived = _derived_products(new, spec, grid, present, prev)
         state = {
             "version": new.name,
             "job": job.name,
             "tiles": {
-                n: {k: t[k] for k in ("path", "sha256", "size", "mtime_ns", "bounds", "window")}
+                n: {
+                    **{k: t[k] for k in ("path", "sha256", "size", "mtime_ns", "bounds", "window")},
+                    "cells": list(window_bounds(grid, tuple(t["window"]))),
+                }
                 for n, t in s["tiles"].items()
             },
             "params_key": s["params_key"],
@@ -537,6 +545,7 @@ def publish(job_dir: str) -> dict[str, Any]:
             # measured on a whole product only: a batch's DTM still lacks the pending tiles
             "noise": None if pending else noise,
             "pending": pending,
+            "derived": derived,  # tiles whose slope and categories this version made again
         }
         write_json(new / STATE, state, indent=2)
         link = root / CURRENT
@@ -563,17 +572,18 @@ def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str,
         "sources": s["sources"],
         "blocks": len(s["blocks"]),
         "pending": list(s.get("pending", [])),
+        "derived": load_json(version / STATE).get("derived"),
     }
 
 
 def _derived_products(
-    new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str]
-) -> float:
+    new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str], prev: Path | None
+) -> tuple[float, list[str]]:
     """VRTs, slope and categories per tile, merged features and the STAC collection of a
     version over its ``present`` tiles; returns the category noise used (the survey's,
-    else measured now)."""
+    else measured now) and the tiles whose slope and categories were made again (the
+    others' are the previous version's files: their DTM within the margin is the same)."""
     import rasterio
-    from affine import Affine
 
     s = spec["survey"]
     params = spec["params"]
@@ -617,7 +627,9 @@ def _derived_products(
         vrt(r, 1, "float32", FLOAT_NODATA)
     vrt("coverage", f, "uint8", COVERAGE_NODATA)
 
-    from terrasift.jobs.finish import dtm_category_grids
+    from rasterio.windows import Window as RWindow
+
+    from terrasift.jobs.finish import BAND_CELLS, _read_rows, dtm_category_grids
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
     from terrasift.workers import terrain
@@ -626,25 +638,50 @@ def _derived_products(
     cparams = stage_params(params, "categories")
     if cparams.noise is None and s.get("noise") is not None:
         cparams = cparams.model_copy(update={"noise": s["noise"]})
+    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    m = tparams.median_size // 2 + 2  # slope's smoothing margin, in cells
     work = new / ".work"
     work.mkdir()
+    cats = stepped = None
     with bounded_raster_cache(), rasterio.open(new / "dtm.vrt") as ds:
         height, width = ds.height, ds.width
-        # Slope per tile, read with a margin for its smoothing: equal to slope over the mosaic.
-        m = tparams.median_size // 2 + 2
-        for n, (wr, wc, rows, cols) in windows.items():
-            rr, cc = wr - r0, wc - c0
-            lo_r, hi_r = max(0, rr - m), min(height, rr + rows + m)
-            lo_c, hi_c = max(0, cc - m), min(width, cc + cols + m)
-            from rasterio.windows import Window as RWindow
+        transform = ds.transform
+        if filters:  # features search the whole survey's grids: an object across tile edges is one
+            cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
+        elif cparams.noise is None:  # measured on the whole DTM, streamed in bands
+            rows_per_band = max(1, BAND_CELLS // width)
+            cparams = cparams.model_copy(
+                update={
+                    "noise": cat.measure_noise_by_bands(
+                        lambda a, b: _read_rows(ds, a, b), height, res, cparams, rows_per_band
+                    )
+                }
+            )
+        noise = float(cparams.noise)
+        stale = _stale_derived(prev, grid, windows, set(s["outputs"]), (m + 1) * res, noise)
 
-            a = (
+        def read(lo_r: int, hi_r: int, lo_c: int, hi_c: int) -> np.ndarray:
+            return (
                 ds.read(1, window=RWindow(lo_c, lo_r, hi_c - lo_c, hi_r - lo_r), masked=True)
                 .filled(np.nan)
                 .astype(np.float64)
             )
-            slope = terrain.slope_degrees(a, res, tparams.median_size, tparams.smooth)
+
+        kc = max(2, int(round(cparams.tile_size / res)))
+        for n, (wr, wc, rows, cols) in windows.items():
+            target = new / "tiles" / tile_stem(n)
+            if n not in stale:  # its DTM within the margin is unchanged: so are these
+                for kept in ("slope.tif", "categories.tif"):
+                    os.link(prev / "tiles" / tile_stem(n) / kept, target / kept)  # type: ignore[operator]
+                continue
             xmin, _, _, ymax = window_bounds(grid, (wr, wc, rows, cols))
+            # slope read with a margin for its smoothing: equal to slope over the mosaic
+            rr, cc = wr - r0, wc - c0
+            lo_r, hi_r = max(0, rr - m), min(height, rr + rows + m)
+            lo_c, hi_c = max(0, cc - m), min(width, cc + cols + m)
+            slope = terrain.slope_degrees(
+                read(lo_r, hi_r, lo_c, hi_c), res, tparams.median_size, tparams.smooth
+            )
             sm = RasterMosaic(
                 work / f"{tile_stem(n)}-slope.tif",
                 width=cols,
@@ -654,35 +691,28 @@ def _derived_products(
                 **band_metadata("slope"),
             )
             sm.write(0, 0, slope[rr - lo_r : rr - lo_r + rows, cc - lo_c : cc - lo_c + cols])
-            sm.close_as_cog(new / "tiles" / tile_stem(n) / "slope.tif")
-        filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
-        cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
-        noise = float(cparams.noise)
-        transform = ds.transform
+            sm.close_as_cog(target / "slope.tif")
+            # categories from the tile's own cells: a category tile (aligned to the tile's
+            # window) reads only its cells, and the noise is the survey's
+            part = cat.category_grids(read(rr, rr + rows, cc, cc + cols), res, cparams)[0].bands()
+            cm = RasterMosaic(
+                work / f"{tile_stem(n)}-categories.tif",
+                width=part.shape[2],
+                height=part.shape[1],
+                transform=job_transform(xmin, ymax, res * kc),
+                crs=crs,
+                dtype="uint8",
+                nodata=cat.NODATA,
+                count=4,
+                **band_metadata("categories"),
+            )
+            cm.write(0, 0, part)
+            cm.close_as_cog(target / "categories.tif", resampling="nearest")
     vrt("slope", 1, "float32", FLOAT_NODATA)
-    # Categories per tile: slices of the survey's category grid (tiles aligned to it).
-    kc = cats.cells_per_tile
-    bands = cats.bands()
-    ctf = cats.transform(transform)
-    for n, (wr, wc, rows, cols) in windows.items():
-        rr, cc = (wr - r0) // kc, (wc - c0) // kc
-        part = bands[:, rr : rr + rows // kc, cc : cc + cols // kc]
-        cm = RasterMosaic(
-            work / f"{tile_stem(n)}-categories.tif",
-            width=part.shape[2],
-            height=part.shape[1],
-            transform=ctf @ Affine.translation(cc, rr),
-            crs=crs,
-            dtype="uint8",
-            nodata=cat.NODATA,
-            count=4,
-            **band_metadata("categories"),
-        )
-        cm.write(0, 0, part)
-        cm.close_as_cog(new / "tiles" / tile_stem(n) / "categories.tif", resampling="nearest")
     vrt("categories", kc, "uint8", cat.NODATA, count=4)
     # Features over the whole survey's categories: an object across tile edges comes out once.
     if filters:
+        assert cats is not None and stepped is not None
         result = feat.detect_features(
             cats,
             filters,
@@ -706,7 +736,37 @@ def _derived_products(
             )
     shutil.rmtree(work, ignore_errors=True)
     _write_stac(new, s, tiles)
-    return noise
+    return noise, sorted(stale)
+
+
+def _stale_derived(
+    prev: Path | None,
+    grid: BlockGrid,
+    windows: Mapping[str, Window],
+    outputs: set[str],
+    margin: float,
+    noise: float,
+) -> set[str]:
+    """Tiles whose slope and categories must be made again: those within ``margin``
+    (metres) of cells that changed (a redone tile, a tile gone, a tile whose cells
+    moved), all of them when the noise or the grid changed or there is no product."""
+    state = load_json(prev / STATE) if prev is not None and (prev / STATE).exists() else {}
+    cells = {n: window_bounds(grid, w) for n, w in windows.items()}
+    if not state or state.get("noise") != noise:
+        return set(windows)
+    old = state.get("tiles", {})
+    changed = [cells[n] for n in windows if n in outputs]
+    for n, t in old.items():
+        was = tuple(t["cells"]) if t.get("cells") else None
+        if n not in windows or was != cells[n]:
+            changed += [b for b in (was, cells.get(n)) if b is not None]
+    stale = set()
+    for n, b in cells.items():
+        wide = (b[0] - margin, b[1] - margin, b[2] + margin, b[3] + margin)
+        files = [prev / "tiles" / tile_stem(n) / f for f in ("slope.tif", "categories.tif")]  # type: ignore[operator]
+        if not all(f.exists() for f in files) or any(_overlaps(wide, r) for r in changed):
+            stale.add(n)
+    return stale
 
 
 def _write_stac(new: Path, s: Mapping[str, Any], tiles: Mapping[str, Any]) -> None:
