@@ -261,7 +261,9 @@ def main() -> int:
         )
         print(
             f"{b['tiles']}/{a['tiles']} tiles: wall-time ratio {b['wall_s'] / a['wall_s']:.2f} "
-            f"(linear: {b['tiles'] / a['tiles']:.2f}); peak RSS ratio per process: {ratios}"
+            f"(linear: {b['tiles'] / a['tiles']:.2f}), workers' CPU ratio "
+            f"{b['worker_cpu_s'] / max(a['worker_cpu_s'], 1e-9):.2f}; "
+            f"peak RSS ratio per process: {ratios}"
         )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
