@@ -33,10 +33,12 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import numpy as np  # noqa: E402
 import psutil  # noqa: E402
 
 
@@ -94,14 +96,33 @@ def _du(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file() and not p.is_symlink())
 
 
+class _Shifted:
+    """A survey-wide surface seen from one tile: ``make_scene`` evaluates its surface
+    on the tile's local coordinates, so the tile's offset is added back."""
+
+    def __init__(self, surface: Any, dx: float, dy: float) -> None:
+        self.surface, self.dx, self.dy = surface, dx, dy
+
+    def __call__(self, x: Any, y: Any) -> Any:
+        return self.surface(np.asarray(x) + self.dx, np.asarray(y) + self.dy)
+
+
 def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[Path]:
-    """``tiles`` adjacent square tiles of about ``points`` points on one terrain."""
+    """``tiles`` adjacent square tiles of ``points`` pulses on one continuous terrain
+    whose content is the same per tile whatever the survey's size: the default slope
+    and waves, a 6 m hill on the shared corner of every 2 x 2 tiles, 4 buildings and
+    trees per tile."""
     from terrasift.synthetic.terrain import Surface, make_scene, write_las
 
     folder.mkdir(parents=True, exist_ok=True)
     side = int(round(math.sqrt(tiles)))
     size = math.sqrt(points / density)
-    surface = Surface(hills=((side * size * 0.3, side * size * 0.6, 8.0, 60.0),))
+    hills = tuple(
+        ((2 * a + 1) * size, (2 * b + 1) * size, 6.0, 0.4 * size)
+        for a in range(max(1, side // 2))
+        for b in range(max(1, side // 2))
+    )
+    surface = Surface(hills=hills)
     out = []
     for j in range(side):
         for i in range(side):
@@ -109,7 +130,7 @@ def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[P
                 size,
                 density,
                 origin=(500_000.0 + i * size, 5_400_000.0 + j * size),
-                surface=surface,
+                surface=_Shifted(surface, i * size, j * size),  # type: ignore[arg-type]
                 n_buildings=4,
                 seed=1000 * j + i,
             )
