@@ -101,8 +101,12 @@ def raised_segments(
         # Slivers along the border of the data: long edges between vertices near
         # the hull join what lies far apart along the edge, by no evidence.
         med = float(np.median(run))
-        near = _hull_distance(xyz[:, :2], tri) <= med
-        joins &= ~((run > rim * med) & near[e[:, 0]] & near[e[:, 1]])
+        long = np.flatnonzero(run > rim * med)
+        if long.size:
+            ends = np.unique(e[long])  # only their ends need the distance to the hull
+            near = np.zeros(n, dtype=bool)
+            near[ends] = _hull_distance(xyz[:, :2], tri, ends) <= med
+            joins[long[near[e[long, 0]] & near[e[long, 1]]]] = False
     gentle = e[joins]
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
@@ -147,10 +151,13 @@ def raised_segments(
     return gone[seg]
 
 
-def _hull_distance(xy: NDArray[np.float64], tri: Delaunay) -> NDArray[np.float64]:
-    """Distance of every point of ``xy`` (inside the convex hull of ``tri``) to the hull's border."""
+def _hull_distance(
+    xy: NDArray[np.float64], tri: Delaunay, idx: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Distance of the vertices ``idx`` of ``tri`` (vertex positions ``xy``) to its hull's border."""
     h = np.asarray(tri.convex_hull, dtype=np.int64)
     a, b = xy[h[:, 0]], xy[h[:, 1]]
+    xy = xy[idx]
     d = b - a
     length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
     out = np.full(xy.shape[0], np.inf)
