@@ -18,7 +18,11 @@ margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
 most ``span`` beams lie between the anchors (a blend spans about a footprint).
 Surfaces are continued in inverse range, which is linear in the angle along a
 plane seen from the sensor (exactly for the ground along elevation, however
-grazing), so far grazing ground passes as a surface, not as a ramp.
+grazing), so far grazing ground passes as a surface, not as a ramp. "Misses p"
+is judged across the surface too: the change of inverse range per beam along
+both axes gives the surface's incidence at p's beam, and a range offset times
+cos(incidence) must exceed the margin and ``min_offset`` (a blend of grazing
+ground with a wall's foot lies 20 cm off the ground in range but 2 cm above it).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -27,7 +31,8 @@ of one background surface that continues behind them. Such runs are marked too.
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
-when more likely than not displaced by more than the margin (``_bleeding``).
+when more likely than not displaced by more than the margin (``_bleeding``);
+the margin here is at least ``min_offset``.
 
 Everything is array arithmetic on the points sorted by grid index; the only
 loops run over the few beam offsets within reach.
@@ -57,6 +62,8 @@ class GridSettings:
     span: int = 99  # most beams between the two surfaces of a blend
     las_scale: float = 0.0
     resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
+    min_offset: float = 0.0  # returns nearer a surface than this (across it) count as on it
+    bleed_prob: float = 0.5  # least probability of a bleeding beam being past by the margin
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
 
 
@@ -102,11 +109,23 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     key, r = key[order], r[order]
     inv = 1.0 / r
     out = np.zeros(r.size, dtype=bool)
+    # Range change per beam across each axis (the smoother side): with the change along
+    # the axis it gives a surface's incidence, so a range offset can be turned into a
+    # distance off the surface (grazing ground looks flat along azimuth but is not).
+    across: dict[int, NDArray[np.float64]] = {}
+    for axis in (0, 1):
+        stride = n_e if axis == 1 else 1  # neighbours along the other axis
+        sl = []
+        for sd in (1, -1):
+            want = key + sd * stride
+            j = np.minimum(np.searchsorted(key, want), r.size - 1)
+            sl.append(np.where(key[j] == want, np.abs(r[j] - r), np.nan))
+        both = np.fmin(sl[0], sl[1])
+        across[axis] = np.where(np.isfinite(both), both, 0.0)
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
-        out |= _mixed_along(
-            _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2), r, s, pos, axis
-        )
+        line = _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2, across[axis])
+        out |= _mixed_along(line, r, s, pos, axis)
     marked[idx[order]] = out
     return marked, judged
 
@@ -115,10 +134,11 @@ class _Line:
     """Neighbours of every return along one axis of the grid: range and inverse range
     at each beam offset (NaN where no return)."""
 
-    def __init__(self, key, r, inv, stride: int, reach: int) -> None:
+    def __init__(self, key, r, inv, stride: int, reach: int, across) -> None:
         n = key.size
         self.R: dict[int, NDArray[np.float64]] = {0: r}
         self.V: dict[int, NDArray[np.float64]] = {0: inv}
+        self.C: dict[int, NDArray[np.float64]] = {0: across}  # range change per beam across
         for k in range(1, reach + 1):
             for sd in (1, -1):
                 want = key + sd * k * stride
@@ -126,6 +146,7 @@ class _Line:
                 hit = key[j] == want
                 self.R[sd * k] = np.where(hit, r[j], np.nan)
                 self.V[sd * k] = np.where(hit, inv[j], np.nan)
+                self.C[sd * k] = np.where(hit, across[j], 0.0)
 
 
 def _mixed_along(
@@ -140,6 +161,8 @@ def _mixed_along(
     reach = s.reach
     R, V = line.R, line.V
     step = s.step_az if axis == 0 else s.step_el
+    step_x = s.step_el if axis == 0 else s.step_az
+    across = max(s.margin, s.min_offset)  # least distance off a surface, across it
     # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
     # range changes by d per beam that adds d × the blur in steps to its range scatter.
     blur = s.las_scale / np.sqrt(12.0) / r / step
@@ -169,8 +192,17 @@ def _mixed_along(
                 anchored = (
                     np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
                 ) | (np.abs(R[a1] - ra) <= spread(0))
-                # off its surface
-                off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i, np.abs(ra - R[a1]))
+                # off its surface: in range beyond the continuation's scatter, and across
+                # the surface by more than the margin and min_offset (at grazing incidence
+                # a range offset is mostly along the surface)
+                slope = np.abs(ra - R[a1])
+                dev = np.abs(extrapolated(a, a1, float(i)) - r)
+                # incidence at p's beam: along a plane the inverse range changes evenly,
+                # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
+                tan_a = r * np.abs(V[a] - V[a1]) / step
+                tan_x = r * line.C[a] / ra**2 / step_x
+                cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
+                off = (dev > spread(i, slope)) & (dev * cos_inc > across)
                 ok = anchored & off
                 near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
                 far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
@@ -186,7 +218,7 @@ def _mixed_along(
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
     if s.thin > 0:
-        between |= _thin_runs(R, V, r, s)
+        between |= _thin_runs(R, V, line.C, r, s, step, step_x)
     between |= _bleeding(R, V, r, s, step, pos)
     return between
 
@@ -203,21 +235,26 @@ def _bleeding(
     return, or a background beyond ``max_gap``), a beam whose footprint still touches the
     surface returns its range on its own central ray, up to half a footprint past the edge.
     The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
-    evenly; it is marked when more likely than not past by more than the margin. Beams
+    evenly; it is marked when past by more than the margin with a probability above
+    ``bleed_prob`` (one half: more likely than not). Beams
     outside the extent of the returns (the field of view) are not edges."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
     with np.errstate(invalid="ignore", divide="ignore"):
         for sd in (1, -1):
             # on a surface seen from the inner side
-            inner = np.abs(1.0 / (2 * V[-sd] - V[-2 * sd]) - r) <= s.sigmas * s.sigma * np.sqrt(6)
+            # (or nearer than it: on a receding surface, e.g. grazing ground, the part of
+            # the footprint still on it lies nearer than where the central ray would meet it)
+            inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= s.sigmas * s.sigma * np.sqrt(6)
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
                 beyond = R[sd * k]
                 inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
                 edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
-                shift = (half - k + 0.5) * step * r
-                out |= inner & same & edge & (shift > s.margin)
+                # past the edge by x steps, x even in [half - k, half - k + 1)
+                least = max(s.margin, s.min_offset)
+                prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
+                out |= inner & same & edge & (prob > s.bleed_prob)
                 same &= np.abs(beyond - r) <= s.margin
     return out
 
@@ -225,11 +262,16 @@ def _bleeding(
 def _thin_runs(
     R: dict[int, NDArray[np.float64]],
     V: dict[int, NDArray[np.float64]],
+    C: dict[int, NDArray[np.float64]],
     r: NDArray[np.float64],
     s: GridSettings,
+    step: float,
+    step_x: float,
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
-    continues behind them (the surface either side, continued across the run, agrees)."""
+    continues behind them (the surface either side, continued across the run, agrees),
+    by more than the margin and ``min_offset`` across that surface (``C``: range change
+    per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     n = r.size
     out = np.zeros(n, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -251,5 +293,9 @@ def _thin_runs(
                 v_right = V[hi] + (V[hi] - V[hi + 1]) * (hi - lo)
                 tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
                 cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
-                out |= behind & cont
+                tan_a = r * np.abs(V[lo] - V[lo - 1]) / step
+                tan_x = r * C[lo] / rb0**2 / step_x
+                least = max(s.margin, s.min_offset)
+                in_front = (rb0 - r) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
+                out |= behind & cont & in_front
     return out
