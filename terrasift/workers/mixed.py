@@ -56,7 +56,6 @@ GRID_REST = 0.02  # share of returns off the grid above which the boxes judge th
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
 GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
 GRID_FOOTPRINT = 3.0  # footprint (steps) assumed by the grid when none was measured
-GRID_FP_TOL = 0.1  # steps: scatter of the measured footprint (a mean of ramp lengths)
 
 Variant = Literal[
     "naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"
@@ -319,9 +318,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         # no ramp measured (too few resolved edges): the widest footprint of the
         # family's range; on the tune family a missed ramp cost more than edge beams
         fp = max(fp, GRID_FOOTPRINT)
-    # beam counts from the measured footprint, which scatters by about GRID_FP_TOL:
-    # a footprint measured just over a whole number of steps does not add a beam
-    wide = max(fp - GRID_FP_TOL, 1.0)
+    wide = fp
     reach = int(np.clip(np.ceil(2 * wide) + 1, 2, 7))
     sigma = geo.range_sigma if np.isfinite(geo.range_sigma) else 0.01
     sigma = max(sigma, geo.las_scale / np.sqrt(12.0), 1e-4)
@@ -335,7 +332,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         max_gap=p.box_depth,
         thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
         footprint=float(fp),
-        span=int(np.ceil(wide)) + GRID_SPAN,
+        span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,
         resolve=GRID_RESOLVE,
         min_offset=p.min_offset,
