@@ -290,3 +290,20 @@ def test_grid_keeps_grazing_ground_near_a_wall_foot():
     xyz, foot = _ground_and_wall(0.6)
     far = mark_mixed(xyz, stated, np.zeros(3)).marked
     assert far[foot].mean() > 0.9
+
+
+def test_grid_lookup_table_and_binary_search_agree():
+    # Neighbours are found by a dense lookup table when the grid is small enough, by
+    # binary search otherwise: both give the same index (key.size where no return).
+    from terrasift.workers.mixed_grid import _finder
+
+    rng = np.random.default_rng(0)
+    key = np.unique(rng.integers(0, 5000, 800))
+    want = rng.integers(0, 5000, 3000)
+    dense, sparse = _finder(key, 5000), _finder(key, 10**12)
+    j = dense(want)
+    assert np.array_equal(j, sparse(want))
+    found = j < key.size
+    assert found.any() and (~found).any()
+    assert np.array_equal(key[j[found]], want[found])
+    assert not np.isin(want[~found], key).any()

@@ -107,7 +107,8 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     key = ia * n_e + ie
     order = np.argsort(key, kind="stable")
     key, r = key[order], r[order]
-    inv = 1.0 / r
+    find = _finder(key, (int(ia.max()) + pad + 1) * n_e)
+    r_pad = np.append(r, np.nan)  # index r.size: no return
     out = np.zeros(r.size, dtype=bool)
     # Range change per beam across each axis (the smoother side): with the change along
     # the axis it gives a surface's incidence, so a range offset can be turned into a
@@ -115,16 +116,11 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     across: dict[int, NDArray[np.float64]] = {}
     for axis in (0, 1):
         stride = n_e if axis == 1 else 1  # neighbours along the other axis
-        sl = []
-        for sd in (1, -1):
-            want = key + sd * stride
-            j = np.minimum(np.searchsorted(key, want), r.size - 1)
-            sl.append(np.where(key[j] == want, np.abs(r[j] - r), np.nan))
-        both = np.fmin(sl[0], sl[1])
+        both = np.fmin(np.abs(r_pad[find(key + stride)] - r), np.abs(r_pad[find(key - stride)] - r))
         across[axis] = np.where(np.isfinite(both), both, 0.0)
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
-        line = _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2, across[axis])
+        line = _Line(key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis])
         out |= _mixed_along(line, r, s, pos, axis)
     marked[idx[order]] = out
     return marked, judged
@@ -134,19 +130,35 @@ class _Line:
     """Neighbours of every return along one axis of the grid: range and inverse range
     at each beam offset (NaN where no return)."""
 
-    def __init__(self, key, r, inv, stride: int, reach: int, across) -> None:
+    def __init__(self, key, r_pad, find, stride: int, reach: int, across) -> None:
+        inv_pad = 1.0 / r_pad
+        c_pad = np.append(across, 0.0)
         n = key.size
-        self.R: dict[int, NDArray[np.float64]] = {0: r}
-        self.V: dict[int, NDArray[np.float64]] = {0: inv}
+        self.R: dict[int, NDArray[np.float64]] = {0: r_pad[:n]}
+        self.V: dict[int, NDArray[np.float64]] = {0: inv_pad[:n]}
         self.C: dict[int, NDArray[np.float64]] = {0: across}  # range change per beam across
         for k in range(1, reach + 1):
             for sd in (1, -1):
-                want = key + sd * k * stride
-                j = np.minimum(np.searchsorted(key, want), n - 1)
-                hit = key[j] == want
-                self.R[sd * k] = np.where(hit, r[j], np.nan)
-                self.V[sd * k] = np.where(hit, inv[j], np.nan)
-                self.C[sd * k] = np.where(hit, across[j], 0.0)
+                j = find(key + sd * k * stride)
+                self.R[sd * k] = r_pad[j]
+                self.V[sd * k] = inv_pad[j]
+                self.C[sd * k] = c_pad[j]
+
+
+def _finder(key: NDArray[np.int64], n_cells: int):
+    """Index of the return at each wanted grid key (``key.size`` where none): a dense
+    lookup table when the grid is at most 16 cells per return, binary search otherwise."""
+    n = key.size
+    if n_cells <= 16 * n:
+        lut = np.full(n_cells, n, dtype=np.int64)
+        lut[key] = np.arange(n)
+        return lambda want: lut[want]
+
+    def search(want: NDArray[np.int64]) -> NDArray[np.int64]:
+        j = np.minimum(np.searchsorted(key, want), n - 1)
+        return np.where(key[j] == want, j, n)
+
+    return search
 
 
 def _mixed_along(
