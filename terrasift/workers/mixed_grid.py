@@ -31,8 +31,8 @@ of one background surface that continues behind them. Such runs are marked too.
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
-when more likely than not displaced by more than the margin (``_bleeding``);
-the margin here is at least ``min_offset``.
+when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
+the shift is sideways, so range noise does not blur it).
 
 Everything is array arithmetic on the points sorted by grid index; the only
 loops run over the few beam offsets within reach.
@@ -247,11 +247,13 @@ def _bleeding(
     return, or a background beyond ``max_gap``), a beam whose footprint still touches the
     surface returns its range on its own central ray, up to half a footprint past the edge.
     The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
-    evenly; it is marked when past by more than the margin with a probability above
-    ``bleed_prob`` (one half: more likely than not). Beams
-    outside the extent of the returns (the field of view) are not edges."""
+    evenly; it is marked when past by more than ``min_offset`` with a probability above
+    ``bleed_prob`` (one half: more likely than not). Beams outside the extent of the
+    returns (the field of view) are not edges."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
+    # a shift sideways, which range noise does not blur: min_offset (the margin if 0)
+    least = s.min_offset if s.min_offset > 0 else s.margin
     with np.errstate(invalid="ignore", divide="ignore"):
         for sd in (1, -1):
             # on a surface seen from the inner side
@@ -264,7 +266,6 @@ def _bleeding(
                 inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
                 edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
                 # past the edge by x steps, x even in [half - k, half - k + 1)
-                least = max(s.margin, s.min_offset)
                 prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
                 out |= inner & same & edge & (prob > s.bleed_prob)
                 same &= np.abs(beyond - r) <= s.margin
