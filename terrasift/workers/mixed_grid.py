@@ -285,8 +285,7 @@ def _thin_runs(
     continues behind them (the surface either side, continued across the run, agrees),
     by more than the margin and ``min_offset`` across that surface (``C``: range change
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
-    n = r.size
-    out = np.zeros(n, dtype=bool)
+    out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
         for L in range(1, s.thin + 1):
             # p at position q (0..L-1) within a run of L beams: background at -(q+1) and +(L-q)
@@ -294,21 +293,26 @@ def _thin_runs(
                 lo, hi = -(q + 1), L - q
                 if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
                     continue
-                rb0, rb1 = R[lo], R[hi]
-                behind = (rb0 > r + s.margin) & (rb1 > r + s.margin)
-                behind &= (rb0 - r < s.max_gap) & (rb1 - r < s.max_gap)
+                d0, d1 = R[lo] - r, R[hi] - r
+                behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap) & (d1 < s.max_gap)
+                c = np.flatnonzero(behind)  # the rest is judged on these few only
+                if c.size == 0:
+                    continue
+                rc, rb0, rb1 = r[c], R[lo][c], R[hi][c]
                 # the run's beams all lie in front of the background
+                keep = np.ones(c.size, dtype=bool)
                 for m in range(lo + 1, hi):
-                    behind &= R[m] < np.minimum(rb0, rb1) - s.margin
+                    keep &= R[m][c] < np.minimum(rb0, rb1) - s.margin
                 # the background continues behind the run: each side's surface,
                 # continued across the run, lands on the other side's beam
-                v_left = V[lo] + (V[lo] - V[lo - 1]) * (hi - lo)
-                v_right = V[hi] + (V[hi] - V[hi + 1]) * (hi - lo)
+                v0, v1 = V[lo][c], V[hi][c]
+                v_left = v0 + (v0 - V[lo - 1][c]) * (hi - lo)
+                v_right = v1 + (v1 - V[hi + 1][c]) * (hi - lo)
                 tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
                 cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
-                tan_a = r * np.abs(V[lo] - V[lo - 1]) / step
-                tan_x = r * C[lo] / rb0**2 / step_x
+                tan_a = rc * np.abs(v0 - V[lo - 1][c]) / step
+                tan_x = rc * C[lo][c] / rb0**2 / step_x
                 least = max(s.margin, s.min_offset)
-                in_front = (rb0 - r) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
-                out |= behind & cont & in_front
+                in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
+                out[c[keep & cont & in_front]] = True
     return out
