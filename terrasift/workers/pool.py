@@ -8,7 +8,8 @@ its memory limit or runs a task whose job was dismissed is killed and
 replaced. Only that task fails; a task whose worker died is tried once more
 (the death may have been someone else's fault, e.g. the OOM killer).
 
-Workers run at a lower CPU priority than the process that owns the pool, die
+Workers run at a lower CPU priority than the process that owns the pool (in a
+session and scheduling group of their own where the kernel groups by session), die
 with it (``PR_SET_PDEATHSIG`` and a thread watching the parent pid), and
 leave a pid file so that the next start can kill any that outlived a crash.
 """
@@ -88,12 +89,24 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
+def _lower_priority(nice: int) -> None:
+    """Run ``nice`` steps below the owner, also where the kernel shares CPU time
+    between sessions first (autogroup): there a nice value counts only within the
+    session's group, and workers left in the owner's session would use up the
+    group's share, so the owner's threads would wait for a CPU with them. A worker
+    starts a session of its own and gives its group the same nice value."""
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+    with contextlib.suppress(OSError):
+        os.setsid()
+        Path("/proc/self/autogroup").write_text(f"{nice}\n")
+
+
 def _worker_main(conn: Connection, parent: int, nice: int, pid_dir: str | None) -> None:
     """Run tasks from ``conn`` until told to stop; each reply is (task id, ok, value)."""
     _die_with_parent(parent)
     if nice:
-        with contextlib.suppress(OSError):
-            os.nice(nice)
+        _lower_priority(nice)
     pid_file = None
     if pid_dir:
         pid_file = Path(pid_dir) / str(os.getpid())
