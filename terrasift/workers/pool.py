@@ -41,6 +41,7 @@ PR_SET_PDEATHSIG = 1
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 _TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 WALL_FACTOR = 4  # a task's wall-clock limit, in multiples of its CPU limit
+KILL_WAIT = 3.0  # seconds a stopping pool waits for killed workers to be gone
 
 
 class WorkerLost(ProcessingError):
@@ -211,6 +212,7 @@ class WorkerPool:
         self._tasks: dict[Future, _Task] = {}
         self._lock = threading.Lock()
         self._closing = False
+        self._kill_by: float | None = None  # set when stopping: when to stop waiting for deaths
         self._wake_r, self._wake_w = multiprocessing.Pipe(duplex=False)
         self._workers: list[_Worker] = []
         # A replacement is always spawned: by then the owner may run threads.
@@ -250,20 +252,37 @@ class WorkerPool:
         self._wake()
         return stopped
 
-    def shutdown(self, wait: bool = True, *, kill: bool = False) -> None:
-        """Stop taking tasks; queued ones are cancelled, running ones finish (or are killed)."""
+    def shutdown(
+        self, wait: bool = True, *, kill: bool = False, grace: float | None = None
+    ) -> None:
+        """Stop taking tasks; queued ones are cancelled. Running ones finish, or are
+        stopped now (``kill``) or after ``grace`` seconds (``wait`` only).
+
+        When tasks are stopped, idle workers are killed too instead of being asked to
+        exit: a worker starved of CPU (low priority on a busy machine) can take tens of
+        seconds to shut its interpreter down.
+        """
+        self._close(kill)
+        if wait and grace is not None and not kill:
+            self._manager.join(grace)
+            if self._manager.is_alive():
+                self._close(True)
+        if wait:
+            self._manager.join()
+
+    def _close(self, kill: bool) -> None:
         with self._lock:
             self._closing = True
             for task in self._queue:
                 task.future.cancel()
             self._queue.clear()
             if kill:
+                if self._kill_by is None:
+                    self._kill_by = time.monotonic() + KILL_WAIT
                 for task in self._tasks.values():
                     if not task.future.done() and task.kill is None:
                         task.kill = JobCancelled("the service is shutting down")
         self._wake()
-        if wait:
-            self._manager.join()
 
     def worker_pids(self) -> list[int]:
         """Pids of the live workers (for tests and the health check)."""
@@ -301,6 +320,8 @@ class WorkerPool:
                     busy = any(w.task is not None for w in self._workers)
                     if self._closing and not busy and not self._queue:
                         break
+                    if self._kill_by is not None and time.monotonic() > self._kill_by:
+                        break  # killed; they die with us at the latest (PDEATHSIG)
                 ready = wait(
                     [self._wake_r]
                     + [w.conn for w in self._workers]
@@ -455,15 +476,22 @@ class WorkerPool:
                     os.kill(w.proc.pid, signal.SIGKILL)
 
     def _stop_workers(self) -> None:
+        killing = self._kill_by is not None
         for w in self._workers:
             with contextlib.suppress(Exception):
-                w.conn.send(None)
-        deadline = time.monotonic() + 5.0
+                if killing and w.proc.pid:
+                    os.kill(w.proc.pid, signal.SIGKILL)
+                else:
+                    w.conn.send(None)
+        deadline = time.monotonic() + (KILL_WAIT if killing else 5.0)
         for w in self._workers:
             w.proc.join(max(0.0, deadline - time.monotonic()))
+        deadline = time.monotonic() + 1.0
+        for w in self._workers:
             if w.proc.is_alive():
-                w.proc.kill()
-                w.proc.join(1.0)
+                with contextlib.suppress(Exception):
+                    w.proc.kill()
+                w.proc.join(max(0.0, deadline - time.monotonic()))
             self._forget(w)
         self._workers = []
 
