@@ -11,6 +11,7 @@ import gc
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Any
 
 import anyio
@@ -93,6 +94,7 @@ def create_app(
         if freeze_heap:
             log.info("%d objects frozen out of garbage collection", settle_heap())
         app.state.svc = Service(settings, store, scheduler)
+        scheduler.on_success = partial(surveys.continue_batches, app.state.svc)
         app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
         scheduler.start()
         app.state.notifier.start()
