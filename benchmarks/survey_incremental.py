@@ -9,6 +9,11 @@ category and feature differences, and how many tiles the incremental run redid.
 
     .venv/bin/python benchmarks/survey_incremental.py [--scenes 12] [--out DIR] [--one-tile]
 
+``--feature-core M`` runs the feature search in squares of M metres (default: the
+survey's ``FEATURE_CORE_M``, which holds these small surveys whole); each scene's
+full product's objects are also compared with one search over its whole DTM
+(``features_whole_equal``: same objects, geometry to the millimetre of the GeoJSON).
+
 ``--one-tile`` also runs each mound scene's changed tile as a job of its own
 (what a client sending only changed tiles as plain jobs gets) and compares its
 DTM with the full product on that tile's cells: the baseline the survey runs
@@ -45,6 +50,29 @@ def _product(version: Path) -> dict:
     }
     feats = json.loads((version / "features.native.geojson").read_text())["features"]
     return {"dtm": dtm, "cats": cats, "labels": labels, "features": feats}
+
+
+def _whole_features(version: Path, params: dict) -> list[dict]:
+    """Objects of one search over the whole product's DTM (the survey's noise)."""
+    from terrasift.jobs.finish import dtm_category_grids
+    from terrasift.jobs.params import stage_params
+    from terrasift.workers import features as feat
+
+    noise = json.loads((version / "state.json").read_text())["noise"]
+    cparams = stage_params(params, "categories").model_copy(update={"noise": noise})
+    filters = feat.resolve_filters("all")
+    with rasterio.open(version / "dtm.vrt") as ds:
+        cats, stepped, _ = dtm_category_grids(ds, cparams, filters)
+        found = feat.detect_features(cats, filters, ds.transform, cats.tile_size, stepped=stepped)
+    return feat.features_geojson(found, 0, None, to_wgs84=False)["features"]
+
+
+def _objects(features: list[dict]) -> list[str]:
+    """Objects as comparable text: geometry, kind and tiles (ids and order aside)."""
+    return sorted(
+        json.dumps([f["geometry"], f["properties"]["kind"], f["properties"]["tiles"]])
+        for f in features
+    )
 
 
 def one_tile_agreement(root: Path, tile: Path, params: dict, version: Path) -> dict:
@@ -116,6 +144,7 @@ def scene_case(i: int, rng: np.random.Generator, root: Path, one_tile: bool = Fa
     v3 = current_version(sdir)
     assert v3 is not None
     b = _product(v3)
+    whole = _whole_features(v3, params)
     extra = one_tile_agreement(root, target, params, v3) if one_tile and kind == "mound" else {}
     same_shape = a["dtm"].shape == b["dtm"].shape
     both = ~np.isnan(a["dtm"]) & ~np.isnan(b["dtm"]) if same_shape else np.zeros(1, bool)
@@ -141,6 +170,8 @@ def scene_case(i: int, rng: np.random.Generator, root: Path, one_tile: bool = Fa
         "label_diff": label_diff,
         "category_diff": cat_diff,
         "features_equal": a["features"] == b["features"],
+        "features_whole_equal": _objects(b["features"]) == _objects(whole),
+        "objects": len(b["features"]),
         "incremental_s": round(inc_s, 1),
         "full_s": round(full_s, 1),
         **extra,
@@ -157,7 +188,12 @@ def main() -> None:
         action="store_true",
         help="also run each mound scene's changed tile as a job of its own (a baseline)",
     )
+    ap.add_argument("--feature-core", type=float, default=None, help="feature squares (m)")
     args = ap.parse_args()
+    if args.feature_core is not None:
+        from terrasift.jobs import survey
+
+        survey.FEATURE_CORE_M = args.feature_core
     rng = np.random.default_rng(args.seed)
     base = args.out or Path(tempfile.mkdtemp(prefix="survey-bench-"))
     rows = []
@@ -176,7 +212,10 @@ def main() -> None:
         f"label differences: max {max(r['label_diff'] for r in rows)}; "
         f"category differences: max {max(r['category_diff'] for r in rows)}; "
         f"nodata differences: max {max(r['nodata_diff'] for r in rows)}; "
-        f"features equal in {sum(r['features_equal'] for r in rows)} of {len(rows)}"
+        f"features equal in {sum(r['features_equal'] for r in rows)} of {len(rows)}; "
+        f"equal to one search over the whole DTM in "
+        f"{sum(r['features_whole_equal'] for r in rows)} of {len(rows)} "
+        f"({sum(r['objects'] for r in rows)} objects)"
     )
     if args.out is None:
         shutil.rmtree(base, ignore_errors=True)

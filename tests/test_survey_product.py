@@ -19,10 +19,12 @@ import rasterio
 
 from terrasift.errors import InputError, NothingChanged
 from terrasift.jobs import run_job, validate_params
+from terrasift.jobs import survey as survey_module
 from terrasift.jobs.finish import dtm_category_grids
 from terrasift.jobs.params import stage_params
 from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
+from terrasift.workers import features as feat
 from terrasift.workers.executors import InlineExecutor
 
 TILE = 20.0
@@ -42,6 +44,17 @@ def _product(version: Path) -> dict:
     return {"dtm": dtm, "cats": cats, "labels": labels, "features": feats}
 
 
+def _whole_features(version: Path, params: dict) -> list[dict]:
+    """The objects one search over the whole product's DTM finds (the survey's noise)."""
+    noise = json.loads((version / "state.json").read_text())["noise"]
+    cparams = stage_params(params, "categories").model_copy(update={"noise": noise})
+    filters = feat.resolve_filters("all")
+    with rasterio.open(version / "dtm.vrt") as ds:
+        cats, stepped, _ = dtm_category_grids(ds, cparams, filters)
+        whole = feat.detect_features(cats, filters, ds.transform, cats.tile_size, stepped=stepped)
+    return feat.features_geojson(whole, 0, "x", to_wgs84=False)["features"]
+
+
 def _inodes(version: Path) -> dict[str, int]:
     return {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/dtm.tif")}
 
@@ -56,6 +69,9 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     tiles = write_tiles(scene, root / "tiles", TILE)
     params = validate_params(PARAMS)
     sdir = root / "survey"
+    # the feature search core by core, one per tile here (the default squares hold the survey)
+    patch = pytest.MonkeyPatch()
+    patch.setattr(survey_module, "FEATURE_CORE_M", TILE)
 
     def run(name: str, mode: str = "incremental", **kw: object) -> dict:
         summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode, **kw)
@@ -66,6 +82,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v1 = current_version(sdir)
     assert v1 is not None
     out["v1"], out["inodes1"] = _product(v1), _inodes(v1)
+    out["whole_features1"] = _whole_features(v1, params)
     out["files"] = product_files(v1)
     out["vrt"] = (v1 / "dtm.vrt").read_text()
     out["collection"] = json.loads((v1 / "collection.json").read_text())
@@ -88,6 +105,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
     out["v3"] = _product(v3)
+    out["whole_features3"] = _whole_features(v3, params)
     # the per-tile categories against one category grid over the whole DTM mosaic
     noise = json.loads((v3 / "state.json").read_text())["noise"]
     cparams = stage_params(params, "categories").model_copy(update={"noise": noise})
@@ -102,6 +120,7 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out["republished"] = publish(str(root / "r3"))
     out["v3_again"] = current_version(sdir)
     out["versions"] = sorted(p.name for p in (sdir / "product").glob("v-*"))
+    patch.undo()
     return out
 
 
@@ -263,6 +282,18 @@ def test_a_tile_whose_halo_alone_exceeds_the_limit_is_refused(tmp_path: Path) ->
 
 def test_per_tile_categories_equal_one_grid_over_the_survey(survey: dict) -> None:
     assert np.array_equal(survey["v3"]["cats"], survey["whole_cats"])
+
+
+def test_per_tile_features_equal_one_search_over_the_survey(survey: dict) -> None:
+    def objects(features: list[dict]) -> list[str]:
+        return sorted(
+            json.dumps([f["geometry"], {k: f["properties"][k] for k in ("kind", "tiles")}])
+            for f in features
+        )
+
+    assert survey["v1"]["features"], "the scene's hill is an object"
+    for v in ("1", "3"):
+        assert objects(survey[f"v{v}"]["features"]) == objects(survey[f"whole_features{v}"])
 
 
 def test_a_publish_redoes_slope_and_categories_near_changed_cells_only(batched: dict) -> None:

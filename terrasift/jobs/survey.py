@@ -66,6 +66,10 @@ MOSAICS = ("dtm", "dsm", "chm", "slope", "coverage", "categories")
 #: per-tile rasters made from block results (the rest come from the DTM mosaic)
 BLOCK_RASTERS = ("dtm", "dsm", "chm", "coverage")
 COVERAGE_NODATA = 255
+#: side (metres) of the squares the feature search runs on, each with a halo of the
+#: filters' reach (~190 m for the built-in filters at 0.5 m): memory follows one square
+#: and its halo, not the survey; wider squares redo less of their halo
+FEATURE_CORE_M = 768.0
 Bounds = tuple[float, float, float, float]
 Window = tuple[int, int, int, int]  # row_off, col_off, rows, cols in the survey grid
 
@@ -629,26 +633,26 @@ def _derived_products(
 
     from rasterio.windows import Window as RWindow
 
-    from terrasift.jobs.finish import BAND_CELLS, _read_rows, dtm_category_grids
+    from terrasift.jobs.finish import BAND_CELLS, _read_rows
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
     from terrasift.workers import terrain
+    from terrasift.workers.features import tiled
 
     tparams = stage_params(params, "terrain")
     cparams = stage_params(params, "categories")
     if cparams.noise is None and s.get("noise") is not None:
         cparams = cparams.model_copy(update={"noise": s["noise"]})
     filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    fparams = stage_params(params, "features")
     m = tparams.median_size // 2 + 2  # slope's smoothing margin, in cells
     work = new / ".work"
     work.mkdir()
-    cats = stepped = None
+    pieces: list = []
     with bounded_raster_cache(), rasterio.open(new / "dtm.vrt") as ds:
         height, width = ds.height, ds.width
         transform = ds.transform
-        if filters:  # features search the whole survey's grids: an object across tile edges is one
-            cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
-        elif cparams.noise is None:  # measured on the whole DTM, streamed in bands
+        if cparams.noise is None:  # measured on the whole DTM, streamed in bands
             rows_per_band = max(1, BAND_CELLS // width)
             cparams = cparams.model_copy(
                 update={
@@ -708,19 +712,26 @@ def _derived_products(
             )
             cm.write(0, 0, part)
             cm.close_as_cog(target / "categories.tif", resampling="nearest")
+        # Features core by core (squares of FEATURE_CORE_M): each core's search reads the
+        # core and a halo and keeps the objects whose first category tile it holds
+        # (tiled.py), so memory follows a core and an object across core edges comes out once.
+        if filters:
+            side = max(1, int(round(FEATURE_CORE_M / res)))
+            spans = [
+                (wr - r0, wc - c0, wr - r0 + rows, wc - c0 + cols)
+                for wr, wc, rows, cols in windows.values()
+            ]
+            for i in range(0, height, side):
+                for j in range(0, width, side):
+                    core = (i, j, min(height, i + side), min(width, j + side))
+                    if any(_overlaps_cells(core, w) for w in spans):
+                        pieces += tiled.tile_pieces(
+                            read, (height, width), transform, core, filters, cparams, fparams
+                        )
     vrt("slope", 1, "float32", FLOAT_NODATA)
     vrt("categories", kc, "uint8", cat.NODATA, count=4)
-    # Features over the whole survey's categories: an object across tile edges comes out once.
-    if filters:
-        assert cats is not None and stepped is not None
-        result = feat.detect_features(
-            cats,
-            filters,
-            transform,
-            cats.tile_size,
-            stage_params(params, "features"),
-            stepped=stepped,
-        )
+    if filters:  # the tiles' pieces joined, sized and limited as over the whole survey
+        result = tiled.merge_pieces(pieces, filters, cparams, res, fparams)
         from terrasift.tiling.vectors import crs_member
 
         survey_id = Path(s["dir"]).name
@@ -737,6 +748,11 @@ def _derived_products(
     shutil.rmtree(work, ignore_errors=True)
     _write_stac(new, s, tiles)
     return noise, sorted(stale)
+
+
+def _overlaps_cells(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    """Two windows of cells (row0, col0, row1, col1; ends excluded) share a cell."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def _stale_derived(

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from importlib import resources
+from typing import Any
 
 import numpy as np
 import shapely
@@ -229,9 +230,24 @@ def _run_filter(
     result: FeatureResult,
 ) -> list[Feature]:
     """Objects of one resolved filter (marks of a filter with no object step go to ``result``)."""
-    tile_size = categories.spacing
-    objects: list[Feature] = []
+    labels, marks, _ = filter_labels(categories, flt)
+    if labels is None:
+        result.marked[flt.name] = marks
+        return []
+    return objects_from_labels(
+        labels, flt.name, tt, categories.spacing, **object_options(flt, params)
+    )
+
+
+def filter_labels(
+    categories: Categories, flt: Filter
+) -> tuple[NDArray[np.int32] | None, NDArray[np.bool_], NDArray[np.bool_]]:
+    """A resolved filter's object labels (None without a connect or rectangle step),
+    its marked tiles, and the tiles its objects are grown from (marks found either
+    way, and a rectangle's cover): every object lies within that support and
+    depends only on the part of it that it touches."""
     h, v = search_filter(categories, flt)
+    support = h | v
     if flt.h_and_v:
         marks = _connect.h_and_v(h, v, flt.h_and_v_share)
         h, v = h & marks, v & marks
@@ -242,43 +258,49 @@ def _run_filter(
         cover = _connect.rectangle_cover(marks, r.width, r.height, r.error)
         labels, _ = ndimage.label(cover)  # one object per connected cover: its marked tiles
         labels[~marks] = 0
-        objects += objects_from_labels(
-            labels.astype(np.int32),
-            flt.name,
-            tt,
-            tile_size,
-            simplify_tiles=params.simplify_tiles,
-            fill_holes=False,
-            measure="rectangle",
-        )
-    elif flt.connect is not None:
-        c = flt.connect
-        if c.method == "simple":
-            labels = _connect.simple(marks)
-        elif c.method == "segment":
-            gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
-            labels = _connect.segments(h, v, gap)
-            labels = _drop_gappy(labels, c.max_error)
-        else:
-            labels = _connect.edges(categories, h, v, marks)
-        limits = (c.min_length, c.max_length, c.min_width, c.max_width)
-        aspect = (flt.aspect.min, flt.aspect.max) if flt.aspect else (None, None)
-        objects += objects_from_labels(
-            labels,
-            flt.name,
-            tt,
-            tile_size,
-            limits,
-            params.simplify_tiles,
-            aspect=aspect,
-            join=flt.join,
-            join_aligned=flt.join_aligned,
-            hull=flt.hull,
-            solidity=flt.solidity,
-        )
+        return labels.astype(np.int32), marks, support | cover
+    if flt.connect is None:
+        return None, marks, support
+    c = flt.connect
+    if c.method == "simple":
+        labels = _connect.simple(marks)
+    elif c.method == "segment":
+        gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
+        labels = _connect.segments(h, v, gap)
+        labels = _drop_gappy(labels, c.max_error)
     else:
-        result.marked[flt.name] = marks
-    return objects
+        labels = _connect.edges(categories, h, v, marks)
+    return labels, marks, support
+
+
+def connect_reach(flt: Filter) -> int:
+    """Tiles across which ``filter_labels`` joins two marked tiles into one object."""
+    if flt.rectangle is not None or flt.connect is None:
+        return 1
+    if flt.connect.method == "segment":
+        return int(flt.connect.max_error // 10) + 1
+    return 2 if flt.connect.method == "edge" else 1
+
+
+def object_options(flt: Filter, params: FeatureParams) -> dict[str, Any]:
+    """``objects_from_labels`` keywords of a resolved filter with an object step."""
+    if flt.rectangle is not None:
+        return {
+            "simplify_tiles": params.simplify_tiles,
+            "fill_holes": False,
+            "measure": "rectangle",
+        }
+    c = flt.connect
+    assert c is not None
+    return {
+        "limits": (c.min_length, c.max_length, c.min_width, c.max_width),
+        "simplify_tiles": params.simplify_tiles,
+        "aspect": (flt.aspect.min, flt.aspect.max) if flt.aspect else (None, None),
+        "join": flt.join,
+        "join_aligned": flt.join_aligned,
+        "hull": flt.hull,
+        "solidity": flt.solidity,
+    }
 
 
 def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32]:

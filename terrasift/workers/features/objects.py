@@ -162,40 +162,103 @@ def objects_from_labels(
     ``"width"``) joins pieces first (``join_pieces``); ``hull`` replaces each
     object by its convex hull (an outline closed where a part of its ring is missing);
     ``solidity`` keeps objects covering at least that share of their convex hull.
+
+    Three steps, which a search split into tiles runs apart (``features.tiled``):
+    ``prepare_labels`` (holes, specks), ``label_pieces`` (one polygon per label)
+    and ``finish_pieces`` (joins, sizes, limits).
+    """
+    labels, counts, small = prepare_labels(labels, limits, fill_holes, join, join_aligned)
+    if not (counts.size > 1 and (~small[1:] & (counts[1:] > 0)).any()):
+        return []
+    labels = np.where(small[labels], 0, labels)
+    pieces = list(label_pieces(labels, counts, kind, transform, tile_size, simplify_tiles).values())
+    return finish_pieces(
+        pieces,
+        tile_size,
+        limits,
+        measure=measure,
+        aspect=aspect,
+        join=join,
+        join_aligned=join_aligned,
+        hull=hull,
+        solidity=solidity,
+    )
+
+
+def near_reach(
+    limits: tuple[float | None, ...], join: float | str | None, join_aligned: float | None
+) -> int:
+    """Tiles within which another label keeps a short piece (``prepare_labels``); 0: none."""
+    if join is None or limits[0] is None:
+        return 0
+    max_w = limits[3]
+    reach = int(np.ceil(max_w if join == "width" and max_w else 8 if join == "width" else join))
+    return max(reach, int(np.ceil(join_aligned or 0)))
+
+
+def prepare_labels(
+    labels: NDArray[np.int32],
+    limits: tuple[float | None, ...],
+    fill_holes: bool = True,
+    join: float | str | None = None,
+    join_aligned: float | None = None,
+) -> tuple[NDArray[np.int32], NDArray[np.int64], NDArray[np.bool_]]:
+    """Labels with holes filled, their tile counts and which are too small to be objects.
+
+    Cheap bounds: an object's length is at most 2 × its tiles (half a perimeter
+    of 4 edges per tile) and a width w needs about w² tiles. With ``join`` a short
+    piece with another label within ``near_reach`` tiles is kept (it may be joined)
+    unless it is a speck.
     """
     labels = labels.astype(np.int32)
     if fill_holes:
         labels = fill_object_holes(labels)
-    if labels.max() == 0:
-        return []
     counts = np.bincount(labels.ravel())
-    min_l, max_l, min_w, max_w = limits
-    # Cheap bounds first: an object's length is at most 2 × its tiles (half a
-    # perimeter of 4 edges per tile) and a width w needs about w² tiles.
+    min_l, _, min_w, _ = limits
     small = np.zeros(counts.size, dtype=bool)
     if min_l is not None:
         short = 2 * counts < min_l
-        if join is not None:
-            # a piece with another within reach may be joined: keep all but specks
-            reach = int(
-                np.ceil(max_w if join == "width" and max_w else 8 if join == "width" else join)
-            )
-            reach = max(reach, int(np.ceil(join_aligned or 0)))
+        reach = near_reach(limits, join, join_aligned)
+        if reach:
             short &= ~_near_other(labels, reach, counts.size) | (counts < 3)
         small |= short
     if min_w is not None:
         small |= counts < 0.5 * min_w * min_w
     small[0] = False
-    if small.any():
-        labels = np.where(small[labels], 0, labels)
-        if labels.max() == 0:
-            return []
-    pieces = []
+    return labels, counts, small
+
+
+def label_pieces(
+    labels: NDArray[np.int32],
+    counts: NDArray[np.int64],
+    kind: str,
+    transform: Affine,
+    tile_size: float,
+    simplify_tiles: float,
+) -> dict[int, Feature]:
+    """One piece per label: its polygon and the cheap size of its tile staircase
+    (area and perimeter); its length is at least the smoothed outline's."""
+    out = {}
     for lab, poly in polygons(labels, transform, simplify_tiles * tile_size).items():
-        # a cheap size first: the tile staircase's area and perimeter; its length
-        # is at least the smoothed outline's, so it can rule objects out
         length, width = rectangle_size(poly)
-        pieces.append(Feature(kind, poly, float(length), float(width), int(counts[lab])))
+        out[lab] = Feature(kind, poly, float(length), float(width), int(counts[lab]))
+    return out
+
+
+def finish_pieces(
+    pieces: list[Feature],
+    tile_size: float,
+    limits: tuple[float | None, ...],
+    *,
+    measure: str = "auto",
+    aspect: tuple[float | None, float | None] = (None, None),
+    join: float | str | None = None,
+    join_aligned: float | None = None,
+    hull: bool = False,
+    solidity: float | None = None,
+) -> list[Feature]:
+    """Pieces joined (``join``), closed (``hull``), measured and kept within the limits."""
+    min_l, max_l, min_w, max_w = limits
     if join is not None and len(pieces) > 1:
         pieces = join_pieces(pieces, join, tile_size, join_aligned)
     if hull:
