@@ -17,15 +17,11 @@ from starlette.responses import Response
 from starlette.types import Receive, Scope, Send
 
 from terrasift.service.problems import Problem
+from terrasift.tiling import stac
 
+#: the outputs' media types, as their STAC assets name them, and the pages served beside them
 MEDIA_TYPES = {
-    ".tif": "image/tiff; application=geotiff; profile=cloud-optimized",
-    ".laz": "application/vnd.laszip",
-    ".las": "application/vnd.las",
-    ".geojson": "application/geo+json",
-    ".gpkg": "application/geopackage+sqlite3",
-    ".json": "application/json",
-    ".png": "image/png",
+    **stac.MEDIA_TYPES,
     ".html": "text/html; charset=utf-8",
     ".vrt": "application/xml",
 }

@@ -51,9 +51,8 @@ this gives 10, 4, 1.5 m; at 8 pts/m² 6, 3, 1.5 m. The floors keep bins wider
 than a tree crown's gap-free core and the last TIN coarse enough to stay fast.
 For ground-based scans (``sensor_origin``) the concentric grid's angular step
 ``ring_step_deg`` plays the cell's part (earlier passes scale it by the cell
-ratios); the auto ``mask_edge`` (2.5 spacings) serves there too: the
-paper's 10 cm changed kappa by under 0.1 on synthetic scans at 100 and 400
-pts/m² near the sensor (``make bench-ground``, scan rows).
+ratios); the auto ``mask_edge`` (2.5 spacings) serves there as well as the
+paper's 10 cm (README *Measured*, choices of ``ground.nist``).
 
 Example::
 
@@ -130,18 +129,17 @@ class NistParams(StageParams):
     """Masking inserts from the lowest and highest point of each such cell (0: max(2 s, 1 m))."""
     screen_tol: float = Field(0.75, gt=0, le=100)
     """A TIN vertex more than this above the median of its neighbours is deleted (grows with
-    each pass's bin size). 0.75 m: the second pass's 2 m at 4 m bins deletes the edge of a
-    deck 1–3 m above the ground beside it, which 2.7 m kept (ISPRS samp31 95.4 → 97.8 kappa)."""
+    each pass's bin size). Low enough that the second pass deletes the edge of a deck 1–3 m
+    above the ground beside it (README *Measured*, choices of ``ground.nist``)."""
     screen_points_tol: float = Field(1.0, gt=0, le=100)
     """Screening of the mowed point file (pass 2): a point more than this above the median of
     its neighbours' lowest points is dropped. Apart from ``screen_tol``: these neighbours are
-    single low points of small cells, not bin minima, and at 0.75 m they strip the rough
-    tops of cut crests and slopes (ISPRS samp11 −1.4 kappa)."""
+    single low points of small cells, not bin minima, and at ``screen_tol`` they strip the
+    rough tops of cut crests and slopes."""
     screen_slope_cap: float = Field(1.5, ge=0, le=10)
     """Screening with plane bins: neighbours' votes follow their bin planes up to this gradient
     (rise/run, 1.5 ≈ 56°, above the 35–45° of steep terrain; 0: uncapped). Steeper planes fit bins
-    astride walls and deck edges. ISPRS mean kappa at caps 1.0 / 1.25 / 1.5 / 2 / 3 / none:
-    90.20 / 90.42 / 90.35 / 90.28 / 90.24 / 90.24 (samp11 moves, the rest within 0.1)."""
+    astride walls and deck edges."""
     screen_low_tol: float = Field(1.0, ge=0, le=100)
     """A vertex more than this below its second-lowest neighbour is a low outlier (0: off)."""
     mow_tol_1: float = Field(3.0, gt=0, le=100)
@@ -160,43 +158,37 @@ class NistParams(StageParams):
     """Final labels: ground within this height of the final surface."""
     ground_tol_cell: float = Field(0.15, ge=0, le=1)
     """Final labels: ``ground_tol`` is at least this × the final cell size, and ``ground_tol_below``
-    grows in proportion (sparse data; 0.15 measured on ISPRS samples at 0.17 pts/m², 3.5 m cells)."""
+    grows in proportion: on sparse data a fixed band misses ground between coarse nodes."""
     ground_tol_below: float = Field(0.5, gt=0, le=10)
     """Final labels: ground down to this depth below the final surface."""
     ground_slope: float = Field(1.0, ge=0, le=10)
     """Extra tolerance per unit of local TIN slope (rise/run), for steep terrain."""
     raised_step: float = Field(0.3, ge=0, le=100)
     """Drop segments of the final TIN that stand above the rest behind steps this high (0: off; ``raised.py``).
-    0.3 m: roofs 1–5 m high whose border the TIN climbs in smaller steps go too (2 m left them on ISPRS
-    samp11/12; 0.5 m some of samp11's and samp12's low roofs and decks: 0.2–0.3 m +0.5 and +0.3 kappa
-    there, though on samp11 a third of what goes is terrain between walls)."""
+    Low, so roofs 1–5 m high whose border the TIN climbs in several smaller steps go too."""
     raised_slope: float = Field(10.0, gt=0, lt=90)
     """Degrees: a TIN edge rising ``raised_step`` or more at a steeper angle than this is a step…"""
     raised_relative: bool = False
     """…steeper than the terrain at its foot by that much (its gradient less the median gradient
-    of the TIN edges going down from its lower end; off: than level). On: on steep terrain (ISPRS
-    samp52, 20–35°) plain slope edges stop being steps, and samp52's kappa stays 84.9–88.2 over 8
-    translations and 3 rotations of the data instead of 69.7–88.2 (a hilltop cut off between slope
-    edges); but it costs the synthetic town (``slopes.buildings``) kappa 96.7 vs 99.0, whole-job
-    building labels, and 2 × 2 block agreement on samp31 (95.9 vs 99.4 %), so it stays off."""
+    of the TIN edges going down from its lower end; off: than level). On, plain slope edges of
+    steep terrain stop being steps, but roofs on built-up slopes stay, so it is off."""
     raised_walls: float = Field(0.5, ge=0, le=1)
     """A raised segment is dropped only when at least this share of the steps it is the upper
     side of are walls measured against the terrain at their foot (``raised_relative``'s test,
-    taken over the whole border; 0: off). Roofs and platforms are walled all round (0.5–1 of
-    their steps on ISPRS, 1.0 in the synthetic town); a hilltop that slope edges cut off at
-    some bin phases is not (0.42 on ISPRS samp52 moved by (0, 5) m)."""
+    taken over the whole border; 0: off). Roofs and platforms are walled nearly all round; a
+    hilltop that slope edges cut off at some bin phases is not."""
     raised_rise: float = Field(0.3, ge=0, le=100)
     """An edge of the final TIN, gentler than ``raised_slope``, that rises this many metres more
     than the slope at its foot predicts over its run is a step and a wall (0: off; 0.3 m, as
-    ``raised_step``). A platform 0.8–1.3 m high whose neighbours (wagons, cars) left a hole in
-    the TIN meets the ground 5–9 m away at 6–10°; README *Measured* has the family figures."""
+    ``raised_step``). A platform about a metre high whose neighbours (wagons, cars) left a hole
+    in the TIN meets the ground several metres away at a gentle angle."""
     raised_share: float = Field(0.7, ge=0.5, le=1)
     """A segment that is the upper side of at least this share of its steps is raised too, when
     it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut
     into a slope is the lower side only along its uphill wall; 1: only wholly raised segments)."""
     raised_lift: float = Field(1.5, ge=0, le=100)
     """…metres. Terrace treads and benches between walls sit near that plane; a roof stands
-    higher, though less than its walls, as the hill behind it lifts the plane (2.1 m on ISPRS samp11)."""
+    higher, though less than its walls, as the hill behind it lifts the plane."""
     grow: bool = True
     """Grow the final surface onto terrain the coarse passes cut off (``growth.py``)."""
     grow_tol: float = Field(0.0, ge=0, le=10)
@@ -210,9 +202,7 @@ class NistParams(StageParams):
     grow_bend_down: float = Field(15.0, ge=0, le=60)
     """Growth: …and its slope may bend by tan(this many degrees) × distance (at least ``grow_bend``):
     over a crest the slope turns from rising to falling within one edge, more so between nodes
-    further apart (a dike crest on ISPRS samp61 at 3.5 m nodes). ISPRS mean kappa at 5 (as
-    ``grow_bend``) / 8 / 10 / 15 / 20 / 30°: 90.35 / 90.63 / 90.56 / 90.57 / 90.62 / 90.65; from 10° one
-    roof of samp11 cut into a slope is reached from above (samp11 −0.8)."""
+    further apart (a dike crest between sparse nodes)."""
     grow_rise: float = Field(3.0, gt=0, le=100)
     """Growth never climbs an edge rising more than this (metres)."""
     grow_peak: float = Field(1.0, ge=0, le=100)
@@ -220,11 +210,10 @@ class NistParams(StageParams):
     ground neighbours is an object beside a slope, not terrain, and is dropped (until none is)."""
     grow_peak_area: float = Field(20.0, ge=0, le=1000)
     """…and so is a group of grown nodes level with each other (within that height) covering
-    at most this many m² (nodes × final cell²; at least one node): a car, a shed, a bush.
-    10–20 m² measured alike on ISPRS; at 25 m² the sparse samples' 3.5 m cells let two nodes
-    of a crest go (samp61 −0.3 kappa), at 40 m² three (samp52 −1.7)."""
+    at most this many m² (nodes × final cell²; at least one node): a car, a shed, a bush;
+    larger, and crest nodes of sparse data go too."""
     grow_peaks: bool = True
-    """…switch for those rules (``grow_peak`` 0.5–2 measured within 0.2 kappa on ISPRS)."""
+    """…switch for those rules."""
     support_k: int = Field(8, ge=0, le=64)
     """Supported points (``support.py``): a point joins the ground when at least two of its
     ``support_k`` nearest ground points stand as high or higher (0: off)."""
@@ -233,8 +222,7 @@ class NistParams(StageParams):
     support_tol: float = Field(0.0, ge=0, le=2)
     """…and allowing the point to stand this many metres above the second highest of them."""
     support_rounds: int = Field(2, ge=1, le=10)
-    """…repeated this many times, so supported points support others. Defaults measured on
-    the ISPRS samples: 8 nearest within 3 spacings, second highest, no tolerance."""
+    """…repeated this many times, so supported points support others."""
     ring_step_deg: float = Field(3.0, gt=0.1, le=45)
     """Concentric grid: angular step of the final pass (earlier passes scale it up)."""
     ring_inner: float = Field(2.0, gt=0, le=100)

@@ -42,8 +42,7 @@ class SteepParams(StageParams):
     cell: float = Field(7.5, ge=1.0, le=1000.0)
     """Metres: cell of the lowest-point TIN. A face shows as a facet steeper than
     ``facet_angle`` only when it rises more than cell × tan(facet_angle): 13 m at
-    7.5 m cells, 26 m at the seed's 15 m (which missed the 20–34 m cliff bands
-    of the steep family: share 0.0 and 0.4 %)."""
+    7.5 m cells, 26 m at the seed's 15 m, which misses lower cliff bands."""
     facet_angle: float = Field(60.0, gt=0.0, lt=90.0)
     """Degrees: a facet steeper than this counts as steep."""
     steep_share: float = Field(0.01, ge=0.0, le=1.0)
@@ -156,36 +155,22 @@ class RotationParams(StageParams):
     rerun_unrotated: bool = True
     """Steep blocks: run the unrotated cloud again with ``ground_preset``, as
     the seed does (nine conservative runs OR'ed), instead of keeping the
-    block's default labels. On the cliff scene the default labels carry 7.4 %
-    Type II (low vegetation on the rims) into the OR; the conservative run
-    keeps it at 4.7 % (benchmarks/rotation_accuracy.py). False: keep them."""
+    block's default labels, whose low vegetation on the rims the OR would
+    carry. False: keep them."""
     ground_preset: str = Field("conservative", alias="preset")
     """Parameter set of the ground method for every run (seed: conservative)."""
 
     #: Per ground method, named by its stage id; a block takes the one of its
     #: method (``stage_params(params, "ground.rotation", stage.id)``), the
     #: fields above otherwise (the seed's settings, which suit ground.ptd).
-    #: ground.nist follows terrain only up to its slope caps (allowances at
-    #: ``slope_cap`` 1.0 = 45°, screening votes at 56°) and cannot grow from the
-    #: labels found so far: tipped by 30° the 103° overhang of the cliff scene
-    #: stays at 73° and two thirds of it is missed; tipped by 45° it comes to
-    #: 58°, but then the plateau and talus beside a face tip to 45° and more and
-    #: are missed instead on some scenes; both tips find both. Its conservative
-    #: preset (``z_tol`` 1.0) is no safe unrotated run: on a cliff scene facing
-    #: north it loses the plateau (Type I 41 %), so the block's default labels
-    #: are kept. Type I on core ground of faces > 60° / kappa, auto flow, cliff
-    #: blocks make_cliffs (seed, azimuth) (3, 20), (4, 0), (4, 65), (5, 110),
-    #: (6, 200), 130 m core + 20 m halo, 8 pts/m²:
-    #:   seed settings          9.85 / 46.21 /  9.57 /  –    /  –    %
-    #:   30°, default labels    8.02 / 11.40 /  9.61 / 6.02  /  5.71  %, mean kappa 90.5
-    #:   45°, default labels    4.74 /  3.66 /  3.12 / 2.51  /  6.25  %, mean kappa 90.4
-    #:   30° + 45°, default     4.26 /  3.40 /  2.50 / 1.02  /  3.21  %, mean kappa 93.0
-    #:   ground.ptd (seed)      4.26 /  3.58 /  6.90 / 5.82  /  5.04  %, mean kappa 88.2
-    #: The second tip doubles the rotated runs (benchmarks/rotation_accuracy.py
-    #: --method ground.nist gives the cost).
-    #: Each run sees only the faces looking its way (``aspect_window``) within
-    #: ``context``, so both tips together cost less than one did on the whole
-    #: context (README, *Measured*).
+    #: ground.nist follows terrain only up to its slope caps and cannot grow
+    #: from the labels found so far, so one tip leaves part of an overhang
+    #: steeper than those caps; a second, larger tip finds it, and the first
+    #: keeps the plateau and talus beside a face that the larger tip loses.
+    #: Its conservative preset is no safe unrotated run (it can lose a
+    #: plateau), so the block's default labels are kept. Each run sees only the
+    #: faces looking its way (``aspect_window``) within ``context``. README
+    #: *Measured* (choices of ``ground.rotation``) has the figures.
     presets = {"ground.nist": {"angle": 30.0, "second_angle": 45.0, "rerun_unrotated": False}}
 
 
