@@ -456,3 +456,35 @@ def test_runs_see_only_the_faces_looking_their_way():
     assert sum(sizes["window"]) < 0.5 * sum(sizes["none"])
     # A run sees the step with 20 m on either side (40 of 150 m), not the block.
     assert 0.1 * len(pts) < max(sizes["window"]) < 0.4 * len(pts)
+
+
+def test_a_face_over_a_cave_is_found_to_its_top():
+    # A 40 m face rising over a 14 m deep cave: the lowest ground under it is
+    # the cave's floor, 6.5 m below the lip. A height band about that floor
+    # (max_lift 30 m) cut the face's upper part; the face evidence alone keeps it.
+    cave = (
+        (0.0, 0.0),
+        (40.0, 3.0),
+        (62.0, 3.5),
+        (62.0, 9.0),
+        (48.0, 10.0),
+        (49.0, 50.0),
+        (120.0, 55.0),
+        (125.0, 28.0),
+        (136.0, 21.0),
+        (225.0, 24.0),
+    )
+    scene = make_cliffs(length=16, density=4, profile=cave, seed=3, tree_density=0, bush_density=0)
+    face = np.nan_to_num(scene.extra["face_angle"])
+    upper = scene.extra["steep"] & (face > 80) & (scene.xyz[:, 2] > scene.xyz[:, 2].min() + 35)
+    conservative = PtdParams.preset("conservative")
+    ground = lambda p: classify_ground(p, conservative)  # noqa: E731
+    base = ground(scene.xyz)
+    found = {
+        lift: classify_rotated(scene.xyz, ground, RotationParams(max_lift=lift), unrotated=base)
+        .is_ground[upper]
+        .mean()
+        for lift in (None, 30.0)
+    }
+    assert upper.sum() > 100 and not base[upper].any()
+    assert found[None] > 0.5 and found[30.0] < 0.1, found
