@@ -488,3 +488,34 @@ def test_a_face_over_a_cave_is_found_to_its_top():
     }
     assert upper.sum() > 100 and not base[upper].any()
     assert found[None] > 0.5 and found[30.0] < 0.1, found
+
+
+def test_rotated_runs_give_back_a_tipped_mesa():
+    # Tipped by 30°, a mesa is still a raised body to the filter: the rotated
+    # runs take the landform rule after the filter (steps.with_landforms).
+    from terrasift.synthetic.landforms import LandformSpec, Mesa, make_landforms
+    from terrasift.workers.ground.landforms import LandformParams
+    from terrasift.workers.ground.rotation import bind_ground
+    from terrasift.workers.registry import get_stage
+    from terrasift.workers.steps import with_landforms
+
+    spec = LandformSpec(
+        size=120.0,
+        density=2.0,
+        slope=(0.08, -0.05),
+        mesas=[Mesa(60.0, 60.0, 15.0, 25.0, angle=80.0, talus=0.3)],
+        tree_density=0.0,
+        bush_density=0.0,
+        face_stems=0,
+    )
+    scene = make_landforms(spec, seed=5)
+    stage = get_stage("ground.nist")
+    plain, seeded = bind_ground(stage, stage.params.preset("conservative"))
+    wrapped, wrapped_seeded = with_landforms(plain, seeded, LandformParams())
+    assert seeded is None and wrapped_seeded is None
+    c = scene.xyz.mean(axis=0)
+    tipped = (scene.xyz - c) @ rotation_matrix(270.0, 30.0).T + c
+    steep = scene.extra["steep"]
+    before, after = plain(tipped), wrapped(tipped)
+    assert np.mean(before[steep]) < 0.2 and np.mean(after[steep]) > 0.4
+    assert after[before].all()
