@@ -61,7 +61,6 @@ from terrasift.workers.ground.rotation import (  # noqa: E402
     steepness,
 )
 from terrasift.workers.registry import get_stage  # noqa: E402
-from terrasift.workers.steps import with_landforms  # noqa: E402
 
 METHOD = f"ground.{DEFAULT_GROUND}"
 
@@ -90,8 +89,8 @@ def auto(
     unrotated and eight rotated runs with ``ground_preset`` OR'ed (seeded where
     the method can; with ``rerun_unrotated=False``, the default labels instead
     of the first), with the method's rotation preset and ``rotation`` on top;
-    the landform rule after every run and the low-vegetation rule after the
-    first and after rotation (steps._ground)."""
+    the landform rule after the first run and the runs of the first tip, the
+    low-vegetation rule after the first run and after rotation (steps._ground)."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
     g = restore_landforms(xyz, g, LandformParams(), last_return)
@@ -102,7 +101,6 @@ def auto(
     info = {"ground_s": t1 - t0, "steep_s": t2 - t1, "share": test.facet_share, "steep": test.steep}
     if test.steep:
         rp, plain, seeded = rotation_runs(**rotation)
-        plain, seeded = with_landforms(plain, seeded, LandformParams())
         res = classify_rotated(
             xyz,
             plain,
@@ -110,6 +108,7 @@ def auto(
             unrotated=None if rp.rerun_unrotated else g,
             seeded=seeded,
             last_return=last_return,
+            restore=lambda p, got: restore_landforms(p, got, LandformParams()),
         )
         g = reject_low_vegetation(xyz, res.is_ground, LowVegParams(), last_return)
         info["added"] = res.added

@@ -491,13 +491,12 @@ def test_a_face_over_a_cave_is_found_to_its_top():
 
 
 def test_rotated_runs_give_back_a_tipped_mesa():
-    # Tipped by 30°, a mesa is still a raised body to the filter: the rotated
-    # runs take the landform rule after the filter (steps.with_landforms).
+    # Tipped by 30°, a mesa is still a raised body to the filter: the runs of
+    # the first tip take the landform rule after the filter (``restore``).
     from terrasift.synthetic.landforms import LandformSpec, Mesa, make_landforms
-    from terrasift.workers.ground.landforms import LandformParams
+    from terrasift.workers.ground.landforms import LandformParams, restore_landforms
     from terrasift.workers.ground.rotation import bind_ground
     from terrasift.workers.registry import get_stage
-    from terrasift.workers.steps import with_landforms
 
     spec = LandformSpec(
         size=120.0,
@@ -510,12 +509,24 @@ def test_rotated_runs_give_back_a_tipped_mesa():
     )
     scene = make_landforms(spec, seed=5)
     stage = get_stage("ground.nist")
-    plain, seeded = bind_ground(stage, stage.params.preset("conservative"))
-    wrapped, wrapped_seeded = with_landforms(plain, seeded, LandformParams())
-    assert seeded is None and wrapped_seeded is None
+    plain, _ = bind_ground(stage, stage.params.preset("conservative"))
     c = scene.xyz.mean(axis=0)
     tipped = (scene.xyz - c) @ rotation_matrix(270.0, 30.0).T + c
     steep = scene.extra["steep"]
-    before, after = plain(tipped), wrapped(tipped)
+    before = plain(tipped)
+    after = restore_landforms(tipped, before, LandformParams())
     assert np.mean(before[steep]) < 0.2 and np.mean(after[steep]) > 0.4
     assert after[before].all()
+    # classify_rotated calls it after the runs of the first tip only
+    tips = []
+
+    def ground(p: np.ndarray) -> np.ndarray:
+        return np.zeros(len(p), dtype=bool)
+
+    def restore(p: np.ndarray, got: np.ndarray) -> np.ndarray:
+        tips.append(len(p))
+        return got
+
+    params = RotationParams(second_angle=45.0, context=None, aspect_window=None)
+    classify_rotated(tipped, ground, params, unrotated=before, restore=restore)
+    assert len(tips) == params.directions

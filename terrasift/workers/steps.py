@@ -12,6 +12,8 @@ parameter model and its step, registered with ``registry.block_step``.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -145,8 +147,9 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
     rparams = models.rotation
     # Seeded rotated runs where the method can grow from the labels found so far (ptd).
     ground, seeded = rotation.bind_ground(stage, models.rotation_ground_params, **kwargs)
-    if models.landforms is not None:
-        ground, seeded = with_landforms(ground, seeded, models.landforms)
+    # A mesa tipped by the first angle is still a raised body to the filter.
+    lp = models.landforms
+    restore = None if lp is None else partial(landforms.restore_landforms, params=lp)
     with timer("rotation"):
         result = rotation.classify_rotated(
             xyz,
@@ -155,6 +158,7 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
             unrotated=None if rparams.rerun_unrotated else is_ground,
             seeded=seeded,
             last_return=_last_return(block),
+            restore=restore,
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]
@@ -164,27 +168,6 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
         is_ground = lowveg.reject_low_vegetation(xyz, is_ground, models.lowveg, last)
     is_ground, low = without_low(is_ground)
     return is_ground, low, steep_info
-
-
-def with_landforms(
-    ground: rotation.GroundFn, seeded: rotation.SeededFn | None, params: landforms.LandformParams
-) -> tuple[rotation.GroundFn, rotation.SeededFn | None]:
-    """The rotated runs' ground with the landform rule after it: a mesa tipped
-    by 30–45° is a raised body to the filter as it is untipped, and its flank
-    that the tip flattens went with it (steep family, tune band tile 0, stage
-    level: faces > 60° found 84.6 % without, 87.3 % with; Type II alike)."""
-
-    def plain(p: NDArray[np.float64]) -> NDArray[np.bool_]:
-        return landforms.restore_landforms(p, ground(p), params)
-
-    if seeded is None:
-        return plain, None
-    grow = seeded
-
-    def seeded_run(p: NDArray[np.float64], known: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        return landforms.restore_landforms(p, grow(p, known), params)
-
-    return plain, seeded_run
 
 
 @block_step("surface", order=30)

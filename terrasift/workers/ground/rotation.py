@@ -327,6 +327,7 @@ def classify_rotated(
     unrotated: NDArray[np.bool_] | None = None,
     seeded: Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]] | None = None,
     last_return: NDArray[np.bool_] | None = None,
+    restore: Callable[[NDArray[np.float64], NDArray[np.bool_]], NDArray[np.bool_]] | None = None,
 ) -> RotatedResult:
     """Boolean OR of ``ground`` on the block as it is and on ``directions``
     copies tipped by ``angle`` about the centroid (and ``directions`` more
@@ -344,6 +345,14 @@ def classify_rotated(
     ``last_return`` (per point: the last or only return of its pulse), when
     given, is echo evidence: a rotated run adds no point that a later return
     of the same pulse lies behind (crowns and bushes; a rock face is opaque).
+
+    ``restore(points, labels)``, when given, follows the ground method in the
+    runs tipped by ``angle`` (the landform rule, ``steps._ground``): tipped by
+    30° a mesa is still a raised body to the filter, and the flank the tip
+    flattens went with it. On the tune band tile 0 (stage level) faces > 60°
+    were found 84.6 % without it, 87.6 % after the first tip's runs, 87.3 %
+    after both tips' and 84.3 % after the second's alone, so the second tip's
+    runs, which cost as much again, go without.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     base = np.asarray(ground(xyz) if unrotated is None else unrotated, dtype=bool)
@@ -391,6 +400,8 @@ def classify_rotated(
         part = _turn(xyz[view], rot, shift)
         labels = np.zeros(xyz.shape[0], dtype=bool)
         got = np.asarray(ground(part) if seeded is None else seeded(part, combined[view]), bool)
+        if restore is not None and angle == params.angle:
+            got = np.asarray(restore(part, got), dtype=bool)
         if got.any() and footing is not None:
             feet = _turn(feet_xyz, rot[:2], shift[:2])
             got &= _over_ground(part[:, :2], feet)
