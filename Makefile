@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed bench-driver openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed bench-driver bench-survey openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -53,6 +53,11 @@ bench-malformed: $(STAMP)
 
 bench-driver: $(STAMP)
 	$(PY) benchmarks/driver_overhead.py
+
+# 16 and 64 tiles of 0.5 M pulses on a local Dask cluster (scheduler + `terrasift worker`
+# processes); a small machine: make bench-survey SURVEY_ARGS="--points 50000"
+bench-survey: $(STAMP)
+	$(PY) benchmarks/survey_scale.py $(SURVEY_ARGS)
 
 openapi: $(STAMP)
 	$(PY) scripts/export_openapi.py

@@ -163,6 +163,13 @@ class _Session:
             self._sync(tiles, sums)
         job_id = self._submit(params)
         status = self._wait(job_id) if job_id else "successful"
+        while status == "successful":  # a survey over the server's limit runs in batches
+            following = self._in_flight()
+            if not following:
+                break
+            for left in following:
+                print(f"terrasift survey: next batch {left}")
+                status = self._wait(left)
         if status != "successful":
             return 1
         self._download(out)

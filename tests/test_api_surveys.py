@@ -144,3 +144,44 @@ def test_survey_lifecycle(client: TestClient, tmp_path: Path) -> None:
         headers={"content-type": "application/octet-stream"},
     )
     assert r.status_code == 201 and "t1_1.laz" in r.json()["files"], r.text
+
+
+def test_a_survey_over_the_point_limit_runs_in_batches(tmp_path: Path) -> None:
+    # a 4 x 1 strip over the service's max_points: accepted, and run in batches queued
+    # one after the other, each reading at most max_points (its tiles and their halo)
+    scene = make_scene(80.0, 4.0, height=20.0, n_buildings=0, seed=5)
+    paths = write_tiles(scene, tmp_path / "tiles", 20.0)
+    total = sum(laspy.open(p).header.point_count for p in paths)
+    limit = int(0.8 * total)
+    settings = Settings(_env_file=None, data_dir=tmp_path / "data", workers=1, max_points=limit)
+    with TestClient(create_app(settings), raise_server_exceptions=False) as client:
+        r = client.post(
+            "/surveys",
+            files=[("file", (p.name, p.read_bytes())) for p in paths],
+            data={"params": json.dumps(PARAMS)},
+        )
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        assert client.post(f"/surveys/{sid}/runs", json={}).status_code == 201
+        end = time.monotonic() + 240
+        while True:
+            doc = client.get(f"/surveys/{sid}").json()
+            busy = [j for j in doc["jobs"] if j["status"] in ("accepted", "running")]
+            if not busy and doc["product"] and doc["product"]["pending"] == 0:
+                break
+            assert all(j["status"] != "failed" for j in doc["jobs"]), doc["jobs"]
+            assert time.monotonic() < end, doc
+            time.sleep(0.3)
+        jobs = doc["jobs"]
+        assert len(jobs) >= 2 and all(j["status"] == "successful" for j in jobs), jobs
+        done = []
+        for j in jobs:
+            summary = client.get(f"/jobs/{j['jobID']}/outputs/survey.json").json()
+            done += summary["outputs"]
+            job_points = sum(
+                laspy.open(tmp_path / "tiles" / n).header.point_count for n in summary["sources"]
+            )
+            assert job_points <= limit
+        assert sorted(done) == sorted(p.name for p in paths)
+        assert doc["product"]["tiles"] == 4
+        _problem(client.post(f"/surveys/{sid}/runs", json={}), 409, "survey-unchanged")

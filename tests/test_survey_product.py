@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 import rasterio
 
-from terrasift.errors import NothingChanged
+from terrasift.errors import InputError, NothingChanged
 from terrasift.jobs import run_job, validate_params
+from terrasift.jobs.finish import dtm_category_grids
+from terrasift.jobs.params import stage_params
 from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
 from terrasift.workers.executors import InlineExecutor
@@ -57,8 +59,8 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     params = validate_params(PARAMS)
     sdir = root / "survey"
 
-    def run(name: str, mode: str = "incremental") -> dict:
-        summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode)
+    def run(name: str, mode: str = "incremental", **kw: object) -> dict:
+        summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode, **kw)
         assert run_job(root / name, InlineExecutor()) == ["survey.json"]
         return summary
 
@@ -76,7 +78,11 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     d = np.hypot(np.asarray(las.x) - scene.bounds[0] - 8, np.asarray(las.y) - scene.bounds[1] - 9)
     las.z = np.asarray(las.z) + 1.5 * np.clip(1 - d / 6, 0, None)
     las.write(tiles[0])
-    out["incremental"] = run("r2")
+    out["incremental"] = run("r2", keep_intermediates=True)
+    out["kept"] = {
+        sub: sum(1 for p in (root / "r2" / sub).rglob("*") if p.is_file())
+        for sub in ("shards", "blocks", "outputs/tiles")
+    }
     v2 = current_version(sdir)
     assert v2 is not None
     out["v2"], out["inodes2"] = _product(v2), _inodes(v2)
@@ -84,6 +90,11 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
     out["v3"] = _product(v3)
+    # the per-tile categories against one category grid over the whole DTM mosaic
+    noise = json.loads((v3 / "state.json").read_text())["noise"]
+    cparams = stage_params(params, "categories").model_copy(update={"noise": noise})
+    with rasterio.open(v3 / "dtm.vrt") as ds:
+        out["whole_cats"] = dtm_category_grids(ds, cparams, [])[0].bands()
     # a finished run keeps only its summary: the tiles live on in the product
     out["run_left"] = sorted(
         str(p.relative_to(root / "r3")) for p in (root / "r3").rglob("*") if p.is_file()
@@ -135,6 +146,13 @@ def test_a_finished_run_keeps_only_its_records(survey: dict) -> None:
     assert survey["run_left"] == ["job.json", "outputs/survey.json", "plan.json"]
 
 
+def test_retention_keeps_the_intermediates(survey: dict) -> None:
+    # the incremental run was planned with keep_intermediates: shards, blocks and its tiles stay
+    kept = survey["kept"]
+    assert kept["shards"] > 0 and kept["blocks"] > 0, kept
+    assert kept["outputs/tiles"] >= 4 * 5, kept  # 4 redone tiles x (4 rasters + classified.laz)
+
+
 def test_publish_again_after_the_switch_is_a_no_op(survey: dict) -> None:
     assert survey["republished"]["version"] == survey["v3_again"].name
     assert survey["republished"]["mode"] == "full"
@@ -152,3 +170,108 @@ def test_incremental_product_equals_a_full_run(survey: dict) -> None:
     for k in a["labels"]:
         assert (a["labels"][k] == b["labels"][k]).all(), k
     assert a["features"] == b["features"]
+
+
+@pytest.fixture(scope="module")
+def batched(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """A 4 x 1 strip of 20 m tiles run under a limit of 80 % of its points, and in one run."""
+    root = tmp_path_factory.mktemp("batched")
+    scene = make_scene(
+        4 * TILE,
+        4.0,
+        height=TILE,
+        surface=Surface(hills=((2 * TILE, 10.0, 2.5, 4.0),)),
+        n_buildings=0,
+        seed=5,
+    )
+    tiles = write_tiles(scene, root / "tiles", TILE)
+    params = validate_params(PARAMS)
+    points = {p.name: laspy.open(p).header.point_count for p in tiles}
+    limit = int(0.8 * sum(points.values()))
+    out: dict = {"limit": limit, "batches": []}
+    for i in range(len(tiles)):
+        batch = plan_survey_run(root / f"b{i}", root / "s", tiles, params, max_points=limit)
+        batch["points"] = sum(points[n] for n in batch["sources"])
+        run_job(root / f"b{i}", InlineExecutor())
+        out["batches"].append(batch)
+        version = current_version(root / "s")
+        assert version is not None
+        if i == 0:
+            out["mid_tiles"] = sorted(p.name for p in (version / "tiles").iterdir())
+        if not batch["pending"]:
+            break
+    with pytest.raises(NothingChanged):  # nothing left once the last batch published
+        plan_survey_run(root / "b-none", root / "s", tiles, params, max_points=limit)
+    out["batched"] = _product(version)
+    out["batched_state"] = json.loads((version / "state.json").read_text())
+    plan_survey_run(root / "one-job", root / "one" / "s", tiles, params)  # same survey id: "s"
+    run_job(root / "one-job", InlineExecutor())
+    version = current_version(root / "one" / "s")
+    assert version is not None
+    out["one"] = _product(version)
+    out["one_state"] = json.loads((version / "state.json").read_text())
+    version = current_version(root / "s")
+    assert version is not None
+    before = {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/slope.tif")}
+    # a mound on the east end tile: the tiles away from it keep their slope and categories
+    east = max(tiles, key=lambda p: laspy.open(p).header.mins[0])
+    las = laspy.read(east)
+    d = np.hypot(
+        np.asarray(las.x) - las.header.maxs[0] + 6, np.asarray(las.y) - las.header.mins[1] - 10.0
+    )
+    las.z = np.asarray(las.z) + 1.0 * np.clip(1 - d / 5, 0, None)
+    las.write(east)
+    out["east"] = east.stem
+    out["inc"] = plan_survey_run(root / "inc", root / "s", tiles, params)
+    run_job(root / "inc", InlineExecutor())
+    version = current_version(root / "s")
+    assert version is not None
+    out["inc_summary"] = json.loads((root / "inc" / "outputs" / "survey.json").read_text())
+    after = {p.parent.name: p.stat().st_ino for p in version.glob("tiles/*/slope.tif")}
+    out["slope_same"] = sorted(n for n in before if before[n] == after[n])
+    return out
+
+
+def test_a_survey_over_the_limit_runs_in_batches_into_the_full_product(batched: dict) -> None:
+    batches, limit = batched["batches"], batched["limit"]
+    assert len(batches) >= 2, [b["outputs"] for b in batches]
+    assert all(b["points"] <= limit for b in batches)  # each run reads at most the limit
+    done = [n for b in batches for n in b["outputs"]]
+    assert sorted(done) == sorted(set(done)) and len(done) == 4  # every tile once
+    assert batches[-1]["pending"] == []
+    # between batches the product holds the tiles done so far only
+    assert batched["mid_tiles"] == sorted(n.removesuffix(".laz") for n in batches[0]["outputs"])
+    # the last batch's product is the product of one run over all tiles (the category
+    # noise measured on the whole DTM, not on the first batch's part)
+    a, b = batched["batched"], batched["one"]
+    assert batched["batched_state"]["noise"] == batched["one_state"]["noise"]
+    assert batched["batched_state"]["pending"] == []
+    assert np.array_equal(a["dtm"], b["dtm"], equal_nan=True)
+    assert (a["cats"] == b["cats"]).all()
+    assert a["labels"].keys() == b["labels"].keys() and len(a["labels"]) == 4
+    for k in a["labels"]:
+        assert (a["labels"][k] == b["labels"][k]).all(), k
+    assert a["features"] == b["features"]
+
+
+def test_a_tile_whose_halo_alone_exceeds_the_limit_is_refused(tmp_path: Path) -> None:
+    scene = make_scene(2 * TILE, 4.0, height=TILE, n_buildings=0, seed=6)
+    tiles = write_tiles(scene, tmp_path / "tiles", TILE)
+    with pytest.raises(InputError, match="a run takes at most 2500"):
+        plan_survey_run(
+            tmp_path / "j", tmp_path / "s", tiles, validate_params(PARAMS), max_points=2500
+        )
+
+
+def test_per_tile_categories_equal_one_grid_over_the_survey(survey: dict) -> None:
+    assert np.array_equal(survey["v3"]["cats"], survey["whole_cats"])
+
+
+def test_a_publish_redoes_slope_and_categories_near_changed_cells_only(batched: dict) -> None:
+    summary = batched["inc_summary"]
+    derived = {n.removesuffix(".laz") for n in summary["derived"]}
+    redone = {n.removesuffix(".laz") for n in summary["outputs"]}
+    assert batched["east"] in redone
+    assert redone <= derived and len(derived) < 4, summary
+    # the tiles away from the change keep the previous version's files (same inodes)
+    assert batched["slope_same"] == sorted({f"t{i}_0" for i in range(4)} - derived)

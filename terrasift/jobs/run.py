@@ -180,8 +180,9 @@ def run_job(
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     if survey:  # published into the survey's product; the run keeps its summary only
-        for sub in ("shards", "blocks", "work", "outputs/tiles"):
-            shutil.rmtree(job_dir / sub, ignore_errors=True)
+        if not survey.get("keep_intermediates"):  # the retention setting keeps them
+            for sub in ("shards", "blocks", "work", "outputs/tiles"):
+                shutil.rmtree(job_dir / sub, ignore_errors=True)
         meter.done("report", "report")
         return ["survey.json"]
     _require_ground(output_path(job_dir, "dtm.tif"))

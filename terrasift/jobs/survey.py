@@ -16,9 +16,14 @@ source tiles are every tile any of those blocks reads points from. Each block
 therefore reads exactly the points it reads in a full run, in the same order
 (tiles by name), so its result is the same, and a tile's result does not
 depend on which tiles ran with it. Unchanged tiles' files are hard links into
-the new version. Slope, categories (with the survey's fixed noise) and
-features are made again over the whole survey from the new DTM mosaic, since
-they read across tile edges; that is raster work, not point work.
+the new version. Slope and categories (with the survey's fixed noise) are
+made per tile from the new DTM mosaic, only for tiles within the slope's
+margin of changed cells; features are searched over the whole survey's
+category grids, since an object may cross any number of tile edges.
+
+A run reads at most ``max_points`` points: a larger set of output tiles is
+taken in batches (``pending`` in ``state.json`` carries the rest to the next
+run), and the last batch's product equals one run over all tiles.
 """
 
 from __future__ import annotations
@@ -175,10 +180,13 @@ def plan_survey_run(
     *,
     mode: str = "incremental",
     max_points: int | None = None,
+    keep_intermediates: bool = False,
 ) -> dict[str, Any]:
     """Decide what a run redoes and write its ``job.json``; return a summary.
 
-    Raises NothingChanged for an incremental run with nothing to do.
+    ``keep_intermediates`` keeps the run's shards, block results and per-tile
+    outputs after it published (by default they are removed then). Raises
+    NothingChanged for an incremental run with nothing to do.
     """
     if mode not in ("incremental", "full"):
         raise InputError(f"mode must be 'incremental' or 'full', not {mode!r}")
@@ -237,15 +245,30 @@ def plan_survey_run(
             for iy in range(grid.ny)
             if any(_overlaps(_reach(grid, ix, iy), r) for r in regions)
         }
-        outputs = [n for n in by_name if touched & set(window_blocks(grid, windows[n]))]
+        # tiles an earlier batch left for later, plus those this change makes stale
+        left = set(state.get("pending", [])) & set(by_name)
+        outputs = [
+            n for n in by_name if n in left or touched & set(window_blocks(grid, windows[n]))
+        ]
         reason = "incremental"
         if not outputs and not regions:
             raise NothingChanged(
                 'no tile changed since the last run (send {"mode": "full"} to redo all)'
             )
+
+    def reads(names: list[str]) -> list[str]:
+        """Source tiles: every tile a block of the ``names`` tiles reads points from."""
+        reaches = [
+            _reach(grid, ix, iy)
+            for ix, iy in {b for n in names for b in window_blocks(grid, windows[n])}
+        ]
+        return [m for m in by_name if any(_overlaps(bounds[m], r) for r in reaches)]
+
+    outputs, pending = _batch(
+        outputs, reads, {n: infos[n].point_count for n in by_name}, windows, max_points
+    )
     needed = sorted({b for n in outputs for b in window_blocks(grid, windows[n])})
-    reaches = [_reach(grid, ix, iy) for ix, iy in needed]
-    sources = [n for n in by_name if any(_overlaps(bounds[n], r) for r in reaches)]
+    sources = reads(outputs)
     base = current_version(survey_dir)
     tiles = {
         n: {
@@ -274,12 +297,57 @@ def plan_survey_run(
             "tiles": tiles,
             "sources": sources,
             "outputs": outputs,
+            "pending": pending,
             "blocks": [block_name(ix, iy) for ix, iy in needed],
+            "keep_intermediates": bool(keep_intermediates),
         },
     }
     Path(job_dir).mkdir(parents=True, exist_ok=True)
     write_json(Path(job_dir) / "job.json", job, indent=2)
-    return {"mode": reason, "outputs": outputs, "sources": sources, "blocks": len(needed)}
+    return {
+        "mode": reason,
+        "outputs": outputs,
+        "sources": sources,
+        "blocks": len(needed),
+        "pending": pending,
+    }
+
+
+def _batch(
+    outputs: list[str],
+    reads: Any,
+    points: Mapping[str, int],
+    windows: Mapping[str, Window],
+    max_points: int | None,
+) -> tuple[list[str], list[str]]:
+    """The output tiles of this run and those left for the next (``pending``).
+
+    A run reads at most ``max_points`` points (its source tiles, halo included):
+    output tiles are taken row by row across the survey while their sources fit,
+    so one batch reads a compact area and neighbouring batches share few sources.
+    The product of the last batch equals a run of all tiles at once, since every
+    block still reads exactly the tiles it reads in a full run.
+    """
+    if max_points is None or sum(points[n] for n in reads(outputs)) <= max_points:
+        return outputs, []
+    order = sorted(outputs, key=lambda n: (windows[n][0], windows[n][1], n))
+    taken: list[str] = []
+    sources: set[str] = set()
+    for n in order:
+        more = sources | set(reads([n]))
+        if sum(points[m] for m in more) > max_points:
+            break
+        taken.append(n)
+        sources = more
+    if not taken:
+        first = order[0]
+        total = sum(points[m] for m in reads([first]))
+        raise InputError(
+            f"{first} with the neighbours its halo reads holds {total} points; "
+            f"a run takes at most {max_points}"
+        )
+    chosen = set(taken)
+    return [n for n in outputs if n in chosen], [n for n in outputs if n not in chosen]
 
 
 def survey_plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
@@ -445,17 +513,28 @@ def publish(job_dir: str) -> dict[str, Any]:
                 "another run of this survey published since this run was planned; run it again"
             )
         shutil.rmtree(new, ignore_errors=True)
+        present = []
         for name in s["tiles"]:
             stem = tile_stem(name)
-            src = _run_out(job, name) if name in s["outputs"] else prev / "tiles" / stem  # type: ignore[operator]
+            if name in s["outputs"]:
+                src = _run_out(job, name)
+            elif prev is not None and (prev / "tiles" / stem).is_dir():
+                src = prev / "tiles" / stem
+            else:
+                continue  # added, and left for a later batch: not in the product yet
             _link_tree(src, new / "tiles" / stem, DERIVED)
+            present.append(name)
         grid = BlockGrid(**s["grid"])
-        noise = _derived_products(new, spec, grid)
+        pending = list(s.get("pending", []))
+        noise, derived = _derived_products(new, spec, grid, present, prev)
         state = {
             "version": new.name,
             "job": job.name,
             "tiles": {
-                n: {k: t[k] for k in ("path", "sha256", "size", "mtime_ns", "bounds", "window")}
+                n: {
+                    **{k: t[k] for k in ("path", "sha256", "size", "mtime_ns", "bounds", "window")},
+                    "cells": list(window_bounds(grid, tuple(t["window"]))),
+                }
                 for n, t in s["tiles"].items()
             },
             "params_key": s["params_key"],
@@ -463,7 +542,10 @@ def publish(job_dir: str) -> dict[str, Any]:
             "density": s["density"],
             "anchor": s["anchor"],
             "grid_step": [grid.block_size, grid.resolution],
-            "noise": noise,
+            # measured on a whole product only: a batch's DTM still lacks the pending tiles
+            "noise": None if pending else noise,
+            "pending": pending,
+            "derived": derived,  # tiles whose slope and categories this version made again
         }
         write_json(new / STATE, state, indent=2)
         link = root / CURRENT
@@ -489,18 +571,23 @@ def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str,
         "outputs": s["outputs"],
         "sources": s["sources"],
         "blocks": len(s["blocks"]),
+        "pending": list(s.get("pending", [])),
+        "derived": load_json(version / STATE).get("derived"),
     }
 
 
-def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> float:
+def _derived_products(
+    new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str], prev: Path | None
+) -> tuple[float, list[str]]:
     """VRTs, slope and categories per tile, merged features and the STAC collection of a
-    version; returns the category noise used (the survey's, else measured now)."""
+    version over its ``present`` tiles; returns the category noise used (the survey's,
+    else measured now) and the tiles whose slope and categories were made again (the
+    others' are the previous version's files: their DTM within the margin is the same)."""
     import rasterio
-    from affine import Affine
 
     s = spec["survey"]
     params = spec["params"]
-    tiles = s["tiles"]
+    tiles = {n: s["tiles"][n] for n in present}
     windows = {n: tuple(t["window"]) for n, t in tiles.items()}
     r0 = min(w[0] for w in windows.values())
     c0 = min(w[1] for w in windows.values())
@@ -540,7 +627,9 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
         vrt(r, 1, "float32", FLOAT_NODATA)
     vrt("coverage", f, "uint8", COVERAGE_NODATA)
 
-    from terrasift.jobs.finish import dtm_category_grids
+    from rasterio.windows import Window as RWindow
+
+    from terrasift.jobs.finish import BAND_CELLS, _read_rows, dtm_category_grids
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
     from terrasift.workers import terrain
@@ -549,25 +638,50 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
     cparams = stage_params(params, "categories")
     if cparams.noise is None and s.get("noise") is not None:
         cparams = cparams.model_copy(update={"noise": s["noise"]})
+    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    m = tparams.median_size // 2 + 2  # slope's smoothing margin, in cells
     work = new / ".work"
     work.mkdir()
+    cats = stepped = None
     with bounded_raster_cache(), rasterio.open(new / "dtm.vrt") as ds:
         height, width = ds.height, ds.width
-        # Slope per tile, read with a margin for its smoothing: equal to slope over the mosaic.
-        m = tparams.median_size // 2 + 2
-        for n, (wr, wc, rows, cols) in windows.items():
-            rr, cc = wr - r0, wc - c0
-            lo_r, hi_r = max(0, rr - m), min(height, rr + rows + m)
-            lo_c, hi_c = max(0, cc - m), min(width, cc + cols + m)
-            from rasterio.windows import Window as RWindow
+        transform = ds.transform
+        if filters:  # features search the whole survey's grids: an object across tile edges is one
+            cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
+        elif cparams.noise is None:  # measured on the whole DTM, streamed in bands
+            rows_per_band = max(1, BAND_CELLS // width)
+            cparams = cparams.model_copy(
+                update={
+                    "noise": cat.measure_noise_by_bands(
+                        lambda a, b: _read_rows(ds, a, b), height, res, cparams, rows_per_band
+                    )
+                }
+            )
+        noise = float(cparams.noise)
+        stale = _stale_derived(prev, grid, windows, set(s["outputs"]), (m + 1) * res, noise)
 
-            a = (
+        def read(lo_r: int, hi_r: int, lo_c: int, hi_c: int) -> np.ndarray:
+            return (
                 ds.read(1, window=RWindow(lo_c, lo_r, hi_c - lo_c, hi_r - lo_r), masked=True)
                 .filled(np.nan)
                 .astype(np.float64)
             )
-            slope = terrain.slope_degrees(a, res, tparams.median_size, tparams.smooth)
+
+        kc = max(2, int(round(cparams.tile_size / res)))
+        for n, (wr, wc, rows, cols) in windows.items():
+            target = new / "tiles" / tile_stem(n)
+            if n not in stale:  # its DTM within the margin is unchanged: so are these
+                for kept in ("slope.tif", "categories.tif"):
+                    os.link(prev / "tiles" / tile_stem(n) / kept, target / kept)  # type: ignore[operator]
+                continue
             xmin, _, _, ymax = window_bounds(grid, (wr, wc, rows, cols))
+            # slope read with a margin for its smoothing: equal to slope over the mosaic
+            rr, cc = wr - r0, wc - c0
+            lo_r, hi_r = max(0, rr - m), min(height, rr + rows + m)
+            lo_c, hi_c = max(0, cc - m), min(width, cc + cols + m)
+            slope = terrain.slope_degrees(
+                read(lo_r, hi_r, lo_c, hi_c), res, tparams.median_size, tparams.smooth
+            )
             sm = RasterMosaic(
                 work / f"{tile_stem(n)}-slope.tif",
                 width=cols,
@@ -577,35 +691,28 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
                 **band_metadata("slope"),
             )
             sm.write(0, 0, slope[rr - lo_r : rr - lo_r + rows, cc - lo_c : cc - lo_c + cols])
-            sm.close_as_cog(new / "tiles" / tile_stem(n) / "slope.tif")
-        filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
-        cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
-        noise = float(cparams.noise)
-        transform = ds.transform
+            sm.close_as_cog(target / "slope.tif")
+            # categories from the tile's own cells: a category tile (aligned to the tile's
+            # window) reads only its cells, and the noise is the survey's
+            part = cat.category_grids(read(rr, rr + rows, cc, cc + cols), res, cparams)[0].bands()
+            cm = RasterMosaic(
+                work / f"{tile_stem(n)}-categories.tif",
+                width=part.shape[2],
+                height=part.shape[1],
+                transform=job_transform(xmin, ymax, res * kc),
+                crs=crs,
+                dtype="uint8",
+                nodata=cat.NODATA,
+                count=4,
+                **band_metadata("categories"),
+            )
+            cm.write(0, 0, part)
+            cm.close_as_cog(target / "categories.tif", resampling="nearest")
     vrt("slope", 1, "float32", FLOAT_NODATA)
-    # Categories per tile: slices of the survey's category grid (tiles aligned to it).
-    kc = cats.cells_per_tile
-    bands = cats.bands()
-    ctf = cats.transform(transform)
-    for n, (wr, wc, rows, cols) in windows.items():
-        rr, cc = (wr - r0) // kc, (wc - c0) // kc
-        part = bands[:, rr : rr + rows // kc, cc : cc + cols // kc]
-        cm = RasterMosaic(
-            work / f"{tile_stem(n)}-categories.tif",
-            width=part.shape[2],
-            height=part.shape[1],
-            transform=ctf @ Affine.translation(cc, rr),
-            crs=crs,
-            dtype="uint8",
-            nodata=cat.NODATA,
-            count=4,
-            **band_metadata("categories"),
-        )
-        cm.write(0, 0, part)
-        cm.close_as_cog(new / "tiles" / tile_stem(n) / "categories.tif", resampling="nearest")
     vrt("categories", kc, "uint8", cat.NODATA, count=4)
     # Features over the whole survey's categories: an object across tile edges comes out once.
     if filters:
+        assert cats is not None and stepped is not None
         result = feat.detect_features(
             cats,
             filters,
@@ -628,11 +735,41 @@ def _derived_products(new: Path, spec: Mapping[str, Any], grid: BlockGrid) -> fl
                 feat.features_geojson(result, crs, survey_id, to_wgs84=True),
             )
     shutil.rmtree(work, ignore_errors=True)
-    _write_stac(new, s)
-    return noise
+    _write_stac(new, s, tiles)
+    return noise, sorted(stale)
 
 
-def _write_stac(new: Path, s: Mapping[str, Any]) -> None:
+def _stale_derived(
+    prev: Path | None,
+    grid: BlockGrid,
+    windows: Mapping[str, Window],
+    outputs: set[str],
+    margin: float,
+    noise: float,
+) -> set[str]:
+    """Tiles whose slope and categories must be made again: those within ``margin``
+    (metres) of cells that changed (a redone tile, a tile gone, a tile whose cells
+    moved), all of them when the noise or the grid changed or there is no product."""
+    state = load_json(prev / STATE) if prev is not None and (prev / STATE).exists() else {}
+    cells = {n: window_bounds(grid, w) for n, w in windows.items()}
+    if not state or state.get("noise") != noise:
+        return set(windows)
+    old = state.get("tiles", {})
+    changed = [cells[n] for n in windows if n in outputs]
+    for n, t in old.items():
+        was = tuple(t["cells"]) if t.get("cells") else None
+        if n not in windows or was != cells[n]:
+            changed += [b for b in (was, cells.get(n)) if b is not None]
+    stale = set()
+    for n, b in cells.items():
+        wide = (b[0] - margin, b[1] - margin, b[2] + margin, b[3] + margin)
+        files = [prev / "tiles" / tile_stem(n) / f for f in ("slope.tif", "categories.tif")]  # type: ignore[operator]
+        if not all(f.exists() for f in files) or any(_overlaps(wide, r) for r in changed):
+            stale.add(n)
+    return stale
+
+
+def _write_stac(new: Path, s: Mapping[str, Any], tiles: Mapping[str, Any]) -> None:
     """One STAC Item per tile (its files) and a Collection linking them."""
     from terrasift.tiling.stac import STAC_VERSION, stac_item
 
@@ -640,7 +777,7 @@ def _write_stac(new: Path, s: Mapping[str, Any]) -> None:
     crs_wkt = s["crs_wkt"]
     links: list[dict[str, Any]] = []
     boxes = []
-    for n, t in sorted(s["tiles"].items()):
+    for n, t in sorted(tiles.items()):
         d = new / "tiles" / tile_stem(n)
         names = sorted(p.name for p in d.iterdir() if p.is_file() and p.name != "item.json")
         item = stac_item(

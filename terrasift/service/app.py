@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Any
 
 import anyio
@@ -85,6 +86,7 @@ def create_app(
             ],
         )
         app.state.svc = Service(settings, store, scheduler)
+        scheduler.on_success = partial(surveys.continue_batches, app.state.svc)
         app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
         scheduler.start()
         app.state.notifier.start()

@@ -135,6 +135,8 @@ class Scheduler:
         self._threads: dict[str, threading.Thread] = {}
         self._lock = threading.Lock()
         self._loop: threading.Thread | None = None
+        #: called with a job's id when it succeeded, before it is marked so (a survey's next batch)
+        self.on_success: Callable[[str], Any] | None = None
 
     @property
     def pipeline(self) -> Any:
@@ -349,6 +351,13 @@ class Scheduler:
                 log.exception("job %s failed", job_id)
                 self.store.finish(job_id, FAILED, GENERIC_FAILURE)
         else:
+            if (
+                self.on_success is not None
+            ):  # before the status: a client seeing it sees what follows
+                try:
+                    self.on_success(job_id)
+                except Exception:  # noqa: BLE001 - the job itself succeeded
+                    log.exception("after job %s", job_id)
             self.store.finish(job_id, SUCCESSFUL, _finished_message(job_dir), list(names))
         job = self.store.get_job(job_id)
         if job is not None and job.status == DISMISSED:

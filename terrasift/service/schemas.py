@@ -134,7 +134,10 @@ class SurveyInfo(BaseModel):
     files: list[str]
     params: dict[str, Any]
     product: dict[str, Any] | None = Field(
-        None, description="the current product: its version and the run that made it"
+        None,
+        description="the current product: its version, the run that made it, its tiles and "
+        "`pending`, the tiles later batches of a run still redo (a run reads at most "
+        "the service's max_points; the next batch is queued when one publishes)",
     )
     jobs: list[StatusInfo]
     links: list[Link]

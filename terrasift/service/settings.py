@@ -45,6 +45,11 @@ class Settings(BaseSettings):
         2_000_000_000, ge=1, description="total points of one job, from the headers"
     )
     max_files: int = Field(1000, ge=1, description="tiles in one job or survey")
+    keep_intermediates: bool = Field(
+        False,
+        description="keep a survey run's shards, block results and per-tile outputs after it "
+        "published (default: removed then; they are several times the input)",
+    )
     input_root: Path | None = Field(
         None,
         description="server directory whose files jobs may name by path; unset = paths refused",

@@ -100,9 +100,17 @@ def inside_root(settings: Settings, paths: list[Path]) -> None:
 
 
 def check_inputs(
-    settings: Settings, inputs: list[Path], raw_params: Mapping[str, Any], pipeline: Any
+    settings: Settings,
+    inputs: list[Path],
+    raw_params: Mapping[str, Any],
+    pipeline: Any,
+    *,
+    whole: bool = True,
 ) -> dict[str, Any]:
-    """Validated parameters after a header-only look at every input; raises on the first problem."""
+    """Validated parameters after a header-only look at every input; raises on the first problem.
+
+    ``whole=False`` (a survey) leaves the total to each run: only a tile over the limit fails.
+    """
     if not inputs:
         raise Problem("invalid-request", "no input files: send one or more `file` fields")
     params = pipeline.validate_params(raw_params)
@@ -111,7 +119,7 @@ def check_inputs(
     else:
         summary = pipeline.inspect_inputs(inputs, params)
     points = int(summary.get("points", 0)) if isinstance(summary, Mapping) else 0
-    if points > settings.max_points:
+    if whole and points > settings.max_points:
         raise Problem(
             "too-many-points",
             f"the inputs hold {points} points; this service takes at most {settings.max_points}",

@@ -3,6 +3,7 @@ incrementally into one current product per survey (``terrasift.jobs.survey``).""
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -16,7 +17,8 @@ from pydantic import ValidationError
 from pydantic_core import to_jsonable_python
 from starlette.concurrency import run_in_threadpool
 
-from terrasift.errors import InputError
+from terrasift.errors import InputError, NothingChanged, TerrasiftError
+from terrasift.files import load_json
 from terrasift.jobs import survey as surveys
 from terrasift.jobs import validate_params
 from terrasift.service import ogc
@@ -35,7 +37,7 @@ from terrasift.service.schemas import (
     multipart_body,
     problem_responses,
 )
-from terrasift.service.store import ACTIVE, Survey
+from terrasift.service.store import ACTIVE, Job, Survey
 from terrasift.service.submit import (
     check_inputs,
     inside_root,
@@ -44,6 +46,7 @@ from terrasift.service.submit import (
     resolve_server_paths,
 )
 
+log = logging.getLogger(__name__)
 router = APIRouter(tags=["Surveys"])
 
 # The same multipart form as POST /jobs, or JSON naming files under the input root.
@@ -132,27 +135,37 @@ def run_survey(
     `params` here override the survey's. 409 when a run is in progress or nothing changed."""
     svc = service(request)
     survey = _survey(svc, survey_id, who)
-    _not_busy(svc, survey)
     body = body or RunRequest()
+    job = _submit_run(svc, survey, body.mode, {**survey.params, **body.params})
+    return created(request, job)
+
+
+def _submit_run(
+    svc: Service, survey: Survey, mode: str, raw: dict[str, Any], after: str | None = None
+) -> Job:
+    """Plan a run of ``survey`` and queue its job. The service's ``max_points`` limits
+    the points one run reads (its tiles and their halo), not the survey: a survey over
+    it runs in batches, each queued when the one before it (``after``) has published."""
+    _not_busy(svc, survey, after)
     files = _present_files(svc, survey)
     job_id = new_id()
     job_dir = svc.scheduler.job_dir(job_id)
     try:
-        raw = {**survey.params, **body.params}
-        check_inputs(svc.settings, files, raw, svc.scheduler.pipeline)
+        check_inputs(svc.settings, files, raw, svc.scheduler.pipeline, whole=False)
         params = validate_params(raw)  # the survey's planning needs every resolved field
         summary = surveys.plan_survey_run(
             job_dir,
             svc.settings.surveys_dir / survey.id,
             files,
             params,
-            mode=body.mode,
+            mode=mode,
             max_points=svc.settings.max_points,
+            keep_intermediates=svc.settings.keep_intermediates,
         )
         inputs = [Path(p) for n, p in _by_name(files).items() if n in summary["sources"]]
         job = svc.store.create_job(
             job_id,
-            who,
+            survey.tenant,
             to_jsonable_python(params, fallback=str),
             [str(p) for p in inputs],
             survey_id=survey.id,
@@ -161,7 +174,27 @@ def run_survey(
         shutil.rmtree(job_dir, ignore_errors=True)
         raise
     svc.scheduler.wake()
-    return created(request, job)
+    return job
+
+
+def continue_batches(svc: Service, job_id: str) -> str | None:
+    """When a survey run has published (before it is marked successful): queue the next
+    batch if it left tiles pending, with the same parameters; returns the new job's id."""
+    job = svc.store.get_job(job_id)
+    if job is None or not job.survey_id:
+        return None
+    survey = svc.store.get_survey(job.survey_id)
+    state = surveys.current_state(svc.settings.surveys_dir / job.survey_id)
+    if survey is None or not state or not state.get("pending") or state.get("job") != job_id:
+        return None  # done, or another run published since: that run carries the rest
+    raw = load_json(svc.scheduler.job_dir(job_id) / "job.json")["params"]
+    if surveys.params_key(validate_params(raw)) != state.get("params_key"):
+        return None  # never loop on parameters that would not plan the same
+    try:
+        return _submit_run(svc, survey, "incremental", raw, after=job_id).id
+    except (Problem, TerrasiftError, NothingChanged):
+        log.warning("survey %s: the next batch was not queued", survey.id, exc_info=True)
+        return None
 
 
 @router.put(
@@ -336,8 +369,11 @@ def _present_files(svc: Service, survey: Survey) -> list[Path]:
     return files
 
 
-def _not_busy(svc: Service, survey: Survey) -> None:
-    active = [j.id for j in svc.store.survey_jobs(survey.id) if j.status in ACTIVE]
+def _not_busy(svc: Service, survey: Survey, finishing: str | None = None) -> None:
+    """409 while a run of the survey (other than ``finishing``, which has published) is active."""
+    active = [
+        j.id for j in svc.store.survey_jobs(survey.id) if j.status in ACTIVE and j.id != finishing
+    ]
     if active:
         raise Problem(
             "survey-busy",
@@ -402,7 +438,7 @@ def _register(
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
         raise InputError(f"tiles of a survey need distinct file names: {', '.join(twice[:10])}")
-    check_inputs(svc.settings, files, raw, svc.scheduler.pipeline)
+    check_inputs(svc.settings, files, raw, svc.scheduler.pipeline, whole=False)
     # the client's own parameters are kept: each run validates them again merged with its own
     return svc.store.create_survey(survey_id, who, [str(f) for f in files], dict(raw))
 
@@ -436,4 +472,9 @@ def _product_info(svc: Service, survey: Survey) -> dict[str, Any] | None:
     state = surveys.current_state(svc.settings.surveys_dir / survey.id)
     if state is None:
         return None
-    return {"version": state["version"], "job": state["job"], "tiles": len(state["tiles"])}
+    return {
+        "version": state["version"],
+        "job": state["job"],
+        "tiles": len(state["tiles"]),
+        "pending": len(state.get("pending", [])),
+    }
