@@ -99,6 +99,10 @@ _GROW_TOL_PER_CELL = 0.12  # auto growth tolerance per metre of final cell (ISPR
 class NistParams(StageParams):
     """Parameters of ``ground.nist``; lengths in metres, 0 means derived from point density."""
 
+    density: float = Field(0.0, ge=0, le=1e6)
+    """Points per m² the density-derived sizes (cells, masking, support radius) follow (0:
+    measured on each block's occupied area). Given, every block of a tile bins and masks
+    alike even where their own densities differ (strip overlaps, voids)."""
     grid: Literal["auto", "regular", "concentric"] = "auto"
     """Binning grid; ``auto`` is concentric when a sensor origin is given, else regular."""
     bin_fit: Literal["level", "plane"] = "plane"
@@ -182,6 +186,11 @@ class NistParams(StageParams):
     than the slope at its foot predicts over its run is a step and a wall (0: off; 0.3 m, as
     ``raised_step``). A platform about a metre high whose neighbours (wagons, cars) left a hole
     in the TIN meets the ground several metres away at a gentle angle."""
+    raised_rim: float = Field(4.0, ge=0, le=100)
+    """Final-TIN edges longer than this many median edges with both ends within one median
+    edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
+    ``raised.py``): a platform reaching the tile's edge was joined by them to ground 30–80 m
+    away along it."""
     raised_share: float = Field(0.7, ge=0.5, le=1)
     """A segment that is the upper side of at least this share of its steps is raised too, when
     it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut
@@ -503,7 +512,7 @@ def _classify(
     origin = (
         None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
     )
-    spacing = point_spacing(local[:, :2])
+    spacing = 1.0 / np.sqrt(params.density) if params.density > 0 else point_spacing(local[:, :2])
     g1, g2, g3 = _grids(local, params, spacing, origin)
     # Screening tolerances grow with the bin size of a pass: with vertices
     # further apart, smooth terrain departs further from neighbour votes.
@@ -603,6 +612,7 @@ def _without_raised(
         relative=params.raised_relative,
         walls=params.raised_walls,
         rise=params.raised_rise,
+        rim=params.raised_rim,
     )
     if not drop.any() or np.count_nonzero(~drop) < 3:
         return tin, None

@@ -48,6 +48,7 @@ def raised_segments(
     relative: bool = False,
     walls: float = 0.0,
     rise: float = 0.0,
+    rim: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -69,6 +70,10 @@ def raised_segments(
     upper side of such an edge goes only when it is also flat (its vertices within
     ``step`` RMS of their least-squares plane): a platform or a row of wagons is,
     a hillside that long edges happen to cut off is not.
+    ``rim`` > 0: edges longer than ``rim`` median edges with both ends within
+    one median edge of the hull's border join no segments. They are slivers
+    along the edge of the data (tens of metres long) and carry no evidence; a
+    platform reaching that edge was joined by them to ground far along it.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -91,7 +96,18 @@ def raised_segments(
         if relative:
             grad = grad - base[lower]
     is_step = (np.abs(dz) >= step) & ((grad >= tan_step) | big)
-    gentle = e[~is_step]
+    joins = ~is_step
+    if rim > 0:
+        # Slivers along the border of the data: long edges between vertices near
+        # the hull join what lies far apart along the edge, by no evidence.
+        med = float(np.median(run))
+        long = np.flatnonzero(run > rim * med)
+        if long.size:
+            ends = np.unique(e[long])  # only their ends need the distance to the hull
+            near = np.zeros(n, dtype=bool)
+            near[ends] = _hull_distance(xyz[:, :2], tri, ends) <= med
+            joins[long[near[e[long, 0]] & near[e[long, 1]]]] = False
+    gentle = e[joins]
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
     size = np.bincount(seg, minlength=n_seg)
@@ -133,6 +149,22 @@ def raised_segments(
             break
         gone |= raised
     return gone[seg]
+
+
+def _hull_distance(
+    xy: NDArray[np.float64], tri: Delaunay, idx: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Distance of the vertices ``idx`` of ``tri`` (vertex positions ``xy``) to its hull's border."""
+    h = np.asarray(tri.convex_hull, dtype=np.int64)
+    a, b = xy[h[:, 0]], xy[h[:, 1]]
+    xy = xy[idx]
+    d = b - a
+    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
+    out = np.full(xy.shape[0], np.inf)
+    for k in range(h.shape[0]):  # hull edges are few; points many
+        cross = (xy[:, 0] - a[k, 0]) * d[k, 1] - (xy[:, 1] - a[k, 1]) * d[k, 0]
+        np.minimum(out, np.abs(cross) / length[k], out=out)
+    return out
 
 
 def _flat(
