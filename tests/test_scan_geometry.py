@@ -31,9 +31,9 @@ def test_measured_geometry_matches_the_scanner(step, footprint, noise, scale):
     assert g.step_el == pytest.approx(step, rel=0.01)
     assert g.las_scale == pytest.approx(scale, abs=1e-9)
     assert noise * 0.8 < g.range_noise < noise * 1.4, g
-    # Ramps of blended returns run a little short of the footprint (shares under
-    # 5 % of a surface are not blended in by the generator).
-    assert footprint - 0.8 < g.footprint_steps < footprint + 0.5, g
+    # Ramps of blended returns, over the edges that show one (where a third surface far
+    # behind shares the footprint the nearest answers alone, with no ramp).
+    assert footprint - 0.3 < g.footprint_steps < footprint + 0.3, g
     assert g.footprint == pytest.approx(g.footprint_steps * g.step_az)
     assert set(g.how) == {"las_scale", "step", "range_noise", "footprint"}
 

@@ -79,6 +79,11 @@ class MixedParams(StageParams):
     margin_sigmas: float = Field(5.0, gt=0.0, le=50.0)
     """grid: a mixed return lies more than margin_sigmas × the measured range scatter
     off the surfaces either side of it."""
+    min_offset: float = Field(0.03, ge=0.0, le=1.0)
+    """grid: returns nearer a surface than this, measured across it, count as on it (at
+    grazing incidence a large range offset is a small distance off the surface: a blend
+    of ground and a wall's foot). 3 cm is the distance from every surface beyond which
+    the benchmark family counts a return as mixed."""
     variant: Variant = "exclusive_blind_window"
     """Marking: naive (the interest point), aggressive (the whole box), accumulator
     (points reported by at least ``votes`` boxes), exclusive (box but the interest
@@ -330,6 +335,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,
         resolve=GRID_RESOLVE,
+        min_offset=p.min_offset,
     )
 
 

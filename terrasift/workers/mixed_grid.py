@@ -18,7 +18,11 @@ margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
 most ``span`` beams lie between the anchors (a blend spans about a footprint).
 Surfaces are continued in inverse range, which is linear in the angle along a
 plane seen from the sensor (exactly for the ground along elevation, however
-grazing), so far grazing ground passes as a surface, not as a ramp.
+grazing), so far grazing ground passes as a surface, not as a ramp. "Misses p"
+is judged across the surface too: the change of inverse range per beam along
+both axes gives the surface's incidence at p's beam, and a range offset times
+cos(incidence) must exceed the margin and ``min_offset`` (a blend of grazing
+ground with a wall's foot lies 20 cm off the ground in range but 2 cm above it).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -27,7 +31,8 @@ of one background surface that continues behind them. Such runs are marked too.
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
-when more likely than not displaced by more than the margin (``_bleeding``).
+when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
+the shift is sideways, so range noise does not blur it).
 
 Everything is array arithmetic on the points sorted by grid index; the only
 loops run over the few beam offsets within reach.
@@ -57,6 +62,8 @@ class GridSettings:
     span: int = 99  # most beams between the two surfaces of a blend
     las_scale: float = 0.0
     resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
+    min_offset: float = 0.0  # returns nearer a surface than this (across it) count as on it
+    bleed_prob: float = 0.5  # least probability of a bleeding beam being past by the margin
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
 
 
@@ -100,13 +107,21 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     key = ia * n_e + ie
     order = np.argsort(key, kind="stable")
     key, r = key[order], r[order]
-    inv = 1.0 / r
+    find = _finder(key, (int(ia.max()) + pad + 1) * n_e)
+    r_pad = np.append(r, np.nan)  # index r.size: no return
     out = np.zeros(r.size, dtype=bool)
+    # Range change per beam across each axis (the smoother side): with the change along
+    # the axis it gives a surface's incidence, so a range offset can be turned into a
+    # distance off the surface (grazing ground looks flat along azimuth but is not).
+    across: dict[int, NDArray[np.float64]] = {}
+    for axis in (0, 1):
+        stride = n_e if axis == 1 else 1  # neighbours along the other axis
+        both = np.fmin(np.abs(r_pad[find(key + stride)] - r), np.abs(r_pad[find(key - stride)] - r))
+        across[axis] = np.where(np.isfinite(both), both, 0.0)
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
-        out |= _mixed_along(
-            _Line(key, r, inv, n_e if axis == 0 else 1, s.reach + 2), r, s, pos, axis
-        )
+        line = _Line(key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis])
+        out |= _mixed_along(line, r, s, pos, axis)
     marked[idx[order]] = out
     return marked, judged
 
@@ -115,17 +130,35 @@ class _Line:
     """Neighbours of every return along one axis of the grid: range and inverse range
     at each beam offset (NaN where no return)."""
 
-    def __init__(self, key, r, inv, stride: int, reach: int) -> None:
+    def __init__(self, key, r_pad, find, stride: int, reach: int, across) -> None:
+        inv_pad = 1.0 / r_pad
+        c_pad = np.append(across, 0.0)
         n = key.size
-        self.R: dict[int, NDArray[np.float64]] = {0: r}
-        self.V: dict[int, NDArray[np.float64]] = {0: inv}
+        self.R: dict[int, NDArray[np.float64]] = {0: r_pad[:n]}
+        self.V: dict[int, NDArray[np.float64]] = {0: inv_pad[:n]}
+        self.C: dict[int, NDArray[np.float64]] = {0: across}  # range change per beam across
         for k in range(1, reach + 1):
             for sd in (1, -1):
-                want = key + sd * k * stride
-                j = np.minimum(np.searchsorted(key, want), n - 1)
-                hit = key[j] == want
-                self.R[sd * k] = np.where(hit, r[j], np.nan)
-                self.V[sd * k] = np.where(hit, inv[j], np.nan)
+                j = find(key + sd * k * stride)
+                self.R[sd * k] = r_pad[j]
+                self.V[sd * k] = inv_pad[j]
+                self.C[sd * k] = c_pad[j]
+
+
+def _finder(key: NDArray[np.int64], n_cells: int):
+    """Index of the return at each wanted grid key (``key.size`` where none): a dense
+    lookup table when the grid is at most 16 cells per return, binary search otherwise."""
+    n = key.size
+    if n_cells <= 16 * n:
+        lut = np.full(n_cells, n, dtype=np.int64)
+        lut[key] = np.arange(n)
+        return lambda want: lut[want]
+
+    def search(want: NDArray[np.int64]) -> NDArray[np.int64]:
+        j = np.minimum(np.searchsorted(key, want), n - 1)
+        return np.where(key[j] == want, j, n)
+
+    return search
 
 
 def _mixed_along(
@@ -140,6 +173,8 @@ def _mixed_along(
     reach = s.reach
     R, V = line.R, line.V
     step = s.step_az if axis == 0 else s.step_el
+    step_x = s.step_el if axis == 0 else s.step_az
+    across = max(s.margin, s.min_offset)  # least distance off a surface, across it
     # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
     # range changes by d per beam that adds d × the blur in steps to its range scatter.
     blur = s.las_scale / np.sqrt(12.0) / r / step
@@ -169,8 +204,17 @@ def _mixed_along(
                 anchored = (
                     np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
                 ) | (np.abs(R[a1] - ra) <= spread(0))
-                # off its surface
-                off = np.abs(extrapolated(a, a1, float(i)) - r) > spread(i, np.abs(ra - R[a1]))
+                # off its surface: in range beyond the continuation's scatter, and across
+                # the surface by more than the margin and min_offset (at grazing incidence
+                # a range offset is mostly along the surface)
+                slope = np.abs(ra - R[a1])
+                dev = np.abs(extrapolated(a, a1, float(i)) - r)
+                # incidence at p's beam: along a plane the inverse range changes evenly,
+                # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
+                tan_a = r * np.abs(V[a] - V[a1]) / step
+                tan_x = r * line.C[a] / ra**2 / step_x
+                cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
+                off = (dev > spread(i, slope)) & (dev * cos_inc > across)
                 ok = anchored & off
                 near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
                 far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
@@ -186,7 +230,7 @@ def _mixed_along(
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
     if s.thin > 0:
-        between |= _thin_runs(R, V, r, s)
+        between |= _thin_runs(R, V, line.C, r, s, step, step_x)
     between |= _bleeding(R, V, r, s, step, pos)
     return between
 
@@ -203,21 +247,27 @@ def _bleeding(
     return, or a background beyond ``max_gap``), a beam whose footprint still touches the
     surface returns its range on its own central ray, up to half a footprint past the edge.
     The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
-    evenly; it is marked when more likely than not past by more than the margin. Beams
-    outside the extent of the returns (the field of view) are not edges."""
+    evenly; it is marked when past by more than ``min_offset`` with a probability above
+    ``bleed_prob`` (one half: more likely than not). Beams outside the extent of the
+    returns (the field of view) are not edges."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
+    # a shift sideways, which range noise does not blur: min_offset (the margin if 0)
+    least = s.min_offset if s.min_offset > 0 else s.margin
     with np.errstate(invalid="ignore", divide="ignore"):
         for sd in (1, -1):
             # on a surface seen from the inner side
-            inner = np.abs(1.0 / (2 * V[-sd] - V[-2 * sd]) - r) <= s.sigmas * s.sigma * np.sqrt(6)
+            # (or nearer than it: on a receding surface, e.g. grazing ground, the part of
+            # the footprint still on it lies nearer than where the central ray would meet it)
+            inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= s.sigmas * s.sigma * np.sqrt(6)
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
                 beyond = R[sd * k]
                 inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
                 edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
-                shift = (half - k + 0.5) * step * r
-                out |= inner & same & edge & (shift > s.margin)
+                # past the edge by x steps, x even in [half - k, half - k + 1)
+                prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
+                out |= inner & same & edge & (prob > s.bleed_prob)
                 same &= np.abs(beyond - r) <= s.margin
     return out
 
@@ -225,13 +275,17 @@ def _bleeding(
 def _thin_runs(
     R: dict[int, NDArray[np.float64]],
     V: dict[int, NDArray[np.float64]],
+    C: dict[int, NDArray[np.float64]],
     r: NDArray[np.float64],
     s: GridSettings,
+    step: float,
+    step_x: float,
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
-    continues behind them (the surface either side, continued across the run, agrees)."""
-    n = r.size
-    out = np.zeros(n, dtype=bool)
+    continues behind them (the surface either side, continued across the run, agrees),
+    by more than the margin and ``min_offset`` across that surface (``C``: range change
+    per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
+    out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
         for L in range(1, s.thin + 1):
             # p at position q (0..L-1) within a run of L beams: background at -(q+1) and +(L-q)
@@ -239,17 +293,26 @@ def _thin_runs(
                 lo, hi = -(q + 1), L - q
                 if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
                     continue
-                rb0, rb1 = R[lo], R[hi]
-                behind = (rb0 > r + s.margin) & (rb1 > r + s.margin)
-                behind &= (rb0 - r < s.max_gap) & (rb1 - r < s.max_gap)
+                d0, d1 = R[lo] - r, R[hi] - r
+                behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap) & (d1 < s.max_gap)
+                c = np.flatnonzero(behind)  # the rest is judged on these few only
+                if c.size == 0:
+                    continue
+                rc, rb0, rb1 = r[c], R[lo][c], R[hi][c]
                 # the run's beams all lie in front of the background
+                keep = np.ones(c.size, dtype=bool)
                 for m in range(lo + 1, hi):
-                    behind &= R[m] < np.minimum(rb0, rb1) - s.margin
+                    keep &= R[m][c] < np.minimum(rb0, rb1) - s.margin
                 # the background continues behind the run: each side's surface,
                 # continued across the run, lands on the other side's beam
-                v_left = V[lo] + (V[lo] - V[lo - 1]) * (hi - lo)
-                v_right = V[hi] + (V[hi] - V[hi + 1]) * (hi - lo)
+                v0, v1 = V[lo][c], V[hi][c]
+                v_left = v0 + (v0 - V[lo - 1][c]) * (hi - lo)
+                v_right = v1 + (v1 - V[hi + 1][c]) * (hi - lo)
                 tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
                 cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
-                out |= behind & cont
+                tan_a = rc * np.abs(v0 - V[lo - 1][c]) / step
+                tan_x = rc * C[lo][c] / rb0**2 / step_x
+                least = max(s.margin, s.min_offset)
+                in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
+                out[c[keep & cont & in_front]] = True
     return out

@@ -21,7 +21,8 @@ beams on (locally) regular angular lines.
 - Footprint: the scan lines are binned on the measured azimuth grid; at each
   range edge between two surfaces closer than ``max_gap`` the number of beams
   whose range lies between the two (the ramp) is counted; the footprint is the
-  mean ramp length in steps (at least one step). Stated when the caller knows it.
+  mean ramp length in steps over the edges that show a ramp (at least one step).
+  Stated when the caller knows it.
 """
 
 from __future__ import annotations
@@ -280,7 +281,10 @@ def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     ok_flank = (first > 0) & (last < J.size - 1)
     ok_flank &= (np.abs(J[before]) < lim) & (np.abs(J[after]) < lim)
     ok_flank &= adj[before] & adj[after]
-    edges = ok_flank & (total > 0.2) & (total < max_gap) & (length <= 8)
+    # Edges with no blended beam are left out: there a third surface far behind (ground
+    # or nothing) shared the footprint and the nearest surface answered alone, which
+    # says nothing about the footprint's width (counting them ran 10–55 % short).
+    edges = ok_flank & (total > 0.2) & (total < max_gap) & (length >= 2) & (length <= 8)
     if np.count_nonzero(edges) < 5:
         return float("nan")
     return float(np.mean(length[edges] - 1))
