@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 from terrasift.synthetic.terrain import make_scene, write_las
+
+# The suite's jobs run at the suite's own CPU priority: with a worker nice value the
+# service's workers take a low-priority scheduling group of their own (test_pool checks
+# that), and on a machine busy with other work the suite would crawl.
+os.environ.setdefault("TERRASIFT_WORKER_NICE", "0")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

@@ -51,6 +51,12 @@ def grow() -> None:
         time.sleep(0.02)
 
 
+def priority() -> tuple[int, int, int, str | None]:
+    """The worker's pid, session, nice value and scheduling group (autogroup) line."""
+    group = Path("/proc/self/autogroup")
+    return os.getpid(), os.getsid(0), os.nice(0), group.read_text() if group.exists() else None
+
+
 def raises() -> None:
     raise ValueError("bad block")
 
@@ -117,6 +123,27 @@ def test_memory_limit_names_the_task(pool: WorkerPool) -> None:
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="PR_SET_PDEATHSIG is Linux")
+def test_workers_run_below_their_owner_in_a_group_of_their_own() -> None:
+    # a nice value alone counts only inside the session's scheduling group: the workers
+    # would use up the owner's group share and the API would wait for a CPU with them
+    p = WorkerPool(1, nice=7)
+    try:
+        pid, session, nice, group = p.submit(priority).result(timeout=60)
+    finally:
+        p.shutdown()
+    assert pid != os.getpid()
+    assert session == pid != os.getsid(0)
+    assert nice == min(19, os.nice(0) + 7)
+    if group is not None:  # kernels with autogroup
+        assert group.split()[-1] == "7"
+        assert Path("/proc/self/autogroup").read_text() != group
+
+
+def test_workers_without_nice_stay_in_the_owner_s_session(pool: WorkerPool) -> None:
+    pid, session, nice, _ = pool.submit(priority).result(timeout=60)
+    assert session == os.getsid(0) and nice == os.nice(0)
+
+
 def test_workers_die_with_their_owner_and_leftovers_are_reaped(tmp_path: Path) -> None:
     pid_dir = tmp_path / "workers"
     code = (

@@ -28,6 +28,18 @@ def _run_job(job_dir: Path, executor, progress) -> list[str]:
     return []
 
 
+def _run_two_tasks(job_dir: Path, executor, progress) -> list[str]:
+    """One long task running and one queued behind it: a shutdown cancels the queued one
+    and the job thread ends (as the pipeline's does) while the long call still runs."""
+    futures = [executor.submit(long_call, 120.0), executor.submit(long_call, 0.0)]
+    while True:
+        for f in executor.wait_any(futures, 0.5):
+            f.result()
+            futures.remove(f)
+        if not futures:
+            return []
+
+
 def _request_cancel(job_dir: Path) -> None:
     (Path(job_dir) / "CANCELLED").touch()
 
@@ -91,3 +103,26 @@ def test_shutdown_stops_running_tasks_after_the_grace_period(scheduler) -> None:
     assert all(not Path(f"/proc/{p}").exists() for p in busy)
     assert store.get_job("j2").status == "running"  # resumes on the next start
     assert store.requeue_interrupted() == ["j2"]
+
+
+def test_the_grace_period_bounds_tasks_whose_job_thread_has_ended(tmp_path: Path) -> None:
+    store = JobStore(tmp_path / "jobs.sqlite")
+    executor = LocalExecutor(1, start_method="spawn")
+    pipeline = SimpleNamespace(**{**vars(PIPELINE), "run_job": _run_two_tasks})
+    s = Scheduler(
+        store, tmp_path / "jobs", lambda: executor, 2, pipeline=pipeline, poll_seconds=0.1
+    )
+    s.start()
+    try:
+        _start(store, s, executor, "j3")
+        busy = executor.pool.busy_pids()
+        t = time.monotonic()
+        s.stop(timeout=1.0)
+        took = time.monotonic() - t
+        print(f"stop with a 1 s grace, job thread gone first: {took:.2f} s")
+        # before: the pool waited for the 120 s call once no job thread was left
+        assert took < 8
+        assert all(not Path(f"/proc/{p}").exists() for p in busy)
+    finally:
+        s.stop(timeout=0)
+        store.close()

@@ -7,6 +7,7 @@ uvicorn, which ``terrasift serve`` calls.
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -39,8 +40,13 @@ def create_app(
     *,
     pipeline: Any | None = None,
     executor_factory: Callable[[], Executor] | None = None,
+    freeze_heap: bool = False,
 ) -> FastAPI:
-    """The terrasift API; ``pipeline``/``executor_factory`` replace the real ones in tests."""
+    """The terrasift API; ``pipeline``/``executor_factory`` replace the real ones in tests.
+
+    ``freeze_heap`` (``terrasift serve``): at startup, import what jobs need and move
+    every object alive then out of the garbage collector's reach (see ``settle_heap``).
+    """
     settings = settings or Settings()
     if executor_factory is None:
 
@@ -85,6 +91,8 @@ def create_app(
                 *([settings.input_root] if settings.input_root else []),
             ],
         )
+        if freeze_heap:
+            log.info("%d objects frozen out of garbage collection", settle_heap())
         app.state.svc = Service(settings, store, scheduler)
         scheduler.on_success = partial(surveys.continue_batches, app.state.svc)
         app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
@@ -134,6 +142,24 @@ def create_app(
     return app
 
 
+def settle_heap() -> int:
+    """Import what the job driver uses, collect once and freeze the survivors; how many.
+
+    A full collection walks every object the collector tracks, and with numpy,
+    numba, rasterio and Dask loaded that is ~140,000 objects: 50-130 ms holding the
+    GIL, during which the event loop answers no request (0.3 s stalls of every
+    status read at load ~15). Frozen objects are skipped by later collections;
+    what the service allocates afterwards is collected as before.
+    """
+    import rasterio  # noqa: F401 - the job driver's last check reads the DTM with it
+
+    import terrasift.jobs  # noqa: F401 - otherwise imported by the first job's thread
+
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
 def serve(
     host: str | None = None, port: int | None = None, settings: Settings | None = None
 ) -> None:
@@ -146,4 +172,4 @@ def serve(
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port)
+    uvicorn.run(create_app(settings, freeze_heap=True), host=settings.host, port=settings.port)

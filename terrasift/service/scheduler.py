@@ -189,15 +189,21 @@ class Scheduler:
             executor, self._executor = self._executor, None
         if executor is not None:
             try:
-                kill = any(t.is_alive() for t in threads)
-                if kill and "kill" in inspect.signature(executor.shutdown).parameters:
+                # a job thread may have ended (its queued tasks cancelled) while a task it
+                # submitted still runs: the rest of the grace period is for those tasks
+                grace = 0.0 if any(t.is_alive() for t in threads) else deadline - time.monotonic()
+                options = inspect.signature(executor.shutdown).parameters
+                if "grace" in options:
+                    executor.shutdown(grace=max(0.0, grace))  # type: ignore[call-arg]
+                elif "kill" in options and grace <= 0:
                     executor.shutdown(kill=True)  # type: ignore[call-arg]
                 else:
                     executor.shutdown()
             except Exception:  # noqa: BLE001 - shutting down anyway
                 log.exception("executor shutdown failed")
+        end = time.monotonic() + 5.0
         for t in threads:
-            t.join(5.0)
+            t.join(max(0.0, end - time.monotonic()))
 
     @property
     def stopping(self) -> bool:

@@ -67,7 +67,11 @@ class Settings(BaseSettings):
         "unset = 80 % of the machine's memory shared by the workers",
     )
     worker_nice: int = Field(
-        10, ge=0, le=19, description="CPU priority of workers below the API (os.nice increment)"
+        10,
+        ge=0,
+        le=19,
+        description="CPU priority of workers below the API (os.nice increment; where the kernel"
+        " groups CPU time by session, also the nice of each worker's own session group)",
     )
     task_seconds: float = Field(
         300.0, gt=0, description="time limit of every task, plus task_seconds_per_mpoint"

@@ -130,9 +130,10 @@ class LocalExecutor:
         done, _ = cf_wait(list(futures), timeout=timeout, return_when=FIRST_COMPLETED)  # type: ignore[arg-type]
         return set(done)
 
-    def shutdown(self, *, kill: bool = False) -> None:
-        """Wait for running tasks (``kill``: stop them now); queued ones are cancelled."""
-        self.pool.shutdown(wait=True, kill=kill)
+    def shutdown(self, *, kill: bool = False, grace: float | None = None) -> None:
+        """Wait for running tasks (``kill``: stop them now; ``grace``: stop them after
+        that many seconds); queued ones are cancelled."""
+        self.pool.shutdown(wait=True, kill=kill, grace=grace)
 
 
 NO_WORKERS_TIMEOUT = 60.0

@@ -8,7 +8,8 @@ its memory limit or runs a task whose job was dismissed is killed and
 replaced. Only that task fails; a task whose worker died is tried once more
 (the death may have been someone else's fault, e.g. the OOM killer).
 
-Workers run at a lower CPU priority than the process that owns the pool, die
+Workers run at a lower CPU priority than the process that owns the pool (in a
+session and scheduling group of their own where the kernel groups by session), die
 with it (``PR_SET_PDEATHSIG`` and a thread watching the parent pid), and
 leave a pid file so that the next start can kill any that outlived a crash.
 """
@@ -40,6 +41,7 @@ PR_SET_PDEATHSIG = 1
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 _TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 WALL_FACTOR = 4  # a task's wall-clock limit, in multiples of its CPU limit
+KILL_WAIT = 3.0  # seconds a stopping pool waits for killed workers to be gone
 
 
 class WorkerLost(ProcessingError):
@@ -88,12 +90,24 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
+def _lower_priority(nice: int) -> None:
+    """Run ``nice`` steps below the owner, also where the kernel shares CPU time
+    between sessions first (autogroup): there a nice value counts only within the
+    session's group, and workers left in the owner's session would use up the
+    group's share, so the owner's threads would wait for a CPU with them. A worker
+    starts a session of its own and gives its group the same nice value."""
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+    with contextlib.suppress(OSError):
+        os.setsid()
+        Path("/proc/self/autogroup").write_text(f"{nice}\n")
+
+
 def _worker_main(conn: Connection, parent: int, nice: int, pid_dir: str | None) -> None:
     """Run tasks from ``conn`` until told to stop; each reply is (task id, ok, value)."""
     _die_with_parent(parent)
     if nice:
-        with contextlib.suppress(OSError):
-            os.nice(nice)
+        _lower_priority(nice)
     pid_file = None
     if pid_dir:
         pid_file = Path(pid_dir) / str(os.getpid())
@@ -198,6 +212,7 @@ class WorkerPool:
         self._tasks: dict[Future, _Task] = {}
         self._lock = threading.Lock()
         self._closing = False
+        self._kill_by: float | None = None  # set when stopping: when to stop waiting for deaths
         self._wake_r, self._wake_w = multiprocessing.Pipe(duplex=False)
         self._workers: list[_Worker] = []
         # A replacement is always spawned: by then the owner may run threads.
@@ -237,20 +252,37 @@ class WorkerPool:
         self._wake()
         return stopped
 
-    def shutdown(self, wait: bool = True, *, kill: bool = False) -> None:
-        """Stop taking tasks; queued ones are cancelled, running ones finish (or are killed)."""
+    def shutdown(
+        self, wait: bool = True, *, kill: bool = False, grace: float | None = None
+    ) -> None:
+        """Stop taking tasks; queued ones are cancelled. Running ones finish, or are
+        stopped now (``kill``) or after ``grace`` seconds (``wait`` only).
+
+        When tasks are stopped, idle workers are killed too instead of being asked to
+        exit: a worker starved of CPU (low priority on a busy machine) can take tens of
+        seconds to shut its interpreter down.
+        """
+        self._close(kill)
+        if wait and grace is not None and not kill:
+            self._manager.join(grace)
+            if self._manager.is_alive():
+                self._close(True)
+        if wait:
+            self._manager.join()
+
+    def _close(self, kill: bool) -> None:
         with self._lock:
             self._closing = True
             for task in self._queue:
                 task.future.cancel()
             self._queue.clear()
             if kill:
+                if self._kill_by is None:
+                    self._kill_by = time.monotonic() + KILL_WAIT
                 for task in self._tasks.values():
                     if not task.future.done() and task.kill is None:
                         task.kill = JobCancelled("the service is shutting down")
         self._wake()
-        if wait:
-            self._manager.join()
 
     def worker_pids(self) -> list[int]:
         """Pids of the live workers (for tests and the health check)."""
@@ -288,6 +320,8 @@ class WorkerPool:
                     busy = any(w.task is not None for w in self._workers)
                     if self._closing and not busy and not self._queue:
                         break
+                    if self._kill_by is not None and time.monotonic() > self._kill_by:
+                        break  # killed; they die with us at the latest (PDEATHSIG)
                 ready = wait(
                     [self._wake_r]
                     + [w.conn for w in self._workers]
@@ -442,15 +476,22 @@ class WorkerPool:
                     os.kill(w.proc.pid, signal.SIGKILL)
 
     def _stop_workers(self) -> None:
+        killing = self._kill_by is not None
         for w in self._workers:
             with contextlib.suppress(Exception):
-                w.conn.send(None)
-        deadline = time.monotonic() + 5.0
+                if killing and w.proc.pid:
+                    os.kill(w.proc.pid, signal.SIGKILL)
+                else:
+                    w.conn.send(None)
+        deadline = time.monotonic() + (KILL_WAIT if killing else 5.0)
         for w in self._workers:
             w.proc.join(max(0.0, deadline - time.monotonic()))
+        deadline = time.monotonic() + 1.0
+        for w in self._workers:
             if w.proc.is_alive():
-                w.proc.kill()
-                w.proc.join(1.0)
+                with contextlib.suppress(Exception):
+                    w.proc.kill()
+                w.proc.join(max(0.0, deadline - time.monotonic()))
             self._forget(w)
         self._workers = []
 
