@@ -674,3 +674,59 @@ def test_join_lines_up_pieces_end_to_end_across_a_longer_gap_only():
     assert flt.join == "width" and flt.join_aligned == Metres(20)
     assert parse_filter(format_filter(flt)) == flt
     assert resolve_lengths(flt, 2.0).join_aligned == 10
+
+
+def test_ridge_on_a_slope_is_found_and_a_pond_rim_on_it_is_not():
+    """On a 12 % slope the downhill rim of a pond dug into it (bank rising to the rim,
+    slope falling beyond) has a ridge's cross-section; on its regional slope it has not."""
+    cell, size = 0.5, 240.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    g = 0.12 * np.sqrt(0.5)
+    base = 100 - g * x - g * y  # rises south-west
+    # a pond: a 28 m floor 1.5 m below the lowest point of its rim, 6 m banks
+    px, py, r, bank = 170.0, 120.0, 14.0, 6.0
+    floor = 100 - g * (px + py) - 0.12 * (r + bank) - 1.5
+    t = np.clip((np.hypot(x - px, y - py) - r) / bank, 0, 1)
+    z = np.where(t < 1, floor + t * (base - floor), base)
+    # a raised-cosine ridge 30 m wide, 5 m high, 120 m long, running north-south
+    d, along = np.abs(x - 60), np.abs(y - 120)
+    taper = np.clip((60 - along) / 15, 0, 1)
+    z += np.where(d < 15, 2.5 * (1 + np.cos(np.pi * d / 15)), 0) * taper
+    z += np.random.default_rng(3).normal(0, 0.02, z.shape)
+    flt = load_filter("ridge")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    ridges = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(ridges) == 1
+    assert abs(ridges[0].geometry.centroid.x - 60) < 5
+    # the same filter on the tiles as they lie takes the pond's rim for a ridge
+    plain = parse_filter(format_filter(flt).replace("detrend 120m\n", ""))
+    got = detect_features(cats, [plain], tt, cats.tile_size).objects
+    assert any(abs(f.geometry.centroid.x - px) < 25 for f in got)
+
+
+def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
+    h = np.zeros((40, 40), dtype=bool)
+    v = np.zeros((40, 40), dtype=bool)
+    # a bowl: rows and columns cross the same disc
+    yy, xx = np.mgrid[0:40, 0:40]
+    disc = np.hypot(yy - 10, xx - 10) < 7
+    h |= disc
+    v |= disc
+    h[10:12, 8:13] = True  # a little more one way
+    # a row-strip and a column-strip crossing in a corner
+    h[25:30, 15:40] = True
+    v[20:40, 15:20] = True
+    assert C.h_and_v(h, v)[25:30, 15:20].all()
+    kept = C.h_and_v(h, v, 0.15)
+    assert kept[disc].all() and not kept[25:30, 15:20].any()
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 0\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\nh-and-v 0.15\n"
+    )
+    flt = parse_filter(text)
+    assert flt.h_and_v and flt.h_and_v_share == 0.15
+    assert parse_filter(format_filter(flt)) == flt
+    with pytest.raises(FilterSyntaxError, match="h-and-v"):
+        parse_filter(text.replace("h-and-v 0.15", "h-and-v 1.5"))

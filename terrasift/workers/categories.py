@@ -235,7 +235,9 @@ def category_grids(
         z = win.reshape(rows * cols, k * k)
 
     nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
-    z = np.where(nodata[:, None], 0.0, z)
+    gaps = bool(nodata.any())
+    if gaps:
+        z = np.where(nodata[:, None], 0.0, z)
     z = z - z.mean(axis=1, keepdims=True)
 
     pinv0, resid0, h, hnorm, plane_of_hinge = _models(k, cell)
@@ -243,7 +245,8 @@ def category_grids(
     r0 = z @ resid0
     rss0 = (r0 * r0).sum(axis=1)
     proj = r0 @ h  # (n, 16)
-    gain = proj * proj / hnorm
+    gain = np.square(proj)
+    gain /= hnorm
     best = gain.argmax(axis=1)
     n = z.shape[0]
     idx = np.arange(n)
@@ -264,13 +267,15 @@ def category_grids(
             c = (np.arange(k) + 0.5) * cell - k * cell / 2
             xx, yy = np.meshgrid(c, -c)
             tx, ty = trend[0].reshape(-1, 1), trend[1].reshape(-1, 1)
-            zt = np.where(nodata[:, None], 0.0, z - tx * xx.ravel() - ty * yy.ravel())
+            zt = z - tx * xx.ravel() - ty * yy.ravel()
+            if gaps:
+                zt[nodata] = 0.0
             coef0 = zt @ pinv0.T
         height = zt.max(axis=1) - zt.min(axis=1)
         # the height flatness is judged on: the model's range where it explains the tile
         fitted = zt - r0
-        if two.any():
-            fitted[two] += c3[two, None] * h[:, best[two]].T
+        if two.any():  # the hinge term on two-plane tiles (adding 0 elsewhere changes nothing)
+            fitted += np.where(two, c3, 0.0)[:, None] * h.T[best]
         rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
         explained = rms_model <= params.flat_noise * sigma
         model_height = fitted.max(axis=1) - fitted.min(axis=1)

@@ -32,7 +32,6 @@ from terrasift.workers.categories import (
     Categories,
     CategoryParams,
     category_grids,
-    compute_categories,
     measure_noise,
     regional_gradient,
 )
@@ -142,15 +141,22 @@ def categories_for(
         params = params.model_copy(update={"noise": measure_noise(dtm, cell, params)})
     keys = grid_keys(filters)
     others: dict[GridKey, Categories] = {}
-    cats = compute_categories(dtm, cell, params)
-    for step in sorted({k[0] for k in keys}, key=lambda v: v or 0.0):
-        # the grids of one step share their plane fits (category_grids)
+    cats = None
+    for step in sorted({k[0] for k in keys} | {None}, key=lambda v: v or 0.0):
+        # the grids of one step share their plane fits (category_grids), the tile
+        # grid's with the detrended grids of abutting tiles
         mine = [k for k in keys if k[0] == step]
+        windows = [w for _, w in mine]
+        if step is None:
+            windows = [None, *windows]
         trends = [
-            None if w is None else regional_gradient(dtm, cell, params, w, step) for _, w in mine
+            None if w is None else regional_gradient(dtm, cell, params, w, step) for w in windows
         ]
-        for key, grid in zip(mine, category_grids(dtm, cell, params, step, trends), strict=True):
-            others[key] = grid
+        made = category_grids(dtm, cell, params, step, trends)
+        if step is None:
+            cats, made = made[0], made[1:]
+        others.update(zip(mine, made, strict=True))
+    assert cats is not None
     return cats, others
 
 
@@ -227,7 +233,7 @@ def _run_filter(
     objects: list[Feature] = []
     h, v = search_filter(categories, flt)
     if flt.h_and_v:
-        marks = _connect.h_and_v(h, v)
+        marks = _connect.h_and_v(h, v, flt.h_and_v_share)
         h, v = h & marks, v & marks
     else:
         marks = h | v

@@ -139,9 +139,23 @@ def edges(
     return _components(marks.shape, np.concatenate(edges_a), np.concatenate(edges_b), marks)
 
 
-def h_and_v(h: NDArray[np.bool_], v: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Tiles that are part of both a horizontal and a vertical segment."""
-    return h & v
+def h_and_v(
+    h: NDArray[np.bool_], v: NDArray[np.bool_], share: float | None = None
+) -> NDArray[np.bool_]:
+    """Tiles that are part of both a horizontal and a vertical segment; with ``share``,
+    only groups of them (4-connected) that make at least that share of the tiles
+    marked either way that they connect to."""
+    both = h & v
+    if share is None or not both.any():
+        return both
+    lab, n = ndimage.label(both)
+    around, _ = ndimage.label(h | v)
+    # each group of both-way tiles lies in exactly one either-way group
+    first = ndimage.minimum(around, lab, index=np.arange(1, n + 1)).astype(np.int64)
+    either = np.bincount(around.ravel())[first]
+    count = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    keep = np.concatenate([[False], count >= share * either])
+    return keep[lab]
 
 
 def find_rectangles(

@@ -218,6 +218,11 @@ class Filter:
     """``detrend <metres>``: run on categories of tiles set on their regional slope (the
     median tile gradient over a window this wide), so a narrow object on a slope is
     categorised as on level ground."""
+    h_and_v_share: float | None = None
+    """``h-and-v <share>``: a group of tiles marked both ways is kept only when it is at
+    least this share of the tiles marked either way that it connects to (a bowl is
+    crossed both ways nearly everywhere; the corner where a row-strip meets a
+    column-strip is a small part of both)."""
 
     @property
     def makes_objects(self) -> bool:
@@ -299,6 +304,7 @@ class _Parser:
         detrend: Metres | None = None
         hull = False
         solidity: float | None = None
+        share: float | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -309,8 +315,12 @@ class _Parser:
                     raise self.error("segments must come before connect/h-and-v/findrectangle", no)
                 segments.append(self.segment(no, args))
             elif key == "h-and-v":
+                if h_and_v or len(args) > 1:
+                    raise self.error("h-and-v takes at most one share (0-1), once", no)
                 if args:
-                    raise self.error("h-and-v takes no parameters", no)
+                    (share,) = self.numbers(args, no, "h-and-v")
+                    if not 0 < share <= 1:
+                        raise self.error("h-and-v share is above 0 and at most 1", no)
                 h_and_v = True
                 steps.append("h-and-v")
             elif key == "connect":
@@ -396,6 +406,7 @@ class _Parser:
             hull,
             solidity,
             detrend,
+            share,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -575,7 +586,7 @@ def format_filter(f: Filter) -> str:
         out.append("endsegment")
     for step in f.steps or _default_steps(f):
         if step == "h-and-v":
-            out.append("h-and-v")
+            out.append("h-and-v" if f.h_and_v_share is None else f"h-and-v {f.h_and_v_share:g}")
         elif step == "connect" and f.connect is not None:
             c = f.connect
             lims = " ".join(

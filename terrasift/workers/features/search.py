@@ -15,6 +15,7 @@ the subsegments not marked ``exclude`` are marked.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -32,10 +33,13 @@ from terrasift.workers.features.language import (
 )
 
 
+@lru_cache(maxsize=256)
 def _lut(vs: ValueSet) -> NDArray[np.bool_]:
+    """Which of the 256 byte values ``vs`` allows (NODATA never); shared, not to be written."""
     lut = np.zeros(256, dtype=bool)
     for v in range(255):
         lut[v] = vs.allows(v)
+    lut.flags.writeable = False
     return lut
 
 
@@ -62,31 +66,43 @@ def class_mask(cats, sub: SubSegment) -> NDArray[np.bool_]:
     return out
 
 
-def search_rows(cats: tuple[NDArray, ...], seg: Segment, band: int = 512) -> NDArray[np.bool_]:
+def search_rows(
+    cats: tuple[NDArray, ...],
+    seg: Segment,
+    band: int = 512,
+    masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] | None = None,
+) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
     Rows are independent, so they go through in bands of ``band`` rows to bound
-    memory (the length sets take 8 bytes per tile and subsegment).
+    memory (the length sets take 8 bytes per tile and subsegment). ``masks``
+    keeps the class masks of these ``cats`` by subsegment categories, so a class
+    repeated across segments (a road's level strip) is matched once.
     """
+    masks = {} if masks is None else masks
+    bad = []
+    for sub in seg.subsegments:
+        if sub.categories not in masks:
+            masks[sub.categories] = ~class_mask(cats, sub)
+        bad.append(masks[sub.categories])
     nrows = cats[0].shape[0]
     if nrows <= band:
-        return _search_band(cats, seg)
+        return _search_band(bad, seg)
     return np.concatenate(
-        [_search_band(tuple(a[r : r + band] for a in cats), seg) for r in range(0, nrows, band)]
+        [_search_band([b[r : r + band] for b in bad], seg) for r in range(0, nrows, band)]
     )
 
 
-def _search_band(cats: tuple[NDArray, ...], seg: Segment) -> NDArray[np.bool_]:
-    inc = cats[0]
-    nrows, ncols = inc.shape
+def _search_band(bad: list[NDArray[np.bool_]], seg: Segment) -> NDArray[np.bool_]:
+    """Marks of ``seg`` along rows, given each subsegment's tiles that do not match it."""
+    nrows, ncols = bad[0].shape
     nb = ncols + 1
     subs = seg.subsegments
     # mismatch prefix counts per subsegment: mism[:, b] = mismatches in tiles [0, b)
     mism = []
-    for sub in subs:
-        bad = ~class_mask(cats, sub)
+    for miss in bad:
         cm = np.zeros((nrows, nb), dtype=np.int32)
-        np.cumsum(bad, axis=1, out=cm[:, 1:])
+        np.cumsum(miss, axis=1, out=cm[:, 1:])
         mism.append(cm)
 
     one = np.uint64(1)
@@ -161,9 +177,11 @@ def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDA
     arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
     v = np.zeros(cats.shape, dtype=bool)
+    masks_h: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
+    masks_v: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
     for seg in flt.segments:
         if seg.direction in ("both", "horizontal"):
-            h |= search_rows(arrays, transform_segment(seg, 0))
+            h |= search_rows(arrays, transform_segment(seg, 0), masks=masks_h)
         if seg.direction in ("both", "vertical"):
-            v |= search_rows(arrays_t, transform_segment(seg, 1)).T
+            v |= search_rows(arrays_t, transform_segment(seg, 1), masks=masks_v).T
     return h, v
