@@ -21,8 +21,10 @@ plane seen from the sensor (exactly for the ground along elevation, however
 grazing), so far grazing ground passes as a surface, not as a ramp. "Misses p"
 is judged across the surface too: the change of inverse range per beam along
 both axes gives the surface's incidence at p's beam, and a range offset times
-cos(incidence) must exceed the margin and ``min_offset`` (a blend of grazing
-ground with a wall's foot lies 20 cm off the ground in range but 2 cm above it).
+cos(incidence) must exceed ``min_offset`` (a blend of grazing ground with a wall's
+foot lies 20 cm off the ground in range but 2 cm above it), while the range
+offset itself must exceed the margin and the continuation's scatter (range noise
+lies along the ray, so across a grazing surface it shrinks as the offset does).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -178,7 +180,10 @@ def _mixed_along(
     R, V = line.R, line.V
     step = s.step_az if axis == 0 else s.step_el
     step_x = s.step_el if axis == 0 else s.step_az
-    across = max(s.margin, s.min_offset)  # least distance off a surface, across it
+    # least distance off a surface, across it: min_offset (the margin when 0). The margin
+    # is a range scatter, tested on the range offset itself (``spread``); across a
+    # grazing surface that scatter shrinks with the range offset
+    across = s.min_offset if s.min_offset > 0 else s.margin
     # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
     # range changes by d per beam that adds d × the blur in steps to its range scatter.
     blur = s.las_scale / np.sqrt(12.0) / r / step
@@ -212,8 +217,8 @@ def _mixed_along(
                     np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
                 ) | (np.abs(R[a1] - ra) <= spread(0))
                 # off its surface: in range beyond the continuation's scatter, and across
-                # the surface by more than the margin and min_offset (at grazing incidence
-                # a range offset is mostly along the surface)
+                # the surface by more than min_offset (at grazing incidence a range offset
+                # is mostly along the surface)
                 slope = np.abs(ra - R[a1])
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
                 # incidence at p's beam: along a plane the inverse range changes evenly,
@@ -303,7 +308,7 @@ def _thin_runs(
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
     continues behind them (the surface either side, continued across the run, agrees),
-    by more than the margin and ``min_offset`` across that surface (``C``: range change
+    by more than ``min_offset`` across that surface (the margin when 0; ``C``: range change
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -332,7 +337,7 @@ def _thin_runs(
                 cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
                 tan_a = rc * np.abs(v0 - V[lo - 1][c]) / step
                 tan_x = rc * C[lo][c] / rb0**2 / step_x
-                least = max(s.margin, s.min_offset)
+                least = s.min_offset if s.min_offset > 0 else s.margin
                 in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
                 out[c[keep & cont & in_front]] = True
     return out
