@@ -31,11 +31,11 @@ a line they are a run of at most ``thin`` beams (about two footprints) in front
 of one background surface that continues behind them. Such runs are marked too.
 
 Where nothing answers behind an edge (no return, or a background farther than
-``max_gap``), a return in front of the surface it ends (that surface continued to
-its beam lies behind it, off by more than its scatter and ``min_offset`` across
-it) is a blend with nothing: the part of a footprint still on a receding surface,
-such as grazing ground towards the range limit, is nearer than where the central
-ray meets it. Otherwise a beam whose footprint still touches the surface returns its range
+``max_gap``), a return off the surface it ends (that surface continued to its beam
+misses it by more than its scatter and ``min_offset`` across it) is a blend with
+nothing: the part of a footprint still on a sloped surface answers at that part's
+mean range (nearer than where the central ray meets grazing ground towards the
+range limit). Otherwise a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
 when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
 the shift is sideways, so range noise does not blur it).
@@ -203,9 +203,9 @@ def _mixed_along(
     # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
     near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
     far: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
-    # in_front[sd]: an anchor on side sd whose surface, continued to p's beam, lies
-    # behind p by more than its scatter and min_offset across it
-    in_front = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # off_end[sd]: an anchor on side sd whose surface, continued to p's beam, misses p
+    # by more than its scatter and min_offset across it
+    off_end = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -229,7 +229,7 @@ def _mixed_along(
                 off = (dev > spread(i, slope)) & (dev * cos_inc > across)
                 ok = anchored & off
                 near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
-                in_front[sd] |= ok & (extrapolated(a, a1, float(i)) > r) & (ra < r + s.max_gap)
+                off_end[sd] |= ok & (ra < r + s.max_gap)
                 far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
@@ -243,9 +243,10 @@ def _mixed_along(
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
     # Open edges: nothing answers beyond p (no return, or a background farther than
-    # max_gap), yet p lies in front of the surface it ends, continued to its beam. The
-    # part of a footprint still on a receding surface (ground towards the range limit)
-    # is nearer than where the central ray meets it: a blend with nothing, off the surface.
+    # max_gap), yet p lies off the surface it ends, continued to its beam. The part of
+    # a footprint still on a sloped surface answers at that part's mean range, not
+    # where the central ray meets the surface: nearer on a receding one (ground towards
+    # the range limit), farther on an approaching one. A blend with nothing.
     # p must not lie on its inner neighbour's surface (a board's top row with the ground
     # below it is in front of the ground's continuation, yet on the board).
     with np.errstate(invalid="ignore"):
@@ -253,7 +254,7 @@ def _mixed_along(
             inside = (pos + sd >= pos.min()) & (pos + sd <= pos.max())
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
-            between |= open_ & in_front[-sd] & ~own
+            between |= open_ & off_end[-sd] & ~own
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
     between |= _bleeding(R, V, r, s, step, pos)
