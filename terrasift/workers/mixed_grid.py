@@ -13,7 +13,8 @@ to ``reach`` beams away on each side.
 A return p is mixed along one axis (azimuth or elevation) when on one side an
 *anchor* a (a return on a surface: the line through its two outer neighbours
 continues through it) lies nearer than p, on the other side an anchor b lies
-farther, both within ``max_gap`` in range, p is off a and b by more than the
+farther, both within ``max_gap`` of p in range (the anchor or its surface continued
+to p's beam), p is off a and b by more than the
 margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
 most ``span`` beams lie between the anchors (a blend spans about a footprint).
 Surfaces are continued in inverse range, which is linear in the angle along a
@@ -228,9 +229,13 @@ def _mixed_along(
                 cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
                 off = (dev > spread(i, slope)) & (dev * cos_inc > across)
                 ok = anchored & off
-                near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
+                # within max_gap of p: the anchor, or its surface continued to p's beam
+                # (grazing ground a beam before a far wall's foot lies metres nearer
+                # than the blend, its continuation half a metre behind it)
+                gap = np.fmin(np.abs(ra - r), dev)
+                near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
                 off_end[sd] |= ok & (ra < r + s.max_gap)
-                far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
+                far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
