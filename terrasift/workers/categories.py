@@ -119,6 +119,9 @@ class Categories:
     explains the tile up to the noise, else max − min); the filters' ``height``."""
     step_cells: int | None = None
     """Cells between tile origins when tiles overlap (``step``); None: tiles abut."""
+    lying10: NDArray[np.uint8] | None = None
+    """``relief10`` of the tiles as they lie, before any regional slope is taken off
+    (``trend``); the filters' ``lying-height``. None: as ``relief10``."""
 
     @property
     def step(self) -> int:
@@ -259,7 +262,25 @@ def category_grids(
     gate = max(params.edge_min_rms, params.edge_noise * sigma)
     two = (rms0 > gate) & (rss0 - best_gain <= params.edge_ratio * rss0)
 
+    rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
+    explained = rms_model <= params.flat_noise * sigma
+    hinge_fit = np.where(two, c3, 0.0)[:, None] * h.T[best] if two.any() else None
+
+    def relief_of(zt: NDArray) -> tuple[NDArray, NDArray]:
+        """max − min of the tiles ``zt`` and the height the flatness test sees: the
+        model's range where it explains the tile up to the noise, else max − min."""
+        height = zt.max(axis=1) - zt.min(axis=1)
+        fitted = zt - r0
+        if hinge_fit is not None:  # the hinge term on two-plane tiles (0 elsewhere)
+            fitted += hinge_fit
+        model_height = fitted.max(axis=1) - fitted.min(axis=1)
+        return height, np.where(explained, model_height, height)
+
+    def dm(v: NDArray) -> NDArray[np.uint8]:
+        return np.clip(np.round(v * 10), 0, 254).astype(np.uint8)
+
     out = []
+    lying10 = None  # relief10 of the tiles as they lie, shared by the grids set on a slope
     for trend in trends or [None]:
         zt = z
         coef0 = coef_raw
@@ -271,15 +292,7 @@ def category_grids(
             if gaps:
                 zt[nodata] = 0.0
             coef0 = zt @ pinv0.T
-        height = zt.max(axis=1) - zt.min(axis=1)
-        # the height flatness is judged on: the model's range where it explains the tile
-        fitted = zt - r0
-        if two.any():  # the hinge term on two-plane tiles (adding 0 elsewhere changes nothing)
-            fitted += np.where(two, c3, 0.0)[:, None] * h.T[best]
-        rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
-        explained = rms_model <= params.flat_noise * sigma
-        model_height = fitted.max(axis=1) - fitted.min(axis=1)
-        relief = np.where(explained, model_height, height)
+        height, relief = relief_of(zt)
         flat = relief < params.flat_height
         gx, gy = coef0[:, 1], coef0[:, 2]
         rise = np.hypot(gx, gy) * k * cell
@@ -317,10 +330,14 @@ def category_grids(
         inclination[flat] = 0
         orientation[flat] = 0
         state[flat] = 0
-        height10 = np.clip(np.round(height * 10), 0, 254).astype(np.uint8)
-        relief10 = np.clip(np.round(relief * 10), 0, 254).astype(np.uint8)
+        height10, relief10 = dm(height), dm(relief)
         for band in (inclination, orientation, state, height10, relief10):
             band[nodata] = NODATA
+        if trend is None:
+            lying10 = relief10
+        elif lying10 is None:
+            lying10 = dm(relief_of(z)[1])
+            lying10[nodata] = NODATA
         shape = (rows, cols)
         out.append(
             Categories(
@@ -333,6 +350,7 @@ def category_grids(
                 float(sigma),
                 relief10.reshape(shape),
                 None if s == k else s,
+                lying10.reshape(shape),
             )
         )
     return out
@@ -357,6 +375,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         float(np.median([p.noise for p in parts])),
         None if first.relief10 is None else cat("relief10"),
         first.step_cells,
+        None if first.lying10 is None else cat("lying10"),
     )
 
 
