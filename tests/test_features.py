@@ -745,6 +745,33 @@ def test_ridge_needs_flanks_not_flat_as_they_lie_so_a_levelled_field_edge_is_not
     assert any(abs(f.geometry.centroid.x - fx) < 25 for f in got)
 
 
+def test_road_along_the_contour_of_an_11_percent_slope_is_bounded_by_a_flat_bench():
+    """A low embankment along the contour of an 11 % slope: the uphill side reads flat but
+    not level (0.17 m across a tile) after a dip where the shoulder runs down to the
+    ground; only the segments taking that bench find the road."""
+    from dataclasses import replace
+
+    cell, size, s, off, half = 0.5, 200.0, 0.11, 0.6, 2.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * x  # rises east; the road runs north-south at x = 100, 160 m long
+    shoulder = 1.5 * (off + s * half) + 0.5
+    d = np.abs(x - 100)
+    top = 100 + s * 100 + off
+    t = np.clip((d - half) / shoulder, 0, 1)
+    z = np.where((np.abs(y - 100) <= 80) & (d <= half + shoulder), top + t * (z - top), z)
+    z += np.random.default_rng(3).normal(0, 0.02, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    roads = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(roads) == 1
+    assert abs(roads[0].geometry.centroid.x - 100) < 3 and roads[0].length_m > 100
+    # the segments bounded by a tile that is not flat (or three tiles not level) alone
+    plain = replace(flt, segments=flt.segments[:6])
+    assert not detect_features(cats, [plain], tt, cats.tile_size, stepped=stepped).objects
+
+
 def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
     h = np.zeros((40, 40), dtype=bool)
     v = np.zeros((40, 40), dtype=bool)
