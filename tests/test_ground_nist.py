@@ -627,11 +627,14 @@ def _split_2x2(xyz: np.ndarray, params: nist.NistParams) -> np.ndarray:
 )
 def test_one_density_for_every_block_makes_blocks_agree_on_isprs_samp52():
     # Each block measuring its own density: 98.7 % alike (97.0 % within 20 m of
-    # the cut); given the tile's density, 99.75 %.
+    # the cut); given the density a job measures while sharding (occupied area), 99.75 %.
+    from terrasift.tiling.blocks import occupancy_cell, occupied_cells, occupied_density
+
     laspy = pytest.importorskip("laspy")
     las = laspy.read(str(DATA / "isprs" / "samp52.laz"))
     xyz = np.column_stack([las.x, las.y, las.z])
-    density = 1.0 / nist.point_spacing(xyz[:, :2] - xyz[:, :2].min(axis=0)) ** 2
+    cell = occupancy_cell(xyz.shape[0] / float(np.prod(np.ptp(xyz[:, :2], axis=0))))
+    density = occupied_density(xyz.shape[0], [occupied_cells(xyz[:, 0], xyz[:, 1], cell)], cell)
     params = nist.NistParams(density=density)
     whole = nist.classify_ground(xyz, params)
     assert (_split_2x2(xyz, params) == whole).mean() >= 0.996
