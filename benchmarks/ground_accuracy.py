@@ -221,6 +221,9 @@ CANDIDATES: dict[str, list[dict]] = {
         {"raised_rim": 0.0},
         {"raised_rim": 3.0},
         {"raised_rim": 6.0},
+        {"grow_agree": 0.34},
+        {"grow_agree": 0.5},
+        {"grow_agree": 0.67},
     ],
 }
 

@@ -773,3 +773,18 @@ def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_ste
             xyz + np.array([dx, dy, 0.0]), nist.NistParams(raised_relative=True)
         )
         assert ground_score(truth, g).kappa > 0.86  # measured 87.5 and 87.9 %
+
+
+def test_growth_needs_its_ground_neighbours_to_agree_before_climbing_a_platform():
+    # Railway yard seed 103 (0.96 pts/m², a tuning seed): slopes fitted at the foot of
+    # platforms from two close ground nodes predicted the tops; growth then spread
+    # over them (Type II 14 %). With grow_agree=0.5 half of a node's ground
+    # neighbours must predict it.
+    from terrasift.synthetic import rural
+
+    sc = rural.FAMILIES["railway_yard"](103)
+    truth = sc.truth == 2
+    anyone = ground_score(truth, nist.classify_ground(sc.xyz, nist.NistParams()))
+    half = ground_score(truth, nist.classify_ground(sc.xyz, nist.NistParams(grow_agree=0.5)))
+    assert anyone.type2 > 0.10
+    assert half.type2 < 0.03 and half.type1 < 0.01
