@@ -188,16 +188,33 @@ def occupancy_cell(density: float) -> float:
 def occupied_cells(x: NDArray, y: NDArray, cell: float) -> NDArray[np.int64]:
     """Sorted unique keys of the ``cell``-sized squares, anchored on absolute
     multiples of ``cell``, that hold at least one of the points."""
+    if np.size(x) == 0:
+        return np.zeros(0, np.int64)
     ix = np.floor(np.asarray(x) / cell).astype(np.int64)
     iy = np.floor(np.asarray(y) / cell).astype(np.int64)
-    return np.unique((ix << 32) ^ (iy & 0xFFFFFFFF))
+    x0, y0 = int(ix.min()), int(iy.min())
+    nx, ny = int(ix.max()) - x0 + 1, int(iy.max()) - y0 + 1
+    if nx * ny > max(4 * ix.size, 1 << 16):  # scattered points: sort them
+        return _sorted_unique((ix << 32) ^ (iy & 0xFFFFFFFF))
+    # A flag per cell of the points' bounding box: linear, several times faster than sorting.
+    flags = np.zeros(nx * ny, dtype=bool)
+    flags[(ix - x0) * ny + (iy - y0)] = True
+    f = np.flatnonzero(flags)
+    return np.sort(((f // ny + x0) << 32) ^ ((f % ny + y0) & 0xFFFFFFFF))
 
 
 def occupied_density(points: int, keys: Sequence[NDArray[np.int64]], cell: float) -> float:
     """Points per m² over the union of the occupied cells in ``keys`` (parts of
     one job may share cells: overlapping tiles, parts of one tile)."""
-    merged = np.unique(np.concatenate(list(keys))) if keys else np.zeros(0, np.int64)
+    merged = _sorted_unique(np.concatenate(list(keys))) if keys else np.zeros(0, np.int64)
     return points / max(merged.size * cell * cell, 1e-9)
+
+
+def _sorted_unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``np.unique(keys)`` by one sort: numpy's hashing unique of int64 keys
+    profiled many times slower while sharding."""
+    k = np.sort(keys)
+    return k[np.r_[True, k[1:] != k[:-1]]] if k.size else k
 
 
 def shard_tile(
@@ -252,7 +269,7 @@ def shard_tile(
                     rec[s:e].tofile(fh)
                 core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
         if occupancy > 0:
-            merged = np.unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
+            merged = _sorted_unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
             np.save(tmp / OCCUPANCY_FILE, merged)
     return core_counts
 
