@@ -1,7 +1,8 @@
 """A job from inputs to outputs: plan, shard, blocks, finish — resumable at every step.
 
 The job directory holds everything: ``job.json`` (inputs, parameters),
-``plan.json`` (tiles, CRS, block grid), ``shards/<tile>/<block>.bin``,
+``plan.json`` (tiles, CRS, block grid; after sharding the ground density),
+``shards/<tile part>/<block>.bin`` and ``occupancy.npy``,
 ``blocks/<block>.npz`` and ``outputs/``. Each task writes its result
 atomically and is skipped when the result exists, so a restarted service or
 a repeated ``process`` call redoes only what is missing. The CLI and the
