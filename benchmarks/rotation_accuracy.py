@@ -88,7 +88,9 @@ def auto(
     """The block flow: the default method, steepness on its ground; if steep, an
     unrotated and eight rotated runs with ``ground_preset`` OR'ed (seeded where
     the method can; with ``rerun_unrotated=False``, the default labels instead
-    of the first), with the method's rotation preset and ``rotation`` on top."""
+    of the first), with the method's rotation preset and ``rotation`` on top;
+    the landform rule after the first run and the runs of the first tip, the
+    low-vegetation rule after the first run and after rotation (steps._ground)."""
     t0 = time.perf_counter()
     g = ground("default")(xyz)
     g = restore_landforms(xyz, g, LandformParams(), last_return)
@@ -106,6 +108,7 @@ def auto(
             unrotated=None if rp.rerun_unrotated else g,
             seeded=seeded,
             last_return=last_return,
+            restore=lambda p, got: restore_landforms(p, got, LandformParams()),
         )
         g = reject_low_vegetation(xyz, res.is_ground, LowVegParams(), last_return)
         info["added"] = res.added

@@ -456,3 +456,77 @@ def test_runs_see_only_the_faces_looking_their_way():
     assert sum(sizes["window"]) < 0.5 * sum(sizes["none"])
     # A run sees the step with 20 m on either side (40 of 150 m), not the block.
     assert 0.1 * len(pts) < max(sizes["window"]) < 0.4 * len(pts)
+
+
+def test_a_face_over_a_cave_is_found_to_its_top():
+    # A 40 m face rising over a 14 m deep cave: the lowest ground under it is
+    # the cave's floor, 6.5 m below the lip. A height band about that floor
+    # (max_lift 30 m) cut the face's upper part; the face evidence alone keeps it.
+    cave = (
+        (0.0, 0.0),
+        (40.0, 3.0),
+        (62.0, 3.5),
+        (62.0, 9.0),
+        (48.0, 10.0),
+        (49.0, 50.0),
+        (120.0, 55.0),
+        (125.0, 28.0),
+        (136.0, 21.0),
+        (225.0, 24.0),
+    )
+    scene = make_cliffs(length=16, density=4, profile=cave, seed=3, tree_density=0, bush_density=0)
+    face = np.nan_to_num(scene.extra["face_angle"])
+    upper = scene.extra["steep"] & (face > 80) & (scene.xyz[:, 2] > scene.xyz[:, 2].min() + 35)
+    conservative = PtdParams.preset("conservative")
+    ground = lambda p: classify_ground(p, conservative)  # noqa: E731
+    base = ground(scene.xyz)
+    found = {
+        lift: classify_rotated(scene.xyz, ground, RotationParams(max_lift=lift), unrotated=base)
+        .is_ground[upper]
+        .mean()
+        for lift in (None, 30.0)
+    }
+    assert upper.sum() > 100 and not base[upper].any()
+    assert found[None] > 0.5 and found[30.0] < 0.1, found
+
+
+def test_rotated_runs_give_back_a_tipped_mesa():
+    # Tipped by 30°, a mesa is still a raised body to the filter: the runs of
+    # the first tip take the landform rule after the filter (``restore``).
+    from terrasift.synthetic.landforms import LandformSpec, Mesa, make_landforms
+    from terrasift.workers.ground.landforms import LandformParams, restore_landforms
+    from terrasift.workers.ground.rotation import bind_ground
+    from terrasift.workers.registry import get_stage
+
+    spec = LandformSpec(
+        size=120.0,
+        density=2.0,
+        slope=(0.08, -0.05),
+        mesas=[Mesa(60.0, 60.0, 15.0, 25.0, angle=80.0, talus=0.3)],
+        tree_density=0.0,
+        bush_density=0.0,
+        face_stems=0,
+    )
+    scene = make_landforms(spec, seed=5)
+    stage = get_stage("ground.nist")
+    plain, _ = bind_ground(stage, stage.params.preset("conservative"))
+    c = scene.xyz.mean(axis=0)
+    tipped = (scene.xyz - c) @ rotation_matrix(270.0, 30.0).T + c
+    steep = scene.extra["steep"]
+    before = plain(tipped)
+    after = restore_landforms(tipped, before, LandformParams())
+    assert np.mean(before[steep]) < 0.2 and np.mean(after[steep]) > 0.4
+    assert after[before].all()
+    # classify_rotated calls it after the runs of the first tip only
+    tips = []
+
+    def ground(p: np.ndarray) -> np.ndarray:
+        return np.zeros(len(p), dtype=bool)
+
+    def restore(p: np.ndarray, got: np.ndarray) -> np.ndarray:
+        tips.append(len(p))
+        return got
+
+    params = RotationParams(second_angle=45.0, context=None, aspect_window=None)
+    classify_rotated(tipped, ground, params, unrotated=before, restore=restore)
+    assert len(tips) == params.directions

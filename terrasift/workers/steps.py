@@ -12,6 +12,8 @@ parameter model and its step, registered with ``registry.block_step``.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -145,6 +147,9 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
     rparams = models.rotation
     # Seeded rotated runs where the method can grow from the labels found so far (ptd).
     ground, seeded = rotation.bind_ground(stage, models.rotation_ground_params, **kwargs)
+    # A mesa tipped by the first angle is still a raised body to the filter.
+    lp = models.landforms
+    restore = None if lp is None else partial(landforms.restore_landforms, params=lp)
     with timer("rotation"):
         result = rotation.classify_rotated(
             xyz,
@@ -153,6 +158,7 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
             unrotated=None if rparams.rerun_unrotated else is_ground,
             seeded=seeded,
             last_return=_last_return(block),
+            restore=restore,
         )
     steep_info["rotated"] = True
     steep_info["added_per_rotation"] = [int(a) for a in result.added]

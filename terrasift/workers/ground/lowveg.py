@@ -44,12 +44,19 @@ from terrasift.workers.registry import StageParams, register
 class LowVegParams(StageParams):
     """Parameters of the low-vegetation rule after the ground stage."""
 
-    enabled: bool = False
+    enabled: bool = True
     """Run the rule (false: the filter's labels as they are)."""
     echoes: bool = True
     """Take back ground returns that are not the last of their pulse (where known)."""
-    neighbours: int = Field(16, ge=6, le=64)
-    """Ground points (nearest in x, y) the local plane is fitted to."""
+    neighbours: int = Field(32, ge=6, le=64)
+    """Ground points (nearest in x, y) the local plane is fitted to: enough that
+    their spread about the plane holds the ground's curvature as well as its
+    noise. The top of a round hill stands above the plane of its neighbours
+    by about √3 times their spread from curvature alone, and noise decides
+    whether that passes ``factor``. On a 2.5 m hill (4 m sigma, 4 pts/m², a
+    tree on its top) 16 neighbours took 10 of its 649 ground points, its top
+    among them, and 32 one; the vegetation taken back was 113 and 116
+    points."""
     clip: float = Field(2.0, gt=0.0, le=10.0)
     """Robust deviations above the first plane beyond which a neighbour is left
     out of the second fit."""
