@@ -1,6 +1,6 @@
 """Mixed-measurement filter over a family of ground-based scans with exact truth.
 
-Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse] [--scenes 12]
+Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse|edge|wide|quant] [--scenes 12]
 [--variants all|default] [--no-job] [--no-speed] [--params k=v ...]``.
 
 Each scene draws its scanner and its objects from the ranges of ROBUSTNESS.md:
@@ -10,8 +10,11 @@ scale 1 mm–1 cm, 1–3 scan positions in one tile with masts of 1–3 m, board
 thin poles (ghost returns behind them) at 3–40 m with walls 1–2.5 m behind.
 The ``tune`` family (seeds 1000+, steps 0.05–0.3°, objects within 25 m) is the
 one parameters were chosen on, with the ``coarse`` scans (seeds 2000+, the tune
-draw at steps 0.3–0.5°); the ``report`` family (seeds 0+, the full
-ranges) is what the figures come from.
+draw at steps 0.3–0.5°) and three regions where report scans fell short: ``edge``
+(3000+: steps 0.15–0.3°, footprints 1–1.7 steps, objects out to 25–40 m),
+``wide`` (3100+: footprints 2.5–3 steps at 0.12–0.2°, noise 7–10 mm) and
+``quant`` (3200+: 1 cm coordinates at 0.05–0.09°); the ``report`` family (seeds
+0+, the full ranges) is what the figures come from.
 
 Printed: the default (grid method) and, for the interest boxes alone (method=box),
 each variant × trigger: tpr, fpr, precision and F1 as the worst case, the 10th
@@ -68,13 +71,71 @@ def score(truth: np.ndarray, marked: np.ndarray) -> dict[str, float]:
     )
 
 
+SCALES = (0.001, 0.002, 0.005, 0.01)
+# Per family: angular step (deg, log-uniform), farthest object (m), footprint (steps),
+# range noise (m), LAS scales, first seed. report: the whole family; tune and coarse:
+# where parameters were chosen; edge, wide, quant: tune scenes drawn in the regions
+# where report scans fell short (footprints of about one step with objects far out;
+# footprints of 2.5-3 steps with 7-10 mm noise; 1 cm coordinates at fine steps).
+FAMILIES: dict[str, dict] = {
+    "report": dict(
+        step=(0.03, 0.5),
+        far=(10.0, 40.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=0,
+    ),
+    "tune": dict(
+        step=(0.05, 0.3),
+        far=(10.0, 25.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=1000,
+    ),
+    "coarse": dict(
+        step=(0.3, 0.5),
+        far=(10.0, 25.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=2000,
+    ),
+    "edge": dict(
+        step=(0.15, 0.3),
+        far=(25.0, 40.0),
+        fp=(1.0, 1.7),
+        noise=(0.005, 0.010),
+        scale=SCALES[:3],
+        seed=3000,
+    ),
+    "wide": dict(
+        step=(0.12, 0.2),
+        far=(15.0, 25.0),
+        fp=(2.5, 3.0),
+        noise=(0.007, 0.010),
+        scale=SCALES[:2],
+        seed=3100,
+    ),
+    "quant": dict(
+        step=(0.05, 0.09),
+        far=(15.0, 40.0),
+        fp=(2.0, 3.0),
+        noise=(0.004, 0.008),
+        scale=SCALES[3:],
+        seed=3200,
+    ),
+}
+
+
 def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
     """One scene of the family: its drawn parameters and its tile."""
     rng = np.random.default_rng(seed)
-    tune = family in ("tune", "coarse")
-    lo, hi = {"tune": (0.05, 0.3), "coarse": (0.3, 0.5)}.get(family, (0.03, 0.5))
+    fam = FAMILIES[family]
+    lo, hi = fam["step"]
     step = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-    far = float(rng.uniform(10.0, 25.0 if tune else 40.0))
+    far = float(rng.uniform(*fam["far"]))
     near = float(rng.uniform(3.0, min(10.0, far - 5.0)))
     mast_hi = 3.0
     el_lo = -np.degrees(np.arctan(mast_hi / near)) - 1.0
@@ -85,9 +146,9 @@ def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
     info = dict(
         seed=seed,
         step=step,
-        footprint=float(rng.uniform(1.0, 3.0)),
-        noise=float(rng.uniform(0.002, 0.010)),
-        scale=float(rng.choice([0.001, 0.002, 0.005, 0.01])),
+        footprint=float(rng.uniform(*fam["fp"])),
+        noise=float(rng.uniform(*fam["noise"])),
+        scale=float(rng.choice(list(fam["scale"]))),
         objects=(near, far),
         positions=n_pos,
         azimuth=span,
@@ -184,7 +245,7 @@ def parse_overrides(items: list[str]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--family", choices=("report", "tune", "coarse"), default="report")
+    ap.add_argument("--family", choices=tuple(FAMILIES), default="report")
     ap.add_argument("--scenes", type=int, default=12)
     ap.add_argument("--variants", choices=("all", "default"), default="all")
     ap.add_argument("--params", nargs="*", default=[], help="stage overrides, e.g. cell_angle=0.25")
@@ -194,7 +255,7 @@ def main() -> None:
     ap.add_argument("--cache", help="folder keeping the drawn scenes between runs")
     args = ap.parse_args()
     overrides = parse_overrides(args.params)
-    base = {"report": 0, "tune": 1000, "coarse": 2000}[args.family]
+    base = FAMILIES[args.family]["seed"]
 
     scenes = []
     for i in range(args.scenes):

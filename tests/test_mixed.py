@@ -307,3 +307,41 @@ def test_grid_lookup_table_and_binary_search_agree():
     assert found.any() and (~found).any()
     assert np.array_equal(key[j[found]], want[found])
     assert not np.isin(want[~found], key).any()
+
+
+def _ground_to_range_limit(pull: float, seed: int = 0):
+    """Ground 2 m below the sensor seen on a 0.2° grid up to 30 m, nothing beyond (the
+    range limit), 4 mm noise, with a post 15 m away at the left reaching 1 m above the
+    sensor (the field of view extends above the limit). The last ground row is pulled
+    ``pull`` metres nearer along its ray (a footprint partly beyond the limit answers
+    from its nearer part): at 28 m that moves it pull × 2/28 off the ground. Returns
+    points and that row's mask."""
+    rng = np.random.default_rng(seed)
+    step = np.radians(0.2)
+    az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-45, 20) * step, indexing="ij")
+    az, el = az.ravel(), el.ravel()
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    with np.errstate(divide="ignore"):
+        r = np.where(d[:, 2] < 0, -2.0 / d[:, 2], np.inf)
+    t_post = 15.0 / d[:, 0]
+    post = (az < -25 * step) & (d[:, 2] * t_post < 1.0) & (t_post < r)
+    r = np.where(post, t_post, r)
+    seen = r <= 30.0
+    ground = seen & ~post
+    last = ground & ~np.roll(seen.reshape(60, 65), -1, axis=1).ravel()
+    r = r - pull * last + rng.normal(0.0, 0.004, r.size)
+    return d[seen] * r[seen, None], last[seen]
+
+
+def test_grid_marks_ground_blended_with_nothing_at_the_range_limit():
+    # Nothing answers beyond the last ground row; pulled 80 cm nearer than the ground
+    # continued to its beam it lies 5 cm above the ground (in front of the surface it
+    # ends): marked. Pulled 20 cm it lies 1.3 cm above, within min_offset: kept. With
+    # a one-step footprint the bleeding rule (a sideways shift) marks nothing here.
+    stated = MixedParams(footprint=0.2)
+    xyz, last = _ground_to_range_limit(0.8)
+    far = mark_mixed(xyz, stated, np.zeros(3)).marked
+    assert far[last].mean() > 0.9 and far[~last].mean() < 0.01
+    xyz, last = _ground_to_range_limit(0.2)
+    near = mark_mixed(xyz, stated, np.zeros(3)).marked
+    assert near[last].mean() < 0.05 and near.mean() < 0.01

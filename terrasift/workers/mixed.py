@@ -55,7 +55,7 @@ from terrasift.workers.scan_geometry import ScanGeometry, measure_scan_geometry
 GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
 GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
-GRID_FOOTPRINT = 3.0  # footprint (steps) assumed by the grid when none was measured
+GRID_FOOTPRINT = 3.0  # footprint (steps) the grid searches over when none was measured
 
 Variant = Literal[
     "naive", "aggressive", "accumulator", "exclusive", "blind_window", "exclusive_blind_window"
@@ -314,9 +314,14 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
     up to two), thin runs up to as long, gaps up to the box depth (the seed's mixing
     distance)."""
     fp = max(geo.footprint_steps, 1.0)
+    # bleeding past an edge follows the measured footprint only (one step when none
+    # was measured): with 1 cm coordinates at 0.05-0.09° steps the assumed three
+    # steps marked whole rows past edges (fpr 0.022-0.028 on two quant tune scans)
+    bleed_fp = fp
     if geo.how.get("footprint", "").startswith("no mixing"):
-        # no ramp measured (too few resolved edges): the widest footprint of the
-        # family's range; on the tune family a missed ramp cost more than edge beams
+        # no ramp measured (too few resolved edges): the search for surfaces, blends
+        # and thin runs takes the widest footprint of the family's range; on the tune
+        # family a missed ramp cost more than edge beams
         fp = max(fp, GRID_FOOTPRINT)
     wide = fp
     reach = int(np.clip(np.ceil(2 * wide) + 1, 2, 7))
@@ -331,7 +336,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         reach=reach,
         max_gap=p.box_depth,
         thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
-        footprint=float(fp),
+        footprint=float(bleed_fp),
         span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,
         resolve=GRID_RESOLVE,

@@ -13,7 +13,8 @@ to ``reach`` beams away on each side.
 A return p is mixed along one axis (azimuth or elevation) when on one side an
 *anchor* a (a return on a surface: the line through its two outer neighbours
 continues through it) lies nearer than p, on the other side an anchor b lies
-farther, both within ``max_gap`` in range, p is off a and b by more than the
+farther, both within ``max_gap`` of p in range (the anchor or its surface continued
+to p's beam), p is off a and b by more than the
 margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
 most ``span`` beams lie between the anchors (a blend spans about a footprint).
 Surfaces are continued in inverse range, which is linear in the angle along a
@@ -21,15 +22,21 @@ plane seen from the sensor (exactly for the ground along elevation, however
 grazing), so far grazing ground passes as a surface, not as a ramp. "Misses p"
 is judged across the surface too: the change of inverse range per beam along
 both axes gives the surface's incidence at p's beam, and a range offset times
-cos(incidence) must exceed the margin and ``min_offset`` (a blend of grazing
-ground with a wall's foot lies 20 cm off the ground in range but 2 cm above it).
+cos(incidence) must exceed ``min_offset`` (a blend of grazing ground with a wall's
+foot lies 20 cm off the ground in range but 2 cm above it), while the range
+offset itself must exceed the margin and the continuation's scatter (range noise
+lies along the ray, so across a grazing surface it shrinks as the offset does).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
 of one background surface that continues behind them. Such runs are marked too.
 
 Where nothing answers behind an edge (no return, or a background farther than
-``max_gap``), a beam whose footprint still touches the surface returns its range
+``max_gap``), a return off the surface it ends (that surface continued to its beam
+misses it by more than its scatter and ``min_offset`` across it) is a blend with
+nothing: the part of a footprint still on a sloped surface answers at that part's
+mean range (nearer than where the central ray meets grazing ground towards the
+range limit). Otherwise a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
 when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
 the shift is sideways, so range noise does not blur it).
@@ -174,7 +181,10 @@ def _mixed_along(
     R, V = line.R, line.V
     step = s.step_az if axis == 0 else s.step_el
     step_x = s.step_el if axis == 0 else s.step_az
-    across = max(s.margin, s.min_offset)  # least distance off a surface, across it
+    # least distance off a surface, across it: min_offset (the margin when 0). The margin
+    # is a range scatter, tested on the range offset itself (``spread``); across a
+    # grazing surface that scatter shrinks with the range offset
+    across = s.min_offset if s.min_offset > 0 else s.margin
     # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
     # range changes by d per beam that adds d × the blur in steps to its range scatter.
     blur = s.las_scale / np.sqrt(12.0) / r / step
@@ -194,6 +204,9 @@ def _mixed_along(
     # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
     near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
     far: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
+    # off_end[sd]: an anchor on side sd whose surface, continued to p's beam, misses p
+    # by more than its scatter and min_offset across it
+    off_end = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -205,8 +218,8 @@ def _mixed_along(
                     np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
                 ) | (np.abs(R[a1] - ra) <= spread(0))
                 # off its surface: in range beyond the continuation's scatter, and across
-                # the surface by more than the margin and min_offset (at grazing incidence
-                # a range offset is mostly along the surface)
+                # the surface by more than min_offset (at grazing incidence a range offset
+                # is mostly along the surface)
                 slope = np.abs(ra - R[a1])
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
                 # incidence at p's beam: along a plane the inverse range changes evenly,
@@ -216,8 +229,13 @@ def _mixed_along(
                 cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
                 off = (dev > spread(i, slope)) & (dev * cos_inc > across)
                 ok = anchored & off
-                near[sd][i] = ok & (ra < r - s.margin) & (r - ra < s.max_gap)
-                far[sd][i] = ok & (ra > r + s.margin) & (ra - r < s.max_gap)
+                # within max_gap of p: the anchor, or its surface continued to p's beam
+                # (grazing ground a beam before a far wall's foot lies metres nearer
+                # than the blend, its continuation half a metre behind it)
+                gap = np.fmin(np.abs(ra - r), dev)
+                near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
+                off_end[sd] |= ok & (ra < r + s.max_gap)
+                far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
@@ -229,6 +247,19 @@ def _mixed_along(
             nearer.append(upto)
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+    # Open edges: nothing answers beyond p (no return, or a background farther than
+    # max_gap), yet p lies off the surface it ends, continued to its beam. The part of
+    # a footprint still on a sloped surface answers at that part's mean range, not
+    # where the central ray meets the surface: nearer on a receding one (ground towards
+    # the range limit), farther on an approaching one. A blend with nothing.
+    # p must not lie on its inner neighbour's surface (a board's top row with the ground
+    # below it is in front of the ground's continuation, yet on the board).
+    with np.errstate(invalid="ignore"):
+        for sd in (1, -1):
+            inside = (pos + sd >= pos.min()) & (pos + sd <= pos.max())
+            open_ = inside & ~(R[sd] <= r + s.max_gap)
+            own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
+            between |= open_ & off_end[-sd] & ~own
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
     between |= _bleeding(R, V, r, s, step, pos)
@@ -283,7 +314,7 @@ def _thin_runs(
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
     continues behind them (the surface either side, continued across the run, agrees),
-    by more than the margin and ``min_offset`` across that surface (``C``: range change
+    by more than ``min_offset`` across that surface (the margin when 0; ``C``: range change
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -312,7 +343,7 @@ def _thin_runs(
                 cont = (np.abs(1.0 / v_left - rb1) <= tol) | (np.abs(1.0 / v_right - rb0) <= tol)
                 tan_a = rc * np.abs(v0 - V[lo - 1][c]) / step
                 tan_x = rc * C[lo][c] / rb0**2 / step_x
-                least = max(s.margin, s.min_offset)
+                least = s.min_offset if s.min_offset > 0 else s.margin
                 in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
                 out[c[keep & cont & in_front]] = True
     return out
