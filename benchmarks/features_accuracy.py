@@ -14,6 +14,9 @@ Parts (``--part``):
 ``scene``
     The older single-layout scene (``make_feature_scene``: a 16 % hillside with
     cones, ridges, ditches, ponds, roads and a field) as a DTM, three seeds.
+``kept``
+    Scores the features kept by earlier ``job --keep DIR`` runs (``--keep DIR``),
+    so seeds run in several processes are summarised together.
 ``speed``
     Categories (the 2 m grid and the 1 m-step grid the road filter runs on)
     and all built-in filters on a 1 km^2 DTM (2000 x 2000 cells of 0.5 m), one
@@ -35,7 +38,7 @@ precision = correct detections / detections, per scene; the table gives the
 worst case, the 10th percentile and the median over scenes holding the kind
 (scenes with no detection of a kind have no precision for it).
 
-Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job dtm scene speed]
+Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept dtm scene speed]
      [--seeds 0 .. 15] [--tune-seeds 100 .. 111] [--workers 1]
 """
 
@@ -217,6 +220,23 @@ def run_job_scene(seed: int, workers: int, keep: Path | None) -> tuple[str, dict
     return scene.describe(), sc, seconds
 
 
+def score_kept_scene(seed: int, keep: Path) -> tuple[str, dict]:
+    """Score the features a ``--part job --keep`` run kept for ``seed`` (no job is run)."""
+    scene = make_family_scene(seed)
+    fc = json.loads((keep / f"scene{seed}.geojson").read_text())
+    dets = [
+        (f["properties"]["kind"], shape(f["geometry"]), f["properties"]["length_m"])
+        for f in fc["features"]
+    ]
+    flat, tt = _exact_flat(scene)
+    return scene.describe(), score_scene(_shifted_truth(scene), dets, flat, tt)
+
+
+def part_kept(seeds: list[int], keep: Path) -> None:
+    rows = [score_kept_scene(s, keep) for s in seeds]
+    summarise(rows, f"whole job, features kept in {keep}")
+
+
 def run_dtm_scene(seed: int) -> tuple[str, dict]:
     scene = make_family_scene(seed)
     exact = surface_raster(scene, 0.5)
@@ -309,6 +329,10 @@ if __name__ == "__main__":
     args = ap.parse_args()
     if "job" in args.part:
         part_job(args.seeds, args.workers, args.keep)
+    if "kept" in args.part:  # several job runs (e.g. seeds split over processes) scored together
+        if args.keep is None:
+            ap.error("--part kept needs --keep DIR")
+        part_kept(args.seeds, args.keep)
     if "dtm" in args.part:
         part_dtm(args.tune_seeds, "DTM handed in directly (tuning seeds)")
     if "scene" in args.part:

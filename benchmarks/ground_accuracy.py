@@ -57,8 +57,8 @@ sys.path.insert(0, str(ROOT))
 from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.synthetic import rural, slopes  # noqa: E402
 from terrasift.synthetic.terrain import make_scene  # noqa: E402
+from terrasift.tiling.blocks import occupancy_cell, occupied_cells, occupied_density  # noqa: E402
 from terrasift.workers import registry  # noqa: E402
-from terrasift.workers.ground.nist import point_spacing as _point_spacing  # noqa: E402
 
 DATA = ROOT / ".." / "shared" / "data"
 SMRF_KAPPA = {"samp11": 79.9, "samp12": 94.1, "samp31": 93.2, "samp52": 74.9, "samp61": 85.5}
@@ -94,13 +94,27 @@ def _run(stage, xyz, sensor_origin=None, **over):
     return g, time.process_time() - c  # CPU seconds: the machine may be shared
 
 
+def job_density(xyz: np.ndarray) -> float:
+    """The density a job passes to the ground stage for this one tile: points
+    per m² of occupied area, cells two header spacings wide (``jobs/run.py``)."""
+    n = xyz.shape[0]
+    header = n / max(float(np.prod(np.ptp(xyz[:, :2], axis=0))), 1.0)
+    cell = occupancy_cell(header)
+    return occupied_density(n, [occupied_cells(xyz[:, 0], xyz[:, 1], cell)], cell)
+
+
 def isprs(stage) -> None:
     files = sorted((DATA / "isprs").glob("samp*.laz"))
     if not files:
         print("ISPRS samples not found: skipped")
         return
-    print(f"\n== {stage.id}: ISPRS samples (reference class 2)\n{HEADER}")
-    kap, tot = [], []
+    # "job density": the stage is given the density a job measures while sharding.
+    common = "density" in stage.params.model_fields
+    print(
+        f"\n== {stage.id}: ISPRS samples (reference class 2)\n{HEADER}"
+        + ("  job density: kappa%" if common else "")
+    )
+    kap, tot, kap_job = [], [], []
     for f in files:
         xyz, cls = _read(f)
         g, sec = _run(stage, xyz)
@@ -109,9 +123,15 @@ def isprs(stage) -> None:
         tot.append(s.total)
         smrf = SMRF_KAPPA.get(f.stem)
         note = f"SMRF {smrf}: {'beats' if 100 * s.kappa > smrf else 'BELOW'}" if smrf else ""
+        if common:
+            d = job_density(xyz)
+            kj = ground_score(cls == 2, _run(stage, xyz, density=d)[0]).kappa
+            kap_job.append(kj)
+            note += f"  {100 * kj:.2f} ({d:.4f} pts/m²)"
         print(_row(f.stem, s, sec, note))
     print(
         f"{'mean':<22} {'':>8} {'':>7} {'':>7} {100 * np.mean(tot):>7.2f} {100 * np.mean(kap):>7.2f}"
+        + (f"  job density {100 * np.mean(kap_job):.2f}" if common else "")
     )
 
 
@@ -201,6 +221,9 @@ CANDIDATES: dict[str, list[dict]] = {
         {"raised_rim": 0.0},
         {"raised_rim": 3.0},
         {"raised_rim": 6.0},
+        {"grow_agree": 0.34},
+        {"grow_agree": 0.5},
+        {"grow_agree": 0.67},
     ],
 }
 
@@ -371,13 +394,14 @@ def _block_agreement(stage, xyz: np.ndarray, **over) -> tuple[float, float, int]
 
 
 def blocks(stage) -> None:
-    # "one density": every run (the whole tile and each block) is given the
-    # tile's density instead of measuring its own (stages with a density field).
+    # "job density": every run (the whole tile and each block) is given the
+    # density a job measures while sharding (``job_density``) instead of
+    # measuring its own (stages with a density field), as a job does.
     common = "density" in stage.params.model_fields
     print(f"\n== {stage.id}: labels of 2 x 2 blocks (stage halo) vs one run, % alike")
     print(
         f"{'data':<22} {'all':>7} {'<20 m':>7} {'differ':>7}"
-        + ("   one density: all  <20 m" if common else "")
+        + ("   job density: all  <20 m" if common else "")
     )
     scenes = [(stem, xyz) for stem, xyz, _ in _samples()]
     scenes += [
@@ -390,15 +414,13 @@ def blocks(stage) -> None:
         worst = min(worst, a)
         row = f"{name:<22} {a:>7.2f} {near:>7.2f} {k:>7}"
         if common:
-            local = xyz[:, :2] - xyz[:, :2].min(axis=0)
-            density = 1.0 / _point_spacing(local) ** 2
-            ca, cnear, _ = _block_agreement(stage, xyz, density=density)
+            ca, cnear, _ = _block_agreement(stage, xyz, density=job_density(xyz))
             worst_common = min(worst_common, ca)
             row += f"   {'':>12} {ca:>5.2f} {cnear:>6.2f}"
         print(row)
     print(
         f"  worst agreement {worst:.2f} %"
-        + (f"; one density {worst_common:.2f} %" if common else "")
+        + (f"; job density {worst_common:.2f} %" if common else "")
     )
 
 

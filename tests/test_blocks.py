@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import laspy
 import numpy as np
 
 from terrasift.tiling.blocks import (
     BlockGrid,
     assign_blocks,
     block_name,
+    occupancy_cell,
+    occupied_cells,
+    occupied_density,
     read_block_points,
     shard_tile,
 )
@@ -148,3 +152,24 @@ def test_the_block_task_runs_the_registered_steps_in_order():
         "elevation",
         "keep",
     ]
+
+
+def test_occupied_density_leaves_voids_out_and_unions_parts(tmp_path, small_tile, small_scene):
+    # A 100 x 100 m square at 2 pts/m² with a 50 x 100 m void: the header area is
+    # twice the occupied area, the occupied-area density is the true one.
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, 100, (20000, 2))
+    xy = xy[xy[:, 0] < 50]
+    cell = occupancy_cell(xy.shape[0] / 1e4)
+    d = occupied_density(xy.shape[0], [occupied_cells(xy[:, 0], xy[:, 1], cell)], cell)
+    assert 1.85 < d < 2.0  # cells cut by the void's edge count as occupied
+    # Parts sharing cells (overlapping strips) count each cell once.
+    halves = [occupied_cells(xy[i::2, 0], xy[i::2, 1], cell) for i in (0, 1)]
+    assert occupied_density(xy.shape[0], halves, cell) == d
+    # Sharding records the same cells as the whole tile's points occupy.
+    grid = BlockGrid.over(small_scene.xyz[:, :2].min(0), small_scene.xyz[:, :2].max(0), 0.5, 80, 15)
+    shard_tile(str(small_tile), 0, grid, tmp_path / "s", 7_000, occupancy=1.3)
+    las = laspy.read(small_tile)  # the file's coordinates: on the LAS scale's lattice
+    want = occupied_cells(np.asarray(las.x), np.asarray(las.y), 1.3)
+    got = np.load(tmp_path / "s" / "occupancy.npy")
+    assert np.array_equal(got, want)

@@ -224,3 +224,41 @@ def test_grids_of_one_step_share_their_fits_and_match_separate_runs():
     ):
         assert (got.bands() == want.bands()).all()
     assert not (both[0].inclination == both[1].inclination).all()
+
+
+def test_compiled_tile_fit_matches_least_squares_on_every_tile():
+    """The one-pass fit gives each tile's plane, its best hinge model and its heights as
+    separate least-squares fits do (one plane; one plane plus |distance to each edge|)."""
+    from terrasift.workers._category_kernels import fit_tiles
+    from terrasift.workers.categories import _cell_coords, _models
+
+    k, cell = 4, 0.5
+    rng = np.random.default_rng(5)
+    dtm = rng.normal(0, 0.3, (3 * k, 5 * k)) + np.linspace(0, 2, 5 * k)
+    dtm[0, 0] = np.nan  # tile 0 has no data
+    xs, ys = _cell_coords(k, cell)
+    _, _, h, hnorm, _ = _models(k, cell)
+    trend = np.zeros((1, 2, 15))
+    trend[0, 0], trend[0, 1] = 0.1, -0.2
+    # every tile tries two planes and takes them; every model explains its tile
+    nodata, two, best, c3, gx, gy, height, relief, lying = fit_tiles(
+        dtm, k, k, 3, 5, xs, ys, h, hnorm, 0.0, 1.0, np.inf, trend
+    )
+    assert nodata[0] and not nodata[1:].any() and two[1:].all()
+    a0 = np.column_stack([np.ones(k * k), xs, ys])
+    tilt = 0.1 * xs - 0.2 * ys
+    for t in range(1, 15):
+        r, q = divmod(t, 5)
+        z = dtm[r * k : (r + 1) * k, q * k : (q + 1) * k].ravel()
+        coef, *_ = np.linalg.lstsq(a0, z, rcond=None)
+        assert np.isclose(gx[0, t], coef[1] - 0.1) and np.isclose(gy[0, t], coef[2] + 0.2)
+        fits = []
+        for e in range(16):  # h[:, e]: |distance to edge e| with its plane part removed
+            a = np.column_stack([a0, h[:, e]])
+            sol, *_ = np.linalg.lstsq(a, z, rcond=None)
+            fits.append((((z - a @ sol) ** 2).sum(), sol[3], a @ sol))
+        e = int(np.argmin([f[0] for f in fits]))
+        assert best[t] == e and np.isclose(c3[t], fits[e][1])
+        assert np.isclose(height[0, t], np.ptp(z - tilt))
+        assert np.isclose(relief[0, t], np.ptp(fits[e][2] - tilt))
+        assert np.isclose(lying[t], np.ptp(fits[e][2]))

@@ -706,6 +706,72 @@ def test_ridge_on_a_slope_is_found_and_a_pond_rim_on_it_is_not():
     assert any(abs(f.geometry.centroid.x - px) < 25 for f in got)
 
 
+def test_ridge_needs_flanks_not_flat_as_they_lie_so_a_levelled_field_edge_is_not_one():
+    """A field levelled on a 15 % slope rises toward its fill edge on its regional slope
+    and the fill falls away beyond: a ridge's cross-section on the detrended tiles. As
+    they lie the field's tiles are flat; a ridge along the contour has flanks that are not."""
+    cell, size, s = 0.5, 240.0, 0.15
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * y  # rises north
+    # a 70 m field at (170, 120) levelled to its centre, blended into the slope over 10 m
+    fx, fy, half, blend = 170.0, 120.0, 35.0, 10.0
+    d = np.hypot(np.maximum(np.abs(x - fx) - half, 0), np.maximum(np.abs(y - fy) - half, 0))
+    w = np.clip(d / blend, 0, 1)
+    w = w * w * (3 - 2 * w)
+    zf = 100 + s * fy
+    z = zf + w * (z - zf)
+    # a raised-cosine ridge along the contour, 30 m wide, 5 m high, 120 m long
+    dd, along = np.abs(y - 120), np.abs(x - 65)
+    z = z + np.where(dd < 15, 2.5 * (1 + np.cos(np.pi * dd / 15)), 0) * np.clip(
+        (60 - along) / 15, 0, 1
+    )
+    z += np.random.default_rng(3).normal(0, 0.02, z.shape)
+    flt = load_filter("ridge")
+    assert "lying-height" in format_filter(flt)
+    cats, stepped = categories_for(z, cell, [flt])
+    detrended = stepped[(None, 120.0)]
+    assert detrended.lying10 is not None
+    assert np.array_equal(detrended.lying10, cats.relief10)  # as the tiles lie
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    ridges = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(ridges) == 1 and abs(ridges[0].geometry.centroid.x - 65) < 5
+    # without the lying-height test the fill edge of the field is taken for a ridge
+    text = "\n".join(
+        ln for ln in format_filter(flt).splitlines() if not ln.strip().startswith("lying-height")
+    )
+    plain = parse_filter(text, "ridge")
+    got = detect_features(cats, [plain], tt, cats.tile_size, stepped=stepped).objects
+    assert any(abs(f.geometry.centroid.x - fx) < 25 for f in got)
+
+
+def test_road_along_the_contour_of_an_11_percent_slope_is_bounded_by_a_flat_bench():
+    """A low embankment along the contour of an 11 % slope: the uphill side reads flat but
+    not level (0.17 m across a tile) after a dip where the shoulder runs down to the
+    ground; only the segments taking that bench find the road."""
+    from dataclasses import replace
+
+    cell, size, s, off, half = 0.5, 200.0, 0.11, 0.6, 2.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * x  # rises east; the road runs north-south at x = 100, 160 m long
+    shoulder = 1.5 * (off + s * half) + 0.5
+    d = np.abs(x - 100)
+    top = 100 + s * 100 + off
+    t = np.clip((d - half) / shoulder, 0, 1)
+    z = np.where((np.abs(y - 100) <= 80) & (d <= half + shoulder), top + t * (z - top), z)
+    z += np.random.default_rng(3).normal(0, 0.02, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    roads = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(roads) == 1
+    assert abs(roads[0].geometry.centroid.x - 100) < 3 and roads[0].length_m > 100
+    # the segments bounded by a tile that is not flat (or three tiles not level) alone
+    plain = replace(flt, segments=flt.segments[:6])
+    assert not detect_features(cats, [plain], tt, cats.tile_size, stepped=stepped).objects
+
+
 def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
     h = np.zeros((40, 40), dtype=bool)
     v = np.zeros((40, 40), dtype=bool)

@@ -359,3 +359,20 @@ def test_forked_pool_of_the_command_line_gives_the_same_labels(tmp_path, small_t
     assert "start method fork" in out.stderr
     labels = np.asarray(laspy.read(tmp_path / "out.laz").classification)
     assert np.array_equal(_labels(finished_job[0]), labels)
+
+
+def test_job_measures_one_occupied_area_density_for_the_ground_stage(finished_job, small_scene):
+    from terrasift.jobs.params import block_models, with_ground_density
+    from terrasift.workers.ground.nist import point_spacing
+
+    job, _ = finished_job
+    plan = json.loads((job / "plan.json").read_text())
+    xy = small_scene.xyz[:, :2]
+    own = 1.0 / point_spacing(xy - xy.min(axis=0)) ** 2
+    assert abs(plan["ground_density"] / own - 1) < 0.03
+    models = with_ground_density(block_models(jobs.validate_params(BLOCK)), 2.5)
+    assert models.ground_params.density == 2.5
+    assert models.rotation_ground_params.density == 2.5
+    # A density the job sets itself stays.
+    given = jobs.validate_params({**BLOCK, "ground.nist.density": 4.0})
+    assert with_ground_density(block_models(given), 2.5).ground_params.density == 4.0

@@ -14,7 +14,7 @@ import numpy as np
 
 from terrasift.files import atomic_path, load_json, write_json
 from terrasift.jobs.dirs import block_result_path, check_cancel
-from terrasift.jobs.params import block_models
+from terrasift.jobs.params import block_models, with_ground_density
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers.block import classify_block
 
@@ -31,7 +31,9 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
         return load_json(stats_path)
     check_cancel(job_dir_p)
     plan = load_json(job_dir_p / "plan.json")
-    models = block_models(load_json(job_dir_p / "job.json")["params"])
+    models = with_ground_density(
+        block_models(load_json(job_dir_p / "job.json")["params"]), plan.get("ground_density")
+    )
     grid = BlockGrid(**plan["grid"])
     shard_dirs = [
         job_dir_p / "shards" / p.name

@@ -1,7 +1,8 @@
 """Where things live in a job directory, and its cancel marker.
 
-``job.json`` (inputs, parameters), ``plan.json`` (tiles, CRS, block grid),
-``shards/<tile part>/<block>.bin``, ``blocks/<block>.npz`` and ``.json``,
+``job.json`` (inputs, parameters), ``plan.json`` (tiles, CRS, block grid; after
+sharding also the ground stage's density), ``shards/<tile part>/<block>.bin``
+and ``occupancy.npy``, ``blocks/<block>.npz`` and ``.json``,
 ``work/`` (mosaics being written) and ``outputs/``. A ``CANCELLED`` file
 marks a dismissed job; running tasks look for it between stages, which works
 on any worker that shares the data directory.

@@ -8,6 +8,7 @@ and is validated against it, so a worker never meets a bad option.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
@@ -279,6 +280,21 @@ def block_models(params: Mapping[str, Any]) -> BlockModels:
         landforms=stage_params(params, "ground.landforms"),
         lowveg=stage_params(params, "ground.lowveg"),
     )
+
+
+def with_ground_density(models: BlockModels, density: float | None) -> BlockModels:
+    """``models`` with the job's occupied-area ``density`` given to the ground
+    method when it has a ``density`` parameter left at 0 (measure per block):
+    every block then derives its bins, masking and radii from one value, so
+    blocks cut from one tile label alike. A density set by the job stays."""
+    if not density:
+        return models
+    update = {}
+    for name in ("ground_params", "rotation_ground_params"):
+        p = getattr(models, name)
+        if "density" in type(p).model_fields and not p.density:
+            update[name] = p.model_copy(update={"density": float(density)})
+    return dataclasses.replace(models, **update) if update else models
 
 
 def rotation_params(params: Mapping[str, Any], method: str) -> Any:

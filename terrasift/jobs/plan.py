@@ -2,7 +2,9 @@
 
 Planning reads headers only: the tiles, their CRS, the mean point density
 (which the density-derived defaults of the stages use, one value per job)
-and the block grid laid over the union of the tiles.
+and the block grid laid over the union of the tiles. The ground stage's
+density is measured later, while sharding, over the area the points occupy
+(``run.py``): header areas count voids and no-data corners as covered.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import pyproj
 from terrasift.errors import InputError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.params import grid_alignment, resolve_buffer
-from terrasift.tiling.blocks import BlockGrid
+from terrasift.tiling.blocks import BlockGrid, occupancy_cell
 from terrasift.tiling.lasfile import TileInfo, open_input, read_tile_info
 
 
@@ -132,6 +134,7 @@ def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     plan = {
         "tiles": [dict(i.__dict__) for i in infos],
         "density": density,
+        "occupancy_cell": occupancy_cell(density),
         "crs_wkt": crs_wkt,
         "crs": _crs_label(crs_wkt),
         "grid": grid.to_dict(),

@@ -1,7 +1,8 @@
 """A job from inputs to outputs: plan, shard, blocks, finish — resumable at every step.
 
 The job directory holds everything: ``job.json`` (inputs, parameters),
-``plan.json`` (tiles, CRS, block grid), ``shards/<tile>/<block>.bin``,
+``plan.json`` (tiles, CRS, block grid; after sharding the ground density),
+``shards/<tile part>/<block>.bin`` and ``occupancy.npy``,
 ``blocks/<block>.npz`` and ``outputs/``. Each task writes its result
 atomically and is skipped when the result exists, so a restarted service or
 a repeated ``process`` call redoes only what is missing. The CLI and the
@@ -19,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from terrasift.errors import ProcessingError
-from terrasift.files import load_json
+from terrasift.files import load_json, write_json
 from terrasift.jobs import finish, report
 from terrasift.jobs import survey as surveys
 from terrasift.jobs.block import run_block
@@ -27,7 +28,13 @@ from terrasift.jobs.dirs import check_cancel, output_path
 from terrasift.jobs.plan import plan_job
 from terrasift.jobs.quicklooks import write_quicklooks
 from terrasift.progress import JobProgress
-from terrasift.tiling.blocks import BlockGrid, shard_parts, shard_tile
+from terrasift.tiling.blocks import (
+    OCCUPANCY_FILE,
+    BlockGrid,
+    occupied_density,
+    shard_parts,
+    shard_tile,
+)
 from terrasift.workers.executors import Executor, Future
 
 #: called with work done, total work and details (stage, message, warnings)
@@ -125,6 +132,7 @@ def run_job(
             p.start,
             p.stop,
             plan.get("input_roots"),
+            float(plan.get("occupancy_cell", 0.0)),
         )
         for p in todo
     ]
@@ -137,6 +145,7 @@ def run_job(
         meter.report,
     )
     shard_seconds = time.perf_counter() - t
+    _add_ground_density(job_dir, plan, [shard_root / p.name for p in parts])
 
     # Blocks: every block that received a point from any tile.
     sizes: dict[str, int] = {}
@@ -324,6 +333,25 @@ def _run_mixed_tasks(
             f.cancel()
         raise
     return [results[i] for i in range(len(tasks))]
+
+
+def _add_ground_density(job_dir: Path, plan: dict[str, Any], shard_dirs: list[Path]) -> None:
+    """Record in ``plan.json`` the job's points per m² of occupied area, from the
+    cells every shard part recorded: the one density the ground stage of every
+    block follows (``jobs.params.with_ground_density``), so blocks cut from one
+    tile bin and mask alike. Left out when a part has no record (shards of an
+    older job resumed) or the plan has no cell size (survey runs)."""
+    cell = float(plan.get("occupancy_cell", 0.0))
+    if "ground_density" in plan or cell <= 0:
+        return
+    files = [d / OCCUPANCY_FILE for d in shard_dirs]
+    if not files or not all(f.exists() for f in files):
+        return
+    import numpy as np
+
+    points = sum(int(t["point_count"]) for t in plan["tiles"])
+    plan["ground_density"] = occupied_density(points, [np.load(f) for f in files], cell)
+    write_json(job_dir / "plan.json", plan, indent=2)
 
 
 def _require_ground(dtm: Path) -> None:

@@ -5,6 +5,11 @@ grid, so each block's core covers whole raster cells and mosaics have no
 half-pixel seams. A point belongs to the core of exactly one block (half-open
 intervals [x0, x0 + B)), and is copied into the halo of every neighbour whose
 core lies within ``buffer`` of it, corners included.
+
+While sharding, each pass also records the cells its points occupy
+(``occupied_cells``), so a job can measure its density over the area its
+points cover, voids left out, once for all of its blocks
+(``occupied_density``).
 """
 
 from __future__ import annotations
@@ -170,6 +175,48 @@ def assign_blocks(
     return np.concatenate(out_p), np.concatenate(out_b), core
 
 
+#: file of a shard folder holding the occupied cells of its points (``occupied_cells``)
+OCCUPANCY_FILE = "occupancy.npy"
+
+
+def occupancy_cell(density: float) -> float:
+    """Cell size for measuring occupied area: two mean spacings at ``density``
+    (about four points per occupied cell, as ``ground.nist``'s own measure)."""
+    return 2.0 / float(np.sqrt(max(density, 1e-9)))
+
+
+def occupied_cells(x: NDArray, y: NDArray, cell: float) -> NDArray[np.int64]:
+    """Sorted unique keys of the ``cell``-sized squares, anchored on absolute
+    multiples of ``cell``, that hold at least one of the points."""
+    if np.size(x) == 0:
+        return np.zeros(0, np.int64)
+    ix = np.floor(np.asarray(x) / cell).astype(np.int64)
+    iy = np.floor(np.asarray(y) / cell).astype(np.int64)
+    x0, y0 = int(ix.min()), int(iy.min())
+    nx, ny = int(ix.max()) - x0 + 1, int(iy.max()) - y0 + 1
+    if nx * ny > max(4 * ix.size, 1 << 16):  # scattered points: sort them
+        return _sorted_unique((ix << 32) ^ (iy & 0xFFFFFFFF))
+    # A flag per cell of the points' bounding box: linear, several times faster than sorting.
+    flags = np.zeros(nx * ny, dtype=bool)
+    flags[(ix - x0) * ny + (iy - y0)] = True
+    f = np.flatnonzero(flags)
+    return np.sort(((f // ny + x0) << 32) ^ ((f % ny + y0) & 0xFFFFFFFF))
+
+
+def occupied_density(points: int, keys: Sequence[NDArray[np.int64]], cell: float) -> float:
+    """Points per m² over the union of the occupied cells in ``keys`` (parts of
+    one job may share cells: overlapping tiles, parts of one tile)."""
+    merged = _sorted_unique(np.concatenate(list(keys))) if keys else np.zeros(0, np.int64)
+    return points / max(merged.size * cell * cell, 1e-9)
+
+
+def _sorted_unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``np.unique(keys)`` by one sort: numpy's hashing unique of int64 keys
+    profiled many times slower while sharding."""
+    k = np.sort(keys)
+    return k[np.r_[True, k[1:] != k[:-1]]] if k.size else k
+
+
 def shard_tile(
     tile_path: str,
     tile_index: int,
@@ -180,19 +227,24 @@ def shard_tile(
     start: int = 0,
     stop: int | None = None,
     roots: Sequence[str] | None = None,
+    occupancy: float = 0.0,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
     files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
-    of them when it is opened (``open_input``).
+    of them when it is opened (``open_input``). With ``occupancy`` (a cell size),
+    the cells the points occupy go to ``out_dir/occupancy.npy`` (``occupied_cells``).
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
     """
     core_counts: dict[str, int] = {}
+    cells: list[NDArray[np.int64]] = []
     with atomic_path(out_dir) as tmp:
         tmp.mkdir()
         for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots):
             x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
+            if occupancy > 0:
+                cells.append(occupied_cells(x, y, occupancy))
             p, bid, core = assign_blocks(grid, x, y)
             # Stable, so a block's points keep file order; on 16-bit ids numpy
             # sorts by radix (~6x faster than the merge sort of wider ints).
@@ -216,6 +268,9 @@ def shard_tile(
                 with open(tmp / f"{name}.bin", "ab") as fh:
                     rec[s:e].tofile(fh)
                 core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
+        if occupancy > 0:
+            merged = _sorted_unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
+            np.save(tmp / OCCUPANCY_FILE, merged)
     return core_counts
 
 

@@ -2,11 +2,12 @@
 
 Each tile (default 2 m = 4 × 4 cells of a 0.5 m DTM) is fitted by one plane, or
 by two planes meeting along an edge between two of its eight boundary points
-when that fits clearly better. All tiles are fitted at once: the k² cells of
-every tile form one stacked array, the one-plane fit is a fixed projection and
+when that fits clearly better. The one-plane fit is a fixed projection and
 each of the 16 two-plane ("hinge") models adds one regressor |distance to the
 edge line|, so its gain over the plane follows from one more projection
-(Frisch–Waugh). The result per tile:
+(Frisch–Waugh); a compiled pass (``_category_kernels.fit_tiles``) does this for
+every tile, and measures its heights on every grid asked for, without stacking
+the tiles into arrays. The result per tile:
 
 - inclination 0–8: 0 none, else the direction (1 E, 2 NE, 3 N … 8 SE,
   counter-clockwise from east) the mean plane rises toward;
@@ -42,6 +43,7 @@ from rasterio import Affine
 from scipy import ndimage
 
 from terrasift.errors import ParameterError
+from terrasift.workers._category_kernels import fit_tiles
 from terrasift.workers.registry import StageParams, register
 
 NODATA = 255
@@ -119,6 +121,9 @@ class Categories:
     explains the tile up to the noise, else max − min); the filters' ``height``."""
     step_cells: int | None = None
     """Cells between tile origins when tiles overlap (``step``); None: tiles abut."""
+    lying10: NDArray[np.uint8] | None = None
+    """``relief10`` of the tiles as they lie, before any regional slope is taken off
+    (``trend``); the filters' ``lying-height``. None: as ``relief10``."""
 
     @property
     def step(self) -> int:
@@ -171,6 +176,14 @@ def _models(k: int, cell: float) -> tuple[NDArray, NDArray, NDArray, NDArray, ND
     return pinv0, resid0, h, hnorm, plane_of_hinge
 
 
+@lru_cache(maxsize=8)
+def _cell_coords(k: int, cell: float) -> tuple[NDArray, NDArray]:
+    """Cell-centre x (east) and y (north) of a tile's k² cells, row-major, metres."""
+    c = (np.arange(k) + 0.5) * cell - k * cell / 2
+    xx, yy = np.meshgrid(c, -c)  # row 0 is north
+    return np.ascontiguousarray(xx.ravel()), np.ascontiguousarray(yy.ravel())
+
+
 def _edge_direction(code: int) -> NDArray:
     a, b = divmod(code, 10)
     v = np.array(_POINTS[b], float) - np.array(_POINTS[a], float)
@@ -218,7 +231,8 @@ def category_grids(
 ) -> list[Categories]:
     """``compute_categories`` for each of ``trends`` (None: the tiles as they lie) on one
     tile grid. The residuals from one plane and the two-plane fits do not change when a
-    plane is taken off a tile, so they are computed once for all the grids."""
+    plane is taken off a tile, so they are computed once for all the grids, in one
+    compiled pass over the tiles."""
     params = params or CategoryParams()
     k = max(2, int(round(params.tile_size / cell)))
     if abs(k * cell - params.tile_size) > 0.5 * cell:
@@ -228,60 +242,45 @@ def category_grids(
     rows, cols = -(-dtm.shape[0] // s), -(-dtm.shape[1] // s)
     padded = np.full(((rows - 1) * s + k, (cols - 1) * s + k), np.nan)
     padded[: dtm.shape[0], : dtm.shape[1]] = dtm
-    if s == k:
-        z = padded.reshape(rows, k, cols, k).transpose(0, 2, 1, 3).reshape(rows * cols, k * k)
-    else:
-        win = np.lib.stride_tricks.sliding_window_view(padded, (k, k))[::s, ::s]
-        z = win.reshape(rows * cols, k * k)
-
-    nodata: NDArray[np.bool_] = np.isnan(z).any(axis=1)  # type: ignore[assignment]
-    gaps = bool(nodata.any())
-    if gaps:
-        z = np.where(nodata[:, None], 0.0, z)
-    z = z - z.mean(axis=1, keepdims=True)
-
-    pinv0, resid0, h, hnorm, plane_of_hinge = _models(k, cell)
-    coef_raw = z @ pinv0.T  # (n, 3): c, gx, gy
-    r0 = z @ resid0
-    rss0 = (r0 * r0).sum(axis=1)
-    proj = r0 @ h  # (n, 16)
-    gain = np.square(proj)
-    gain /= hnorm
-    best = gain.argmax(axis=1)
-    n = z.shape[0]
-    idx = np.arange(n)
-    best_gain = gain[idx, best]
-    c3 = proj[idx, best] / hnorm[best]
-    rms0 = np.sqrt(rss0 / (k * k))
+    _, _, h, hnorm, plane_of_hinge = _models(k, cell)
     sigma = params.noise
     if sigma is None:
         sigma = _noise([plane_residuals(dtm, cell, params)], k)
     gate = max(params.edge_min_rms, params.edge_noise * sigma)
-    two = (rms0 > gate) & (rss0 - best_gain <= params.edge_ratio * rss0)
-
-    out = []
-    for trend in trends or [None]:
-        zt = z
-        coef0 = coef_raw
+    grids = list(trends or [None])
+    n = rows * cols
+    slopes = np.zeros((len(grids), 2, n))
+    for j, trend in enumerate(grids):
         if trend is not None:
-            c = (np.arange(k) + 0.5) * cell - k * cell / 2
-            xx, yy = np.meshgrid(c, -c)
-            tx, ty = trend[0].reshape(-1, 1), trend[1].reshape(-1, 1)
-            zt = z - tx * xx.ravel() - ty * yy.ravel()
-            if gaps:
-                zt[nodata] = 0.0
-            coef0 = zt @ pinv0.T
-        height = zt.max(axis=1) - zt.min(axis=1)
-        # the height flatness is judged on: the model's range where it explains the tile
-        fitted = zt - r0
-        if two.any():  # the hinge term on two-plane tiles (adding 0 elsewhere changes nothing)
-            fitted += np.where(two, c3, 0.0)[:, None] * h.T[best]
-        rms_model = np.sqrt(np.maximum(np.where(two, rss0 - best_gain, rss0), 0) / (k * k))
-        explained = rms_model <= params.flat_noise * sigma
-        model_height = fitted.max(axis=1) - fitted.min(axis=1)
-        relief = np.where(explained, model_height, height)
+            slopes[j, 0] = np.asarray(trend[0], dtype=np.float64).ravel()
+            slopes[j, 1] = np.asarray(trend[1], dtype=np.float64).ravel()
+    xs, ys = _cell_coords(k, cell)
+    # one compiled pass: plane and best hinge of every tile, its heights on every grid
+    nodata, two, best, c3, gxs, gys, heights, reliefs, lying = fit_tiles(
+        padded,
+        k,
+        s,
+        rows,
+        cols,
+        xs,
+        ys,
+        h,
+        hnorm,
+        gate,
+        params.edge_ratio,
+        params.flat_noise * sigma,
+        slopes,
+    )
+
+    def dm(v: NDArray) -> NDArray[np.uint8]:
+        return np.clip(np.round(v * 10), 0, 254).astype(np.uint8)
+
+    lying10 = dm(lying)
+    lying10[nodata] = NODATA
+    out = []
+    for j in range(len(grids)):
+        gx, gy, height, relief = gxs[j], gys[j], heights[j], reliefs[j]
         flat = relief < params.flat_height
-        gx, gy = coef0[:, 1], coef0[:, 2]
         rise = np.hypot(gx, gy) * k * cell
         inclination = _direction_code(gx, gy)
         # A one-plane tile that is not flat always has a direction; an edged tile only
@@ -317,8 +316,7 @@ def category_grids(
         inclination[flat] = 0
         orientation[flat] = 0
         state[flat] = 0
-        height10 = np.clip(np.round(height * 10), 0, 254).astype(np.uint8)
-        relief10 = np.clip(np.round(relief * 10), 0, 254).astype(np.uint8)
+        height10, relief10 = dm(height), dm(relief)
         for band in (inclination, orientation, state, height10, relief10):
             band[nodata] = NODATA
         shape = (rows, cols)
@@ -333,6 +331,7 @@ def category_grids(
                 float(sigma),
                 relief10.reshape(shape),
                 None if s == k else s,
+                lying10.reshape(shape),
             )
         )
     return out
@@ -357,6 +356,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         float(np.median([p.noise for p in parts])),
         None if first.relief10 is None else cat("relief10"),
         first.step_cells,
+        None if first.lying10 is None else cat("lying10"),
     )
 
 

@@ -118,6 +118,9 @@ class CategorySpec:
     negate: bool = False
     height: ValueSet = ValueSet()
     """The tile's height in decimetres as the flatness test sees it (``Categories.relief10``)."""
+    lying_height: ValueSet = ValueSet()
+    """``height`` of the tile as it lies, before ``detrend`` sets it on its regional slope
+    (``Categories.lying10``); on a grid without ``detrend`` the same as ``height``."""
 
 
 @dataclass(frozen=True)
@@ -485,11 +488,12 @@ class _Parser:
             key, rest = words[0], words[1:]
             if key == "endcategory":
                 return CategorySpec(negate=negate, **props)
-            if key not in ("inclination", "state", "orientation", "height"):
+            if key not in ("inclination", "state", "orientation", "height", "lying-height"):
                 raise self.error(f"unexpected {key!r} inside a category", no)
-            if key in props:
+            name = key.replace("-", "_")
+            if name in props:
                 raise self.error(f"{key} given twice in one category", no)
-            props[key] = self.values(no, key, rest)
+            props[name] = self.values(no, key, rest)
         raise self.error("begincategory without endcategory", start)
 
     def values(self, no: int, key: str, words: list[str]) -> ValueSet:
@@ -509,7 +513,7 @@ class _Parser:
             bad = [v for v in vals if v > 2]
             if bad:
                 raise self.error(f"state must be 0, 1 or 2, got {bad[0]}", no)
-        elif key == "height":
+        elif key in ("height", "lying-height"):
             bad = [v for v in vals if v > 254]
             if bad:
                 raise self.error(f"height is in decimetres, 0–254, got {bad[0]}", no)
@@ -581,6 +585,8 @@ def format_filter(f: Filter) -> str:
                 out.append(f"      orientation {cat.orientation.text()}")
                 if cat.height.values is not None:
                     out.append(f"      height {cat.height.text()}")
+                if cat.lying_height.values is not None:
+                    out.append(f"      lying-height {cat.lying_height.text()}")
                 out.append("    endcategory")
             out.append("  endsubsegment")
         out.append("endsegment")

@@ -43,16 +43,26 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
     return lut
 
 
+def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
+    """The bands a category tests: inclination, orientation, state, height, lying-height."""
+    relief = cats.relief10 if cats.relief10 is not None else cats.height10
+    lying = cats.lying10 if cats.lying10 is not None else relief
+    return (cats.inclination, cats.orientation, cats.state, relief, lying)
+
+
 def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
     """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
     if isinstance(cats, Categories):
-        cats = (cats.inclination, cats.orientation, cats.state, cats.relief10)
+        cats = _arrays(cats)
     inc, ori, st = cats[0], cats[1], cats[2]
     m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
-    if spec.height.values is not None:
-        if len(cats) < 4 or cats[3] is None:
-            raise ValueError("a filter tests height but the categories carry no heights")
-        m &= _lut(spec.height)[cats[3]]
+    for i, (name, test) in enumerate(
+        (("height", spec.height), ("lying-height", spec.lying_height)), start=3
+    ):
+        if test.values is not None:
+            if len(cats) <= i or cats[i] is None:
+                raise ValueError(f"a filter tests {name} but the categories carry no heights")
+            m &= _lut(test)[cats[i]]
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)
@@ -172,8 +182,7 @@ def _search_band(bad: list[NDArray[np.bool_]], seg: Segment) -> NDArray[np.bool_
 def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
     flt = resolve_lengths(flt, cats.spacing)
-    relief = cats.relief10 if cats.relief10 is not None else cats.height10
-    arrays = (cats.inclination, cats.orientation, cats.state, relief)
+    arrays = _arrays(cats)
     arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
     v = np.zeros(cats.shape, dtype=bool)

@@ -221,6 +221,11 @@ class NistParams(StageParams):
     """…and so is a group of grown nodes level with each other (within that height) covering
     at most this many m² (nodes × final cell²; at least one node): a car, a shed, a bush;
     larger, and crest nodes of sparse data go too."""
+    grow_agree: float = Field(0.0, ge=0, le=1)
+    """Growth: a node joins only when at least this share of its ground neighbours predict it
+    (0: any one). A slope fitted from two close neighbours predicts an object's top at a wall
+    (``growth.py``); 0.5 keeps growth off platforms in rail yards but costs the ISPRS samples
+    (README *Measured*), so it is off by default."""
     grow_peaks: bool = True
     """…switch for those rules."""
     support_k: int = Field(8, ge=0, le=64)
@@ -667,6 +672,7 @@ def _grown(
         barred=barred,
         peak=params.grow_peak * tol if params.grow_peaks else None,
         peak_nodes=max(1, int(params.grow_peak_area / _cell_of(grid) ** 2)),
+        agree=params.grow_agree,
     )
     if np.count_nonzero(ground) < 3:
         return tin
