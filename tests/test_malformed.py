@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import os
 import signal
+import struct
 import time
 from collections import Counter
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -18,7 +20,7 @@ from hypothesis import strategies as st
 from terrasift.errors import InputError
 from terrasift.service.app import create_app
 from terrasift.service.settings import Settings
-from terrasift.synthetic.malformed import corpus, run_through_app, write_pair
+from terrasift.synthetic.malformed import corpus, laszip_items_at, run_through_app, write_pair
 from terrasift.tiling.lasfile import iter_chunks, read_tile_info
 from terrasift.workers.pool import TaskOutOfMemory, WorkerLost, WorkerPool
 
@@ -69,6 +71,8 @@ def test_malformed_corpus_through_the_app(client: TestClient, good: tuple[bytes,
         "laz-x_offset=1e+300",
         "laz-z_offset=nan",
         "las-point-count-1680-of-3360",
+        "laz-laszip-items-0",
+        "laz-laszip-item-sizes-0",
     ):
         assert outcomes[name][0] == "refused-4xx", (name, outcomes[name])
     for name in ("laz-payload-zeroed-0", "laz-payload-random-2", "las-point-outside-bounds"):
@@ -166,3 +170,25 @@ def test_header_fuzz_is_an_input_error_or_a_readable_tile(
     except (InputError, WorkerLost, TaskOutOfMemory):
         return
     assert read == info.point_count
+
+
+def test_a_decoder_panic_is_an_input_error_naming_the_file(
+    tmp_path: Path, good: tuple[bytes, bytes], reader_pool: WorkerPool
+) -> None:
+    """A laszip record listing no items makes lazrs panic (a division by the point size,
+    0): pyo3 raises PanicException, a BaseException that does not pickle. The header check
+    refuses the file; a task reading it anyway (as a shard task does, without the header
+    check) fails with an input error naming the file, and its worker lives on."""
+    data = bytearray(good[1])
+    struct.pack_into("<H", data, laszip_items_at(good[1]) - 2, 0)
+    path = tmp_path / "panics.laz"
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"panics\.laz: the laszip VLR lists 0 compressed items"):
+        read_tile_info(path)
+    assert reader_pool.submit(len, "ready").result(timeout=120) == 5
+    before = reader_pool.worker_pids()
+    with pytest.raises(InputError, match=r"panics\.laz: .*decoder crashed \(PanicException"):
+        reader_pool.submit(_read_all, str(path), timeout=30).result(timeout=120)
+    assert reader_pool.worker_pids() == before  # an error, not a lost worker
+    with pytest.raises(InputError, match=r"panics\.laz: .*decoder crashed \(PanicException"):
+        _read_all(str(path))  # in this process too

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from terrasift.errors import JobCancelled
+from terrasift.errors import InputError, JobCancelled, ProcessingError
 from terrasift.workers.pool import (
     TaskOutOfMemory,
     TaskTimeout,
@@ -61,6 +62,37 @@ def raises() -> None:
     raise ValueError("bad block")
 
 
+class Panic(BaseException):
+    """Like pyo3's PanicException: a BaseException whose class cannot be pickled."""
+
+    def __reduce__(self):
+        raise pickle.PicklingError("Can't pickle Panic: import of module 'pyo3_runtime' failed")
+
+
+class Strict(Exception):
+    """Pickles, but does not unpickle: its constructor wants two arguments."""
+
+    def __init__(self, a: str, b: str):
+        super().__init__(f"{a} {b}")
+
+
+class StrictInput(InputError):
+    def __init__(self, a: str, b: str):
+        super().__init__(f"{a} {b}")
+
+
+def panics(path: str) -> None:
+    raise Panic("attempt to calculate the remainder with a divisor of zero")
+
+
+def raises_strict(path: str, input_error: bool) -> None:
+    raise (StrictInput if input_error else Strict)("bad", "bytes")
+
+
+def unpicklable_result(path: str) -> object:
+    return lambda: path
+
+
 @pytest.fixture(scope="module")
 def pool():
     p = WorkerPool(2, memory_limit=300_000_000)
@@ -88,6 +120,21 @@ def test_a_dying_worker_fails_only_its_task(pool: WorkerPool) -> None:
 def test_an_exception_is_the_task_s_own(pool: WorkerPool) -> None:
     with pytest.raises(ValueError, match="bad block"):
         pool.submit(raises).result(timeout=60)
+
+
+def test_an_exception_that_cannot_travel_fails_its_task_naming_it(pool: WorkerPool) -> None:
+    pids = set(pool.worker_pids())
+    with pytest.raises(ProcessingError, match=r"panics\(t\.laz\) failed: Panic: attempt to"):
+        pool.submit(panics, "/data/t.laz").result(timeout=60)
+    with pytest.raises(ProcessingError, match=r"raises_strict\(t\.laz\) failed: Strict: bad bytes"):
+        pool.submit(raises_strict, "/data/t.laz", False).result(timeout=60)
+    # an input error stays one, so the service answers it as the client's
+    with pytest.raises(InputError, match=r"raises_strict\(t\.laz\) failed: StrictInput: bad"):
+        pool.submit(raises_strict, "/data/t.laz", True).result(timeout=60)
+    with pytest.raises(ProcessingError, match=r"unpicklable_result\(t\.laz\) finished, but"):
+        pool.submit(unpicklable_result, "/data/t.laz").result(timeout=60)
+    assert set(pool.worker_pids()) == pids  # no worker was lost or replaced
+    assert pool.submit(square, 5).result(timeout=60) == 25
 
 
 def test_time_limit_and_dismiss_stop_a_running_call(pool: WorkerPool) -> None:

@@ -227,3 +227,37 @@ def test_reads_do_not_wait_behind_a_check_waiting_for_a_commit(store: JobStore) 
     release.join()
     check.join(10)
     assert not check.is_alive()
+
+
+def test_status_reads_come_from_the_rows_writes_leave_in_memory(store: JobStore) -> None:
+    store.create_job("j1", "alice", {"resolution": 0.5}, ["/in/a.laz"])
+    queries: list[str] = []
+    store._rdb.set_trace_callback(queries.append)
+    for _ in range(50):
+        assert store.get_job("j1", tenant="alice").status == ACCEPTED
+    assert store.get_job("j1", tenant="bob") is None  # the tenant is still checked
+    store.mark_running("j1")
+    store.set_progress("j1", 40, "tiles", stage="ground", warnings=["w"])
+    job = store.get_job("j1")
+    assert (job.status, job.progress, job.message, job.stage, job.warnings) == (
+        RUNNING,
+        40,
+        "tiles",
+        "ground",
+        ["w"],
+    )
+    job.params["resolution"] = 9  # a caller's copy: the kept row is not changed
+    assert store.get_job("j1").params == {"resolution": 0.5}
+    store.finish("j1", SUCCESSFUL, "done", ["dtm.tif"])
+    assert store.get_job("j1").outputs == ["dtm.tif"]
+    assert store.dismiss("j1").status == DISMISSED
+    assert queries == []  # not one SELECT on the reading connection
+    # a row nobody wrote through this store is read once, then kept
+    store._db.execute(
+        "INSERT INTO jobs (id, tenant, process_id, status, params, inputs, created, updated)"
+        " VALUES ('j2', 'bob', 'terrain', 'accepted', '{}', '[]', 'x', 'x')"
+    )
+    assert store.get_job("j2").tenant == "bob" and store.get_job("j2").status == ACCEPTED
+    assert len(queries) == 1
+    store.requeue_interrupted()  # changes rows in bulk: every kept row is dropped
+    assert store.get_job("j2").status == ACCEPTED and len(queries) == 2

@@ -163,7 +163,11 @@ def settle_heap() -> int:
 def serve(
     host: str | None = None, port: int | None = None, settings: Settings | None = None
 ) -> None:
-    """Run the API with embedded workers (``terrasift serve``)."""
+    """Run the API with embedded workers (``terrasift serve``).
+
+    uvicorn picks uvloop and httptools (dependencies) over asyncio and h11: they take
+    less CPU per request, so a status read waits less for a CPU on a busy machine.
+    """
     import uvicorn
 
     settings = settings or Settings()
@@ -172,4 +176,9 @@ def serve(
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    uvicorn.run(create_app(settings, freeze_heap=True), host=settings.host, port=settings.port)
+    uvicorn.run(
+        create_app(settings, freeze_heap=True),
+        host=settings.host,
+        port=settings.port,
+        access_log=settings.access_log,
+    )

@@ -24,6 +24,11 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="job store (SQLite), uploads, job outputs")
     host: str = Field("127.0.0.1", description="bind address of `terrasift serve`")
     port: int = Field(8000, ge=1, le=65535, description="bind port of `terrasift serve`")
+    access_log: bool = Field(
+        False,
+        description="log every request of `terrasift serve` (off by default: a line per status "
+        "poll costs the event loop time and says little)",
+    )
     dask_scheduler: str | None = Field(
         None, description="tcp://host:port of a Dask scheduler; unset = local process pool"
     )

@@ -63,6 +63,9 @@ CREATE TABLE IF NOT EXISTS surveys (
 """
 
 
+ROW_CACHE = 10_000  # job rows kept in memory; beyond, the cache starts again
+
+
 def now() -> str:
     """UTC timestamp, ISO 8601 with microseconds, so text order is time order."""
     return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
@@ -111,6 +114,9 @@ class JobStore:
     ``record.json`` in its directory (written on creation, on every change of
     status and of stage or warnings, not on progress), so a store whose file was deleted or corrupted is
     rebuilt from them; ``check`` notices either while the service runs.
+
+    The rows of jobs read recently are kept in memory and replaced by every write
+    to them, so a status poll does not query SQLite (nor wait for its lock).
     """
 
     def __init__(self, path: Path, jobs_dir: Path | None = None, surveys_dir: Path | None = None):
@@ -121,6 +127,7 @@ class JobStore:
         self._lock = threading.Lock()  # the writing connection
         self._rlock = threading.Lock()  # the reading one: reads never wait for a commit
         self.recovered: str | None = None  # what the last open or check had to do
+        self._rows: dict[str, sqlite3.Row] = {}  # job rows by id, replaced on every write
         self._db = self._open()
         self._rdb = self._reader()
         with self._lock:
@@ -211,6 +218,7 @@ class JobStore:
                 rebuilt = False
             self._rdb.close()
             self._rdb = self._reader()
+            self._rows.clear()
         if rebuilt:
             self._rebuild_from_records()
             self.recovered = "the store file was corrupt; rebuilt from the job directories"
@@ -220,6 +228,7 @@ class JobStore:
 
     def _rebuild_from_records(self) -> int:
         """Insert every job and survey whose directory holds a record; how many jobs."""
+        self._rows.clear()
         jobs = 0
         for kind, root in (("jobs", self.jobs_dir), ("surveys", self.surveys_dir)):
             if root is None or not root.is_dir():
@@ -308,6 +317,7 @@ class JobStore:
                     ts,
                 ),
             )
+        self._fresh(job_id)
         self._write_record(job_id)
         job = self.get_job(job_id)
         assert job is not None
@@ -315,11 +325,27 @@ class JobStore:
 
     def get_job(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""
-        with self._read() as db:
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        row = self._rows.get(job_id)
+        if row is None:
+            with self._read() as db:
+                row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is not None:
+                if len(self._rows) >= ROW_CACHE:
+                    self._rows.clear()
+                # a write since this read has put its newer row in: that one stays
+                row = self._rows.setdefault(job_id, row)
         if row is None or (tenant is not None and row["tenant"] != tenant):
             return None
         return _job(row)
+
+    def _fresh(self, job_id: str) -> None:
+        """Put the committed row of ``job_id`` in the cache (after every write to it)."""
+        with self._lock:
+            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+            if row is None:
+                self._rows.pop(job_id, None)
+            else:
+                self._rows[job_id] = row
 
     def list_jobs(
         self,
@@ -365,6 +391,7 @@ class JobStore:
                 "UPDATE jobs SET status = ?, message = ?, updated = ? WHERE status = ?",
                 (ACCEPTED, "resumed after a service restart", ts, RUNNING),
             )
+            self._rows.clear()
         return ids
 
     def mark_running(self, job_id: str) -> bool:
@@ -377,6 +404,7 @@ class JobStore:
                 (RUNNING, "processing", ts, ts, job_id, ACCEPTED),
             )
         if cur.rowcount == 1:
+            self._fresh(job_id)
             self._write_record(job_id)
         return cur.rowcount == 1
 
@@ -411,8 +439,10 @@ class JobStore:
                     RUNNING,
                 ),
             )
-        if detail and cur.rowcount == 1:
-            self._write_record(job_id)
+        if cur.rowcount == 1:
+            self._fresh(job_id)
+            if detail:
+                self._write_record(job_id)
 
     def queue_position(self, job: Job) -> int | None:
         """Accepted jobs ahead of this accepted one (0: next to start); None when not queued."""
@@ -441,6 +471,7 @@ class JobStore:
                 (status, message, json.dumps(outputs or []), ts, ts, job_id, *ACTIVE),
             )
         if cur.rowcount == 1:
+            self._fresh(job_id)
             self._write_record(job_id)
         return cur.rowcount == 1
 
@@ -453,6 +484,7 @@ class JobStore:
                 " updated = ? WHERE id = ? AND status != ?",
                 (DISMISSED, message, ts, ts, job_id, DISMISSED),
             )
+        self._fresh(job_id)
         self._write_record(job_id)
         return self.get_job(job_id)
 

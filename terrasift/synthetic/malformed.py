@@ -69,6 +69,10 @@ def corpus(las: bytes, laz: bytes, seed: int = 0) -> Iterator[tuple[str, str, by
         yield f"laz-chunk-table-offset-{name}", "laz", _put(laz, offset, "q", value)
     for chunks in (0, 2, 0x7FFFFFFF, 0xFFFFFFFF):
         yield f"laz-chunk-count-{chunks}", "laz", _put(laz, table + 4, "I", chunks)
+    # the laszip record's item list: none (lazrs panics on it), or items of no size
+    items = laszip_items_at(laz)
+    yield "laz-laszip-items-0", "laz", _put(laz, items - 2, "H", 0)
+    yield "laz-laszip-item-sizes-0", "laz", _put(_put(laz, items + 2, "H", 0), items + 8, "H", 0)
     # corrupt compressed payloads: zeroed and random bytes inside the point data
     for i, (start, length) in enumerate([(offset + 8, 64), (offset + 200, 16), (table - 400, 300)]):
         body = bytearray(laz)
@@ -81,6 +85,19 @@ def corpus(las: bytes, laz: bytes, seed: int = 0) -> Iterator[tuple[str, str, by
     start, record = struct.unpack_from("<I", las, 96)[0], struct.unpack_from("<H", las, 105)[0]
     struct.pack_into("<i", body, start + 5 * record, 2**31 - 1)
     yield "las-point-outside-bounds", "las", bytes(body)
+
+
+def laszip_items_at(laz: bytes) -> int:
+    """Byte offset of the laszip VLR's item list (after its 34-byte preamble) in ``laz``."""
+    header_size, _, n_vlrs = struct.unpack_from("<HII", laz, 94)
+    pos = header_size
+    for _ in range(n_vlrs):
+        user = laz[pos + 2 : pos + 18].rstrip(b"\0")
+        record_id, length = struct.unpack_from("<HH", laz, pos + 18)
+        if user == b"laszip encoded" and record_id == 22204:
+            return pos + 54 + 34
+        pos += 54 + length
+    raise ValueError("no laszip VLR")
 
 
 def write_pair(directory: Path, size: float = 40.0, density: float = 2.0) -> tuple[bytes, bytes]:

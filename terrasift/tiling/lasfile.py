@@ -25,6 +25,18 @@ LAS_HEADER_MIN = 227
 LAS14_HEADER = 375
 MAX_ABS_COORD = 1e9  # metres (or feet): beyond anything on Earth in any projected CRS
 MAX_EXTENT = 200_000.0  # one tile wider than 200 km is a broken header, not a survey
+# Exceptions a decoder must let through: everything else it raises (lazrs panics
+# surface as pyo3's PanicException, a BaseException) is a verdict on the input.
+PASS_THROUGH = (KeyboardInterrupt, SystemExit, GeneratorExit)
+
+
+def _decoder_failure(exc: BaseException) -> str:
+    """What a failed decoder said, with its type when that is not a plain error."""
+    text = str(exc).strip() or "no message"
+    kind = type(exc).__name__
+    if not isinstance(exc, Exception):  # a panic in lazrs, not an error it reports
+        return f"the LAZ decoder crashed ({kind}: {text})"
+    return text
 
 
 @dataclass(frozen=True)
@@ -130,8 +142,12 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header
-    except Exception as exc:  # laspy raises several types for corrupt headers and VLRs
-        raise InputError(f"{name}: unreadable LAS header or VLRs: {exc}") from None
+    except PASS_THROUGH:
+        raise
+    except BaseException as exc:  # laspy raises several types for corrupt headers and VLRs
+        raise InputError(
+            f"{name}: unreadable LAS header or VLRs: {_decoder_failure(exc)}"
+        ) from None
 
     count = int(header.point_count)
     if count == 0:
@@ -198,7 +214,9 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
     try:
         crs = header.parse_crs()
         crs_wkt = crs.to_wkt() if crs is not None else None
-    except Exception as exc:  # a malformed CRS record should not sink the tile
+    except PASS_THROUGH:
+        raise
+    except BaseException as exc:  # a malformed CRS record should not sink the tile
         warnings.append(f"{name}: CRS record could not be parsed ({exc})")
     if crs_wkt is None:
         warnings.append(f"{name}: no CRS in the file")
@@ -225,6 +243,7 @@ EVLR_HEADER = 60
 MAX_VLR_BYTES = 64 * 1024**2  # CRS, laszip and extra-bytes records are kilobytes
 LASZIP_USER = b"laszip encoded"
 LASZIP_RECORD = 22204
+LASZIP_PREAMBLE = 34  # bytes before the laszip record's item list
 VARIABLE_CHUNKS = 0xFFFFFFFF
 
 
@@ -275,13 +294,38 @@ def _check_structure(
                 raise InputError(
                     f"{name}: VLR {i + 1} of {n_vlrs} claims {length} bytes, past the point data"
                 )
-            if user == LASZIP_USER and record_id == LASZIP_RECORD and length >= 16:
-                (chunk_size,) = struct.unpack_from("<I", vlrs, body + 12)
+            if user == LASZIP_USER and record_id == LASZIP_RECORD:
+                chunk_size = _check_laszip_vlr(name, vlrs[body : body + length], record)
             pos = body + length
         if minor >= 4:
             start, n_evlrs = struct.unpack_from("<QI", head, 235)
             _check_evlrs(fh, name, size, offset, start, n_evlrs)
     return chunk_size
+
+
+def _check_laszip_vlr(name: str, body: bytes, record: int) -> int:
+    """The laszip record's item list against the header's point record length; its chunk size.
+
+    The record lists the compressed items of a point (type, size, version, six
+    bytes each, after a 34-byte preamble); their sizes add up to the point record.
+    lazrs divides by that sum, so an empty list makes it panic rather than fail.
+    """
+    if len(body) < LASZIP_PREAMBLE:
+        raise InputError(f"{name}: the laszip VLR is cut short ({len(body)} bytes)")
+    (chunk_size,) = struct.unpack_from("<I", body, 12)
+    (n_items,) = struct.unpack_from("<H", body, 32)
+    if n_items == 0 or LASZIP_PREAMBLE + 6 * n_items > len(body):
+        raise InputError(
+            f"{name}: the laszip VLR lists {n_items} compressed items in {len(body)} bytes "
+            "(the file is corrupt)"
+        )
+    sizes = [struct.unpack_from("<H", body, LASZIP_PREAMBLE + 6 * i + 2)[0] for i in range(n_items)]
+    if sum(sizes) != record:
+        raise InputError(
+            f"{name}: the laszip VLR describes points of {sum(sizes)} bytes, the header "
+            f"{record} bytes (the file is corrupt)"
+        )
+    return int(chunk_size)
 
 
 def _check_evlrs(fh: BinaryIO, name: str, size: int, offset: int, start: int, count: int) -> None:
@@ -410,9 +454,14 @@ def iter_chunks(
         raise InputError(f"{Path(path).name}: cannot open for reading ({exc.strerror})") from None
     try:
         reader = laspy.open(source, closefd=True, decompression_selection=wanted)
-    except Exception as exc:
+    except PASS_THROUGH:
         source.close()
-        raise InputError(f"{Path(path).name}: cannot open for reading: {exc}") from None
+        raise
+    except BaseException as exc:
+        source.close()
+        raise InputError(
+            f"{Path(path).name}: cannot open for reading: {_decoder_failure(exc)}"
+        ) from None
     with reader:
         total = int(reader.header.point_count)
         stop = total if stop is None else min(stop, total)
@@ -459,11 +508,12 @@ def iter_chunks(
                     classification=np.asarray(pts.classification, dtype=np.uint8),
                 )
                 pos += n
-        except InputError:
+        except (InputError, *PASS_THROUGH):
             raise
-        except Exception as exc:  # lazrs / laspy errors on corrupt or cut data
+        except BaseException as exc:  # lazrs / laspy errors (and lazrs panics) on corrupt data
             raise InputError(
-                f"{Path(path).name}: point data unreadable after {pos} points: {exc}"
+                f"{Path(path).name}: point data unreadable after {pos} points: "
+                f"{_decoder_failure(exc)}"
             ) from None
         if pos != stop:
             raise InputError(

@@ -30,10 +30,11 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
+from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
 from typing import Any
 
-from terrasift.errors import JobCancelled, ProcessingError
+from terrasift.errors import InputError, JobCancelled, ProcessingError
 
 log = logging.getLogger(__name__)
 
@@ -125,15 +126,43 @@ def _worker_main(conn: Connection, parent: int, nice: int, pid_dir: str | None) 
             try:
                 reply = (task_id, True, fn(*args))
             except BaseException as exc:  # noqa: BLE001 - the caller gets it through the future
-                reply = (task_id, False, exc)
+                reply = (task_id, False, _portable(exc, fn, args))
             try:
                 conn.send(reply)
-            except Exception as exc:  # noqa: BLE001 - an unpicklable result or exception
-                conn.send((task_id, False, ProcessingError(f"result not transferable: {exc!r}")))
+            except Exception as exc:  # noqa: BLE001 - a result that does not pickle
+                conn.send(
+                    (
+                        task_id,
+                        False,
+                        ProcessingError(
+                            f"{describe(fn, args)} finished, but its result could not be "
+                            f"sent back ({type(exc).__name__}: {exc})"
+                        ),
+                    )
+                )
     finally:
         if pid_file is not None:
             with contextlib.suppress(OSError):
                 pid_file.unlink()
+
+
+def _portable(exc: BaseException, fn: Callable[..., Any], args: tuple) -> BaseException:
+    """``exc`` itself when it survives the trip to the owner, else an error that does.
+
+    Some exceptions do not pickle (pyo3's ``PanicException``, raised when a Rust
+    decoder such as lazrs panics on corrupt data, lives in a module that cannot be
+    imported) or do not unpickle (a constructor that wants other arguments). The
+    owner then gets the task, the exception's type and its message instead of an
+    opaque transfer error; an ``InputError`` stays one.
+    """
+    try:
+        ForkingPickler.loads(ForkingPickler.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - any failure to round-trip
+        pass
+    kind = InputError if isinstance(exc, InputError) else ProcessingError
+    text = str(exc).strip() or "no message"
+    return kind(f"{describe(fn, args)} failed: {type(exc).__name__}: {text}")
 
 
 def reap_leftovers(pid_dir: Path) -> list[int]:
@@ -379,7 +408,11 @@ class WorkerPool:
             w.lost = True
             return
         except Exception as exc:  # noqa: BLE001 - a reply that cannot be unpickled
-            task_id, ok, value = (w.task.id if w.task else -1), False, exc
+            task_id, ok = (w.task.id if w.task else -1), False
+            what = describe(w.task.fn, w.task.args) if w.task else "a task"
+            value = ProcessingError(
+                f"the reply of {what} could not be read ({type(exc).__name__}: {exc})"
+            )
         task = w.task
         if task is None or task.id != task_id:
             return
