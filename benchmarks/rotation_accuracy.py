@@ -108,7 +108,9 @@ def auto(
             unrotated=None if rp.rerun_unrotated else g,
             seeded=seeded,
             last_return=last_return,
-            restore=lambda p, got: restore_landforms(p, got, LandformParams()),
+            restore=lambda p, got: restore_landforms(
+                p, got, LandformParams(spacings=LandformParams().view_spacings)
+            ),
         )
         g = reject_low_vegetation(xyz, res.is_ground, LowVegParams(), last_return)
         info["added"] = res.added

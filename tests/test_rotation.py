@@ -530,3 +530,67 @@ def test_rotated_runs_give_back_a_tipped_mesa():
     params = RotationParams(second_angle=45.0, context=None, aspect_window=None)
     classify_rotated(tipped, ground, params, unrotated=before, restore=restore)
     assert len(tips) == params.directions
+
+
+def test_views_find_a_face_below_a_plateau_the_filter_lost():
+    # The filter kept only the low side of a 25 m step (it lost the plateau
+    # above, as a raised body cut by the data's edge): its ground labels have
+    # no step, so no run saw the face. The lowest of all points still steps
+    # there (``anchor_all``); a crown 8 m over kept ground does not count.
+    rng = np.random.default_rng(1)
+    pts = _plane(25.0)
+    crown = np.column_stack(
+        [rng.uniform(5e5 + 27, 5e5 + 33, 600), rng.uniform(5.4e6 + 72, 5.4e6 + 78, 600)]
+    )
+    crown_z = 0.02 * (crown[:, 0] - 5e5) + 8.0 + rng.uniform(0, 4, 600)
+    under = (np.abs(pts[:, 0] - 5e5 - 30) < 3) & (np.abs(pts[:, 1] - 5.4e6 - 75) < 3)
+    pts = np.vstack([pts[~under], np.column_stack([crown, crown_z])])
+    base = (pts[:, 0] < 5e5 + 75) & (pts[:, 2] < 0.02 * (pts[:, 0] - 5e5) + 0.5)
+    seen: dict[str, list[np.ndarray]] = {"all": [], "ground": []}
+    for key, anchor in (("all", 10.0), ("ground", None)):
+
+        def spy(p, key=key):
+            seen[key].append(p)
+            return np.zeros(p.shape[0], dtype=bool)
+
+        params = RotationParams(anchor_all=anchor, face_evidence=False)
+        classify_rotated(pts, spy, params, unrotated=base)
+    assert seen["ground"] == []
+    assert 1 <= len(seen["all"]) <= 3
+    # The runs see the step with 20 m either side, not the crown 45 m off it.
+    assert 0.1 * len(pts) < max(len(p) for p in seen["all"]) < 0.4 * len(pts)
+
+
+def test_landform_cells_hold_ground_under_crowns_at_the_foot_of_faces():
+    # At 2 pulses/m² a cell of 1.5 mean spacings holds two points: under a
+    # crown at the foot of a face its lowest point is often a crown return,
+    # the crown joins the raised body and is given back with it. Cells of 2
+    # spacings hold ground under more crowns; the mesa itself stays.
+    from terrasift.synthetic.landforms import LandformSpec, Mesa, make_landforms
+    from terrasift.workers.ground.landforms import LandformParams, restore_landforms
+    from terrasift.workers.ground.nist import NistParams
+    from terrasift.workers.ground.nist import classify_ground as nist
+
+    spec = LandformSpec(
+        size=80.0,
+        density=2.0,
+        slope=(0.05, 0.02),
+        mesas=[Mesa(40.0, 40.0, 15.0, 25.0, angle=80.0, talus=0.2)],
+        tree_density=0.0,
+        bush_density=0.0,
+        face_stems=40,
+        max_scan_angle=8.0,
+    )
+    scene = make_landforms(spec, seed=2)
+    last = scene.return_number >= scene.number_of_returns
+    before = nist(scene.xyz, NistParams())
+    tall = (scene.truth == 4) | (scene.truth == 5)
+    land = scene.extra["landform"]
+    got = {
+        k: restore_landforms(scene.xyz, before, LandformParams(spacings=k), last)
+        for k in (1.5, 2.0)
+    }
+    assert tall.sum() > 500 and np.mean(before[land]) < 0.3
+    crowns = {k: int(np.count_nonzero(g & tall & ~before)) for k, g in got.items()}
+    assert crowns[2.0] < 0.7 * crowns[1.5], crowns
+    assert np.mean(got[2.0][land]) > 0.85

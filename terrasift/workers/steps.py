@@ -149,7 +149,14 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
     ground, seeded = rotation.bind_ground(stage, models.rotation_ground_params, **kwargs)
     # A mesa tipped by the first angle is still a raised body to the filter.
     lp = models.landforms
-    restore = None if lp is None else partial(landforms.restore_landforms, params=lp)
+    restore = (
+        None
+        if lp is None
+        else partial(
+            landforms.restore_landforms,
+            params=lp.model_copy(update={"spacings": lp.view_spacings}),
+        )
+    )
     with timer("rotation"):
         result = rotation.classify_rotated(
             xyz,

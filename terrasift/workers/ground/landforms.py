@@ -12,8 +12,8 @@ rises to the foot of its faces; around a building the ground is level (on
 a regional slope it rises on the uphill side and falls on the downhill side
 by the same amount).
 
-Steps, on a raster of the lowest point per ``cell`` (metres; 0: 1.5 mean
-point spacings, at least 1 m):
+Steps, on a raster of the lowest point per ``cell`` (metres; 0: ``spacings``
+mean point spacings, at least 1 m):
 
 1. heights above the ground labels' surface (a TIN of their lowest point per
    cell); cells ``min_height`` or more above it are raised;
@@ -56,7 +56,15 @@ class LandformParams(StageParams):
     enabled: bool = True
     """Run the rule after the ground stage (false: the filter's labels as they are)."""
     cell: float = Field(0.0, ge=0.0, le=20.0)
-    """Raster cell (0: 1.5 mean point spacings, at least 1 m)."""
+    """Raster cell (0: ``spacings`` mean point spacings, at least 1 m)."""
+    spacings: float = Field(2.0, gt=0.0, le=20.0)
+    """Mean point spacings per cell when ``cell`` is 0. At 2 pulses/m² cells of
+    1.5 spacings hold two points: under a crown at the foot of a face the
+    lowest is often a crown return, and the crown joined the body."""
+    view_spacings: float = Field(1.5, gt=0.0, le=20.0)
+    """``spacings`` in the rotated runs' views (``steps._ground``): their spacing
+    comes from the view's bounding box, wider than the points' own, so their
+    cells are wider already; 2 there lost faces on the tune band tile."""
     min_height: float = Field(2.0, gt=0.0, le=100.0)
     """A cell is raised when its lowest point stands this high over the ground surface."""
     min_area: float = Field(30.0, ge=0.0, le=1e6)
@@ -84,7 +92,7 @@ def _cell_size(xyz: NDArray[np.float64], params: LandformParams) -> float:
     span = np.ptp(xyz[:, :2], axis=0)
     area = max(float(span[0] * span[1]), 1.0)
     spacing = np.sqrt(area / max(xyz.shape[0], 1))
-    return max(1.5 * spacing, 1.0)
+    return max(params.spacings * spacing, 1.0)
 
 
 @register(

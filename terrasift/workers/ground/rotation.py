@@ -123,6 +123,15 @@ class RotationParams(StageParams):
     """Metres: with ``aspect_window``, only steep facets rising this much choose
     which points a run sees (the steepness test's ``min_rise``): the lowest
     ground steps by a few decimetres at bushes and trunks in every direction."""
+    anchor_all: float | None = Field(10.0, gt=0.0, le=1000.0)
+    """Metres. With ``context``: the views are also anchored on the steep facets
+    of the surface through the lowest of all points per 2 m cell whose highest
+    vertex stands this far (3-D) from every ground label, not only on those of
+    the ground labels. A filter that lost a plateau (a raised body cut by the
+    data's edge) leaves no step at the face below it in its ground labels, so
+    no run saw that face; the lowest of all points still steps there. The
+    distance keeps out crowns over kept ground, which would put most of a
+    sparse block in every view. None: ground labels only."""
     face_evidence: bool = True
     """Keep only the added points that lie on a surface (see ``face_rough``),
     connected to the unrotated ground through such points (``face_link``)."""
@@ -377,7 +386,15 @@ def classify_rotated(
         params.max_lift is not None or params.steep_reach is not None or params.context is not None
     ) and base.any():
         wide = None if params.context is None else (params.steep_reach or 0.0) + params.context
-        near, seen, faces = _near_surface(xyz, base, params.max_lift, params.steep_reach, wide)
+        near, seen, faces = _near_surface(
+            xyz,
+            base,
+            params.max_lift,
+            params.steep_reach,
+            wide,
+            params.anchor_all is not None,
+            params.anchor_all or 0.0,
+        )
         if seen is not None:
             work = np.flatnonzero(seen)
     angles = [params.angle] if params.second_angle is None else [params.angle, params.second_angle]
@@ -601,17 +618,50 @@ class _Faces:
         return np.flatnonzero(dist[ij[:, 1], ij[:, 0]] <= wide + cell * 0.7072)
 
 
+def _steep_facets_of(
+    verts: NDArray[np.float64],
+    top: NDArray[np.bool_] | None = None,
+    foot: NDArray[np.bool_] | None = None,
+) -> (
+    tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None
+):
+    """Of the TIN of ``verts`` (x, y, z): the vertices of its facets steeper
+    than 50° (x, y), and per such facet its upward normal, plan centre and
+    rise; None when there is no TIN. With ``top`` and ``foot``, only the
+    facets whose highest vertex ``top`` marks and lowest ``foot``."""
+    try:
+        tri = Delaunay(verts[:, :2])
+    except (QhullError, ValueError):
+        return None
+    p = verts[tri.simplices]
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
+    if top is not None and foot is not None:
+        rows = np.arange(p.shape[0])
+        slope &= top[tri.simplices[rows, np.argmax(p[:, :, 2], axis=1)]]
+        slope &= foot[tri.simplices[rows, np.argmin(p[:, :, 2], axis=1)]]
+    up = nrm[slope] * np.sign(nrm[slope, 2:3] + (nrm[slope, 2:3] == 0))
+    corners = verts[tri.simplices[slope].ravel(), :2]
+    return corners, up, p[slope, :, :2].mean(axis=1), np.ptp(p[slope, :, 2], axis=1)
+
+
 def _near_surface(
     xyz: NDArray[np.float64],
     ground: NDArray[np.bool_],
     lift: float | None,
     reach: float | None,
     wide: float | None = None,
+    all_points: bool = False,
+    anchor_gap: float = 10.0,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_] | None, _Faces | None]:
     """Points within ``lift`` of the surface through the lowest ``ground`` point
     per 2 m cell and within ``reach`` (in x, y) of its facets steeper than 50°;
     the points within ``wide`` of those facets (None when not asked); and the
-    facets themselves (``_Faces``, None when not asked)."""
+    facets themselves (``_Faces``, None when not asked). With ``all_points``
+    the facets of the surface through the lowest point of every point per cell
+    count for ``wide`` and the faces too where their highest vertex stands
+    ``anchor_gap`` or more (3-D) from the lowest ground point of every cell
+    (``RotationParams.anchor_all``)."""
     from scipy.spatial import cKDTree
 
     from terrasift.workers.surface import TinSurface
@@ -625,41 +675,55 @@ def _near_surface(
     if lift is not None:
         surf = TinSurface(verts + [lo[0], lo[1], 0.0])
         ok &= np.abs(xyz[:, 2] - surf(xyz[:, 0], xyz[:, 1])) < lift
-    if reach is not None or wide is not None:
-        try:
-            tri = Delaunay(verts[:, :2])
-        except (QhullError, ValueError):
-            return ok, None, None
-        p = verts[tri.simplices]
-        nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-        slope = np.abs(nrm[:, 2]) < np.cos(np.radians(50.0)) * np.linalg.norm(nrm, axis=1)
-        if not slope.any():
-            none = np.zeros(xyz.shape[0], dtype=bool)
-            if wide is None:
-                return (ok if reach is None else none), None, None
-            empty = _Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
-            return (ok if reach is None else none), none, empty
-        anchors = np.unique(tri.simplices[slope])
-        far = max(wide or 0.0, reach or 0.0)
-        dist, _ = cKDTree(verts[anchors, :2]).query(xyz[:, :2] - lo, distance_upper_bound=far)
+    if reach is None and wide is None:
+        return ok, None, None
+    own = _steep_facets_of(verts)
+    if own is None:
+        return ok, None, None
+    sets = [own]
+    if wide is not None and all_points:
+        alo = xyz[:, :2].min(axis=0)
+        agrid = Grid.covering(xyz[:, 0] - alo[0], xyz[:, 1] - alo[1], 2.0)
+        al = lowest_per_bin(
+            agrid.index(xyz[:, 0] - alo[0], xyz[:, 1] - alo[1]), xyz[:, 2], agrid.size
+        )
+        av = xyz[al[al >= 0]]
+        # Only steps from the ground labels (the face's foot) up to a lowest
+        # point far from every ground label: a plateau the filter lost, not a
+        # crown over ground it kept nor a tree on that plateau.
+        # (The ground labels stand for their lowest point per 2 m cell.)
+        av = av - [lo[0], lo[1], 0.0]
+        off, _ = cKDTree(verts).query(av, distance_upper_bound=anchor_gap)
+        every = _steep_facets_of(av, ~np.isfinite(off), off <= 2.0)
+        if every is not None:
+            sets.append(every)
+    none = np.zeros(xyz.shape[0], dtype=bool)
+    if own[1].shape[0] == 0:
         if reach is not None:
-            ok &= dist <= reach
-        if wide is not None:
-            # The upward normal's horizontal part points where the facet looks;
-            # summed (area-weighted) over the steep facets within ``_ASPECT_R``,
-            # as a jagged face line in 2 m cells turns single facets by up to 60°.
-            up = nrm[slope] * np.sign(nrm[slope, 2:3] + (nrm[slope, 2:3] == 0))
-            mid = p[slope, :, :2].mean(axis=1)
-            near = cKDTree(mid).sparse_distance_matrix(
-                cKDTree(mid), _ASPECT_R, output_type="coo_matrix"
-            )
-            rows = np.r_[near.row, np.arange(mid.shape[0])]
-            cols = np.r_[near.col, np.arange(mid.shape[0])]
-            sx = np.bincount(rows, weights=up[cols, 0], minlength=mid.shape[0])
-            sy = np.bincount(rows, weights=up[cols, 1], minlength=mid.shape[0])
-            aspect = np.degrees(np.arctan2(sx, sy)) % 360.0
-            corners = tri.simplices[slope].ravel()
-            rise = np.repeat(np.ptp(p[slope, :, 2], axis=1), 3)
-            faces = _Faces(verts[corners, :2] + lo, np.repeat(aspect, 3), rise)
-            return ok, np.isfinite(dist), faces
-    return ok, None, None
+            ok = none
+        if wide is None:
+            return ok, None, None
+    far = max(wide or 0.0, reach or 0.0)
+    if reach is not None and own[1].shape[0]:
+        dist, _ = cKDTree(own[0]).query(xyz[:, :2] - lo, distance_upper_bound=far)
+        ok &= dist <= reach
+    if wide is None:
+        return ok, None, None
+    corners = np.concatenate([s[0] for s in sets])
+    up = np.concatenate([s[1] for s in sets])
+    mid = np.concatenate([s[2] for s in sets])
+    rise = np.concatenate([s[3] for s in sets])
+    if up.shape[0] == 0:
+        return ok, none, _Faces(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+    dist, _ = cKDTree(corners).query(xyz[:, :2] - lo, distance_upper_bound=far)
+    # The upward normal's horizontal part points where the facet looks;
+    # summed (area-weighted) over the steep facets within ``_ASPECT_R``,
+    # as a jagged face line in 2 m cells turns single facets by up to 60°.
+    near = cKDTree(mid).sparse_distance_matrix(cKDTree(mid), _ASPECT_R, output_type="coo_matrix")
+    rows = np.r_[near.row, np.arange(mid.shape[0])]
+    cols = np.r_[near.col, np.arange(mid.shape[0])]
+    sx = np.bincount(rows, weights=up[cols, 0], minlength=mid.shape[0])
+    sy = np.bincount(rows, weights=up[cols, 1], minlength=mid.shape[0])
+    aspect = np.degrees(np.arctan2(sx, sy)) % 360.0
+    faces = _Faces(corners + lo, np.repeat(aspect, 3), np.repeat(rise, 3))
+    return ok, np.isfinite(dist), faces
