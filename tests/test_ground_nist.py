@@ -37,6 +37,16 @@ from terrasift.workers.registry import get_stage
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 
+def _isprs(sample: str) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """An ISPRS sample's points and its ground truth, or skip without the shared data."""
+    path = DATA / "isprs" / f"{sample}.laz"
+    if not path.exists():
+        pytest.skip("shared ISPRS data not present")
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(str(path))
+    return np.column_stack([las.x, las.y, las.z]), np.asarray(las.classification) == 2
+
+
 def test_tin_matches_linear_interpolation_and_locates_like_qhull():
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(0, 100, (2000, 2)) + [5e5, 5.4e6], rng.normal(0, 3, 2000)])
@@ -226,16 +236,9 @@ def test_params_registry_and_presets():
         nist.NistParams.preset("default", mask_fraction=0.9)
 
 
-@pytest.mark.skipif(
-    not (DATA / "isprs" / "samp31.laz").exists(), reason="shared ISPRS data not present"
-)
 def test_isprs_samp31_kappa():
-    laspy = pytest.importorskip("laspy")
-    las = laspy.read(str(DATA / "isprs" / "samp31.laz"))
-    xyz = np.column_stack([las.x, las.y, las.z])
-    s = ground_score(
-        np.asarray(las.classification) == 2, nist.classify_ground(xyz, nist.NistParams())
-    )
+    xyz, truth = _isprs("samp31")
+    s = ground_score(truth, nist.classify_ground(xyz, nist.NistParams()))
     assert s.kappa > 0.88, s  # measured 95.0 %; PDAL SMRF defaults reach 93.2 %
 
 
@@ -622,17 +625,12 @@ def _split_2x2(xyz: np.ndarray, params: nist.NistParams) -> np.ndarray:
     return split
 
 
-@pytest.mark.skipif(
-    not (DATA / "isprs" / "samp52.laz").exists(), reason="shared ISPRS data not present"
-)
 def test_one_density_for_every_block_makes_blocks_agree_on_isprs_samp52():
     # Each block measuring its own density: 98.7 % alike (97.0 % within 20 m of
     # the cut); given the density a job measures while sharding (occupied area), 99.75 %.
     from terrasift.tiling.blocks import occupancy_cell, occupied_cells, occupied_density
 
-    laspy = pytest.importorskip("laspy")
-    las = laspy.read(str(DATA / "isprs" / "samp52.laz"))
-    xyz = np.column_stack([las.x, las.y, las.z])
+    xyz, _ = _isprs("samp52")
     cell = occupancy_cell(xyz.shape[0] / float(np.prod(np.ptp(xyz[:, :2], axis=0))))
     density = occupied_density(xyz.shape[0], [occupied_cells(xyz[:, 0], xyz[:, 1], cell)], cell)
     params = nist.NistParams(density=density)
@@ -741,33 +739,21 @@ def test_rim_slivers_do_not_join_a_platform_at_the_data_edge_to_far_ground():
     assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, rim=4.0, **kw), platform)
 
 
-@pytest.mark.skipif(
-    not (DATA / "isprs" / "samp52.laz").exists(), reason="shared ISPRS data not present"
-)
 def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere():
     # Steep slopes: with steps measured against level and no wall share, a hilltop
     # between slope edges is cut off as a raised segment at some translations
     # (kappa 70-72 at these two); the default wall share keeps it.
-    laspy = pytest.importorskip("laspy")
-    las = laspy.read(str(DATA / "isprs" / "samp52.laz"))
-    xyz = np.column_stack([las.x, las.y, las.z])
-    truth = np.asarray(las.classification) == 2
+    xyz, truth = _isprs("samp52")
     for dx, dy in ((0.0, 5.0), (40.0, 40.0)):
         g = nist.classify_ground(xyz + np.array([dx, dy, 0.0]), nist.NistParams())
         assert ground_score(truth, g).kappa > 0.86  # measured 87.5 and 87.9 %
 
 
-@pytest.mark.skipif(
-    not (DATA / "isprs" / "samp52.laz").exists(), reason="shared ISPRS data not present"
-)
 def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_steps():
     # Steep slopes: with steps measured against level (the default), a hilltop
     # between slope edges is cut off as a raised segment at some translations
     # (kappa 70-72 at these two).
-    laspy = pytest.importorskip("laspy")
-    las = laspy.read(str(DATA / "isprs" / "samp52.laz"))
-    xyz = np.column_stack([las.x, las.y, las.z])
-    truth = np.asarray(las.classification) == 2
+    xyz, truth = _isprs("samp52")
     for dx, dy in ((0.0, 5.0), (40.0, 40.0)):
         g = nist.classify_ground(
             xyz + np.array([dx, dy, 0.0]), nist.NistParams(raised_relative=True)
