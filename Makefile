@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-malformed bench-driver bench-survey openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-submit bench-malformed bench-driver bench-survey openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,9 @@ bench-progress: $(STAMP)
 
 bench-load: $(STAMP)
 	$(PY) benchmarks/load.py
+
+bench-submit: $(STAMP)
+	$(PY) benchmarks/submit_latency.py
 
 bench-malformed: $(STAMP)
 	$(PY) benchmarks/malformed_corpus.py

@@ -54,3 +54,10 @@ class ProcessingError(TerrasiftError, RuntimeError):
     """A task failed on data it could only judge while processing."""
 
     problem = "processing-failed"
+
+
+class Unavailable(TerrasiftError):
+    """The machine, not the request, stopped the work (too busy, short of memory,
+    shutting down); the same request may succeed later."""
+
+    problem = "service-unavailable"

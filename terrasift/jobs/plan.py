@@ -9,7 +9,8 @@ density is measured later, while sharding, over the area the points occupy
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,39 @@ from terrasift.jobs.params import grid_alignment, resolve_buffer
 from terrasift.tiling.blocks import BlockGrid, occupancy_cell
 from terrasift.tiling.lasfile import TileInfo, open_input, read_tile_info
 
+#: reads the headers of tiles (paths, max_points) -> one TileInfo per path, in order
+HeaderReader = Callable[[Sequence[str | Path], int | None], list[TileInfo]]
+
+_reader_lock = threading.Lock()
+_header_reader: HeaderReader | None = None
+
+
+def use_header_reader(reader: HeaderReader | None) -> HeaderReader | None:
+    """Read every tile header of this process with ``reader`` (None: here, in-process);
+    returns the reader it replaces.
+
+    The service reads them in disposable subprocesses with a time and memory
+    budget, so that a decoder that aborts or runs away on a hostile header takes
+    down a helper process, not the API.
+    """
+    global _header_reader
+    with _reader_lock:
+        old, _header_reader = _header_reader, reader
+    return old
+
+
+def header_reader() -> HeaderReader | None:
+    """The reader ``use_header_reader`` installed (None: headers are read in-process)."""
+    return _header_reader
+
+
+def read_headers(paths: Sequence[str | Path], max_points: int | None = None) -> list[TileInfo]:
+    """``read_tile_info`` of every path, through the installed header reader if any."""
+    reader = _header_reader
+    if reader is None:
+        return [read_tile_info(p, max_points=max_points) for p in paths]
+    return reader(list(paths), max_points)
+
 
 def inspect_inputs(
     paths: list[Path], params: Mapping[str, Any], *, max_points: int | None = None
@@ -31,7 +65,7 @@ def inspect_inputs(
     """
     if not paths:
         raise InputError("no input files")
-    infos = [read_tile_info(p, max_points=max_points) for p in paths]
+    infos = read_headers(paths, max_points)
     crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
     mins = [min(i.mins[k] for i in infos) for k in range(3)]
     maxs = [max(i.maxs[k] for i in infos) for k in range(3)]
@@ -119,7 +153,7 @@ def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     roots = job.get("input_roots")
     for p in job["inputs"]:
         open_input(p, roots).close()  # still inside the input root (see set_input_roots)
-    infos = [read_tile_info(p) for p in job["inputs"]]
+    infos = read_headers(job["inputs"])
     crs_wkt, warnings = resolve_crs(infos, params.get("crs"))
     mins = (min(i.mins[0] for i in infos), min(i.mins[1] for i in infos))
     maxs = (max(i.maxs[0] for i in infos), max(i.maxs[1] for i in infos))

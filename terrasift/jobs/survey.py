@@ -45,10 +45,9 @@ from terrasift.errors import InputError, NothingChanged, ProcessingError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.dirs import block_result_path
 from terrasift.jobs.params import grid_alignment, resolve_buffer, stage_params
-from terrasift.jobs.plan import _crs_label, resolve_crs
+from terrasift.jobs.plan import _crs_label, read_headers, resolve_crs
 from terrasift.tiling.blocks import BlockGrid, block_name
 from terrasift.tiling.classified import write_classified_copy
-from terrasift.tiling.lasfile import read_tile_info
 from terrasift.tiling.rasters import (
     FLOAT_NODATA,
     RasterMosaic,
@@ -200,7 +199,7 @@ def plan_survey_run(
     by_name = dict(sorted(zip(names, files, strict=True)))
     state = current_state(survey_dir) or {}
     old = state.get("tiles", {})
-    infos = {n: read_tile_info(p, max_points=max_points) for n, p in by_name.items()}
+    infos = dict(zip(by_name, read_headers(list(by_name.values()), max_points), strict=True))
     crs_wkt, warnings = resolve_crs(list(infos.values()), params.get("crs"))
     sums = {n: file_checksum(p, old.get(n)) for n, p in by_name.items()}
     bounds: dict[str, Bounds] = {
@@ -357,7 +356,7 @@ def _batch(
 def survey_plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     """``plan.json`` of a survey run: the survey's grid and density, the source tiles."""
     s = job["survey"]
-    infos = [read_tile_info(p) for p in job["inputs"]]
+    infos = read_headers(job["inputs"])
     return {
         "tiles": [dict(i.__dict__) for i in infos],
         "density": s["density"],

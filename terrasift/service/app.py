@@ -19,16 +19,19 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from terrasift import __version__
+from terrasift.jobs.plan import header_reader, use_header_reader
 from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.callbacks import Notifier
 from terrasift.service.context import Service
 from terrasift.service.guard import RequestGuard
+from terrasift.service.inspector import HeaderInspector
 from terrasift.service.routes import events, health, jobs, pages, path, processes, surveys, uploads
 from terrasift.service.scheduler import Scheduler
 from terrasift.service.schemas import add_problem_schema
 from terrasift.service.settings import Settings
 from terrasift.service.store import JobStore
+from terrasift.tiling.lasfile import TileInfo, read_tile_info
 from terrasift.workers.executors import Executor
 from terrasift.workers.pool import reap_leftovers
 
@@ -41,8 +44,13 @@ def create_app(
     pipeline: Any | None = None,
     executor_factory: Callable[[], Executor] | None = None,
     freeze_heap: bool = False,
+    read_header: Callable[..., TileInfo] | None = None,
 ) -> FastAPI:
     """The terrasift API; ``pipeline``/``executor_factory`` replace the real ones in tests.
+
+    With the real pipeline, tile headers are read by ``settings.header_readers``
+    subprocesses (``service.inspector``), which start with the app; ``read_header``
+    replaces the function they run (tests: one that crashes).
 
     ``freeze_heap`` (``terrasift serve``): at startup, import what jobs need and move
     every object alive then out of the garbage collector's reach (see ``settle_heap``).
@@ -91,9 +99,20 @@ def create_app(
                 *([settings.input_root] if settings.input_root else []),
             ],
         )
+        inspector = None
+        if pipeline is None and settings.header_readers > 0:
+            inspector = HeaderInspector(
+                settings.header_readers,
+                seconds=settings.header_seconds,
+                memory=settings.header_memory,
+                pid_dir=settings.workers_dir,
+                read=read_header or read_tile_info,
+            )
+            inspector.start()
+        previous_reader = use_header_reader(inspector) if inspector is not None else None
         if freeze_heap:
             log.info("%d objects frozen out of garbage collection", settle_heap())
-        app.state.svc = Service(settings, store, scheduler)
+        app.state.svc = Service(settings, store, scheduler, inspector)
         scheduler.on_success = partial(surveys.continue_batches, app.state.svc)
         app.state.notifier = Notifier(store, scheduler.job_dir, attempts=settings.callback_attempts)
         scheduler.start()
@@ -104,6 +123,11 @@ def create_app(
             await anyio.to_thread.run_sync(app.state.notifier.stop)
             # running tasks get the grace period, then their workers are stopped; off the event loop
             await anyio.to_thread.run_sync(scheduler.stop, settings.shutdown_grace)
+            if inspector is not None:
+                if header_reader() is inspector:  # an app started meanwhile keeps its own
+                    alive = not getattr(previous_reader, "closed", False)
+                    use_header_reader(previous_reader if alive else None)
+                await anyio.to_thread.run_sync(inspector.stop)
             store.close()
 
     app = FastAPI(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from starlette.requests import Request
 
@@ -16,6 +17,8 @@ class Service:
     settings: Settings
     store: JobStore
     scheduler: Scheduler
+    #: the subprocesses reading tile headers (``service.inspector``; None: read in-process)
+    inspector: Any | None = None
 
 
 def service(request: Request) -> Service:

@@ -82,6 +82,7 @@ EXCEPTION_PROBLEMS: dict[type[BaseException], str] = {
     errors.ProcessingError: "processing-failed",
     errors.JobCancelled: "job-dismissed",
     errors.NothingChanged: "survey-unchanged",
+    errors.Unavailable: "service-unavailable",
     errors.TerrasiftError: "invalid-request",
 }
 
@@ -146,7 +147,9 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(errors.TerrasiftError)
     async def _domain(request: Request, exc: errors.TerrasiftError) -> JSONResponse:
-        return problem_response(request, problem_for(exc), str(exc))
+        ptype = problem_for(exc)
+        headers = {"Retry-After": "30"} if ptype.status == 503 else None
+        return problem_response(request, ptype, str(exc), headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -78,6 +78,25 @@ class Settings(BaseSettings):
         description="CPU priority of workers below the API (os.nice increment; where the kernel"
         " groups CPU time by session, also the nice of each worker's own session group)",
     )
+    header_readers: int = Field(
+        2,
+        ge=0,
+        description="processes that read tile headers at submission, each with the budgets below "
+        "(a file that crashes or exhausts one fails alone); 0 = read in the API process, "
+        "not isolated",
+    )
+    header_seconds: float = Field(
+        5.0,
+        gt=0,
+        description="CPU seconds one tile header may take to read (twice that in all) before "
+        "the file is refused",
+    )
+    header_memory: int = Field(
+        512 * 1024**2,
+        ge=64 * 1024**2,
+        description="bytes of memory a header reader may map beyond its own start (RLIMIT_AS); "
+        "a file that needs more is refused",
+    )
     task_seconds: float = Field(
         300.0, gt=0, description="time limit of every task, plus task_seconds_per_mpoint"
     )

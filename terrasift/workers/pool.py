@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib
 import itertools
 import logging
 import multiprocessing
@@ -48,9 +49,21 @@ KILL_WAIT = 3.0  # seconds a stopping pool waits for killed workers to be gone
 class WorkerLost(ProcessingError):
     """The worker running a task died (a crash, an abort, the OOM killer, a kill)."""
 
+    #: the worker's exit code (negative: the signal that ended it; None when unknown)
+    exitcode: int | None = None
+
 
 class TaskTimeout(ProcessingError):
     """A task ran longer than its time limit."""
+
+    #: the CPU limit, and the CPU and wall seconds the task had used when it was stopped
+    limit: float = 0.0
+    cpu: float = 0.0
+    wall: float = 0.0
+
+
+class PoolFailed(ProcessingError):
+    """The pool itself stopped working (no task's fault); a new pool is needed."""
 
 
 class TaskOutOfMemory(ProcessingError, MemoryError):
@@ -104,11 +117,51 @@ def _lower_priority(nice: int) -> None:
         Path("/proc/self/autogroup").write_text(f"{nice}\n")
 
 
-def _worker_main(conn: Connection, parent: int, nice: int, pid_dir: str | None) -> None:
-    """Run tasks from ``conn`` until told to stop; each reply is (task id, ok, value)."""
+def _limit_address_space(extra: int) -> None:
+    """Let the process map at most ``extra`` bytes more than it has mapped now (RLIMIT_AS).
+
+    An allocation beyond it fails at once (MemoryError in Python, an abort in a
+    Rust decoder) instead of growing until a watchdog or the OOM killer notices.
+    """
+    import resource
+
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                mapped = int(line.split()[1]) * 1024
+                break
+        else:
+            return
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + extra, mapped + extra))
+    except (OSError, ValueError) as exc:
+        log.warning("worker %s: no address-space limit (%s)", os.getpid(), exc)
+
+
+def _worker_main(
+    conn: Connection,
+    parent: int,
+    nice: int,
+    pid_dir: str | None,
+    preload: tuple[str, ...] = (),
+    address_space: int | None = None,
+) -> None:
+    """Run tasks from ``conn`` until told to stop; each reply is (task id, ok, value).
+
+    ``preload`` modules are imported first (a task then starts at once), and only
+    then is the address space limited to ``address_space`` bytes more.
+    """
     _die_with_parent(parent)
     if nice:
         _lower_priority(nice)
+    for module in preload:
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001 - the task that needs it will say why
+            log.exception("worker %s: cannot preload %s", os.getpid(), module)
+    if address_space is not None:
+        _limit_address_space(address_space)
+    with contextlib.suppress(OSError):
+        conn.send((None, True, "ready"))  # no task is sent (or timed) before this
     pid_file = None
     if pid_dir:
         pid_file = Path(pid_dir) / str(os.getpid())
@@ -204,6 +257,7 @@ class _Worker:
     proc: Any
     conn: Connection
     task: _Task | None = None
+    ready: bool = False  # said it is ready (started up and preloaded)
     lost: bool = False
     peak_rss: int = field(default=0)
 
@@ -212,8 +266,10 @@ class WorkerPool:
     """``workers`` processes; ``submit`` returns a ``concurrent.futures.Future``.
 
     ``memory_limit`` (bytes of resident memory per worker, None = none) and a
-    task's ``timeout`` (seconds) fail the task with a message naming it;
-    ``cancel`` stops queued and running tasks alike.
+    task's ``timeout`` (seconds of CPU; WALL_FACTOR times that in all) fail the
+    task with a message naming it; ``cancel`` stops queued and running tasks alike.
+    ``preload`` names modules each worker imports when it starts, ``address_space``
+    the bytes it may map beyond what it holds after that (RLIMIT_AS; None = no limit).
     """
 
     def __init__(
@@ -225,8 +281,14 @@ class WorkerPool:
         memory_limit: int | None = None,
         retries: int = 1,
         pid_dir: Path | None = None,
+        preload: tuple[str, ...] = (),
+        address_space: int | None = None,
+        name: str = "terrasift-worker",
     ):
         self.workers = workers
+        self.preload = tuple(preload)
+        self.address_space = address_space
+        self.name = name
         self.start_method = start_method
         self.nice = nice
         self.memory_limit = memory_limit
@@ -331,8 +393,15 @@ class WorkerPool:
         parent_end, child_end = ctx.Pipe(duplex=True)
         proc = ctx.Process(
             target=_worker_main,
-            args=(child_end, os.getpid(), self.nice, str(self.pid_dir) if self.pid_dir else None),
-            name="terrasift-worker",
+            args=(
+                child_end,
+                os.getpid(),
+                self.nice,
+                str(self.pid_dir) if self.pid_dir else None,
+                self.preload,
+                self.address_space,
+            ),
+            name=self.name,
             daemon=True,
         )
         proc.start()
@@ -373,14 +442,14 @@ class WorkerPool:
             with self._lock:
                 for task in self._tasks.values():
                     if not task.future.done():
-                        task.future.set_exception(ProcessingError("the worker pool failed"))
+                        task.future.set_exception(PoolFailed("the worker pool failed"))
         finally:
             self._stop_workers()
 
     def _dispatch(self) -> None:
         with self._lock:
             for w in self._workers:
-                while w.task is None and self._queue and not w.lost:
+                while w.ready and w.task is None and self._queue and not w.lost:
                     task = self._queue.popleft()
                     if task.future.done():
                         continue  # cancelled after a retry was queued
@@ -413,6 +482,9 @@ class WorkerPool:
             value = ProcessingError(
                 f"the reply of {what} could not be read ({type(exc).__name__}: {exc})"
             )
+        if task_id is None:  # the worker's start-up is done
+            w.ready = True
+            return
         task = w.task
         if task is None or task.id != task_id:
             return
@@ -459,13 +531,12 @@ class WorkerPool:
                     if code and code < 0
                     else f"exit code {code}"
                 )
-                self._settle(
-                    task,
-                    WorkerLost(
-                        f"the worker running {describe(task.fn, task.args)} died ({how}) "
-                        f"{task.tries} time(s); the input may be corrupt or too large for the memory limit"
-                    ),
+                lost = WorkerLost(
+                    f"the worker running {describe(task.fn, task.args)} died ({how}) "
+                    f"{task.tries} time(s); the input may be corrupt or too large for the memory limit"
                 )
+                lost.exitcode = code
+                self._settle(task, lost)
         if not self._closing:
             self.replaced += 1
             self._workers.append(self._start(self._spawn_ctx))
@@ -490,11 +561,13 @@ class WorkerPool:
                 cpu = _cpu_seconds(w.proc.pid) - task.cpu0
                 wall = now - task.started
                 if cpu > task.timeout or wall > WALL_FACTOR * task.timeout:
-                    task.kill = TaskTimeout(
+                    late = TaskTimeout(
                         f"{describe(task.fn, task.args)} ran longer than its limit of "
-                        f"{task.timeout:.0f} s of CPU ({WALL_FACTOR * task.timeout:.0f} s in all) "
-                        f"and was stopped after {cpu:.0f} s of CPU, {wall:.0f} s in all"
+                        f"{task.timeout:.0f} s of CPU ({WALL_FACTOR * task.timeout:.0f} s "
+                        f"in all) and was stopped after {cpu:.0f} s of CPU, {wall:.0f} s in all"
                     )
+                    late.limit, late.cpu, late.wall = task.timeout, cpu, wall
+                    task.kill = late
             if task.kill is None:
                 rss = _rss(w.proc.pid)
                 self.peak_rss = max(self.peak_rss, rss)

@@ -23,7 +23,8 @@ router = APIRouter(tags=["Capabilities"])
     },
 )
 async def health(request: Request) -> Any:
-    """`store`: ok, restored or rebuilt (what the check had to do); `workers`: live worker pids."""
+    """`store`: ok, restored or rebuilt (what the check had to do); `workers`: live worker pids;
+    `header_readers`: pids of the processes that read tile headers at submission."""
     svc = service(request)
     try:
         store = await run_in_threadpool(svc.store.check, True)
@@ -36,4 +37,5 @@ async def health(request: Request) -> Any:
         "status": "ok",
         "store": store,
         "workers": pool.worker_pids() if pool is not None else None,
+        "header_readers": svc.inspector.pids() if svc.inspector is not None else None,
     }

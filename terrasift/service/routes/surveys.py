@@ -3,6 +3,7 @@ incrementally into one current product per survey (``terrasift.jobs.survey``).""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -225,7 +226,9 @@ async def put_tile(
     _not_busy(svc, survey)
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     inputs = svc.settings.surveys_dir / survey.id / "inputs"
-    tmp = inputs / f".{name}.{new_id()}.part"
+    # received under its own name (in a folder of its own): messages about it name the tile
+    incoming = inputs / f".incoming-{new_id()}"
+    tmp = incoming / name
     try:
         if ctype == "application/json":
             try:
@@ -251,6 +254,8 @@ async def put_tile(
             os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            incoming.rmdir()
     files = [f for f in survey.files if Path(f).name != name]
     old = [f for f in survey.files if Path(f).name == name]
     for f in old:
