@@ -122,3 +122,24 @@ def test_guarded_tasks_run_under_a_dask_nanny(tmp_path: Path) -> None:
         finally:
             proc.terminate()
             proc.wait(timeout=30)
+
+
+def test_the_memory_limit_is_the_dask_workers_own(cluster, monkeypatch) -> None:
+    """Not the API machine's: 80 % of the worker's Dask memory limit per thread, or
+    TERRASIFT_WORKER_MEMORY set where the worker runs."""
+    from terrasift.workers.guarded import own_memory_limit
+
+    monkeypatch.delenv("TERRASIFT_WORKER_MEMORY", raising=False)
+    client = distributed.Client(cluster, set_as_default=False)
+    try:
+        (info,) = client.scheduler_info(n_workers=-1)["workers"].values()
+        assert info["memory_limit"] > 0 and info["nthreads"] == 2
+        got = client.submit(own_memory_limit, pure=False).result(timeout=30)
+        assert got == int(0.8 * info["memory_limit"] / 2)
+        monkeypatch.setenv(
+            "TERRASIFT_WORKER_MEMORY", str(300 * 2**20)
+        )  # this process is the worker
+        got = client.submit(own_memory_limit, pure=False).result(timeout=30)
+        assert got == 300 * 2**20
+    finally:
+        client.close()

@@ -185,7 +185,8 @@ class DaskExecutor:
     with :class:`NoWorkersError` instead of sitting at 0 % forever.
 
     Every task runs guarded (``terrasift.workers.guarded``): in a disposable
-    process of the Dask worker, under ``memory_limit`` (bytes per process),
+    process of the Dask worker, under ``memory_limit`` (bytes per process; None:
+    each worker's own limit, ``guarded.own_memory_limit``),
     the CPU seconds of ``submit_limited``, and stopped when the cancel marker
     it was given appears, as on the local pool.
     """
@@ -335,12 +336,8 @@ def make_executor(
     pool; ``pool`` holds LocalExecutor's options (nice, memory_limit, pid_dir)."""
     address = dask_scheduler or os.environ.get("TERRASIFT_DASK_SCHEDULER")
     if address:
-        return DaskExecutor(
-            address,
-            no_workers_timeout,
-            memory_limit=pool.get("memory_limit"),
-            nice=pool.get("nice", 0),
-        )
+        # the memory limit is each Dask worker's own (its machine, its settings)
+        return DaskExecutor(address, no_workers_timeout, nice=pool.get("nice", 0))
     return LocalExecutor(workers, **pool)
 
 

@@ -31,7 +31,8 @@ POLL = 0.25  # seconds between looks at the cancel marker
 @dataclass(frozen=True)
 class Guard:
     """What a guarded task may use: CPU seconds (None: no limit), resident bytes per
-    process (None: no limit), and the path whose existence means its job was dismissed."""
+    process (None: this worker's own limit, see ``own_memory_limit``), and the path
+    whose existence means its job was dismissed."""
 
     cpu_seconds: float | None = None
     memory_limit: int | None = None
@@ -53,6 +54,34 @@ def _threads() -> int:
         return 1
 
 
+def own_memory_limit(threads: int | None = None) -> int | None:
+    """Resident bytes one guarded process may use on this Dask worker, from the worker's
+    own settings, not the API's (the machines may differ): ``TERRASIFT_WORKER_MEMORY``
+    in its environment, else 80 % of its Dask memory limit (``--memory-limit``; by
+    default the machine's memory shared by its worker processes), else 80 % of this
+    machine's memory, shared by its threads (one guarded process each)."""
+    env = os.environ.get("TERRASIFT_WORKER_MEMORY", "").strip()
+    if env:
+        try:
+            return max(64 * 1024**2, int(float(env)))
+        except ValueError:
+            pass
+    threads = threads or _threads()
+    total = None
+    try:
+        from distributed import get_worker
+
+        total = get_worker().memory_manager.memory_limit
+    except (ImportError, ValueError, AttributeError):
+        pass
+    if not total:
+        try:
+            total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            return None
+    return int(0.8 * total / threads)
+
+
 def _pool(guard: Guard) -> WorkerPool:
     """This process's pool for the guard's memory limit and priority, started on first use."""
     key = (guard.memory_limit, guard.nice)
@@ -60,9 +89,9 @@ def _pool(guard: Guard) -> WorkerPool:
         pool = _pools.get(key)
         if pool is None:
             _allow_children()
-            pool = WorkerPool(
-                _threads(), start_method="spawn", nice=guard.nice, memory_limit=guard.memory_limit
-            )
+            threads = _threads()
+            limit = guard.memory_limit or own_memory_limit(threads)
+            pool = WorkerPool(threads, start_method="spawn", nice=guard.nice, memory_limit=limit)
             _pools[key] = pool
         return pool
 
