@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-submit bench-malformed bench-driver bench-survey openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-submit bench-kill bench-malformed bench-driver bench-survey openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -50,6 +50,9 @@ bench-load: $(STAMP)
 
 bench-submit: $(STAMP)
 	$(PY) benchmarks/submit_latency.py
+
+bench-kill: $(STAMP)
+	$(PY) benchmarks/kill_timings.py
 
 bench-malformed: $(STAMP)
 	$(PY) benchmarks/malformed_corpus.py

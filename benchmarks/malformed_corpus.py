@@ -3,7 +3,8 @@
 Uploads every variant of ``terrasift.synthetic.malformed.corpus`` to ``POST /jobs``
 of an app with two workers and a 1 GiB worker memory limit, waits for each
 accepted job, and prints the counts by outcome, the peak RSS of the workers
-and of the API process, and what each case gave (``--verbose``).
+, of the header readers and of the API process, and what each case gave
+(``--verbose``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,17 @@ from terrasift.synthetic.malformed import corpus, run_through_app, write_pair  #
 PARAMS = {"block_size": 40, "buffer": 4, "resolution": 1.0, "features": "none"}
 
 
+def _peak_rss(pid: int) -> int:
+    """A live process's peak resident bytes (VmHWM), 0 when unknown."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--verbose", action="store_true")
@@ -48,12 +60,19 @@ def main() -> None:
             outcomes = run_through_app(client, cases, PARAMS)
             pool = client.app.state.svc.scheduler.executor.pool
             worker_peak, replaced = pool.peak_rss, pool.replaced
+            readers = client.app.state.svc.inspector
+            reader_peak = max((_peak_rss(pid) for pid in readers.pids()), default=0)
+            readers_replaced = readers.replaced
         seconds = time.monotonic() - t
     counts = Counter(kind for kind, _ in outcomes.values())
     api_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(f"{len(cases)} malformed files in {seconds:.0f} s: {dict(counts)}")
     print(
         f"peak RSS: workers {worker_peak / 2**20:.0f} MiB (polled), API process {api_peak / 2**20:.0f} MiB"
+    )
+    print(
+        f"header readers: peak RSS {reader_peak / 2**20:.0f} MiB (those alive at the end), "
+        f"replaced {readers_replaced}"
     )
     print(f"workers replaced: {replaced}")
     if args.verbose:
