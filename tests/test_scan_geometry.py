@@ -70,3 +70,17 @@ def test_refine_step_removes_the_drift_of_a_step_slightly_off():
     # no grid in uniform angles: the estimate is returned unchanged
     u = rng.uniform(0.0, 1.0, 5000)
     assert refine_step(u, step) == step
+
+
+def test_refine_step_weights_angles_by_their_quantisation_blur():
+    from terrasift.workers.scan_geometry import refine_step
+
+    # 1 cm coordinates at a 0.06° step: near returns are blurred by about half a step
+    # and the nearest-neighbour spacing runs 8 % long; the few far, sharp ones carry the grid.
+    rng = np.random.default_rng(5)
+    step = np.radians(0.06)
+    n_near, n_far = 20_000, 1_500
+    blur = np.r_[np.full(n_near, 0.45 * step), np.full(n_far, 0.05 * step)]
+    a = 0.2 + step * rng.integers(0, 300, n_near + n_far) + rng.normal(0.0, blur)
+    assert refine_step(a, step * 1.08) == step * 1.08  # unweighted: no grid fits
+    assert abs(refine_step(a, step * 1.08, blur=blur) / step - 1) < 1e-3
