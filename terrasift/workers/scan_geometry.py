@@ -149,9 +149,22 @@ def measure_scan_geometry(
     else:
         jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
         steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, jump, max_gap)
+        on = ""
+        if not np.isfinite(steps) and las_scale > 0:
+            # Coarse coordinates at a fine step: too few sharp returns show an edge (1 cm at
+            # 0.05-0.08°), so returns blurred by up to 0.15, then 0.2 step take part (those
+            # the blur put off their beam are left out of the lines).
+            q = blur / min(sa, se)
+            for lim in (0.15, 0.2):
+                sel = q < lim
+                steps = _ramp_steps(az[sel], el[sel], r[sel], sa, se, jump, max_gap)
+                if np.isfinite(steps):
+                    on = f", on returns whose quantisation angle is under {lim:g} step"
+                    break
         if np.isfinite(steps):
             how["footprint"] = (
-                f"mean ramp of blended returns at range edges closer than {max_gap:g} m, in steps"
+                f"mean ramp of blended returns at range edges closer than {max_gap:g} m, "
+                f"in steps{on}"
             )
         else:
             steps = 1.0
