@@ -84,3 +84,27 @@ def test_refine_step_weights_angles_by_their_quantisation_blur():
     a = 0.2 + step * rng.integers(0, 300, n_near + n_far) + rng.normal(0.0, blur)
     assert refine_step(a, step * 1.08) == step * 1.08  # unweighted: no grid fits
     assert abs(refine_step(a, step * 1.08, blur=blur) / step - 1) < 1e-3
+
+
+def test_one_centimetre_coordinates_at_a_fine_step():
+    # 1 cm coordinates at 0.06°: the returns nearer than ~30 m are blurred by 0.1-0.5 step.
+    # The step comes from the farthest returns, weighted by their blur, and the footprint
+    # from edges among returns blurred by under 0.15 step (no sharp return shows one).
+    s = make_scan(
+        step_deg=0.06,
+        footprint_steps=2.5,
+        range_noise=0.005,
+        las_scale=0.01,
+        azimuth_deg=(-6.0, 6.0),
+        elevation_deg=(-12.0, 6.0),
+        n_boards=3,
+        n_poles=3,
+        object_range=(6.0, 25.0),
+        seed=2,
+    )
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None  # the farthest half alone showed no regular grid
+    assert g.step_az == pytest.approx(0.06, rel=0.002)
+    assert g.step_el == pytest.approx(0.06, rel=0.002)
+    assert 1.7 < g.footprint_steps < 3.0, g  # measured 2.0 (one step assumed before)
+    assert "under 0.15 step" in g.how["footprint"]

@@ -109,10 +109,14 @@ def measure_scan_geometry(
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
     az, el, r = _sector(az, el, r)
 
-    # First pass on the farthest half, then on every point whose quantisation
-    # angle stays under a tenth of the step found.
-    far = r >= np.median(r)
-    sa, se = _steps(az[far], el[far])
+    # First pass on the farthest half (quarter, tenth: with 1 cm coordinates at a 0.06°
+    # step the nearer returns blur the spacings past any regular grid), then on every
+    # point whose quantisation angle stays under a tenth of the step found.
+    for share in (0.5, 0.25, 0.1):
+        far = r >= np.quantile(r, 1.0 - share)
+        sa, se = _steps(az[far], el[far])
+        if np.isfinite(sa) and np.isfinite(se):
+            break
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
     if las_scale > 0:
