@@ -108,3 +108,44 @@ def test_one_centimetre_coordinates_at_a_fine_step():
     assert g.step_el == pytest.approx(0.06, rel=0.002)
     assert 1.7 < g.footprint_steps < 3.0, g  # measured 2.0 (one step assumed before)
     assert "under 0.15 step" in g.how["footprint"]
+
+
+def test_job_geometry_per_scan_position_from_all_shards(tmp_path):
+    from terrasift.jobs.scan import job_geometry, measure_job_geometry
+    from terrasift.tiling.blocks import SHARD_DTYPE
+    from terrasift.workers.mixed import MixedParams
+
+    # two scan positions with different steps, their points spread over shard files of
+    # two tile parts, halo copies (core 0) among them; each position is measured on its
+    # own points only, as the stage alone measures the whole scan
+    scans = [
+        make_scan(step_deg=0.3, azimuth_deg=(-30.0, 30.0), n_boards=3, n_poles=3, seed=1),
+        make_scan(step_deg=0.2, azimuth_deg=(-20.0, 20.0), n_boards=3, n_poles=3, seed=2),
+    ]
+    shift = np.array([[0.0, 0.0, 0.0], [60.0, 5.0, 0.0]])
+    parts = [tmp_path / "a", tmp_path / "b"]
+    for d in parts:
+        d.mkdir()
+    for k, s in enumerate(scans):
+        xyz = s.xyz + shift[k]
+        rec = np.zeros(len(xyz), SHARD_DTYPE)
+        rec["x"], rec["y"], rec["z"] = xyz.T
+        rec["scan_id"], rec["core"] = k, 1
+        half = len(rec) // 2
+        rec[:half].tofile(parts[0] / f"{k}_0.bin")
+        rec[half:].tofile(parts[1] / f"{k}_1.bin")
+        halo = rec[:500].copy()
+        halo["core"] = 0
+        halo.tofile(parts[1] / f"{1 - k}_9.bin")  # copies in another block: not counted
+    origins = [tuple(s.origin + shift[k]) for k, s in enumerate(scans)]
+    found = measure_job_geometry(parts, origins, MixedParams())
+    geo = job_geometry(found)
+    assert geo is not None and len(geo) == 2
+    for k, s in enumerate(scans):
+        own = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz + shift[k])
+        assert geo[k].n_points == own.n_points == len(s)
+        assert geo[k].step_az == pytest.approx(own.step_az, rel=1e-4)
+        assert geo[k].footprint_steps == pytest.approx(own.footprint_steps, rel=1e-3)
+        assert "once per job" in geo[k].how["scope"]
+    assert geo[0].step_az == pytest.approx(0.3, rel=0.01)
+    assert geo[1].step_az == pytest.approx(0.2, rel=0.01)
