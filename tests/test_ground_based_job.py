@@ -25,7 +25,8 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     scan, path = _scan_tile(tmp_path)
     origin = ",".join(str(v) for v in scan.origin)
     job = tmp_path / "job"
-    # the mixed filter's angles and distances follow from the scan measured in each block
+    # the mixed filter's angles and distances follow from the scan, measured once per
+    # job and scan position from all blocks (plan.json), not in each block
     params = jobs.validate_params(
         {"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4}
     )
@@ -49,7 +50,9 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     geo = report["mixed_measurements"]["geometry"]["0"]
     assert geo["grid_share"] > 0.95  # judged in the grid, not left to the boxes
     assert abs(geo["step_az"] - 0.4) < 0.02 and abs(geo["cell_angle"] - 2.5 * geo["step"]) < 1e-3
-    assert set(geo["how"]) == {"las_scale", "step", "range_noise", "footprint"}
+    assert set(geo["how"]) == {"las_scale", "step", "range_noise", "footprint", "scope"}
+    (planned,) = json.loads((job / "plan.json").read_text())["scan_geometry"]
+    assert planned["step_az"] == geo["step_az"] and planned["n_points"] == len(scan)
     assert report["counts_per_class"]["7"] == int(marked.sum())
     assert (classes == 2).sum() > 0.2 * len(scan)  # the ground plane in front of the mast
 

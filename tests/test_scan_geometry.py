@@ -70,3 +70,82 @@ def test_refine_step_removes_the_drift_of_a_step_slightly_off():
     # no grid in uniform angles: the estimate is returned unchanged
     u = rng.uniform(0.0, 1.0, 5000)
     assert refine_step(u, step) == step
+
+
+def test_refine_step_weights_angles_by_their_quantisation_blur():
+    from terrasift.workers.scan_geometry import refine_step
+
+    # 1 cm coordinates at a 0.06° step: near returns are blurred by about half a step
+    # and the nearest-neighbour spacing runs 8 % long; the few far, sharp ones carry the grid.
+    rng = np.random.default_rng(5)
+    step = np.radians(0.06)
+    n_near, n_far = 20_000, 1_500
+    blur = np.r_[np.full(n_near, 0.45 * step), np.full(n_far, 0.05 * step)]
+    a = 0.2 + step * rng.integers(0, 300, n_near + n_far) + rng.normal(0.0, blur)
+    assert refine_step(a, step * 1.08) == step * 1.08  # unweighted: no grid fits
+    assert abs(refine_step(a, step * 1.08, blur=blur) / step - 1) < 1e-3
+
+
+def test_one_centimetre_coordinates_at_a_fine_step():
+    # 1 cm coordinates at 0.06°: the returns nearer than ~30 m are blurred by 0.1-0.5 step.
+    # The step comes from the farthest returns, weighted by their blur, and the footprint
+    # from edges among returns blurred by under 0.15 step (no sharp return shows one).
+    s = make_scan(
+        step_deg=0.06,
+        footprint_steps=2.5,
+        range_noise=0.005,
+        las_scale=0.01,
+        azimuth_deg=(-6.0, 6.0),
+        elevation_deg=(-12.0, 6.0),
+        n_boards=3,
+        n_poles=3,
+        object_range=(6.0, 25.0),
+        seed=2,
+    )
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None  # the farthest half alone showed no regular grid
+    assert g.step_az == pytest.approx(0.06, rel=0.002)
+    assert g.step_el == pytest.approx(0.06, rel=0.002)
+    assert 1.7 < g.footprint_steps < 3.0, g  # measured 2.0 (one step assumed before)
+    assert "under 0.15 step" in g.how["footprint"]
+
+
+def test_job_geometry_per_scan_position_from_all_shards(tmp_path):
+    from terrasift.jobs.scan import job_geometry, measure_job_geometry
+    from terrasift.tiling.blocks import SHARD_DTYPE
+    from terrasift.workers.mixed import MixedParams
+
+    # two scan positions with different steps, their points spread over shard files of
+    # two tile parts, halo copies (core 0) among them; each position is measured on its
+    # own points only, as the stage alone measures the whole scan
+    scans = [
+        make_scan(step_deg=0.3, azimuth_deg=(-30.0, 30.0), n_boards=3, n_poles=3, seed=1),
+        make_scan(step_deg=0.2, azimuth_deg=(-20.0, 20.0), n_boards=3, n_poles=3, seed=2),
+    ]
+    shift = np.array([[0.0, 0.0, 0.0], [60.0, 5.0, 0.0]])
+    parts = [tmp_path / "a", tmp_path / "b"]
+    for d in parts:
+        d.mkdir()
+    for k, s in enumerate(scans):
+        xyz = s.xyz + shift[k]
+        rec = np.zeros(len(xyz), SHARD_DTYPE)
+        rec["x"], rec["y"], rec["z"] = xyz.T
+        rec["scan_id"], rec["core"] = k, 1
+        half = len(rec) // 2
+        rec[:half].tofile(parts[0] / f"{k}_0.bin")
+        rec[half:].tofile(parts[1] / f"{k}_1.bin")
+        halo = rec[:500].copy()
+        halo["core"] = 0
+        halo.tofile(parts[1] / f"{1 - k}_9.bin")  # copies in another block: not counted
+    origins = [tuple(s.origin + shift[k]) for k, s in enumerate(scans)]
+    found = measure_job_geometry(parts, origins, MixedParams())
+    geo = job_geometry(found)
+    assert geo is not None and len(geo) == 2
+    for k, s in enumerate(scans):
+        own = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz + shift[k])
+        assert geo[k].n_points == own.n_points == len(s)
+        assert geo[k].step_az == pytest.approx(own.step_az, rel=1e-4)
+        assert geo[k].footprint_steps == pytest.approx(own.footprint_steps, rel=1e-3)
+        assert "once per job" in geo[k].how["scope"]
+    assert geo[0].step_az == pytest.approx(0.3, rel=0.01)
+    assert geo[1].step_az == pytest.approx(0.2, rel=0.01)

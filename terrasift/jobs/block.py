@@ -6,6 +6,7 @@ once per task, so the science in ``terrasift.workers`` never sees a job.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ import numpy as np
 from terrasift.files import atomic_path, load_json, write_json
 from terrasift.jobs.dirs import block_result_path, check_cancel
 from terrasift.jobs.params import block_models, with_ground_density
+from terrasift.jobs.scan import job_geometry
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers.block import classify_block
 
@@ -34,6 +36,8 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
     models = with_ground_density(
         block_models(load_json(job_dir_p / "job.json")["params"]), plan.get("ground_density")
     )
+    if plan.get("scan_geometry"):
+        models = dataclasses.replace(models, scan_geometry=job_geometry(plan["scan_geometry"]))
     grid = BlockGrid(**plan["grid"])
     shard_dirs = [
         job_dir_p / "shards" / p.name

@@ -1,7 +1,8 @@
 """A job from inputs to outputs: plan, shard, blocks, finish — resumable at every step.
 
 The job directory holds everything: ``job.json`` (inputs, parameters),
-``plan.json`` (tiles, CRS, block grid; after sharding the ground density),
+``plan.json`` (tiles, CRS, block grid; after sharding the ground density and,
+for a ground-based scan, each scan position's geometry),
 ``shards/<tile part>/<block>.bin`` and ``occupancy.npy``,
 ``blocks/<block>.npz`` and ``outputs/``. Each task writes its result
 atomically and is skipped when the result exists, so a restarted service or
@@ -25,8 +26,10 @@ from terrasift.jobs import finish, report
 from terrasift.jobs import survey as surveys
 from terrasift.jobs.block import run_block
 from terrasift.jobs.dirs import check_cancel, output_path
+from terrasift.jobs.params import block_models
 from terrasift.jobs.plan import plan_job
 from terrasift.jobs.quicklooks import write_quicklooks
+from terrasift.jobs.scan import measure_job_geometry
 from terrasift.progress import JobProgress
 from terrasift.tiling.blocks import (
     OCCUPANCY_FILE,
@@ -146,6 +149,7 @@ def run_job(
     )
     shard_seconds = time.perf_counter() - t
     _add_ground_density(job_dir, plan, [shard_root / p.name for p in parts])
+    _add_scan_geometry(job_dir, plan, [shard_root / p.name for p in parts], params)
 
     # Blocks: every block that received a point from any tile.
     sizes: dict[str, int] = {}
@@ -351,6 +355,22 @@ def _add_ground_density(job_dir: Path, plan: dict[str, Any], shard_dirs: list[Pa
 
     points = sum(int(t["point_count"]) for t in plan["tiles"])
     plan["ground_density"] = occupied_density(points, [np.load(f) for f in files], cell)
+    write_json(job_dir / "plan.json", plan, indent=2)
+
+
+def _add_scan_geometry(
+    job_dir: Path, plan: dict[str, Any], shard_dirs: list[Path], params: Mapping[str, Any]
+) -> None:
+    """Record in ``plan.json`` the geometry of each scan position of a ground-based job,
+    measured once from the points of all blocks (``jobs.scan``): every block's mixed
+    stage then follows one step, noise and footprint per position, however few of its
+    points a block holds. Left out for airborne jobs and when already recorded."""
+    if "scan_geometry" in plan:
+        return
+    models = block_models(params)
+    if not models.sensor_origin:
+        return
+    plan["scan_geometry"] = measure_job_geometry(shard_dirs, models.sensor_origin, models.mixed)
     write_json(job_dir / "plan.json", plan, indent=2)
 
 

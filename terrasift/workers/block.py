@@ -24,6 +24,7 @@ from terrasift.workers.ground.rotation import RotationParams, SteepParams
 from terrasift.workers.mixed import MixedParams
 from terrasift.workers.objects import ObjectParams
 from terrasift.workers.registry import Stage, StageParams, block_steps
+from terrasift.workers.scan_geometry import ScanGeometry
 from terrasift.workers.terrain import TerrainParams
 from terrasift.workers.vegetation import VegetationParams
 
@@ -51,6 +52,9 @@ class BlockModels:
     """Buildings, noise and the input classes kept."""
     sensor_origin: tuple[tuple[float, float, float], ...] | None = None
     """Scan positions of a ground-based scan; None for airborne data."""
+    scan_geometry: tuple[ScanGeometry | None, ...] | None = None
+    """Per scan position, its geometry measured once for the whole job (None: each
+    block measures its own)."""
     landforms: LandformParams | None = None
     """The steep-landform rule after the ground stage (None: not run)."""
     lowveg: LowVegParams | None = None

@@ -39,6 +39,7 @@ No Python loop runs over points; the only loop is over scan positions.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -193,12 +194,15 @@ def mark_mixed(
     params: MixedParams,
     sensor_origin: NDArray[np.float64],
     scan_id: NDArray[np.integer] | None = None,
+    geometry: Sequence[ScanGeometry | None] | None = None,
 ) -> MixedResult:
     """Mark mixed measurements of one or several scans with known sensor origins.
 
     ``sensor_origin`` is (3,) for one scan, or (k, 3) with ``scan_id`` giving each
     point's scan position (0..k-1). Coordinates may be absolute: each scan is
-    shifted to its own sensor before anything else.
+    shifted to its own sensor before anything else. ``geometry`` (one entry per scan
+    position) is the scan geometry measured beforehand on more points than these (a
+    job measures it once from all its blocks); a position without one is measured here.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -208,13 +212,14 @@ def mark_mixed(
     marked = np.zeros(n, dtype=bool)
     unclassified = np.zeros(n, dtype=bool)
     n_regions = n_triggered = 0
-    geometry: list[dict[str, Any]] = []
+    found: list[dict[str, Any]] = []
     for k in range(origins.shape[0]):
         idx = np.flatnonzero(ids == k) if ids is not None else slice(None)
         rel = xyz[idx] - origins[k]
         if rel.shape[0] == 0:
             continue
-        derived = derive_params(rel, params, absolute=xyz[idx])
+        known = geometry[k] if geometry is not None and k < len(geometry) else None
+        derived = derive_params(rel, params, absolute=xyz[idx], geometry=known)
         extra: dict[str, Any] = {"method": "box"}
         if params.method == "grid" and derived.geometry is not None:
             gs = grid_settings(derived.geometry, params)
@@ -240,7 +245,7 @@ def mark_mixed(
         marked[idx], unclassified[idx] = m, u
         n_regions += nr
         n_triggered += nt
-        geometry.append({"scan": k, "points": int(rel.shape[0]), **derived.report(), **extra})
+        found.append({"scan": k, "points": int(rel.shape[0]), **derived.report(), **extra})
     n_unc = int(unclassified.sum())
     return MixedResult(
         marked=marked,
@@ -251,7 +256,7 @@ def mark_mixed(
         n_unclassified=n_unc,
         n_regions=n_regions,
         n_triggered=n_triggered,
-        geometry=geometry,
+        geometry=found,
     )
 
 
@@ -282,17 +287,21 @@ class Derived:
 
 
 def derive_params(
-    rel: NDArray[np.float64], p: MixedParams, absolute: NDArray[np.float64] | None = None
+    rel: NDArray[np.float64],
+    p: MixedParams,
+    absolute: NDArray[np.float64] | None = None,
+    geometry: ScanGeometry | None = None,
 ) -> Derived:
     """Resolve the angles and distances left open (None) from the scan's measured geometry.
 
-    Without enough points to measure, the values the filter was first tuned with
-    (0.25° cells, 2 cm support, 15 cm boxes) stand in.
+    ``geometry``, when given, was measured beforehand (on the whole scan) and is used
+    as it is. Without enough points to measure, the values the filter was first tuned
+    with (0.25° cells, 2 cm support, 15 cm boxes) stand in.
     """
     fixed = p.cell_angle is not None and p.support_tol is not None and p.box_width is not None
     if fixed and p.method == "box":
         return Derived(p, None, None)
-    geo = measure_scan_geometry(rel, footprint=p.footprint, absolute=absolute)
+    geo = geometry or measure_scan_geometry(rel, footprint=p.footprint, absolute=absolute)
     if geo is None:
         upd = {"cell_angle": p.cell_angle or 0.25, "support_tol": p.support_tol or 0.02}
         return Derived(p.model_copy(update={**upd, "box_width": p.box_width or 0.15}), None, None)

@@ -27,13 +27,15 @@ beams on (locally) regular angular lines.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
+QUERY = 12_000  # of those, points whose neighbours give the spacing and noise medians
 REGULAR = 0.5  # share of neighbour spacings within 25 % of the step for a scan grid
 
 
@@ -59,6 +61,12 @@ class ScanGeometry:
     def angular_uncertainty(self, r: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
         """Angle (degrees) of the LAS quantisation (sd of a uniform step) at range ``r``."""
         return np.degrees(self.las_scale / np.sqrt(12.0) / np.maximum(r, 1e-6))
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ScanGeometry:
+        """The geometry ``to_dict`` wrote (derived keys such as ``step`` are left out)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
 
     def to_dict(self) -> dict[str, object]:
         d = asdict(self)
@@ -101,10 +109,14 @@ def measure_scan_geometry(
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
     az, el, r = _sector(az, el, r)
 
-    # First pass on the farthest half, then on every point whose quantisation
-    # angle stays under a tenth of the step found.
-    far = r >= np.median(r)
-    sa, se = _steps(az[far], el[far])
+    # First pass on the farthest half (quarter, tenth: with 1 cm coordinates at a 0.06°
+    # step the nearer returns blur the spacings past any regular grid), then on every
+    # point whose quantisation angle stays under a tenth of the step found.
+    for share in (0.5, 0.25, 0.1):
+        far = r >= np.quantile(r, 1.0 - share)
+        sa, se = _steps(az[far], el[far])
+        if np.isfinite(sa) and np.isfinite(se):
+            break
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
     if las_scale > 0:
@@ -117,11 +129,13 @@ def measure_scan_geometry(
             ok = far
     else:
         ok = np.ones(r.size, dtype=bool)
-    sa, se = refine_step(az[ok], sa), refine_step(el[ok], se)
+    blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
+    sa, se = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
     how["step"] = (
         "median spacing to the nearest neighbour along azimuth / elevation in angle space, "
         f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step, "
-        "refined to the step whose grid the angles fit best over ever wider sectors"
+        "refined to the step whose grid the angles fit best over ever wider sectors "
+        "(each angle weighted by the fit its quantisation blur allows)"
     )
 
     sigma = _range_sigma(az[ok], el[ok], r[ok], sa, se)  # NaN when no line shows
@@ -139,9 +153,22 @@ def measure_scan_geometry(
     else:
         jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
         steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, jump, max_gap)
+        on = ""
+        if not np.isfinite(steps) and las_scale > 0:
+            # Coarse coordinates at a fine step: too few sharp returns show an edge (1 cm at
+            # 0.05-0.08°), so returns blurred by up to 0.15, then 0.2 step take part (those
+            # the blur put off their beam are left out of the lines).
+            q = blur / min(sa, se)
+            for lim in (0.15, 0.2):
+                sel = q < lim
+                steps = _ramp_steps(az[sel], el[sel], r[sel], sa, se, jump, max_gap)
+                if np.isfinite(steps):
+                    on = f", on returns whose quantisation angle is under {lim:g} step"
+                    break
         if np.isfinite(steps):
             how["footprint"] = (
-                f"mean ramp of blended returns at range edges closer than {max_gap:g} m, in steps"
+                f"mean ramp of blended returns at range edges closer than {max_gap:g} m, "
+                f"in steps{on}"
             )
         else:
             steps = 1.0
@@ -194,22 +221,30 @@ def _sector(az, el, r):
     return az[sl], el[sl], r[sl]
 
 
-def _neighbours(az, el, k: int = 12):
+def _neighbours(az, el, k: int = 12, sample: int = QUERY):
+    """Nearest neighbours in angle space of a sample of the points (all points form the
+    tree, ``sample`` of them ask): medians of spacings and residuals need no more, and
+    the lookups were most of the measurement's time. Returns the asking points' indices,
+    their neighbours' indices and the angle differences to them."""
     u = az * np.cos(el)
-    tree = cKDTree(np.column_stack([u, el]))
-    _, j = tree.query(np.column_stack([u, el]), k=min(k + 1, az.size))
+    pts = np.column_stack([u, el])
+    tree = cKDTree(pts)
+    qi = np.arange(az.size)
+    if az.size > sample:
+        qi = np.sort(np.random.default_rng(0).choice(az.size, sample, replace=False))
+    _, j = tree.query(pts[qi], k=min(k + 1, az.size))
     j = j[:, 1:]
-    da = (az[j] - az[:, None] + np.pi) % (2 * np.pi) - np.pi
-    de = el[j] - el[:, None]
-    return j, da, de
+    da = (az[j] - az[qi, None] + np.pi) % (2 * np.pi) - np.pi
+    de = el[j] - el[qi, None]
+    return qi, j, da, de
 
 
 def _steps(az, el) -> tuple[float, float]:
     """Median nearest spacing along azimuth and along elevation (radians)."""
     if az.size < 20:
         return np.nan, np.nan
-    _, da, de = _neighbours(az, el)
-    du = np.abs(da) * np.cos(el)[:, None]
+    qi, _, da, de = _neighbours(az, el)
+    du = np.abs(da) * np.cos(el[qi])[:, None]
     adu, ade = np.abs(du), np.abs(de)
     along_a = adu > 2.0 * ade
     along_e = ade > 2.0 * adu
@@ -232,12 +267,12 @@ def _range_sigma(az, el, r, sa, se) -> float:
     """Robust sd of range about the line through the azimuth neighbours either side."""
     if az.size < 20:
         return float("nan")
-    j, da, de = _neighbours(az, el, k=8)
+    qi, j, da, de = _neighbours(az, el, k=8)
     same_line = np.abs(de) < 0.25 * se
     left = np.where(same_line & (da < 0) & (da > -1.6 * sa), -da, np.inf)
     right = np.where(same_line & (da > 0) & (da < 1.6 * sa), da, np.inf)
     il, ir = left.argmin(axis=1), right.argmin(axis=1)
-    rows = np.arange(az.size)
+    rows = np.arange(qi.size)
     good = np.isfinite(left[rows, il]) & np.isfinite(right[rows, ir])
     if np.count_nonzero(good) < 20:
         return float("nan")
@@ -245,7 +280,7 @@ def _range_sigma(az, el, r, sa, se) -> float:
     a_l, a_r = -left[rows, il][good], right[rows, ir][good]
     w = -a_l / (a_r - a_l)  # weight of the right neighbour at the point's angle
     pred = (1 - w) * r[jl] + w * r[jr]
-    res = (r[good] - pred) / np.sqrt(1.0 + w**2 + (1 - w) ** 2)
+    res = (r[qi][good] - pred) / np.sqrt(1.0 + w**2 + (1 - w) ** 2)
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
 
@@ -290,34 +325,62 @@ def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     return float(np.mean(length[edges] - 1))
 
 
-def refine_step(a: NDArray[np.float64], s0: float, sample: int = 20_000) -> float:
-    """The step of the regular grid the angles ``a`` (radians) fit best, near ``s0``.
+def refine_step(
+    a: NDArray[np.float64],
+    s0: float,
+    sample: int = 20_000,
+    blur: NDArray[np.float64] | float = 0.0,
+) -> float:
+    """The step of the regular grid the angles ``a`` (radians) fit best, within 20 % of ``s0``.
 
     The fit of a grid is the coherence |mean exp(2πi a/s)|, whose peak narrows as
     1/(number of lines covered): a step off by 0.5 % drifts a whole line over 200
     lines. So the step is searched on ever wider sectors around the median angle,
-    each search within the previous one's resolution. Returns ``s0`` when no grid fits.
+    each search within the previous one's resolution. ``blur`` (the sd of each angle,
+    radians: the LAS scale over range) weights each angle by the coherence its blur
+    leaves, exp(-2π²(blur/s)²): with 1 cm coordinates at a 0.06° step the near points
+    are blurred by a third of a step and the nearest-neighbour spacing ``s0`` runs up to
+    8 % long. Returns ``s0`` when no grid fits.
     """
     a = np.asarray(a, dtype=np.float64)
     if a.size < 50 or not np.isfinite(s0) or s0 <= 0:
         return s0
+    w = np.exp(-2.0 * np.pi**2 * (np.broadcast_to(blur, a.shape) / s0) ** 2)
+    use = w > 0.2  # angles blurred by more than 0.29 step carry no grid
+    if np.count_nonzero(use) < 50:
+        return s0
+    a, w = a[use], w[use]
     if a.size > sample:
-        a = a[np.random.default_rng(0).choice(a.size, sample, replace=False)]
+        pick = np.random.default_rng(0).choice(a.size, sample, replace=False)
+        a, w = a[pick], w[pick]
     c = float(np.median(a))
-    s, width = s0, 0.03
+    s, width = s0, 0.2
     span = float(np.max(np.abs(a - c)))
-    for lines in (50, 500, 5_000, 50_000):
-        sel = a[np.abs(a - c) <= lines * s / 2]
+    covered = False
+    for lines in (50, 500, 5_000, 50_000, 500_000):
+        inside = np.abs(a - c) <= lines * s / 2
+        sel, ws = a[inside], w[inside]
         if sel.size < 50:
             continue
-        cand = s * (1.0 + np.linspace(-width, width, 81))
-        coh = np.abs(np.exp(2j * np.pi * np.outer(sel - c, 1.0 / cand)).mean(axis=0))
+        # candidates evenly spaced in frequency: exp(2πi x f) at the next frequency is
+        # the last one times exp(2πi x df), a product instead of an exponential
+        freq = (1.0 + np.linspace(-width, width, 81)) / s
+        x = sel - c
+        z = ws * np.exp(2j * np.pi * x * freq[0])  # weighted: the product keeps the weight
+        dz = np.exp(2j * np.pi * x * (freq[1] - freq[0]))
+        coh = np.empty(freq.size)
+        total = float(ws.sum())
+        for k in range(freq.size):
+            coh[k] = abs(z.sum()) / total
+            z *= dz
         best = int(np.argmax(coh))
         if coh[best] < 0.3:
             return s0
-        s, width = float(cand[best]), 1.0 / lines
-        if lines * s / 2 >= span:
+        s, width = float(1.0 / freq[best]), 1.0 / lines
+        if covered:
             break
+        # once the sector holds every angle, one more search within this one's resolution
+        covered = lines * s / 2 >= span
     return s
 
 

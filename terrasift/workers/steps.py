@@ -77,7 +77,7 @@ def _mark_mixed(xyz: NDArray, scan_id: NDArray, models: BlockModels) -> mixed.Mi
             )
     else:
         origin_arr = origin_arr[0]
-    return mixed.mark_mixed(xyz, models.mixed, origin_arr, ids)
+    return mixed.mark_mixed(xyz, models.mixed, origin_arr, ids, models.scan_geometry)
 
 
 def _ground_halo(models: BlockModels, density: float) -> float:

@@ -1,0 +1,98 @@
+"""The scan geometry of a ground-based job, measured once per scan position from all blocks.
+
+The mixed-measurement filter takes its angles and distances from the scan's
+geometry (angular steps, range noise, LAS scale, beam footprint). Measured in
+each block, a block holding few points of a scan position (a block at the edge
+of the scan, or one cut through a sparse far sector) measures a footprint from
+few edges or nothing at all and falls back to assumed values, and neighbouring
+blocks measure slightly different steps. Here every scan position is measured
+once after sharding, on the same contiguous azimuth sector around its median
+azimuth that the stage alone would take from the whole scan (``MAX_SAMPLE``
+points), read from the core records of every shard; ``plan.json`` keeps the
+result and every block task passes it to the stage.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from terrasift.tiling.blocks import SHARD_DTYPE
+from terrasift.workers.mixed import MixedParams
+from terrasift.workers.scan_geometry import MAX_SAMPLE, ScanGeometry, measure_scan_geometry
+
+AZ_BINS = 1 << 16  # azimuth histogram bins over the circle (0.0055° each)
+
+
+def _scan_records(files: Sequence[Path], n_scans: int):
+    """Core records of every shard file, with each record's scan position."""
+    for f in files:
+        rec = np.fromfile(f, dtype=SHARD_DTYPE)
+        rec = rec[rec["core"] == 1]
+        if rec.size == 0:
+            continue
+        ids = rec["scan_id"].astype(np.int64) if n_scans > 1 else np.zeros(rec.size, np.int64)
+        yield rec, ids
+
+
+def _az_bin(rec: NDArray, origin: NDArray[np.float64]) -> NDArray[np.int64]:
+    az = np.arctan2(rec["y"] - origin[1], rec["x"] - origin[0])
+    return np.minimum(((az + np.pi) / (2 * np.pi) * AZ_BINS).astype(np.int64), AZ_BINS - 1)
+
+
+def measure_job_geometry(
+    shard_dirs: Sequence[Path], origins: Sequence[Sequence[float]], params: MixedParams
+) -> list[dict[str, Any] | None]:
+    """Per scan position, its measured geometry (``ScanGeometry.to_dict``) or None when
+    it has too few points. Two passes over the shards: azimuth histograms, then the
+    points of the sector of ``MAX_SAMPLE`` points around each position's median azimuth."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    k = o.shape[0]
+    files = [f for d in shard_dirs if d.is_dir() for f in sorted(d.glob("*.bin"))]
+    hist = np.zeros((k, AZ_BINS), dtype=np.int64)
+    for rec, ids in _scan_records(files, k):
+        for s in np.unique(ids[ids < k]):
+            sel = rec[ids == s]
+            hist[s] += np.bincount(_az_bin(sel, o[s]), minlength=AZ_BINS)
+    lo = np.zeros(k, dtype=np.int64)
+    hi = np.full(k, AZ_BINS - 1, dtype=np.int64)
+    for s in range(k):
+        cum = np.cumsum(hist[s])
+        half = cum[-1] / 2.0
+        lo[s] = np.searchsorted(cum, half - MAX_SAMPLE / 2, side="left")
+        hi[s] = np.searchsorted(cum, half + MAX_SAMPLE / 2, side="left")
+    pts: list[list[NDArray[np.float64]]] = [[] for _ in range(k)]
+    for rec, ids in _scan_records(files, k):
+        for s in np.unique(ids[ids < k]):
+            sel = rec[ids == s]
+            b = _az_bin(sel, o[s])
+            sel = sel[(b >= lo[s]) & (b <= hi[s])]
+            pts[s].append(np.column_stack([sel["x"], sel["y"], sel["z"]]))
+    out: list[dict[str, Any] | None] = []
+    for s in range(k):
+        xyz = np.concatenate(pts[s]) if pts[s] else np.zeros((0, 3))
+        geo = measure_scan_geometry(xyz - o[s], footprint=params.footprint, absolute=xyz)
+        if geo is None:
+            out.append(None)
+            continue
+        d = geo.to_dict()
+        d["how"] = {
+            **geo.how,
+            "scope": f"once per job and scan position, from {int(hist[s].sum())} points of all "
+            "blocks (a contiguous azimuth sector around the median azimuth)",
+        }
+        out.append(d)
+    return out
+
+
+def job_geometry(
+    found: Sequence[dict[str, Any] | None] | None,
+) -> tuple[ScanGeometry | None, ...] | None:
+    """``plan.json``'s per-position geometry back as ``ScanGeometry`` values."""
+    if not found:
+        return None
+    return tuple(None if g is None else ScanGeometry.from_dict(g) for g in found)
