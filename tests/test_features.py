@@ -729,7 +729,11 @@ def test_ridge_needs_flanks_not_flat_as_they_lie_so_a_levelled_field_edge_is_not
     z += np.random.default_rng(3).normal(0, 0.02, z.shape)
     flt = load_filter("ridge")
     assert "lying-height" in format_filter(flt)
-    cats, stepped = categories_for(z, cell, [flt])
+    # without the slope-noise margin: with it the 15 % slope (0.225 m across a tile) is
+    # within noise of the flatness threshold and the fill edge is no ridge either way
+    from terrasift.workers.categories import CategoryParams
+
+    cats, stepped = categories_for(z, cell, [flt], CategoryParams(slope_noise=0))
     detrended = stepped[(None, 120.0)]
     assert detrended.lying10 is not None
     assert np.array_equal(detrended.lying10, cats.relief10)  # as the tiles lie
@@ -796,3 +800,35 @@ def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
     assert parse_filter(format_filter(flt)) == flt
     with pytest.raises(FilterSyntaxError, match="h-and-v"):
         parse_filter(text.replace("h-and-v 0.15", "h-and-v 1.5"))
+
+
+def test_sparse_noisy_slope_makes_no_road_once_flatness_allows_for_the_slope_noise():
+    """A plain 7 % slope (rising north-east, so a 2 m tile rises ~0.15 m: near the flatness
+    threshold) scanned at 0.25 points/m^2 with 6 cm of noise, the DTM a TIN through the
+    points: each tile's slope carries the noise, tiles read flat and not flat at random,
+    and level strips between them stack into branching "roads". With the flatness
+    margin from the measured slope noise there are none."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from terrasift.workers.categories import CategoryParams, measure_slope_noise
+
+    rng = np.random.default_rng(5)
+    cell, size = 0.5, 200.0
+    n = int(0.25 * size * size)
+    px, py = rng.uniform(-5, size + 5, n), rng.uniform(-5, size + 5, n)
+    slope = 0.07 / np.sqrt(2)
+    pz = 100 + slope * (px + py) + rng.normal(0, 0.06, n)
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = LinearNDInterpolator(np.column_stack([px, py]), pz)(x, y)
+    sigma_g = measure_slope_noise(z, cell, CategoryParams())
+    assert 0.01 < sigma_g < 0.06  # the slope noise of 2 m tiles under a 2 m TIN
+    flt = load_filter("road")
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+
+    def roads(params: CategoryParams) -> int:
+        cats, stepped = categories_for(z, cell, [flt], params)
+        return len(detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects)
+
+    assert roads(CategoryParams(slope_noise=0)) >= 2  # the structure the margin is for
+    assert roads(CategoryParams()) == 0
