@@ -103,11 +103,12 @@ class CategoryParams(StageParams):
     """Noise σ of a tile's fitted slope (rise per metre); None measures it from the DTM
     (``measure_slope_noise``; 0 when ``noise`` is 0: the noise tests off), 0 turns the
     margin below off."""
-    flat_slope_noise: float = Field(2.0, ge=0, le=10)
-    """A tile is flat when its height is below ``flat_height`` plus this many ``slope_noise``
-    times the tile's width between its outer cell centres: where the DTM is interpolated
-    between points metres apart, its tiles' slopes carry the points' noise, and a slope
-    near the threshold reads flat and not flat at random from tile to tile."""
+    clear_slope_noise: float = Field(2.0, ge=0, le=10)
+    """A tile is *clearly* not flat (``Categories.clear``, the filters' ``clear``) when its
+    height exceeds ``flat_height`` by this many ``slope_noise`` times the tile's width
+    between its outer cell centres: where the DTM is interpolated between points metres
+    apart, its tiles' slopes carry the points' noise, and a slope near the threshold
+    reads flat and not flat at random from tile to tile."""
 
 
 #: fewest tiles with data for measuring the noise; below, it is taken as 0
@@ -133,6 +134,10 @@ class Categories:
     lying10: NDArray[np.uint8] | None = None
     """``relief10`` of the tiles as they lie, before any regional slope is taken off
     (``trend``); the filters' ``lying-height``. None: as ``relief10``."""
+    clear: NDArray[np.uint8] | None = None
+    """1 where the tile is not flat by more than the slope noise explains
+    (``CategoryParams.clear_slope_noise``), else 0; the filters' ``clear``. None: every
+    tile that is not flat."""
 
     @property
     def step(self) -> int:
@@ -259,7 +264,7 @@ def category_grids(
     sigma_g = params.slope_noise
     if sigma_g is None:
         sigma_g = 0.0 if params.noise == 0 else _slope_noise([tile_slopes(dtm, cell, params)])
-    flat_height = params.flat_height + params.flat_slope_noise * sigma_g * (k - 1) * cell
+    clear_height = params.flat_height + params.clear_slope_noise * sigma_g * (k - 1) * cell
     grids = list(trends or [None])
     n = rows * cols
     slopes = np.zeros((len(grids), 2, n))
@@ -293,7 +298,8 @@ def category_grids(
     out = []
     for j in range(len(grids)):
         gx, gy, height, relief = gxs[j], gys[j], heights[j], reliefs[j]
-        flat = relief < flat_height
+        flat = relief < params.flat_height
+        clear = (~flat & (relief >= clear_height)).astype(np.uint8)
         rise = np.hypot(gx, gy) * k * cell
         inclination = _direction_code(gx, gy)
         # A one-plane tile that is not flat always has a direction; an edged tile only
@@ -330,7 +336,7 @@ def category_grids(
         orientation[flat] = 0
         state[flat] = 0
         height10, relief10 = dm(height), dm(relief)
-        for band in (inclination, orientation, state, height10, relief10):
+        for band in (inclination, orientation, state, height10, relief10, clear):
             band[nodata] = NODATA
         shape = (rows, cols)
         out.append(
@@ -345,6 +351,7 @@ def category_grids(
                 relief10.reshape(shape),
                 None if s == k else s,
                 lying10.reshape(shape),
+                clear.reshape(shape),
             )
         )
     return out
@@ -370,6 +377,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         None if first.relief10 is None else cat("relief10"),
         first.step_cells,
         None if first.lying10 is None else cat("lying10"),
+        None if first.clear is None else cat("clear"),
     )
 
 
