@@ -17,6 +17,11 @@ Parts (``--part``):
 ``kept``
     Scores the features kept by earlier ``job --keep DIR`` runs (``--keep DIR``),
     so seeds run in several processes are summarised together.
+``sparse``
+    The counter-case family (``make_sparse_scene``): plain fields of 0-12 %
+    scanned at 0.15-0.6 pulses/m^2 with 3-10 cm of noise, no object, through
+    the whole job; every detection but a flat area on naturally flat ground
+    is false. Report seeds 0-11 (``--sparse-seeds``), tuning seeds 100-111.
 ``speed``
     Categories (the 2 m grid and the 1 m-step grid the road filter runs on)
     and all built-in filters on a 1 km^2 DTM (2000 x 2000 cells of 0.5 m), one
@@ -38,7 +43,7 @@ precision = correct detections / detections, per scene; the table gives the
 worst case, the 10th percentile and the median over scenes holding the kind
 (scenes with no detection of a kind have no precision for it).
 
-Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept dtm scene speed]
+Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept sparse dtm scene speed]
      [--seeds 0 .. 15] [--tune-seeds 100 .. 111] [--workers 1]
 """
 
@@ -69,6 +74,7 @@ from shapely.ops import unary_union  # noqa: E402
 
 from terrasift.synthetic.feature_family import (  # noqa: E402
     make_family_scene,
+    make_sparse_scene,
     point_scene,
     surface_raster,
 )
@@ -192,11 +198,13 @@ def _shifted_truth(scene):
     return [TruthFeature(t.kind, translate(t.polygon, *ORIGIN), t.length_m) for t in scene.truth]
 
 
-def run_job_scene(seed: int, workers: int, keep: Path | None) -> tuple[str, dict, float]:
+def run_job_scene(
+    seed: int, workers: int, keep: Path | None, make=make_family_scene
+) -> tuple[str, dict, float]:
     from terrasift.cli import process
     from terrasift.synthetic.terrain import write_las
 
-    scene = make_family_scene(seed)
+    scene = make(seed)
     pts = point_scene(scene, ORIGIN)
     tmp = Path(tempfile.mkdtemp(prefix="features-job-"))
     try:
@@ -220,9 +228,9 @@ def run_job_scene(seed: int, workers: int, keep: Path | None) -> tuple[str, dict
     return scene.describe(), sc, seconds
 
 
-def score_kept_scene(seed: int, keep: Path) -> tuple[str, dict]:
+def score_kept_scene(seed: int, keep: Path, make=make_family_scene) -> tuple[str, dict]:
     """Score the features a ``--part job --keep`` run kept for ``seed`` (no job is run)."""
-    scene = make_family_scene(seed)
+    scene = make(seed)
     fc = json.loads((keep / f"scene{seed}.geojson").read_text())
     dets = [
         (f["properties"]["kind"], shape(f["geometry"]), f["properties"]["length_m"])
@@ -235,6 +243,22 @@ def score_kept_scene(seed: int, keep: Path) -> tuple[str, dict]:
 def part_kept(seeds: list[int], keep: Path) -> None:
     rows = [score_kept_scene(s, keep) for s in seeds]
     summarise(rows, f"whole job, features kept in {keep}")
+
+
+def part_sparse(seeds: list[int], workers: int, keep: Path | None) -> None:
+    """The counter-case family through the whole job: no object in any scene, so every
+    detection but a flat area on naturally flat ground is false."""
+    rows = []
+    for s in seeds:
+        label, sc, seconds = run_job_scene(s, workers, keep, make_sparse_scene)
+        rows.append((label, sc))
+        brief = ", ".join(f"{k} {v[3]}/{v[2]}" for k, v in sc.items() if v[2])
+        print(f"{label} [{seconds:.0f} s]: correct/detections {brief or 'none'}", flush=True)
+    summarise(rows, "counter-case family, sparse fields with no object, through the whole job")
+    print("false detections per kind (total, scenes with any):")
+    for kind in KINDS:
+        false = [sc[kind][2] - sc[kind][3] for _, sc in rows]
+        print(f"  {kind:<10} {sum(false):4d} {sum(1 for f in false if f):4d} of {len(rows)}")
 
 
 def run_dtm_scene(seed: int) -> tuple[str, dict]:
@@ -324,6 +348,7 @@ if __name__ == "__main__":
     ap.add_argument("--part", nargs="+", default=["job", "dtm", "scene", "speed"])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(16)))
     ap.add_argument("--tune-seeds", type=int, nargs="+", default=list(range(100, 112)))
+    ap.add_argument("--sparse-seeds", type=int, nargs="+", default=list(range(12)))
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--keep", type=Path, default=None, help="copy each job's features and DTM here")
     args = ap.parse_args()
@@ -333,6 +358,8 @@ if __name__ == "__main__":
         if args.keep is None:
             ap.error("--part kept needs --keep DIR")
         part_kept(args.seeds, args.keep)
+    if "sparse" in args.part:  # counter-case family: tune on 100-111, report on 0-11
+        part_sparse(args.sparse_seeds, args.workers, args.keep)
     if "dtm" in args.part:
         part_dtm(args.tune_seeds, "DTM handed in directly (tuning seeds)")
     if "scene" in args.part:

@@ -23,7 +23,7 @@ import numpy as np
 from rasterio import Affine
 
 from terrasift.synthetic.feature_family import make_family_scene, surface_raster
-from terrasift.workers.categories import CategoryParams, measure_noise
+from terrasift.workers.categories import CategoryParams, measure_noise, measure_slope_noise
 from terrasift.workers.features import categories_for, detect_features, resolve_filters
 from terrasift.workers.features.tiled import merge_pieces, tile_pieces
 
@@ -45,7 +45,12 @@ def one(seed: int, mosaic: int, cores: int) -> dict:
     t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     filters = resolve_filters("all")
     cp = CategoryParams()
-    cp = cp.model_copy(update={"noise": measure_noise(dtm, CELL, cp)})
+    cp = cp.model_copy(
+        update={
+            "noise": measure_noise(dtm, CELL, cp),
+            "slope_noise": measure_slope_noise(dtm, CELL, cp),
+        }
+    )
     tracemalloc.start()
     t0 = time.process_time()
     cats, stepped = categories_for(dtm, CELL, filters, cp)

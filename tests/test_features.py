@@ -20,6 +20,7 @@ from terrasift.workers.features import (
     resolve_filters,
 )
 from terrasift.workers.features import connect as C
+from terrasift.workers.features import search as search_mod
 from terrasift.workers.features.language import (
     Metres,
     resolve_lengths,
@@ -796,3 +797,65 @@ def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
     assert parse_filter(format_filter(flt)) == flt
     with pytest.raises(FilterSyntaxError, match="h-and-v"):
         parse_filter(text.replace("h-and-v 0.15", "h-and-v 1.5"))
+
+
+def test_sparse_noisy_slope_makes_no_road_once_its_bounds_must_be_clearly_not_flat():
+    """A plain 7 % slope (rising north-east, so a 2 m tile rises ~0.15 m: near the flatness
+    threshold) scanned at 0.25 points/m^2 with 6 cm of noise, the DTM a TIN through the
+    points: each tile's slope carries the noise, tiles read flat and not flat at random,
+    and level strips between them stack into branching "roads". With the
+    road's bounding tiles clearly not flat (by twice the measured slope noise) there are
+    none."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from terrasift.workers.categories import CategoryParams, measure_slope_noise
+
+    rng = np.random.default_rng(5)
+    cell, size = 0.5, 200.0
+    n = int(0.25 * size * size)
+    px, py = rng.uniform(-5, size + 5, n), rng.uniform(-5, size + 5, n)
+    slope = 0.07 / np.sqrt(2)
+    pz = 100 + slope * (px + py) + rng.normal(0, 0.06, n)
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = LinearNDInterpolator(np.column_stack([px, py]), pz)(x, y)
+    sigma_g = measure_slope_noise(z, cell, CategoryParams())
+    assert 0.01 < sigma_g < 0.06  # the slope noise of 2 m tiles under a 2 m TIN
+    flt = load_filter("road")
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+
+    def roads(params: CategoryParams) -> int:
+        cats, stepped = categories_for(z, cell, [flt], params)
+        return len(detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects)
+
+    assert roads(CategoryParams(slope_noise=0)) >= 2  # the structure the margin is for
+    assert roads(CategoryParams()) == 0
+
+
+def test_clear_key_parses_formats_and_marks_tiles_beyond_the_slope_noise():
+    """``clear`` in a category: the tile is not flat by more than the slope noise explains."""
+    from terrasift.workers.categories import CategoryParams, compute_categories
+
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination any\nstate any\n"
+        "orientation any\nclear\nendcategory\nendsubsegment\nendsegment\n"
+    )
+    flt = parse_filter(text, "c")
+    assert flt.segments[0].subsegments[0].categories[0].clear
+    assert parse_filter(format_filter(flt), "c") == flt
+    with pytest.raises(FilterSyntaxError):
+        parse_filter(text.replace("clear\n", "clear 2\n"), "c")
+    # tiles rising 0.21 m and 0.33 m across (14 % and 22 % slopes): both not flat; with a
+    # slope noise of 0.02 the first is within 2 sigma_g x 1.5 m (0.06 m) of 0.2 m
+    cell = 0.5
+    x = np.tile((np.arange(80) + 0.5) * cell, (40, 1))
+    z = np.where(x < 20, 0.14 * x, 0.14 * 20 + 0.22 * (x - 20))
+    cats = compute_categories(z, cell, CategoryParams(noise=0.005, slope_noise=0.02))
+    assert cats.clear is not None
+    assert (cats.inclination[:, 1:9] == 1).all() and (cats.inclination[:, 11:19] == 1).all()
+    assert (cats.clear[:, 1:9] == 0).all() and (cats.clear[:, 11:19] == 1).all()
+    spec = flt.segments[0].subsegments[0].categories[0]
+    m = search_mod.category_mask(cats, spec)
+    assert np.array_equal(m, cats.clear == 1)
+    off = compute_categories(z, cell, CategoryParams(noise=0.005, slope_noise=0))
+    assert (off.clear[:, :19] == 1).all()

@@ -8,7 +8,7 @@ from rasterio import Affine
 from shapely.geometry import box
 
 from terrasift.synthetic.feature_family import make_family_scene, surface_raster
-from terrasift.workers.categories import CategoryParams, measure_noise
+from terrasift.workers.categories import CategoryParams, measure_noise, measure_slope_noise
 from terrasift.workers.features import categories_for, detect_features, resolve_filters
 from terrasift.workers.features.tiled import merge_pieces, tile_pieces, window_reach
 
@@ -22,7 +22,12 @@ def scene() -> dict:
     transform = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     filters = resolve_filters("all")
     cp = CategoryParams()
-    cp = cp.model_copy(update={"noise": measure_noise(dtm, CELL, cp)})
+    cp = cp.model_copy(
+        update={
+            "noise": measure_noise(dtm, CELL, cp),
+            "slope_noise": measure_slope_noise(dtm, CELL, cp),
+        }
+    )
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped).objects
     return {"dtm": dtm, "t": transform, "filters": filters, "cp": cp, "whole": whole}

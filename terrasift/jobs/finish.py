@@ -176,7 +176,7 @@ def write_categories(job_dir: str) -> list[str]:
 def dtm_category_grids(ds: Any, cparams: Any, filters: list) -> tuple[Any, dict, Any]:
     """The category grid of an open DTM and the grids the ``filters`` search (by their
     step and regional window), read in bands; with the parameters used, whose ``noise``
-    is the one given or else measured on this DTM."""
+    and ``slope_noise`` are the ones given or else measured on this DTM."""
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
 
@@ -199,6 +199,20 @@ def dtm_category_grids(ds: Any, cparams: Any, filters: list) -> tuple[Any, dict,
         cparams = cparams.model_copy(
             update={
                 "noise": cat.measure_noise_by_bands(
+                    lambda r0, r1: _read_rows(ds, r0, r1),
+                    height,
+                    abs(transform.a),
+                    cparams,
+                    rows,
+                )
+            }
+        )
+    if cparams.slope_noise is None:  # and against one slope noise
+        cparams = cparams.model_copy(
+            update={
+                "slope_noise": 0.0
+                if cparams.noise == 0
+                else cat.measure_slope_noise_by_bands(
                     lambda r0, r1: _read_rows(ds, r0, r1),
                     height,
                     abs(transform.a),

@@ -297,6 +297,7 @@ def plan_survey_run(
             "warnings": warnings,
             "params_key": key,
             "noise": state.get("noise") if state.get("params_key") == key else None,
+            "slope_noise": state.get("slope_noise") if state.get("params_key") == key else None,
             "tiles": tiles,
             "sources": sources,
             "outputs": outputs,
@@ -529,7 +530,7 @@ def publish(job_dir: str) -> dict[str, Any]:
             present.append(name)
         grid = BlockGrid(**s["grid"])
         pending = list(s.get("pending", []))
-        noise, derived = _derived_products(new, spec, grid, present, prev)
+        (noise, slope_noise), derived = _derived_products(new, spec, grid, present, prev)
         state = {
             "version": new.name,
             "job": job.name,
@@ -547,6 +548,7 @@ def publish(job_dir: str) -> dict[str, Any]:
             "grid_step": [grid.block_size, grid.resolution],
             # measured on a whole product only: a batch's DTM still lacks the pending tiles
             "noise": None if pending else noise,
+            "slope_noise": None if pending else slope_noise,
             "pending": pending,
             "derived": derived,  # tiles whose slope and categories this version made again
         }
@@ -581,10 +583,10 @@ def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str,
 
 def _derived_products(
     new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str], prev: Path | None
-) -> tuple[float, list[str]]:
+) -> tuple[tuple[float, float], list[str]]:
     """VRTs, slope and categories per tile, merged features and the STAC collection of a
-    version over its ``present`` tiles; returns the category noise used (the survey's,
-    else measured now) and the tiles whose slope and categories were made again (the
+    version over its ``present`` tiles; returns the category noise and slope noise used
+    (the survey's, else measured now) and the tiles whose slope and categories were made again (the
     others' are the previous version's files: their DTM within the margin is the same)."""
     import rasterio
 
@@ -642,6 +644,8 @@ def _derived_products(
     cparams = stage_params(params, "categories")
     if cparams.noise is None and s.get("noise") is not None:
         cparams = cparams.model_copy(update={"noise": s["noise"]})
+    if cparams.slope_noise is None and s.get("slope_noise") is not None:
+        cparams = cparams.model_copy(update={"slope_noise": s["slope_noise"]})
     filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
     fparams = stage_params(params, "features")
     m = tparams.median_size // 2 + 2  # slope's smoothing margin, in cells
@@ -660,8 +664,21 @@ def _derived_products(
                     )
                 }
             )
-        noise = float(cparams.noise)
-        stale = _stale_derived(prev, grid, windows, set(s["outputs"]), (m + 1) * res, noise)
+        if cparams.slope_noise is None:  # likewise
+            rows_per_band = max(1, BAND_CELLS // width)
+            cparams = cparams.model_copy(
+                update={
+                    "slope_noise": 0.0
+                    if cparams.noise == 0
+                    else cat.measure_slope_noise_by_bands(
+                        lambda a, b: _read_rows(ds, a, b), height, res, cparams, rows_per_band
+                    )
+                }
+            )
+        noise, slope_noise = float(cparams.noise), float(cparams.slope_noise)
+        stale = _stale_derived(
+            prev, grid, windows, set(s["outputs"]), (m + 1) * res, noise, slope_noise
+        )
 
         def read(lo_r: int, hi_r: int, lo_c: int, hi_c: int) -> np.ndarray:
             return (
@@ -746,7 +763,7 @@ def _derived_products(
             )
     shutil.rmtree(work, ignore_errors=True)
     _write_stac(new, s, tiles)
-    return noise, sorted(stale)
+    return (noise, slope_noise), sorted(stale)
 
 
 def _overlaps_cells(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
@@ -761,13 +778,14 @@ def _stale_derived(
     outputs: set[str],
     margin: float,
     noise: float,
+    slope_noise: float,
 ) -> set[str]:
     """Tiles whose slope and categories must be made again: those within ``margin``
     (metres) of cells that changed (a redone tile, a tile gone, a tile whose cells
-    moved), all of them when the noise or the grid changed or there is no product."""
+    moved), all of them when a noise or the grid changed or there is no product."""
     state = load_json(prev / STATE) if prev is not None and (prev / STATE).exists() else {}
     cells = {n: window_bounds(grid, w) for n, w in windows.items()}
-    if not state or state.get("noise") != noise:
+    if not state or state.get("noise") != noise or state.get("slope_noise") != slope_noise:
         return set(windows)
     old = state.get("tiles", {})
     changed = [cells[n] for n in windows if n in outputs]

@@ -356,6 +356,40 @@ def make_family_scene(seed: int, size: float = 320.0) -> FamilyScene:
     return scene
 
 
+def make_sparse_scene(seed: int, size: float = 240.0) -> FamilyScene:
+    """A counter-case scene with no terrain object: a field scanned sparsely.
+
+    At 0.15-0.6 pulses/m^2 ground points lie 1.3-2.6 m apart, so the DTM is a
+    TIN whose facets are as large as a category tile, and each facet's slope
+    carries the points' 3-10 cm of noise. On a plain slope of 0-12 % (in a
+    random direction, with a long low wave) tiles near the flatness threshold
+    then read flat and not flat at random, and a strip of level tiles between
+    two that are not flat looks like a road's cross-section. Truth: nothing
+    (a flat-area detection is scored against the flat-area definition on the
+    exact surface, as in the main family)."""
+    rng = np.random.default_rng([2222, seed])
+    slope = rng.uniform(0.0, 0.12)
+    aspect = rng.uniform(0, 2 * np.pi)
+    gx, gy = slope * np.cos(aspect), slope * np.sin(aspect)
+    wave_amp, wave_len, wave_dir = (
+        rng.uniform(0.1, 0.5),
+        rng.uniform(250, 400),
+        rng.uniform(0, np.pi),
+    )
+
+    def base(x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        t = x * np.cos(wave_dir) + y * np.sin(wave_dir)
+        return 100.0 + gx * x + gy * y + wave_amp * np.sin(2 * np.pi * t / wave_len)
+
+    noise = rng.uniform(0.03, 0.10)
+    density = float(np.exp(rng.uniform(np.log(0.15), np.log(0.6))))
+    las_scale = float(rng.choice([0.001, 0.01]))
+    background = "level" if slope < 0.02 else "gentle" if slope < 0.05 else "sloped"
+    return FamilyScene(
+        seed, size, f"sparse {background}", slope, noise, density, las_scale, _Builder(base)
+    )
+
+
 def surface_raster(scene: FamilyScene, cell: float = 0.5) -> NDArray[np.float64]:
     """The exact surface at the centres of a north-up ``cell`` grid over the scene (row 0 north)."""
     n = int(round(scene.size / cell))

@@ -99,6 +99,16 @@ class CategoryParams(StageParams):
     """A tile whose model leaves a residual RMS within this many σ is judged flat or not by the model's range."""
     edge_noise: float = Field(1.5, ge=0, le=10)
     """Two planes are tried only where the one-plane residual RMS exceeds this many σ (and edge_min_rms)."""
+    slope_noise: float | None = Field(None, ge=0, le=1)
+    """Noise σ of a tile's fitted slope (rise per metre); None measures it from the DTM
+    (``measure_slope_noise``; 0 when ``noise`` is 0: the noise tests off), 0 turns the
+    margin below off."""
+    clear_slope_noise: float = Field(2.0, ge=0, le=10)
+    """A tile is *clearly* not flat (``Categories.clear``, the filters' ``clear``) when its
+    height exceeds ``flat_height`` by this many ``slope_noise`` times the tile's width
+    between its outer cell centres: where the DTM is interpolated between points metres
+    apart, its tiles' slopes carry the points' noise, and a slope near the threshold
+    reads flat and not flat at random from tile to tile."""
 
 
 #: fewest tiles with data for measuring the noise; below, it is taken as 0
@@ -124,6 +134,10 @@ class Categories:
     lying10: NDArray[np.uint8] | None = None
     """``relief10`` of the tiles as they lie, before any regional slope is taken off
     (``trend``); the filters' ``lying-height``. None: as ``relief10``."""
+    clear: NDArray[np.uint8] | None = None
+    """1 where the tile is not flat by more than the slope noise explains
+    (``CategoryParams.clear_slope_noise``), else 0; the filters' ``clear``. None: every
+    tile that is not flat."""
 
     @property
     def step(self) -> int:
@@ -247,6 +261,10 @@ def category_grids(
     if sigma is None:
         sigma = _noise([plane_residuals(dtm, cell, params)], k)
     gate = max(params.edge_min_rms, params.edge_noise * sigma)
+    sigma_g = params.slope_noise
+    if sigma_g is None:
+        sigma_g = 0.0 if params.noise == 0 else _slope_noise([tile_slopes(dtm, cell, params)])
+    clear_height = params.flat_height + params.clear_slope_noise * sigma_g * (k - 1) * cell
     grids = list(trends or [None])
     n = rows * cols
     slopes = np.zeros((len(grids), 2, n))
@@ -281,6 +299,7 @@ def category_grids(
     for j in range(len(grids)):
         gx, gy, height, relief = gxs[j], gys[j], heights[j], reliefs[j]
         flat = relief < params.flat_height
+        clear = (~flat & (relief >= clear_height)).astype(np.uint8)
         rise = np.hypot(gx, gy) * k * cell
         inclination = _direction_code(gx, gy)
         # A one-plane tile that is not flat always has a direction; an edged tile only
@@ -317,7 +336,7 @@ def category_grids(
         orientation[flat] = 0
         state[flat] = 0
         height10, relief10 = dm(height), dm(relief)
-        for band in (inclination, orientation, state, height10, relief10):
+        for band in (inclination, orientation, state, height10, relief10, clear):
             band[nodata] = NODATA
         shape = (rows, cols)
         out.append(
@@ -332,6 +351,7 @@ def category_grids(
                 relief10.reshape(shape),
                 None if s == k else s,
                 lying10.reshape(shape),
+                clear.reshape(shape),
             )
         )
     return out
@@ -357,6 +377,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         None if first.relief10 is None else cat("relief10"),
         first.step_cells,
         None if first.lying10 is None else cat("lying10"),
+        None if first.clear is None else cat("clear"),
     )
 
 
@@ -375,6 +396,41 @@ def plane_residuals(dtm: NDArray, cell: float, params: CategoryParams) -> NDArra
     _, resid0, *_ = _models(k, cell)
     r0 = z @ resid0
     return np.sqrt((r0 * r0).sum(axis=1) / (k * k))
+
+
+def tile_slopes(dtm: NDArray, cell: float, params: CategoryParams) -> NDArray[np.float64]:
+    """Second differences of the fitted slopes of abutting tiles, along rows and columns,
+    east and north slopes together (NaN where a tile has nodata)."""
+    k = max(2, int(round(params.tile_size / cell)))
+    dtm = np.asarray(dtm, dtype=np.float64)
+    rows, cols = dtm.shape[0] // k, dtm.shape[1] // k
+    t = dtm[: rows * k, : cols * k].reshape(rows, k, cols, k).transpose(0, 2, 1, 3)
+    u = (np.arange(k) - (k - 1) / 2) * cell
+    g = (t * u[None, None, None, :]).sum(axis=(2, 3)) / (k * (u * u).sum())  # east
+    n = (t * -u[None, None, :, None]).sum(axis=(2, 3)) / (k * (u * u).sum())  # north
+    out = []
+    for a in (g, n):
+        out += [
+            (a[:, 2:] - 2 * a[:, 1:-1] + a[:, :-2]).ravel(),
+            (a[2:] - 2 * a[1:-1] + a[:-2]).ravel(),
+        ]
+    return np.concatenate(out)
+
+
+def _slope_noise(diffs: list[NDArray]) -> float:
+    """Noise σ of a tile's slope from second differences of abutting tiles' slopes: their
+    median absolute value as a normal σ (a second difference of three independent
+    slopes has √6 σ); 0 with too few tiles."""
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    d = d[np.isfinite(d)]
+    if d.size < MIN_NOISE_TILES:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d)) / np.sqrt(6.0))
+
+
+def measure_slope_noise(dtm: NDArray, cell: float, params: CategoryParams) -> float:
+    """The noise σ of a tile's slope as ``compute_categories`` measures it (``slope_noise=None``)."""
+    return _slope_noise([tile_slopes(dtm, cell, params)])
 
 
 def measure_noise(dtm: NDArray, cell: float, params: CategoryParams) -> float:
@@ -471,6 +527,23 @@ def measure_noise_by_bands(
     return _noise(res, k)
 
 
+def measure_slope_noise_by_bands(
+    read_rows: Callable[[int, int], NDArray],
+    height: int,
+    cell: float,
+    params: CategoryParams,
+    band_rows: int,
+) -> float:
+    """The noise σ of a tile's slope measured over bands as ``categories_by_bands`` measures it."""
+    k = max(2, int(round(params.tile_size / cell)))
+    band = max(k, band_rows // k * k)
+    diffs = [
+        tile_slopes(read_rows(r, min(height, r + band)), cell, params)
+        for r in range(0, height, band)
+    ]
+    return _slope_noise(diffs)
+
+
 def categories_by_bands(
     read_rows: Callable[[int, int], NDArray],
     height: int,
@@ -496,6 +569,14 @@ def categories_by_bands(
             for r in range(0, height, band)
         ]
         params = params.model_copy(update={"noise": _noise(res, k)})
+    if params.slope_noise is None:  # likewise once over all bands
+        params = params.model_copy(
+            update={
+                "slope_noise": 0.0
+                if params.noise == 0
+                else measure_slope_noise_by_bands(read_rows, height, cell, params, band_rows)
+            }
+        )
     # the regional slope of a band reads half a window (whole steps and tiles) around it
     widest = max((w for w in windows if w is not None), default=None)
     margin = 0 if widest is None else -(-int(round(widest / cell / 2)) // whole) * whole

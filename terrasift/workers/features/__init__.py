@@ -34,6 +34,7 @@ from terrasift.workers.categories import (
     CategoryParams,
     category_grids,
     measure_noise,
+    measure_slope_noise,
     regional_gradient,
 )
 from terrasift.workers.features import connect as _connect
@@ -140,6 +141,9 @@ def categories_for(
     params = params or CategoryParams()
     if params.noise is None:  # one noise for every grid: the DTM's own
         params = params.model_copy(update={"noise": measure_noise(dtm, cell, params)})
+    if params.slope_noise is None:  # and one slope noise
+        sigma_g = 0.0 if params.noise == 0 else measure_slope_noise(dtm, cell, params)
+        params = params.model_copy(update={"slope_noise": sigma_g})
     keys = grid_keys(filters)
     others: dict[GridKey, Categories] = {}
     cats = None

@@ -121,6 +121,9 @@ class CategorySpec:
     lying_height: ValueSet = ValueSet()
     """``height`` of the tile as it lies, before ``detrend`` sets it on its regional slope
     (``Categories.lying10``); on a grid without ``detrend`` the same as ``height``."""
+    clear: bool = False
+    """The tile must be clearly not flat: higher than the flatness threshold by more
+    than the noise of the DTM's tile slopes explains (``Categories.clear``)."""
 
 
 @dataclass(frozen=True)
@@ -483,11 +486,17 @@ class _Parser:
 
     def category(self, start: int, negate: bool) -> CategorySpec:
         props: dict[str, ValueSet] = {}
+        clear = False
         while (item := self.next()) is not None:
             no, words = item
             key, rest = words[0], words[1:]
             if key == "endcategory":
-                return CategorySpec(negate=negate, **props)
+                return CategorySpec(negate=negate, clear=clear, **props)
+            if key == "clear":
+                if rest or clear:
+                    raise self.error("clear takes no values and is given once", no)
+                clear = True
+                continue
             if key not in ("inclination", "state", "orientation", "height", "lying-height"):
                 raise self.error(f"unexpected {key!r} inside a category", no)
             name = key.replace("-", "_")
@@ -587,6 +596,8 @@ def format_filter(f: Filter) -> str:
                     out.append(f"      height {cat.height.text()}")
                 if cat.lying_height.values is not None:
                     out.append(f"      lying-height {cat.lying_height.text()}")
+                if cat.clear:
+                    out.append("      clear")
                 out.append("    endcategory")
             out.append("  endsubsegment")
         out.append("endsegment")

@@ -44,10 +44,13 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
 
 
 def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
-    """The bands a category tests: inclination, orientation, state, height, lying-height."""
+    """The bands a category tests: inclination, orientation, state, height, lying-height, clear."""
     relief = cats.relief10 if cats.relief10 is not None else cats.height10
     lying = cats.lying10 if cats.lying10 is not None else relief
-    return (cats.inclination, cats.orientation, cats.state, relief, lying)
+    clear = cats.clear
+    if clear is None:  # without the band: every tile that is not flat
+        clear = ((cats.inclination | cats.orientation | cats.state) != 0).astype(np.uint8)
+    return (cats.inclination, cats.orientation, cats.state, relief, lying, clear)
 
 
 def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
@@ -63,6 +66,10 @@ def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDA
             if len(cats) <= i or cats[i] is None:
                 raise ValueError(f"a filter tests {name} but the categories carry no heights")
             m &= _lut(test)[cats[i]]
+    if spec.clear:
+        if len(cats) <= 5 or cats[5] is None:
+            raise ValueError("a filter tests clear but the categories carry no clear band")
+        m &= cats[5] == 1
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)

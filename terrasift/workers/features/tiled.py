@@ -155,9 +155,9 @@ def tile_pieces(
     """The pieces ``core`` owns, searched on the core plus ``halo`` cells (default: the
     filters' ``window_reach`` and 32 m for objects across the core's edges) of the DTM
     of ``shape`` cells and ``transform``; ``read(r0, r1, c0, c1)`` gives its cells (NaN
-    nodata). ``cparams.noise`` must be the whole DTM's."""
-    if cparams.noise is None:
-        raise ValueError("tile_pieces needs the whole DTM's noise")
+    nodata). ``cparams.noise`` and ``cparams.slope_noise`` must be the whole DTM's."""
+    if cparams.noise is None or cparams.slope_noise is None:
+        raise ValueError("tile_pieces needs the whole DTM's noise and slope noise")
     params = params or FeatureParams()
     cell = abs(transform.a)
     align = window_align(filters, cparams, cell)
