@@ -2,7 +2,7 @@
 
     python benchmarks/rotation_accuracy.py [--split tune|holdout|all] [--seeds N ...]
         [--town 4] [--param KEY=VALUE ...] [--method ground.nist] [--no-family]
-        [--no-cost] [--no-isprs]
+        [--no-cost] [--no-isprs] [--shift DX DY]
 
 Family (ROBUSTNESS.md): 180 m tiles, each written as LAS and processed alone
 through the whole job (blocks with halos, stages, classified output) and
@@ -24,6 +24,10 @@ under the lip or in the cave. Worst case, 10th percentile and median, and the
 scenes where a figure fails. Town (counter-case): 15–30 buildings of 2–5
 storeys with flat or gabled roofs, walls sampled by the beams, no talus;
 share of building points called ground.
+
+``--shift DX DY`` translates every family tile by (DX, DY) metres before it
+is written (ROBUSTNESS.md rule 3: a figure that moves under a translation of
+centimetres is noise, not accuracy).
 
 Cost: steepness test vs a default run on a flat block, and a steep block vs a
 flat block (ground alone and the whole block task). ISPRS: mean kappa of the
@@ -332,7 +336,7 @@ def summary(rows: list[dict[str, float]], key: str, worst: str = "min") -> str:
     return f"{key:16} worst {w:7.2f}  p10 {p10:7.2f}  median {np.median(v):7.2f}  (n={v.size})"
 
 
-def family(seeds, params: dict) -> list[dict[str, float]]:
+def family(seeds, params: dict, shift: tuple[float, float] = (0.0, 0.0)) -> list[dict[str, float]]:
     cols = [
         "steep_recall",
         "wall_recall",
@@ -352,6 +356,8 @@ def family(seeds, params: dict) -> list[dict[str, float]]:
     rows = []
     for seed in seeds:
         kind, a, scene = make_family_scene(seed)
+        if any(shift):
+            scene.xyz = scene.xyz + [shift[0], shift[1], 0.0]
         pred, secs = run_job(scene, params)
         r = scene_scores(scene, pred)
         r.update(seed=seed, kind=kind)
@@ -524,6 +530,14 @@ def main() -> None:
     ap.add_argument(
         "--param", action="append", default=[], metavar="KEY=VALUE", help="job parameter"
     )
+    ap.add_argument(
+        "--shift",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("DX", "DY"),
+        help="translate every family tile by DX, DY metres before writing it",
+    )
     ap.add_argument("--no-family", action="store_true")
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
@@ -544,7 +558,9 @@ def main() -> None:
             seeds = {"tune": list(TUNE_SEEDS), "holdout": list(HOLDOUT_SEEDS)}.get(
                 args.split, [*TUNE_SEEDS, *HOLDOUT_SEEDS]
             )
-        family(seeds, params)
+        if any(args.shift):
+            print(f"family tiles translated by {args.shift[0]:g}, {args.shift[1]:g} m")
+        family(seeds, params, tuple(args.shift))
     if args.town:
         town(range(200, 200 + args.town), params)
     if not args.no_cost:
