@@ -224,6 +224,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"grow_agree": 0.34},
         {"grow_agree": 0.5},
         {"grow_agree": 0.67},
+        {"mask": True},
     ],
 }
 
