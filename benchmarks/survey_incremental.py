@@ -14,6 +14,11 @@ survey's ``FEATURE_CORE_M``, which holds these small surveys whole); each scene'
 full product's objects are also compared with one search over its whole DTM
 (``features_whole_equal``: same objects, geometry to the millimetre of the GeoJSON).
 
+``--feature-halo M`` starts each square's search with a halo of M metres (default:
+the filters' reach, which holds these small surveys whole) so windows stay small
+where no object needs more; ``squares_searched`` is how many squares the
+incremental run searched again, of the product's squares.
+
 ``--one-tile`` also runs each mound scene's changed tile as a job of its own
 (what a client sending only changed tiles as plain jobs gets) and compares its
 DTM with the full product on that tile's cells: the baseline the survey runs
@@ -137,6 +142,7 @@ def scene_case(i: int, rng: np.random.Generator, root: Path, one_tile: bool = Fa
     v2 = current_version(sdir)
     assert v2 is not None
     a = _product(v2)
+    inc_summary = json.loads((root / "r2" / "outputs" / "survey.json").read_text())
     t0 = time.perf_counter()
     plan_survey_run(root / "r3", sdir, now, params, mode="full")
     run_job(root / "r3", InlineExecutor())
@@ -172,6 +178,8 @@ def scene_case(i: int, rng: np.random.Generator, root: Path, one_tile: bool = Fa
         "features_equal": a["features"] == b["features"],
         "features_whole_equal": _objects(b["features"]) == _objects(whole),
         "objects": len(b["features"]),
+        "squares_searched": f"{len(inc_summary.get('squares_searched') or [])}/"
+        f"{inc_summary.get('squares', 0)}",
         "incremental_s": round(inc_s, 1),
         "full_s": round(full_s, 1),
         **extra,
@@ -189,11 +197,16 @@ def main() -> None:
         help="also run each mound scene's changed tile as a job of its own (a baseline)",
     )
     ap.add_argument("--feature-core", type=float, default=None, help="feature squares (m)")
+    ap.add_argument(
+        "--feature-halo", type=float, default=None, help="feature squares' first halo (m)"
+    )
     args = ap.parse_args()
-    if args.feature_core is not None:
-        from terrasift.jobs import survey
+    from terrasift.jobs import survey
 
+    if args.feature_core is not None:
         survey.FEATURE_CORE_M = args.feature_core
+    if args.feature_halo is not None:
+        survey.FEATURE_HALO_M = args.feature_halo
     rng = np.random.default_rng(args.seed)
     base = args.out or Path(tempfile.mkdtemp(prefix="survey-bench-"))
     rows = []

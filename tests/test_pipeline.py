@@ -376,3 +376,45 @@ def test_job_measures_one_occupied_area_density_for_the_ground_stage(finished_jo
     # A density the job sets itself stays.
     given = jobs.validate_params({**BLOCK, "ground.nist.density": 4.0})
     assert with_ground_density(block_models(given), 2.5).ground_params.density == 4.0
+
+
+def test_square_by_square_features_equal_one_search_over_the_dtm(tmp_path, monkeypatch):
+    """A job's objects are searched square by square (40 m squares here: 4 × 4 over the
+    160 m DTM, a halo grown around objects across their edges); they must be the
+    objects of one search over the whole DTM's category grids."""
+    from terrasift.jobs import finish
+    from terrasift.synthetic.terrain import Surface, make_scene, write_las
+    from terrasift.workers import features as feat
+
+    # hills on the corners the squares share
+    hills = tuple(
+        (x, y, 3.0, 4.0) for x, y in ((40, 40), (80, 80), (120, 120), (40, 120), (120, 40))
+    )
+    scene = make_scene(160, 4.0, surface=Surface(hills=hills), n_buildings=0, seed=7)
+    tile = write_las(scene, tmp_path / "hills.laz")
+    first, _ = _run(tmp_path, tile, BLOCK, "first")
+    job = tmp_path / "job"
+    shutil.copytree(first, job)
+    for p in (job / "outputs").glob("features*"):
+        p.unlink()
+    monkeypatch.setattr(finish, "FEATURE_CORE_M", 40.0)
+    finish.write_categories(str(job))
+    params = jobs.load_json(job / "job.json")["params"]
+    filters = feat.resolve_filters("all")
+    with rasterio.open(jobs.output_path(job, "dtm.tif")) as ds:
+        cats, stepped, _ = finish.dtm_category_grids(
+            ds, stage_params(params, "categories"), filters
+        )
+        whole = feat.detect_features(cats, filters, ds.transform, cats.tile_size, stepped=stepped)
+
+    def objects(features: list[dict]) -> list[str]:
+        return sorted(
+            json.dumps([f["geometry"], {k: f["properties"][k] for k in ("kind", "tiles")}])
+            for f in features
+        )
+
+    expected = objects(feat.features_geojson(whole, 0, "x", to_wgs84=False)["features"])
+    for j in (job, first):  # 40 m squares, and the default squares
+        found = json.loads((j / "outputs" / "features.native.geojson").read_text())["features"]
+        assert objects(found) == expected
+    assert len(expected) >= 2, len(expected)

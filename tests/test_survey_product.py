@@ -74,6 +74,9 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     # the feature search core by core, one per tile here (the default squares hold the survey)
     patch = pytest.MonkeyPatch()
     patch.setattr(survey_module, "FEATURE_CORE_M", TILE)
+    # a small halo up front: each square's window grows only around the objects that need
+    # it, so squares far from the change keep small windows (and their pieces)
+    patch.setattr(survey_module, "FEATURE_HALO_M", 8.0)
 
     def run(name: str, mode: str = "incremental", **kw: object) -> dict:
         summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode, **kw)
@@ -103,6 +106,8 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v2 = current_version(sdir)
     assert v2 is not None
     out["v2"], out["inodes2"] = _product(v2), _inodes(v2)
+    out["inc_summary"] = json.loads((root / "r2" / "outputs" / "survey.json").read_text())
+    out["squares2"] = json.loads((v2 / "state.json").read_text())["squares"]
     out["full"] = run("r3", "full")
     v3 = current_version(sdir)
     assert v3 is not None and v3 != v2
@@ -159,6 +164,58 @@ def test_incremental_run_redoes_the_tile_and_its_halo_neighbours(survey: dict) -
     assert np.nanmax(diff) > 1.0
     # only the last version is kept
     assert len(survey["versions"]) == 1
+
+
+def test_an_incremental_run_reports_the_feature_squares_it_searched(survey: dict) -> None:
+    summary, squares = survey["inc_summary"], survey["squares2"]
+    # this 60 m survey is narrower than the filters' reach: every square's search grew
+    # over the whole DTM, so every square holds changed cells and was searched again
+    assert summary["squares"] == len(squares["windows"]) > 1
+    assert sorted(summary["squares_searched"]) == sorted(squares["windows"])
+
+
+def test_only_squares_whose_searched_window_holds_a_changed_cell_are_searched_again(
+    tmp_path: Path,
+) -> None:
+    from terrasift.files import write_json
+    from terrasift.jobs.survey import SQUARES, _stale_squares, window_bounds
+    from terrasift.tiling.blocks import BlockGrid
+
+    grid = BlockGrid(0.0, 0.0, 1.0, 100, 100, 50.0, 10.0)
+    windows = {
+        "a": (0, 0, 50, 50),
+        "b": (0, 50, 50, 50),
+        "c": (50, 0, 50, 50),
+        "d": (50, 50, 50, 50),
+    }
+    squares = {"0_0": [0, 0, 50, 50], "0_1": [0, 50, 50, 100], "1_0": [50, 0, 100, 50]}
+    squares["1_1"] = [50, 50, 100, 100]
+    prev = tmp_path / "v-1"
+    (prev / SQUARES).mkdir(parents=True)
+    for k in squares:
+        (prev / SQUARES / f"{k}.pkl").write_bytes(b"")
+    searched = {k: v for k, v in squares.items()}
+    searched["1_0"] = [0, 0, 100, 60]  # grew around an object reaching into "d"
+    searched["0_1"] = [0, 40, 50, 100]  # a halo: still away from "d"
+    state = {
+        "noise": 0.1,
+        "tiles": {n: {"cells": list(window_bounds(grid, w))} for n, w in windows.items()},
+        "squares": {"extent": [0, 0, 100, 100], "side": 50, "windows": searched},
+    }
+    write_json(prev / "state.json", state)
+
+    def stale(outputs: set[str], noise: float = 0.1, extent=(0, 0, 100, 100), side=50) -> set:
+        return _stale_squares(prev, grid, windows, outputs, noise, extent, side, squares)
+
+    assert stale({"d"}) == {"1_0", "1_1"}
+    assert stale({"a"}) == {"0_0", "0_1", "1_0"}  # the halo of "0_1" reads "a"'s cells
+    assert stale({"b"}) == {"0_1", "1_0"}
+    assert stale(set()) == set()
+    assert stale({"d"}, noise=0.2) == set(squares)  # another noise: all
+    assert stale(set(), extent=(0, 0, 100, 150)) == set(squares)  # the mosaic grew: all
+    assert stale(set(), side=40) == set(squares)
+    (prev / SQUARES / "0_0.pkl").unlink()
+    assert stale(set()) == {"0_0"}  # no pieces kept for it
 
 
 def test_a_finished_run_keeps_only_its_records(survey: dict) -> None:

@@ -161,13 +161,38 @@ def _read_rows(ds: Any, r0: int, r1: int) -> NDArray:
     )
 
 
+#: side (metres) of the squares terrain objects are searched on, each with a halo of
+#: the filters' reach (~190 m for the built-in filters at 0.5 m): memory follows one
+#: square and its halo, not the job; wider squares redo less of their halo
+FEATURE_CORE_M = 768.0
+
+
+def feature_squares(
+    height: int, width: int, side: int, spans: list[tuple[int, int, int, int]] | None = None
+) -> dict[str, tuple[int, int, int, int]]:
+    """Squares of ``side`` cells over a DTM of ``height`` × ``width`` (row0, col0, row1,
+    col1; ends excluded), named ``<row>_<col>``; only those overlapping ``spans`` when given."""
+    out = {}
+    for i in range(0, height, side):
+        for j in range(0, width, side):
+            core = (i, j, min(height, i + side), min(width, j + side))
+            if spans is None or any(
+                core[0] < w[2] and w[0] < core[2] and core[1] < w[3] and w[1] < core[3]
+                for w in spans
+            ):
+                out[f"{i // side}_{j // side}"] = core
+    return out
+
+
 def write_categories(job_dir: str) -> list[str]:
     """Task: categories and terrain objects from the job's mosaicked DTM.
 
     Categories are local, so they are computed over bands of whole category
-    tiles and memory follows the band. Objects are found on the whole job's
-    category grid (one byte per 2 m tile per band), so an object crossing
-    block or tile borders comes out once.
+    tiles and memory follows the band. Objects are searched square by square
+    (``FEATURE_CORE_M``, each with a halo grown around any object that needs
+    it: ``workers/features/tiled.py``) and their pieces joined, so memory
+    follows a square and an object crossing block, tile or square borders
+    comes out once, as one search over the whole DTM finds it.
     """
     with bounded_raster_cache():
         return _write_categories(Path(job_dir))
@@ -251,9 +276,14 @@ def _write_categories(job: Path) -> list[str]:
     work = job / "work"
     work.mkdir(exist_ok=True)
     filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
+    # filters of objects run square by square; those marking tiles on the whole grid
+    objects = [f for f in filters if f.connect is not None or f.rectangle is not None]
+    marking = [f for f in filters if f.connect is None and f.rectangle is None]
+    fparams = stage_params(params, "features")
     with rasterio.open(out / "dtm.tif") as ds:
         transform = ds.transform
-        cats, stepped, cparams = dtm_category_grids(ds, cparams, filters)
+        cats, stepped, cparams = dtm_category_grids(ds, cparams, marking)
+        pieces = _square_pieces(ds, objects, cparams, fparams) if objects else []
     if not (out / "categories.tif").exists():
         bands = cats.bands()
         m = RasterMosaic(
@@ -272,14 +302,14 @@ def _write_categories(job: Path) -> list[str]:
     names.append("categories.tif")
 
     if filters:
+        from terrasift.workers.features import tiled
+
         result = feat.detect_features(
-            cats,
-            filters,
-            transform,
-            cats.tile_size,
-            stage_params(params, "features"),
-            stepped=stepped,
+            cats, marking, transform, cats.tile_size, fparams, stepped=stepped
         )
+        result.objects = tiled.merge_pieces(
+            pieces, objects, cparams, abs(transform.a), fparams
+        ).objects
         crs = plan["crs_wkt"]
         # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its
         # CRS; WGS 84 (RFC 7946) only when the CRS is known.
@@ -312,6 +342,28 @@ def _write_categories(job: Path) -> list[str]:
             m.close_as_cog(out / f"{fname}.tif", resampling="nearest")
             names.append(f"{fname}.tif")
     return names
+
+
+def _square_pieces(ds: Any, filters: list, cparams: Any, fparams: Any) -> list:
+    """The object pieces of an open DTM, searched square by square (``tiled.tile_pieces``)."""
+    from rasterio.windows import Window
+
+    from terrasift.workers.features import tiled
+
+    def read(r0: int, r1: int, c0: int, c1: int) -> NDArray:
+        return (
+            ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+            .filled(np.nan)
+            .astype(np.float64)
+        )
+
+    side = max(1, int(round(FEATURE_CORE_M / abs(ds.transform.a))))
+    pieces: list = []
+    for core in feature_squares(ds.height, ds.width, side).values():
+        pieces += tiled.tile_pieces(
+            read, (ds.height, ds.width), ds.transform, core, filters, cparams, fparams
+        )
+    return pieces
 
 
 def classified_name(plan: Mapping[str, Any], tile_index: int) -> str:

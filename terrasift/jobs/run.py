@@ -74,12 +74,14 @@ def run_job(
     finishing: list[Task] = []
     survey = job.get("survey")
     if survey:  # a survey run: per-tile outputs of its output tiles, then the product
-        finishing = [
-            Task(fn, (str(job_dir), n))
-            for fn in (surveys.write_tile_rasters, surveys.write_tile_classified)
-            for n in survey["outputs"]
+        # (derived products, each tile and feature square a task, then the publish:
+        # ``_finish_survey``, once ``stage_derived`` said which are needed)
+        n_out = len(survey["outputs"])
+        finishing = [Task(surveys.write_tile_rasters, (str(job_dir), n)) for n in survey["outputs"]]
+        finishing.append(Task(surveys.stage_derived, (str(job_dir),), after=tuple(range(n_out))))
+        finishing += [
+            Task(surveys.write_tile_classified, (str(job_dir), n)) for n in survey["outputs"]
         ]
-        finishing.append(Task(surveys.publish, (str(job_dir),), after=tuple(range(len(finishing)))))
         want = set()
     if "classified" in want:
         finishing = [Task(finish.write_classified, (str(job_dir), i)) for i in range(n_tiles)]
@@ -118,6 +120,10 @@ def run_job(
             continue
         tile_points = plan["tiles"][task.args[1]]["point_count"] if kind == "classified" else 0
         meter.add("finish", i, kind, tile_points or points)
+    if survey:  # the derived products and the publish, counted as categories over the survey
+        meter.add(
+            "finish", "derived", "categories", sum(t["points"] for t in survey["tiles"].values())
+        )
     meter.add("report", "report", "report", points)
     meter.reserve("blocks", "block")
     meter.enter("shard")
@@ -182,7 +188,7 @@ def run_job(
     t = time.perf_counter()
     (job_dir / "outputs").mkdir(exist_ok=True)
     meter.enter("finish")
-    _run_mixed_tasks(
+    finished = _run_mixed_tasks(
         executor,
         job_dir,
         finishing,
@@ -190,6 +196,9 @@ def run_job(
         in_flight=executor.workers,
         heartbeat=meter.report,
     )
+    if survey:
+        _finish_survey(executor, job_dir, finished[len(survey["outputs"])], meter.report)
+        meter.done("finish", "derived")
     finish_seconds = time.perf_counter() - t
     check_cancel(job_dir)
     if survey:  # published into the survey's product; the run keeps its summary only
@@ -218,11 +227,25 @@ def run_job(
     return names_out
 
 
+def _finish_survey(
+    executor: Executor, job_dir: Path, stage: Mapping[str, Any], heartbeat: Callable[[], None]
+) -> None:
+    """A survey run's derived products as parallel tasks (the feature squares, longest,
+    first; then each tile's slope and categories), then the publish after them all."""
+    jd = str(job_dir)
+    tasks = [Task(surveys.search_feature_square, (jd, k)) for k in stage["search"]]
+    tasks += [Task(surveys.write_tile_derived, (jd, n)) for n in stage["tiles"]]
+    tasks.append(Task(surveys.publish, (jd,), after=tuple(range(len(tasks)))))
+    _run_mixed_tasks(
+        executor, job_dir, tasks, lambda i, _: None, in_flight=executor.workers, heartbeat=heartbeat
+    )
+
+
 #: progress kind and weight (per tile point) of a survey run's finishing tasks
 _SURVEY_COST = {
     "tile_rasters": ("raster", 4.0),
     "tile_classified": ("classified", 1.0),
-    "publish": ("categories", 1.0),
+    "stage_derived": ("categories", 0.0),
 }
 
 #: finishing work each selectable output needs (outputs not named need none beyond the report)

@@ -16,10 +16,14 @@ source tiles are every tile any of those blocks reads points from. Each block
 therefore reads exactly the points it reads in a full run, in the same order
 (tiles by name), so its result is the same, and a tile's result does not
 depend on which tiles ran with it. Unchanged tiles' files are hard links into
-the new version. Slope and categories (with the survey's fixed noise) are
-made per tile from the new DTM mosaic, only for tiles within the slope's
-margin of changed cells; features are searched over the whole survey's
-category grids, since an object may cross any number of tile edges.
+the new version. Derived products are tasks of their own, run in parallel
+once the run's DTMs are written (``stage_derived`` decides which): slope and
+categories (with the survey's fixed noise) per tile from the new DTM mosaic,
+only for tiles within the slope's margin of changed cells; features per square
+of ``FEATURE_CORE_M`` with a halo (an object may cross any number of tile
+edges: the search grows around it, ``workers/features/tiled.py``), only for
+squares whose searched window holds a changed cell, the others' pieces kept
+from the previous version. The publish joins the pieces into objects.
 
 A run reads at most ``max_points`` points: a larger set of output tiles is
 taken in batches (``pending`` in ``state.json`` carries the rest to the next
@@ -45,9 +49,10 @@ from terrasift.errors import InputError, NothingChanged, ProcessingError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.dirs import block_result_path
 from terrasift.jobs.params import grid_alignment, resolve_buffer, stage_params
-from terrasift.jobs.plan import _crs_label, read_headers, resolve_crs
+from terrasift.jobs.plan import _crs_label, resolve_crs
 from terrasift.tiling.blocks import BlockGrid, block_name
 from terrasift.tiling.classified import write_classified_copy
+from terrasift.tiling.lasfile import read_tile_info
 from terrasift.tiling.rasters import (
     FLOAT_NODATA,
     RasterMosaic,
@@ -69,6 +74,13 @@ COVERAGE_NODATA = 255
 #: filters' reach (~190 m for the built-in filters at 0.5 m): memory follows one square
 #: and its halo, not the survey; wider squares redo less of their halo
 FEATURE_CORE_M = 768.0
+#: a version's hidden folder of each feature square's pieces, reused while no cell of
+#: the window the square searched changes
+SQUARES = ".squares"
+#: halo (metres) each square's search starts with; None: the filters' reach and 32 m.
+#: Any halo gives the same objects (the search grows around an object that needs it);
+#: a smaller one reads less up front and grows more often
+FEATURE_HALO_M: float | None = None
 Bounds = tuple[float, float, float, float]
 Window = tuple[int, int, int, int]  # row_off, col_off, rows, cols in the survey grid
 
@@ -199,7 +211,7 @@ def plan_survey_run(
     by_name = dict(sorted(zip(names, files, strict=True)))
     state = current_state(survey_dir) or {}
     old = state.get("tiles", {})
-    infos = dict(zip(by_name, read_headers(list(by_name.values()), max_points), strict=True))
+    infos = {n: read_tile_info(p, max_points=max_points) for n, p in by_name.items()}
     crs_wkt, warnings = resolve_crs(list(infos.values()), params.get("crs"))
     sums = {n: file_checksum(p, old.get(n)) for n, p in by_name.items()}
     bounds: dict[str, Bounds] = {
@@ -357,7 +369,7 @@ def _batch(
 def survey_plan(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
     """``plan.json`` of a survey run: the survey's grid and density, the source tiles."""
     s = job["survey"]
-    infos = read_headers(job["inputs"])
+    infos = [read_tile_info(p) for p in job["inputs"]]
     return {
         "tiles": [dict(i.__dict__) for i in infos],
         "density": s["density"],
@@ -512,25 +524,16 @@ def publish(job_dir: str) -> dict[str, Any]:
             summary = _summary(survey_dir, new, s)
             write_json(summary_path, summary, indent=2)
             return summary
-        if (None if prev is None else prev.name) != s["base"]:
-            raise ProcessingError(
-                "another run of this survey published since this run was planned; run it again"
-            )
+        _check_base(s, prev)
         shutil.rmtree(new, ignore_errors=True)
-        present = []
-        for name in s["tiles"]:
+        for name in load_json(_derived_dir(job) / "stage.json")["present"]:
             stem = tile_stem(name)
-            if name in s["outputs"]:
-                src = _run_out(job, name)
-            elif prev is not None and (prev / "tiles" / stem).is_dir():
-                src = prev / "tiles" / stem
-            else:
-                continue  # added, and left for a later batch: not in the product yet
+            src = _run_out(job, name) if name in s["outputs"] else prev / "tiles" / stem  # type: ignore[operator]
             _link_tree(src, new / "tiles" / stem, DERIVED)
-            present.append(name)
         grid = BlockGrid(**s["grid"])
         pending = list(s.get("pending", []))
-        (noise, slope_noise), derived = _derived_products(new, spec, grid, present, prev)
+        made = _assemble(job, new, spec, grid, prev)
+        noise, slope_noise = made["noise"], made["slope_noise"]
         state = {
             "version": new.name,
             "job": job.name,
@@ -550,7 +553,8 @@ def publish(job_dir: str) -> dict[str, Any]:
             "noise": None if pending else noise,
             "slope_noise": None if pending else slope_noise,
             "pending": pending,
-            "derived": derived,  # tiles whose slope and categories this version made again
+            "derived": made["derived"],  # tiles whose slope and categories were made again
+            "squares": made["squares"],  # feature squares: windows searched, searched again
         }
         write_json(new / STATE, state, indent=2)
         link = root / CURRENT
@@ -569,6 +573,7 @@ def publish(job_dir: str) -> dict[str, Any]:
 
 def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str, Any]:
     """What a run did: its product version, and the tiles it redid and read."""
+    state = load_json(version / STATE)
     return {
         "survey": survey_dir.name,
         "version": version.name,
@@ -577,108 +582,237 @@ def _summary(survey_dir: Path, version: Path, s: Mapping[str, Any]) -> dict[str,
         "sources": s["sources"],
         "blocks": len(s["blocks"]),
         "pending": list(s.get("pending", [])),
-        "derived": load_json(version / STATE).get("derived"),
+        "derived": state.get("derived"),
+        # feature squares of the product, and those this run searched again
+        "squares": len((state.get("squares") or {}).get("windows", {})),
+        "squares_searched": (state.get("squares") or {}).get("searched"),
     }
 
 
-def _derived_products(
-    new: Path, spec: Mapping[str, Any], grid: BlockGrid, present: list[str], prev: Path | None
-) -> tuple[tuple[float, float], list[str]]:
-    """VRTs, slope and categories per tile, merged features and the STAC collection of a
-    version over its ``present`` tiles; returns the category noise and slope noise used
-    (the survey's, else measured now) and the tiles whose slope and categories were made again (the
-    others' are the previous version's files: their DTM within the margin is the same)."""
-    import rasterio
+def _derived_dir(job: Path) -> Path:
+    """Where a run's derived products (slope, categories, feature squares) are made."""
+    return job / "work" / "derived"
 
-    s = spec["survey"]
-    params = spec["params"]
-    tiles = {n: s["tiles"][n] for n in present}
-    windows = {n: tuple(t["window"]) for n, t in tiles.items()}
-    r0 = min(w[0] for w in windows.values())
-    c0 = min(w[1] for w in windows.values())
-    r1 = max(w[0] + w[2] for w in windows.values())
-    c1 = max(w[1] + w[3] for w in windows.values())
+
+def _extent(windows: Mapping[str, Window]) -> tuple[int, int, int, int]:
+    """Survey-grid cells (row0, col0, row1, col1) of the mosaic over ``windows``."""
+    return (
+        min(w[0] for w in windows.values()),
+        min(w[1] for w in windows.values()),
+        max(w[0] + w[2] for w in windows.values()),
+        max(w[1] + w[3] for w in windows.values()),
+    )
+
+
+def _write_mosaic(
+    path: Path,
+    name: str,
+    grid: BlockGrid,
+    crs: str | None,
+    windows: Mapping[str, Window],
+    hrefs: Mapping[str, str],
+    cell_cells: int,
+    dtype: str,
+    nodata: float | int,
+    count: int = 1,
+) -> None:
+    """A VRT over the tiles' rasters ``hrefs`` (relative to the VRT) at their ``windows``."""
+    r0, c0, r1, c1 = _extent(windows)
     res = grid.resolution
-    x_left, y_top = grid.x0 + c0 * res, grid.y_top - r0 * res
-    crs = s["crs_wkt"]
-    f = int(round(float(stage_params(params, "vegetation").cell) / res))
+    srcs = [
+        VrtSource(
+            hrefs[n],
+            (w[1] - c0) // cell_cells,
+            (w[0] - r0) // cell_cells,
+            w[3] // cell_cells,
+            w[2] // cell_cells,
+        )
+        for n, w in sorted(windows.items())
+    ]
+    cell = res * cell_cells
+    write_vrt(
+        path,
+        srcs,
+        width=(c1 - c0) // cell_cells,
+        height=(r1 - r0) // cell_cells,
+        geotransform=(grid.x0 + c0 * res, cell, 0.0, grid.y_top - r0 * res, 0.0, -cell),
+        crs_wkt=crs,
+        dtype=dtype,
+        nodata=nodata,
+        count=count,
+        descriptions=band_metadata(name).get("descriptions"),
+    )
 
-    def vrt(name: str, cell_cells: int, dtype: str, nodata: float | int, count: int = 1) -> None:
-        srcs = [
-            VrtSource(
-                f"tiles/{tile_stem(n)}/{name}.tif",
-                (w[1] - c0) // cell_cells,
-                (w[0] - r0) // cell_cells,
-                w[3] // cell_cells,
-                w[2] // cell_cells,
-            )
-            for n, w in sorted(windows.items())
-        ]
-        cell = res * cell_cells
-        write_vrt(
-            new / f"{name}.vrt",
-            srcs,
-            width=(c1 - c0) // cell_cells,
-            height=(r1 - r0) // cell_cells,
-            geotransform=(x_left, cell, 0.0, y_top, 0.0, -cell),
-            crs_wkt=crs,
-            dtype=dtype,
-            nodata=nodata,
-            count=count,
-            descriptions=band_metadata(name).get("descriptions"),
+
+def _present(job: Path, s: Mapping[str, Any], prev: Path | None) -> list[str]:
+    """Tiles of the new version: the run's outputs and the previous version's others
+    (a tile added and left pending for a later batch is not in the product yet)."""
+    return [
+        n
+        for n in s["tiles"]
+        if n in s["outputs"] or (prev is not None and (prev / "tiles" / tile_stem(n)).is_dir())
+    ]
+
+
+def _check_base(s: Mapping[str, Any], prev: Path | None) -> None:
+    if (None if prev is None else prev.name) != s["base"]:
+        raise ProcessingError(
+            "another run of this survey published since this run was planned; run it again"
         )
 
-    for r in ("dtm", "dsm", "chm"):
-        vrt(r, 1, "float32", FLOAT_NODATA)
-    vrt("coverage", f, "uint8", COVERAGE_NODATA)
 
+def _derived_params(
+    spec: Mapping[str, Any], noise: float | None = None, slope_noise: float | None = None
+) -> dict[str, Any]:
+    from terrasift.workers import features as feat
+
+    params = spec["params"]
+    cparams = stage_params(params, "categories")
+    if noise is not None and cparams.noise is None:
+        cparams = cparams.model_copy(update={"noise": noise})
+    if slope_noise is not None and cparams.slope_noise is None:
+        cparams = cparams.model_copy(update={"slope_noise": slope_noise})
+    return {
+        "terrain": stage_params(params, "terrain"),
+        "categories": cparams,
+        "features": stage_params(params, "features"),
+        "filters": feat.resolve_filters(params.get("features", "all"), params.get("filters") or {}),
+    }
+
+
+def stage_derived(job_dir: str) -> dict[str, Any]:
+    """Task: what the run's derived products need, once its tiles' DTMs are written.
+
+    Writes ``work/derived/dtm.vrt`` (the new version's DTM mosaic: this run's tiles
+    and the previous version's others) and ``stage.json``: the tiles of the new
+    version, the category noise and slope noise (the survey's, else measured on that
+    mosaic), the
+    tiles whose slope and categories must be made again (those near changed cells)
+    and the feature squares (``FEATURE_CORE_M``) to search again (those whose
+    searched window holds a changed cell; the others' pieces are the previous
+    version's). Each of those is then a task of its own.
+    """
+    job = Path(job_dir)
+    d = _derived_dir(job)
+    if (d / "stage.json").exists():
+        return load_json(d / "stage.json")
+    if (job / "outputs" / "survey.json").exists():  # published already: nothing to make
+        return {"tiles": [], "search": []}
+    spec = load_json(job / "job.json")
+    s = spec["survey"]
+    prev = current_version(Path(s["dir"]))
+    _check_base(s, prev)
+    grid = BlockGrid(**s["grid"])
+    res = grid.resolution
+    present = _present(job, s, prev)
+    windows = {n: tuple(s["tiles"][n]["window"]) for n in present}
+    d.mkdir(parents=True, exist_ok=True)
+    dtms = {
+        n: (_run_out(job, n) if n in s["outputs"] else prev / "tiles" / tile_stem(n))  # type: ignore[operator]
+        / "dtm.tif"
+        for n in present
+    }
+    hrefs = {n: os.path.relpath(p, d) for n, p in dtms.items()}
+    _write_mosaic(
+        d / "dtm.vrt", "dtm", grid, s["crs_wkt"], windows, hrefs, 1, "float32", FLOAT_NODATA
+    )
+    p = _derived_params(spec, s.get("noise"), s.get("slope_noise"))
+    cparams = p["categories"]
+    if cparams.noise is None or cparams.slope_noise is None:  # measured on the whole DTM
+        import rasterio
+
+        from terrasift.jobs.finish import BAND_CELLS, _read_rows
+        from terrasift.workers import categories as cat
+
+        with bounded_raster_cache(), rasterio.open(d / "dtm.vrt") as ds:
+            rows = max(1, BAND_CELLS // ds.width)
+            if cparams.noise is None:
+                cparams = cparams.model_copy(
+                    update={
+                        "noise": cat.measure_noise_by_bands(
+                            lambda a, b: _read_rows(ds, a, b), ds.height, res, cparams, rows
+                        )
+                    }
+                )
+            if cparams.slope_noise is None:  # against the noise just fixed
+                cparams = cparams.model_copy(
+                    update={
+                        "slope_noise": 0.0
+                        if cparams.noise == 0
+                        else cat.measure_slope_noise_by_bands(
+                            lambda a, b: _read_rows(ds, a, b), ds.height, res, cparams, rows
+                        )
+                    }
+                )
+    noise, slope_noise = float(cparams.noise), float(cparams.slope_noise)
+    m = p["terrain"].median_size // 2 + 2  # slope's smoothing margin, in cells
+    stale = _stale_derived(
+        prev, grid, windows, set(s["outputs"]), (m + 1) * res, (noise, slope_noise)
+    )
+    extent = _extent(windows)
+    side = max(1, int(round(FEATURE_CORE_M / res)))
+    squares: dict[str, list[int]] = {}
+    if any(f.connect is not None or f.rectangle is not None for f in p["filters"]):
+        spans = [
+            (w[0] - extent[0], w[1] - extent[1], w[0] - extent[0] + w[2], w[1] - extent[1] + w[3])
+            for w in windows.values()
+        ]
+        from terrasift.jobs.finish import feature_squares
+
+        height, width = extent[2] - extent[0], extent[3] - extent[1]
+        squares = {k: list(v) for k, v in feature_squares(height, width, side, spans).items()}
+    search = _stale_squares(
+        prev, grid, windows, set(s["outputs"]), (noise, slope_noise), extent, side, squares
+    )
+    stage = {
+        "base": s["base"],
+        "present": present,
+        "noise": noise,
+        "slope_noise": slope_noise,
+        "tiles": sorted(stale),
+        "extent": list(extent),
+        "side": side,
+        "squares": squares,
+        "search": sorted(search),
+    }
+    write_json(d / "stage.json", stage, indent=2)
+    return stage
+
+
+def write_tile_derived(job_dir: str, name: str) -> str:
+    """Task: tile ``name``'s slope and categories COGs from the new DTM mosaic.
+
+    Slope reads the tile with a margin for its smoothing (so it equals slope over
+    the mosaic); categories read the tile's own cells (category tiles are aligned to
+    the tile's window) with the survey's noise.
+    """
+    import rasterio
     from rasterio.windows import Window as RWindow
 
-    from terrasift.jobs.finish import BAND_CELLS, _read_rows
     from terrasift.workers import categories as cat
-    from terrasift.workers import features as feat
     from terrasift.workers import terrain
-    from terrasift.workers.features import tiled
 
-    tparams = stage_params(params, "terrain")
-    cparams = stage_params(params, "categories")
-    if cparams.noise is None and s.get("noise") is not None:
-        cparams = cparams.model_copy(update={"noise": s["noise"]})
-    if cparams.slope_noise is None and s.get("slope_noise") is not None:
-        cparams = cparams.model_copy(update={"slope_noise": s["slope_noise"]})
-    filters = feat.resolve_filters(params.get("features", "all"), params.get("filters") or {})
-    fparams = stage_params(params, "features")
-    m = tparams.median_size // 2 + 2  # slope's smoothing margin, in cells
-    work = new / ".work"
-    work.mkdir()
-    pieces: list = []
-    with bounded_raster_cache(), rasterio.open(new / "dtm.vrt") as ds:
-        height, width = ds.height, ds.width
-        transform = ds.transform
-        if cparams.noise is None:  # measured on the whole DTM, streamed in bands
-            rows_per_band = max(1, BAND_CELLS // width)
-            cparams = cparams.model_copy(
-                update={
-                    "noise": cat.measure_noise_by_bands(
-                        lambda a, b: _read_rows(ds, a, b), height, res, cparams, rows_per_band
-                    )
-                }
-            )
-        if cparams.slope_noise is None:  # likewise
-            rows_per_band = max(1, BAND_CELLS // width)
-            cparams = cparams.model_copy(
-                update={
-                    "slope_noise": 0.0
-                    if cparams.noise == 0
-                    else cat.measure_slope_noise_by_bands(
-                        lambda a, b: _read_rows(ds, a, b), height, res, cparams, rows_per_band
-                    )
-                }
-            )
-        noise, slope_noise = float(cparams.noise), float(cparams.slope_noise)
-        stale = _stale_derived(
-            prev, grid, windows, set(s["outputs"]), (m + 1) * res, noise, slope_noise
-        )
+    job = Path(job_dir)
+    d = _derived_dir(job)
+    out = d / "tiles" / tile_stem(name)
+    if (out / "slope.tif").exists() and (out / "categories.tif").exists():
+        return name
+    spec = load_json(job / "job.json")
+    s = spec["survey"]
+    stage = load_json(d / "stage.json")
+    grid = BlockGrid(**s["grid"])
+    res = grid.resolution
+    p = _derived_params(spec, stage["noise"], stage["slope_noise"])
+    tparams, cparams = p["terrain"], p["categories"]
+    r0, c0 = stage["extent"][:2]
+    wr, wc, rows, cols = s["tiles"][name]["window"]
+    xmin, _, _, ymax = window_bounds(grid, (wr, wc, rows, cols))
+    m = tparams.median_size // 2 + 2
+    kc = max(2, int(round(cparams.tile_size / res)))
+    work = job / "work" / "tiles"
+    work.mkdir(parents=True, exist_ok=True)
+    stem = tile_stem(name)
+    with bounded_raster_cache(), rasterio.open(d / "dtm.vrt") as ds:
 
         def read(lo_r: int, hi_r: int, lo_c: int, hi_c: int) -> np.ndarray:
             return (
@@ -687,67 +821,148 @@ def _derived_products(
                 .astype(np.float64)
             )
 
-        kc = max(2, int(round(cparams.tile_size / res)))
-        for n, (wr, wc, rows, cols) in windows.items():
-            target = new / "tiles" / tile_stem(n)
-            if n not in stale:  # its DTM within the margin is unchanged: so are these
-                for kept in ("slope.tif", "categories.tif"):
-                    os.link(prev / "tiles" / tile_stem(n) / kept, target / kept)  # type: ignore[operator]
-                continue
-            xmin, _, _, ymax = window_bounds(grid, (wr, wc, rows, cols))
-            # slope read with a margin for its smoothing: equal to slope over the mosaic
-            rr, cc = wr - r0, wc - c0
-            lo_r, hi_r = max(0, rr - m), min(height, rr + rows + m)
-            lo_c, hi_c = max(0, cc - m), min(width, cc + cols + m)
-            slope = terrain.slope_degrees(
-                read(lo_r, hi_r, lo_c, hi_c), res, tparams.median_size, tparams.smooth
+        rr, cc = wr - r0, wc - c0
+        lo_r, hi_r = max(0, rr - m), min(ds.height, rr + rows + m)
+        lo_c, hi_c = max(0, cc - m), min(ds.width, cc + cols + m)
+        slope = terrain.slope_degrees(
+            read(lo_r, hi_r, lo_c, hi_c), res, tparams.median_size, tparams.smooth
+        )
+        sm = RasterMosaic(
+            work / f"{stem}-slope.tif",
+            width=cols,
+            height=rows,
+            transform=job_transform(xmin, ymax, res),
+            crs=s["crs_wkt"],
+            **band_metadata("slope"),
+        )
+        sm.write(0, 0, slope[rr - lo_r : rr - lo_r + rows, cc - lo_c : cc - lo_c + cols])
+        sm.close_as_cog(out / "slope.tif")
+        part = cat.category_grids(read(rr, rr + rows, cc, cc + cols), res, cparams)[0].bands()
+        cm = RasterMosaic(
+            work / f"{stem}-categories.tif",
+            width=part.shape[2],
+            height=part.shape[1],
+            transform=job_transform(xmin, ymax, res * kc),
+            crs=s["crs_wkt"],
+            dtype="uint8",
+            nodata=cat.NODATA,
+            count=4,
+            **band_metadata("categories"),
+        )
+        cm.write(0, 0, part)
+        cm.close_as_cog(out / "categories.tif", resampling="nearest")
+    return name
+
+
+def search_feature_square(job_dir: str, key: str) -> str:
+    """Task: the feature pieces square ``key`` owns, searched on the square and a halo of
+    the new DTM mosaic (``tiled.search_core``); saved with the window searched."""
+    import pickle
+
+    import rasterio
+    from rasterio.windows import Window as RWindow
+
+    from terrasift.files import atomic_path
+    from terrasift.workers.features import tiled
+
+    job = Path(job_dir)
+    d = _derived_dir(job)
+    path = d / "squares" / f"{key}.pkl"
+    if path.exists():
+        return key
+    spec = load_json(job / "job.json")
+    stage = load_json(d / "stage.json")
+    p = _derived_params(spec, stage["noise"], stage["slope_noise"])
+    core = tuple(stage["squares"][key])
+    with bounded_raster_cache(), rasterio.open(d / "dtm.vrt") as ds:
+
+        def read(lo_r: int, hi_r: int, lo_c: int, hi_c: int) -> np.ndarray:
+            return (
+                ds.read(1, window=RWindow(lo_c, lo_r, hi_c - lo_c, hi_r - lo_r), masked=True)
+                .filled(np.nan)
+                .astype(np.float64)
             )
-            sm = RasterMosaic(
-                work / f"{tile_stem(n)}-slope.tif",
-                width=cols,
-                height=rows,
-                transform=job_transform(xmin, ymax, res),
-                crs=crs,
-                **band_metadata("slope"),
-            )
-            sm.write(0, 0, slope[rr - lo_r : rr - lo_r + rows, cc - lo_c : cc - lo_c + cols])
-            sm.close_as_cog(target / "slope.tif")
-            # categories from the tile's own cells: a category tile (aligned to the tile's
-            # window) reads only its cells, and the noise is the survey's
-            part = cat.category_grids(read(rr, rr + rows, cc, cc + cols), res, cparams)[0].bands()
-            cm = RasterMosaic(
-                work / f"{tile_stem(n)}-categories.tif",
-                width=part.shape[2],
-                height=part.shape[1],
-                transform=job_transform(xmin, ymax, res * kc),
-                crs=crs,
-                dtype="uint8",
-                nodata=cat.NODATA,
-                count=4,
-                **band_metadata("categories"),
-            )
-            cm.write(0, 0, part)
-            cm.close_as_cog(target / "categories.tif", resampling="nearest")
-        # Features core by core (squares of FEATURE_CORE_M): each core's search reads the
-        # core and a halo and keeps the objects whose first category tile it holds
-        # (tiled.py), so memory follows a core and an object across core edges comes out once.
-        if filters:
-            side = max(1, int(round(FEATURE_CORE_M / res)))
-            spans = [
-                (wr - r0, wc - c0, wr - r0 + rows, wc - c0 + cols)
-                for wr, wc, rows, cols in windows.values()
-            ]
-            for i in range(0, height, side):
-                for j in range(0, width, side):
-                    core = (i, j, min(height, i + side), min(width, j + side))
-                    if any(_overlaps_cells(core, w) for w in spans):
-                        pieces += tiled.tile_pieces(
-                            read, (height, width), transform, core, filters, cparams, fparams
-                        )
-    vrt("slope", 1, "float32", FLOAT_NODATA)
-    vrt("categories", kc, "uint8", cat.NODATA, count=4)
-    if filters:  # the tiles' pieces joined, sized and limited as over the whole survey
-        result = tiled.merge_pieces(pieces, filters, cparams, res, fparams)
+
+        pieces, window = tiled.search_core(
+            read,
+            (ds.height, ds.width),
+            ds.transform,
+            core,
+            p["filters"],
+            p["categories"],
+            p["features"],
+            None if FEATURE_HALO_M is None else int(round(FEATURE_HALO_M / abs(ds.transform.a))),
+        )
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(pickle.dumps({"pieces": pieces, "window": list(window)}))
+    return key
+
+
+def _assemble(
+    job: Path, new: Path, spec: Mapping[str, Any], grid: BlockGrid, prev: Path | None
+) -> dict[str, Any]:
+    """VRTs, the tiles' slope and categories, merged features and the STAC collection of
+    a version from the run's derived products (``stage_derived`` and the tasks after it)
+    and the previous version's files for the rest; what ``state.json`` records of them."""
+    import pickle
+
+    from terrasift.workers import categories as cat
+    from terrasift.workers import features as feat
+    from terrasift.workers.features import tiled
+
+    s = spec["survey"]
+    d = _derived_dir(job)
+    stage = load_json(d / "stage.json")
+    present = stage["present"]
+    tiles = {n: s["tiles"][n] for n in present}
+    windows = {n: tuple(t["window"]) for n, t in tiles.items()}
+    res = grid.resolution
+    crs = s["crs_wkt"]
+    p = _derived_params(spec, stage["noise"], stage["slope_noise"])
+    f = int(round(float(stage_params(spec["params"], "vegetation").cell) / res))
+    kc = max(2, int(round(p["categories"].tile_size / res)))
+    remade = set(stage["tiles"])
+    for n in present:
+        target = new / "tiles" / tile_stem(n)
+        src = d / "tiles" / tile_stem(n) if n in remade else prev / "tiles" / tile_stem(n)  # type: ignore[operator]
+        for kept in ("slope.tif", "categories.tif"):
+            os.link(src / kept, target / kept)
+    for name, cells, dtype, nodata, count in (
+        ("dtm", 1, "float32", FLOAT_NODATA, 1),
+        ("dsm", 1, "float32", FLOAT_NODATA, 1),
+        ("chm", 1, "float32", FLOAT_NODATA, 1),
+        ("coverage", f, "uint8", COVERAGE_NODATA, 1),
+        ("slope", 1, "float32", FLOAT_NODATA, 1),
+        ("categories", kc, "uint8", cat.NODATA, 4),
+    ):
+        hrefs = {n: f"tiles/{tile_stem(n)}/{name}.tif" for n in present}
+        _write_mosaic(
+            new / f"{name}.vrt",
+            name,
+            grid,
+            crs,
+            windows,
+            hrefs,
+            cells,
+            dtype,
+            nodata,
+            count,
+        )
+    # each square's pieces: searched by this run, or the previous version's (no cell of
+    # the window it searched changed); joined, sized and limited as over the whole survey
+    searched = set(stage["search"])
+    windows_searched: dict[str, list[int]] = {}
+    pieces: list = []
+    if stage["squares"]:
+        (new / SQUARES).mkdir()
+    for key in sorted(stage["squares"]):
+        src = d / "squares" / f"{key}.pkl" if key in searched else prev / SQUARES / f"{key}.pkl"  # type: ignore[operator]
+        os.link(src, new / SQUARES / f"{key}.pkl")
+        found = pickle.loads(src.read_bytes())
+        pieces += found["pieces"]
+        windows_searched[key] = found["window"]
+    if p["filters"]:
+        result = tiled.merge_pieces(pieces, p["filters"], p["categories"], res, p["features"])
         from terrasift.tiling.vectors import crs_member
 
         survey_id = Path(s["dir"]).name
@@ -761,14 +976,45 @@ def _derived_products(
                 new / "features.geojson",
                 feat.features_geojson(result, crs, survey_id, to_wgs84=True),
             )
-    shutil.rmtree(work, ignore_errors=True)
     _write_stac(new, s, tiles)
-    return (noise, slope_noise), sorted(stale)
+    return {
+        "noise": stage["noise"],
+        "slope_noise": stage["slope_noise"],
+        "derived": stage["tiles"],
+        "squares": {
+            "extent": stage["extent"],
+            "side": stage["side"],
+            "windows": windows_searched,
+            "searched": stage["search"],
+        },
+    }
 
 
 def _overlaps_cells(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
     """Two windows of cells (row0, col0, row1, col1; ends excluded) share a cell."""
     return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _changed(
+    prev: Path | None,
+    grid: BlockGrid,
+    windows: Mapping[str, Window],
+    outputs: set[str],
+    noises: tuple[float, float],
+) -> list[Bounds] | None:
+    """Where cells changed since the previous version (a redone tile, a tile gone, a
+    tile whose cells moved), in metres; None when everything must be made again (no
+    product, or a noise (category, slope) or the grid changed)."""
+    state = load_json(prev / STATE) if prev is not None and (prev / STATE).exists() else {}
+    if not state or (state.get("noise"), state.get("slope_noise")) != noises:
+        return None
+    cells = {n: window_bounds(grid, w) for n, w in windows.items()}
+    changed = [cells[n] for n in windows if n in outputs]
+    for n, t in state.get("tiles", {}).items():
+        was = tuple(t["cells"]) if t.get("cells") else None
+        if n not in windows or was != cells[n]:
+            changed += [b for b in (was, cells.get(n)) if b is not None]
+    return changed
 
 
 def _stale_derived(
@@ -777,29 +1023,64 @@ def _stale_derived(
     windows: Mapping[str, Window],
     outputs: set[str],
     margin: float,
-    noise: float,
-    slope_noise: float,
+    noises: tuple[float, float],
 ) -> set[str]:
     """Tiles whose slope and categories must be made again: those within ``margin``
-    (metres) of cells that changed (a redone tile, a tile gone, a tile whose cells
-    moved), all of them when a noise or the grid changed or there is no product."""
-    state = load_json(prev / STATE) if prev is not None and (prev / STATE).exists() else {}
-    cells = {n: window_bounds(grid, w) for n, w in windows.items()}
-    if not state or state.get("noise") != noise or state.get("slope_noise") != slope_noise:
+    (metres) of cells that changed, all of them when a noise or the grid changed or
+    there is no product."""
+    changed = _changed(prev, grid, windows, outputs, noises)
+    if changed is None:
         return set(windows)
-    old = state.get("tiles", {})
-    changed = [cells[n] for n in windows if n in outputs]
-    for n, t in old.items():
-        was = tuple(t["cells"]) if t.get("cells") else None
-        if n not in windows or was != cells[n]:
-            changed += [b for b in (was, cells.get(n)) if b is not None]
     stale = set()
-    for n, b in cells.items():
+    for n, w in windows.items():
+        b = window_bounds(grid, w)
         wide = (b[0] - margin, b[1] - margin, b[2] + margin, b[3] + margin)
         files = [prev / "tiles" / tile_stem(n) / f for f in ("slope.tif", "categories.tif")]  # type: ignore[operator]
         if not all(f.exists() for f in files) or any(_overlaps(wide, r) for r in changed):
             stale.add(n)
     return stale
+
+
+def _stale_squares(
+    prev: Path | None,
+    grid: BlockGrid,
+    windows: Mapping[str, Window],
+    outputs: set[str],
+    noises: tuple[float, float],
+    extent: tuple[int, int, int, int],
+    side: int,
+    squares: Mapping[str, list[int]],
+) -> set[str]:
+    """Feature squares to search again: those whose window searched last time holds a
+    changed cell (or reaches past a cut edge); all when the mosaic's extent, the
+    squares or a noise changed. A square's pieces depend only on the DTM cells of
+    the window its search read (``tiled.search_core``), so the others' are the same."""
+    changed = _changed(prev, grid, windows, outputs, noises)
+    if changed is None:
+        return set(squares)
+    old = load_json(prev / STATE).get("squares") or {}  # type: ignore[operator]
+    if old.get("extent") != list(extent) or old.get("side") != side:
+        return set(squares)
+    res = grid.resolution
+    r0, c0 = extent[0], extent[1]
+    x_left, y_top = grid.x0 + c0 * res, grid.y_top - r0 * res
+    cells = [
+        (
+            int(round((y_top - b[3]) / res)),
+            int(round((b[0] - x_left) / res)),
+            int(round((y_top - b[1]) / res)),
+            int(round((b[2] - x_left) / res)),
+        )
+        for b in changed
+    ]
+    seen = old.get("windows", {})
+    return {
+        k
+        for k in squares
+        if k not in seen
+        or not (prev / SQUARES / f"{k}.pkl").exists()  # type: ignore[operator]
+        or any(_overlaps_cells(tuple(seen[k]), c) for c in cells)
+    }
 
 
 def _write_stac(new: Path, s: Mapping[str, Any], tiles: Mapping[str, Any]) -> None:

@@ -156,6 +156,22 @@ def tile_pieces(
     filters' ``window_reach`` and 32 m for objects across the core's edges) of the DTM
     of ``shape`` cells and ``transform``; ``read(r0, r1, c0, c1)`` gives its cells (NaN
     nodata). ``cparams.noise`` and ``cparams.slope_noise`` must be the whole DTM's."""
+    return search_core(read, shape, transform, core, filters, cparams, params, halo)[0]
+
+
+def search_core(
+    read: Callable[[int, int, int, int], NDArray],
+    shape: tuple[int, int],
+    transform: Affine,
+    core: Rect,
+    filters: list[Filter],
+    cparams: CategoryParams,
+    params: FeatureParams | None = None,
+    halo: int | None = None,
+) -> tuple[list[Piece], Rect]:
+    """``tile_pieces`` with the DTM cells the search read (the union of its windows):
+    the pieces stay the same as long as those cells do, so a later search of the same
+    core can be skipped when no cell of that window changed."""
     if cparams.noise is None or cparams.slope_noise is None:
         raise ValueError("tile_pieces needs the whole DTM's noise and slope noise")
     params = params or FeatureParams()
@@ -167,17 +183,20 @@ def tile_pieces(
     grids: dict[Rect, tuple[Categories, dict]] = {}
 
     def categories(rect: Rect, flt: Filter) -> Categories:
-        if rect not in grids:  # the start window's grids for all filters, a grown one's for one
+        key = grid_key(flt)
+        # the start window's grids for all filters, a grown one's for one (another
+        # filter may have grown to the same window: its grids lack this filter's)
+        if rect not in grids or (key is not None and key not in grids[rect][1]):
             todo = filters if rect == start else [flt]
             dtm = read(rect[0], rect[2], rect[1], rect[3])
             for other in [r for r in grids if r != start]:
                 del grids[other]
             grids[rect] = categories_for(dtm, cell, todo, cparams)
         cats, stepped = grids[rect]
-        key = grid_key(flt)
         return cats if key is None else stepped[key]
 
     out: list[Piece] = []
+    seen = start
     for i, flt in enumerate(filters):
         if flt.connect is None and flt.rectangle is None:
             continue  # tile marks, not objects
@@ -205,7 +224,13 @@ def tile_pieces(
             )
             if rect == before:  # the whole DTM is safe everywhere: cannot happen
                 raise RuntimeError(f"feature window {rect} cannot grow")
-    return out
+            seen = (
+                min(seen[0], rect[0]),
+                min(seen[1], rect[1]),
+                max(seen[2], rect[2]),
+                max(seen[3], rect[3]),
+            )
+    return out, seen
 
 
 def _window_pieces(
