@@ -199,19 +199,23 @@ def test_only_squares_whose_searched_window_holds_a_changed_cell_are_searched_ag
     searched["0_1"] = [0, 40, 50, 100]  # a halo: still away from "d"
     state = {
         "noise": 0.1,
+        "slope_noise": 0.02,
         "tiles": {n: {"cells": list(window_bounds(grid, w))} for n, w in windows.items()},
         "squares": {"extent": [0, 0, 100, 100], "side": 50, "windows": searched},
     }
     write_json(prev / "state.json", state)
 
-    def stale(outputs: set[str], noise: float = 0.1, extent=(0, 0, 100, 100), side=50) -> set:
-        return _stale_squares(prev, grid, windows, outputs, noise, extent, side, squares)
+    def stale(
+        outputs: set[str], noise: float = 0.1, slope: float = 0.02, extent=(0, 0, 100, 100), side=50
+    ) -> set:
+        return _stale_squares(prev, grid, windows, outputs, (noise, slope), extent, side, squares)
 
     assert stale({"d"}) == {"1_0", "1_1"}
     assert stale({"a"}) == {"0_0", "0_1", "1_0"}  # the halo of "0_1" reads "a"'s cells
     assert stale({"b"}) == {"0_1", "1_0"}
     assert stale(set()) == set()
     assert stale({"d"}, noise=0.2) == set(squares)  # another noise: all
+    assert stale({"d"}, slope=0.03) == set(squares)  # another slope noise: all
     assert stale(set(), extent=(0, 0, 100, 150)) == set(squares)  # the mosaic grew: all
     assert stale(set(), side=40) == set(squares)
     (prev / SQUARES / "0_0.pkl").unlink()
