@@ -35,7 +35,7 @@ def use_header_reader(reader: HeaderReader | None) -> HeaderReader | None:
 
     The service reads them in disposable subprocesses with a time and memory
     budget, so that a decoder that aborts or runs away on a hostile header takes
-    down a helper process, not the API.
+    down a reader process, not the API.
     """
     global _header_reader
     with _reader_lock:
