@@ -67,6 +67,9 @@ def test_a_reader_that_crashes_or_exhausts_its_budget_fails_naming_the_file(
     # every reader that crashed, overran or was killed was replaced; the memory
     # budget made the allocation fail inside the reader, which lives on
     assert inspector.replaced - before == 3
+    deadline = time.monotonic() + 10  # the last replacement starts in the background
+    while len(inspector.pids()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert len(inspector.pids()) == 2
 
 
