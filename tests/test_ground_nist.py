@@ -737,6 +737,31 @@ def test_rim_slivers_do_not_join_a_platform_at_the_data_edge_to_far_ground():
     kw = {"walls": 0.5, "rise": 0.3}
     assert not raised_segments(xyz, tri, 0.3, 10.0, **kw).any()
     assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, rim=4.0, **kw), platform)
+    # It reaches the edge along its 6 m end only: not kept as reaching the data's edge.
+    assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, rim=4.0, edge=20.0, **kw), platform)
+
+
+def test_a_plateau_crossing_the_data_is_kept_whether_or_not_it_holds_a_hull_vertex():
+    # A plateau 50 m wide and 20 m high crossing the data from south to north,
+    # walled on both long sides, on level ground. Its vertices at the data's
+    # edge lie 0.2 m inside the line through the others, so none is a hull
+    # vertex (as after a 1 cm rounding on tile 54 of the steep family).
+    rng = np.random.default_rng(3)
+    g = np.arange(0.0, 200.0, 1.5)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    xy = xy + rng.uniform(-0.05, 0.05, xy.shape) * (xy > 0) * (xy < g[-1])
+    plateau = np.abs(xy[:, 0] - 100.0) < 25.0
+    xy[plateau, 1] = np.clip(xy[plateau, 1], 0.2, g[-1] - 0.2)
+    xyz = np.column_stack([xy, 20.0 * plateau])
+    tri = Delaunay(xy)
+    assert not plateau[np.unique(tri.convex_hull)].any()
+    kw = {"walls": 0.5, "rise": 0.3, "rim": 4.0}
+    assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, **kw), plateau)  # hull rule
+    assert not raised_segments(xyz, tri, 0.3, 10.0, edge=20.0, **kw).any()
+    # The same plateau shortened to end 20 m inside the data is a roof.
+    inside = plateau & (xy[:, 1] > 20.0) & (xy[:, 1] < 180.0)
+    xyz[:, 2] = 20.0 * inside
+    assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, edge=20.0, **kw), inside)
 
 
 def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere():

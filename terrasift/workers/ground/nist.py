@@ -197,6 +197,12 @@ class NistParams(StageParams):
     edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
     ``raised.py``): a platform reaching the tile's edge was joined by them to ground 30–80 m
     away along it."""
+    raised_edge: float = Field(20.0, ge=0, le=1000)
+    """A walled segment whose vertices within one median edge of the hull's border span at
+    least this many metres is kept: it reaches the edge of the data further than the end of a
+    roof or platform does (railway family: platforms 4–8 m, sheds 8–15 m wide, spans 3–8 m
+    measured), as a plateau crossing the data does (steep family: 39–195 m). 0: kept when it
+    holds a vertex of the hull, which a 1 cm rounding of the coordinates decides (``raised.py``)."""
     raised_share: float = Field(0.7, ge=0.5, le=1)
     """A segment that is the upper side of at least this share of its steps is raised too, when
     it also stands ``raised_lift`` above the plane through the feet of its steps (a roof cut
@@ -624,6 +630,7 @@ def _without_raised(
         walls=params.raised_walls,
         rise=params.raised_rise,
         rim=params.raised_rim,
+        edge=params.raised_edge,
     )
     if not drop.any() or np.count_nonzero(~drop) < 3:
         return tin, None

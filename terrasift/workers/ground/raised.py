@@ -6,9 +6,11 @@ mowed. What gives it away is its border: everywhere it meets the rest of the
 TIN, the TIN drops by a wall (an edge rising at least ``step`` metres, steeper
 than ``step_slope``), while terrain joins its surroundings somewhere without
 one. So the TIN is cut into segments along step edges, and a segment that is
-only ever the upper side of its steps is dropped as a whole. Segments on the
-block's hull are kept (what lies beyond is unknown), and so is the largest.
-Repeated, so a roof under a raised part (a tower) goes too.
+only ever the upper side of its steps is dropped as a whole. The largest
+segment is kept, and so is one that reaches the edge of the data along more
+than a roof's or platform's end would (``edge``; what lies beyond is unknown,
+and a plateau crossing the data is walled on both its long sides as a platform
+is). Repeated, so a roof under a raised part (a tower) goes too.
 
 On a slope a roof is not the upper side everywhere: where the hill rises
 behind it, the terrain stands above its uphill wall. So a segment that is the
@@ -49,6 +51,7 @@ def raised_segments(
     walls: float = 0.0,
     rise: float = 0.0,
     rim: float = 0.0,
+    edge: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -74,11 +77,18 @@ def raised_segments(
     one median edge of the hull's border join no segments. They are slivers
     along the edge of the data (tens of metres long) and carry no evidence; a
     platform reaching that edge was joined by them to ground far along it.
+    ``edge`` > 0: a segment is kept when its vertices within one median edge of
+    the hull's border span at least ``edge`` metres (bounding-box diagonal); 0:
+    when it holds a vertex of the hull. The hull's vertices are a handful of
+    points on a straight edge of the data, so which segment holds one is luck
+    (a 1 cm rounding moves them); the span measures how far a segment runs
+    along the edge.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
     dz = xyz[e[:, 1], 2] - xyz[e[:, 0], 2]
     run = np.hypot(*(xyz[e[:, 1], :2] - xyz[e[:, 0], :2]).T)
+    med = float(np.median(run))
     grad = np.abs(dz) / np.maximum(run, 1e-9)
     tan_step = np.tan(np.radians(step_slope_deg))
     wall = grad >= tan_step
@@ -100,7 +110,6 @@ def raised_segments(
     if rim > 0:
         # Slivers along the border of the data: long edges between vertices near
         # the hull join what lies far apart along the edge, by no evidence.
-        med = float(np.median(run))
         long = np.flatnonzero(run > rim * med)
         if long.size:
             ends = np.unique(e[long])  # only their ends need the distance to the hull
@@ -111,8 +120,11 @@ def raised_segments(
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
     size = np.bincount(seg, minlength=n_seg)
-    fixed = np.zeros(n_seg, dtype=bool)
-    fixed[seg[np.unique(tri.convex_hull)]] = True
+    if edge > 0:
+        fixed = _along_edge(xyz[:, :2], tri, seg, n_seg, med) >= edge
+    else:
+        fixed = np.zeros(n_seg, dtype=bool)
+        fixed[seg[np.unique(tri.convex_hull)]] = True
     fixed[np.argmax(size)] = True
     st = e[is_step]
     up = dz[is_step] > 0
@@ -165,6 +177,25 @@ def _hull_distance(
         cross = (xy[:, 0] - a[k, 0]) * d[k, 1] - (xy[:, 1] - a[k, 1]) * d[k, 0]
         np.minimum(out, np.abs(cross) / length[k], out=out)
     return out
+
+
+def _along_edge(
+    xy: NDArray[np.float64],
+    tri: Delaunay,
+    seg: NDArray[np.int64],
+    n_seg: int,
+    near: float,
+) -> NDArray[np.float64]:
+    """Per segment: the diagonal of the bounding box of its vertices within ``near``
+    of the hull's border (0 for a segment with none or one)."""
+    idx = np.flatnonzero(_hull_distance(xy, tri, np.arange(xy.shape[0])) <= near)
+    s, p = seg[idx], xy[idx]
+    lo = np.full((n_seg, 2), np.inf)
+    hi = np.full((n_seg, 2), -np.inf)
+    np.minimum.at(lo, s, p)
+    np.maximum.at(hi, s, p)
+    span = np.hypot(*(hi - lo).T)
+    return np.where(np.isfinite(span), span, 0.0)
 
 
 def _flat(
