@@ -328,9 +328,11 @@ def test_a_second_tip_finds_more_of_the_faces_without_face_evidence(cliffs):
         update={**old, "second_angle": 45.0}
     )
     own = classify_rotated(cliffs.xyz, plain, rp, unrotated=default)
-    missed_seed = np.mean(~seed.is_ground[steep])  # 0.94 measured
+    # Measured 0.10 and 0.077; 0.74 and 0.27 before raised segments reaching the
+    # data's edge along 20 m were kept (``raised_edge``): the tipped views' rims.
+    missed_seed = np.mean(~seed.is_ground[steep])
     missed_own = np.mean(~own.is_ground[steep])
-    assert missed_own < 0.7 * missed_seed
+    assert missed_own < 0.85 * missed_seed and missed_own < 0.15
     assert len(own.added) == 16 and len(seed.added) == 8
 
 
