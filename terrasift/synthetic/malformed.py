@@ -134,8 +134,8 @@ def corpus(
         yield f"{suffix}-vlr-length-65535", suffix, _put(good, 227 + 20, "H", 0xFFFF)
         yield f"{suffix}-vlrs-0xffffffff", suffix, _put(good, 100, "I", 0xFFFFFFFF)
         # a 1.4 header whose extended VLRs lie
-        v14 = _put(good, 25, "B", 4)
-        yield f"{suffix}-evlr-count-huge", suffix, v14
+        as_14 = _put(good, 25, "B", 4)
+        yield f"{suffix}-evlr-count-huge", suffix, as_14
     # LAZ: the chunk table's place and count
     offset = struct.unpack_from("<I", laz, 96)[0]
     table = struct.unpack_from("<q", laz, offset)[0]
@@ -335,18 +335,22 @@ def hostile_params() -> list[tuple[str, str]]:
         for field_name, field in stage.params.model_fields.items():
             key = f"{stage.id}.{field_name}"
             integer = field.annotation is int or int in get_args(field.annotation)
-            lo = hi = out_lo = out_hi = None
+            lo: Any = None  # smallest and largest allowed value, and the nearest refused
+            hi: Any = None
+            out_lo: Any = None
+            out_hi: Any = None
             for m in field.metadata:
+                bound: Any = getattr(m, type(m).__name__.lower(), None)
                 if isinstance(m, Ge):
-                    lo, out_lo = m.ge, m.ge - (1 if integer else 1e-9)
+                    lo, out_lo = bound, bound - (1 if integer else 1e-9)
                 elif isinstance(m, Gt):
-                    lo = m.gt + 1 if integer else math.nextafter(float(m.gt), math.inf)
-                    out_lo = m.gt
+                    lo = bound + 1 if integer else math.nextafter(float(bound), math.inf)
+                    out_lo = bound
                 elif isinstance(m, Le):
-                    hi, out_hi = m.le, m.le + (1 if integer else 1e-9 * max(1, abs(m.le)))
+                    hi, out_hi = bound, bound + (1 if integer else 1e-9 * max(1, abs(bound)))
                 elif isinstance(m, Lt):
-                    hi = m.lt - 1 if integer else math.nextafter(float(m.lt), -math.inf)
-                    out_hi = m.lt
+                    hi = bound - 1 if integer else math.nextafter(float(bound), -math.inf)
+                    out_hi = bound
             cases.append((f"{key}=nan", f'{{"{key}": NaN}}'))
             cases.append((f"{key}=string", json.dumps({key: "x" * 1000})))
             if lo is not None:
