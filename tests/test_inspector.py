@@ -200,3 +200,31 @@ def test_the_files_of_one_request_are_read_side_by_side(
     bad = _copy(small_tile, tmp_path, "abort.las")
     with pytest.raises(InputError, match=r"^abort\.las: "):
         inspector([files[0], bad, files[1], files[2]])
+
+
+def test_the_crs_is_parsed_by_the_reader(
+    inspector: HeaderInspector,
+    small_tile: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The reader gives each tile's CRS label with its WKT: checking a job's inputs in the
+    API process parses no CRS when its tiles share one (pyproj's parser is made to fail
+    here), and tiles whose CRS differ are still refused naming both."""
+    import pyproj
+
+    from terrasift.jobs import plan
+    from terrasift.synthetic.terrain import make_scene, write_las
+
+    a, b = _copy(small_tile, tmp_path, "a.laz"), _copy(small_tile, tmp_path, "b.laz")
+    other = write_las(make_scene(size=40, density=2, seed=1), tmp_path / "c.laz", crs="EPSG:25832")
+    old = plan.use_header_reader(inspector)
+    try:
+        with monkeypatch.context() as m:
+            m.setattr(pyproj.CRS, "from_wkt", lambda *a, **k: pytest.fail("parsed in the API"))
+            summary = plan.inspect_inputs([a, b], {})
+        assert summary["crs"] == "EPSG:32632" and summary["tiles"] == 2
+        with pytest.raises(InputError, match=r"c\.laz is EPSG:25832, the first tile is EPSG:32632"):
+            plan.inspect_inputs([a, other], {})
+    finally:
+        plan.use_header_reader(old)

@@ -13,7 +13,7 @@ import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import laspy
 import numpy as np
@@ -54,6 +54,9 @@ class TileInfo:
     crs_wkt: str | None
     extra_dims: tuple[str, ...] = ()
     warnings: tuple[str, ...] = field(default=())
+    crs_label: str | None = None
+    """``EPSG:<code>`` or the CRS's name, found where the header was read (a reader
+    process in the service), so the API process need not parse the CRS again."""
 
     @property
     def area(self) -> float:
@@ -210,10 +213,11 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
         )
 
     warnings: list[str] = [count_warning] if count_warning else []
-    crs_wkt = None
+    crs_wkt = crs_label = None
     try:
         crs = header.parse_crs()
-        crs_wkt = crs.to_wkt() if crs is not None else None
+        if crs is not None:
+            crs_wkt, crs_label = crs.to_wkt(), crs_name(crs)
     except PASS_THROUGH:
         raise
     except BaseException as exc:  # a malformed CRS record should not sink the tile
@@ -233,7 +237,14 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
         crs_wkt=crs_wkt,
         extra_dims=extra,
         warnings=tuple(warnings),
+        crs_label=crs_label,
     )
+
+
+def crs_name(crs: Any) -> str:
+    """``EPSG:<code>`` of a pyproj CRS, else its name."""
+    code = crs.to_epsg()
+    return f"EPSG:{code}" if code else str(crs.name)
 
 
 # Smallest point record of each format (LAS 1.4 R15 table 7 onwards)
