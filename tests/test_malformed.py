@@ -269,3 +269,29 @@ def test_extreme_parameters_end_a_job_with_a_reason(
     outcome = run_through_app(client, [(case, "laz", good[1], text)], PARAMS)[case]
     assert outcome[0] in ("refused-4xx", "failed", "successful"), outcome
     assert outcome[1] != GENERIC_FAILURE, outcome
+
+
+def test_header_text_that_is_not_ascii_is_copied_as_it_is(
+    tmp_path: Path, good: tuple[bytes, bytes]
+) -> None:
+    """A system identifier or generating software with bytes above 0x7F (every bit of the
+    field flipped) passes the header check; the classified copy failed the job on it with
+    an internal error (laspy's strict ASCII check when writing). Now the copy keeps the
+    bytes as the file holds them."""
+    import laspy
+    import numpy as np
+
+    from terrasift.tiling.classified import write_classified_copy
+
+    for field, at in (("system_identifier", 26), ("generating_software", 58)):
+        data = bytearray(good[1])
+        data[at : at + 32] = bytes(b ^ 0xFF for b in data[at : at + 32])
+        src = tmp_path / f"{field}.laz"
+        src.write_bytes(bytes(data))
+        info = read_tile_info(src)
+        out = write_classified_copy(
+            src, tmp_path / f"{field}-out.laz", np.full(info.point_count, 2, np.uint8)
+        )
+        with laspy.open(out) as reader:
+            assert reader.header.point_count == info.point_count
+        assert out.read_bytes()[at : at + 32] == bytes(data[at : at + 32])
