@@ -63,7 +63,9 @@ class JobParams(BaseModel):
     )
     workers: int | None = Field(None, ge=1, le=256, description="worker processes for `process`")
     scan_dimension: str | None = Field(
-        None, description="LAS dimension holding a scan-position id (default point_source_id)"
+        None,
+        max_length=64,  # LAS names a dimension in at most 32 bytes
+        description="LAS dimension holding a scan-position id (default point_source_id)",
     )
 
     @field_validator("sensor_origin", mode="before")
