@@ -250,6 +250,7 @@ def test_hostile_parameter_sets_are_refused_or_valid() -> None:
     assert (
         "features-80000-names" not in accepted and "ground.ptd.min_spacing=above-50" not in accepted
     )
+    assert "scan_dimension=bad-17" not in accepted  # a 100 000-character name
     assert len(accepted) < 60, accepted
 
 
