@@ -431,6 +431,9 @@ def probes(
     end = time.monotonic() + 120
     while c.get(f"/jobs/{job}").json()["status"] != "running" and time.monotonic() < end:
         time.sleep(0.2)
+    end = time.monotonic() + 20  # readers and workers of the restarted service all up
+    while len(children(data)) < 4 and time.monotonic() < end:
+        time.sleep(0.2)
     kids = children(data)
     os.kill(svc.api_pid, signal.SIGKILL)
     assert svc.make is not None
