@@ -24,6 +24,7 @@ sys.path.insert(0, str(REPO))
 
 from fastapi.testclient import TestClient  # noqa: E402
 
+from terrasift.jobs.params import JobParams  # noqa: E402
 from terrasift.service.app import create_app  # noqa: E402
 from terrasift.service.settings import Settings  # noqa: E402
 from terrasift.synthetic.malformed import (  # noqa: E402
@@ -60,7 +61,7 @@ def main() -> None:
         groups = {name: "files" for name, *_ in cases}
         if args.params:
             laz = write_pair(tmp)[1]
-            for name, text in hostile_params():
+            for name, text in hostile_params(JobParams):
                 cases.append((f"params:{name}", "laz", laz, text))
                 groups[f"params:{name}"] = "params"
         settings = Settings(

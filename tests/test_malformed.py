@@ -230,12 +230,12 @@ def test_every_header_field_flipped(
 def test_hostile_parameter_sets_are_refused_or_valid() -> None:
     """Every hostile parameter set is refused with a parameter error at submission, or is
     a valid set whose block models build (no other exception reaches the request)."""
-    from terrasift.jobs.params import block_models, validate_params
+    from terrasift.jobs.params import JobParams, block_models, validate_params
     from terrasift.service.problems import Problem
     from terrasift.service.submit import parse_params
     from terrasift.synthetic.malformed import hostile_params
 
-    cases = hostile_params()
+    cases = hostile_params(JobParams)
     assert len(cases) > 900
     accepted = []
     for name, text in cases:
@@ -263,10 +263,11 @@ def test_extreme_parameters_end_a_job_with_a_reason(
     """Parameter sets at the edges of their bounds (cells of 5e-324 m, a PTD spacing the
     low-point test cannot take) ended jobs with "internal error": now a job that ends
     saying why, or succeeds."""
+    from terrasift.jobs.params import JobParams
     from terrasift.service.scheduler import GENERIC_FAILURE
     from terrasift.synthetic.malformed import hostile_params
 
-    text = dict(hostile_params())[case]
+    text = dict(hostile_params(JobParams))[case]
     outcome = run_through_app(client, [(case, "laz", good[1], text)], PARAMS)[case]
     assert outcome[0] in ("refused-4xx", "failed", "successful"), outcome
     assert outcome[1] != GENERIC_FAILURE, outcome

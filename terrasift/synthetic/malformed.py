@@ -273,9 +273,10 @@ BAD_VALUES = [
 ]
 
 
-def hostile_params() -> list[tuple[str, str]]:
-    """(case name, ``params`` JSON text) of hostile parameter sets: every fixed parameter
-    given every value of ``BAD_VALUES``, lists of names far beyond their bound, filters and
+def hostile_params(job_params: Any) -> list[tuple[str, str]]:
+    """(case name, ``params`` JSON text) of hostile parameter sets for the job parameter
+    model ``job_params`` (``jobs.params.JobParams``; this room may not import it): every
+    fixed parameter given every value of ``BAD_VALUES``, lists of names far beyond their bound, filters and
     CRSs built to be costly, odd keys, and every stage field just outside its bounds, NaN,
     and each stage's fields all at their smallest and all at their largest allowed values.
 
@@ -287,11 +288,10 @@ def hostile_params() -> list[tuple[str, str]]:
 
     from annotated_types import Ge, Gt, Le, Lt
 
-    from terrasift.jobs.params import JobParams
     from terrasift.workers.registry import stages
 
     cases: list[tuple[str, str]] = []
-    for name, field in JobParams.model_fields.items():
+    for name, field in job_params.model_fields.items():
         key = field.alias or name
         for i, value in enumerate(BAD_VALUES):
             cases.append((f"{key}=bad-{i}", f'{{"{key}": {value}}}'))
