@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from terrasift.tiling.blocks import SHARD_DTYPE
+from terrasift.tiling.blocks import shard_dtype
 from terrasift.workers.mixed import MixedParams
 from terrasift.workers.scan_geometry import MAX_SAMPLE, ScanGeometry, measure_scan_geometry
 
@@ -31,7 +31,7 @@ AZ_BINS = 1 << 16  # azimuth histogram bins over the circle (0.0055° each)
 def _scan_records(files: Sequence[Path], n_scans: int):
     """Core records of every shard file, with each record's scan position."""
     for f in files:
-        rec = np.fromfile(f, dtype=SHARD_DTYPE)
+        rec = np.fromfile(f, dtype=shard_dtype(f.parent))
         rec = rec[rec["core"] == 1]
         if rec.size == 0:
             continue

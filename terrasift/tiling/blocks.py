@@ -38,6 +38,16 @@ SHARD_DTYPE = np.dtype(
         ("classification", "u1"),  # the input's class (kept classes)
     ]
 )
+#: Shards of ground-based jobs also carry each point's GPS time (NaN where the file has
+#: none), which places a return on its beam by firing order; a folder written so holds
+#: the ``TIMED_FILE`` marker.
+SHARD_DTYPE_TIMED = np.dtype(SHARD_DTYPE.descr + [("gps_time", "<f8")])
+TIMED_FILE = "gps_time"
+
+
+def shard_dtype(shard_dir: Path) -> np.dtype:
+    """The record type of the shards in ``shard_dir`` (timed or not, by its marker)."""
+    return SHARD_DTYPE_TIMED if (Path(shard_dir) / TIMED_FILE).exists() else SHARD_DTYPE
 
 
 @dataclass(frozen=True)
@@ -228,11 +238,13 @@ def shard_tile(
     stop: int | None = None,
     roots: Sequence[str] | None = None,
     occupancy: float = 0.0,
+    gps_time: bool = False,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
     files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
     of them when it is opened (``open_input``). With ``occupancy`` (a cell size),
     the cells the points occupy go to ``out_dir/occupancy.npy`` (``occupied_cells``).
+    With ``gps_time`` the records are ``SHARD_DTYPE_TIMED`` (ground-based jobs).
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -241,7 +253,10 @@ def shard_tile(
     cells: list[NDArray[np.int64]] = []
     with atomic_path(out_dir) as tmp:
         tmp.mkdir()
-        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots):
+        dtype = SHARD_DTYPE_TIMED if gps_time else SHARD_DTYPE
+        if gps_time:
+            (tmp / TIMED_FILE).touch()
+        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots, gps_time):
             x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
             if occupancy > 0:
                 cells.append(occupied_cells(x, y, occupancy))
@@ -251,7 +266,9 @@ def shard_tile(
             key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
             order = np.argsort(key, kind="stable")
             p, bid, core = p[order], bid[order], core[order]
-            rec = np.empty(p.size, SHARD_DTYPE)
+            rec = np.empty(p.size, dtype)
+            if gps_time:
+                rec["gps_time"] = np.nan if chunk.gps_time is None else chunk.gps_time[p]
             rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
             rec["index"] = chunk.start + p
             rec["tile"] = tile_index
@@ -306,10 +323,10 @@ def shard_parts(point_counts: list[int], part_points: int = 2_500_000) -> list[S
 def read_block_points(shard_dirs: list[Path], name: str) -> NDArray:
     """All shard records of block ``name`` over every tile, as one structured array."""
     parts = [
-        np.fromfile(d / f"{name}.bin", dtype=SHARD_DTYPE)
+        np.fromfile(d / f"{name}.bin", dtype=shard_dtype(d))
         for d in shard_dirs
         if (d / f"{name}.bin").exists()
     ]
     if not parts:
-        return np.empty(0, SHARD_DTYPE)
+        return np.empty(0, shard_dtype(shard_dirs[0]) if shard_dirs else SHARD_DTYPE)
     return np.concatenate(parts)

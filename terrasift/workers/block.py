@@ -110,6 +110,8 @@ class Block:
     number_of_returns: NDArray | None = None
     given: NDArray | None = None
     """The input's classes (kept classes)."""
+    gps_time: NDArray | None = None
+    """Each point's GPS time (ground-based jobs; NaN where the file has none)."""
     labels: NDArray[np.uint8] = field(init=False)
     act: NDArray[np.intp] = field(init=False)
     sub: NDArray[np.float64] = field(init=False)
@@ -170,6 +172,7 @@ def classify_block(
         points["return_number"][order] if "return_number" in names else None,
         points["number_of_returns"][order] if "number_of_returns" in names else None,
         points["classification"][order] if "classification" in names else None,
+        points["gps_time"][order] if "gps_time" in names else None,
     )
     block.stats.update({"points_core": int(core.sum()), "points_total": xyz.shape[0]})
     for step in block_steps():

@@ -286,6 +286,8 @@ def _range_sigma(az, el, r, sa, se) -> float:
 
 def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     """Mean number of beams blended between two surfaces at azimuth edges (NaN if none)."""
+    if az.size < 3:
+        return float("nan")
     phase_a = _phase(az, sa)
     phase_e = _phase(el, se)
     ca = np.round((az - phase_a) / sa).astype(np.int64)
