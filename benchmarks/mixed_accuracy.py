@@ -211,7 +211,7 @@ def run_job(
     job = workdir / f"job{info['seed']}{'' if timed else '-notime'}"
     params = jobs.validate_params(
         {
-            "sensor_origin": ";".join(",".join(f"{v:.4f}" for v in o) for o in tile.origins),
+            "sensor_origin": ";".join(",".join(repr(float(v)) for v in o) for o in tile.origins),
             "features": "none",
             "crs": "EPSG:32632",
             "block_size": 50,

@@ -75,6 +75,14 @@ def measure_job_geometry(
     out: list[dict[str, Any] | None] = []
     for s in range(k):
         xyz = np.concatenate(pts[s]) if pts[s] else np.zeros((0, 3))
+        total = int(hist[s].sum())
+        if total > MAX_SAMPLE:
+            # the very points the stage alone takes from the whole scan: the middle
+            # MAX_SAMPLE by azimuth rank (those before bin lo are counted in the histogram)
+            rel = xyz - o[s]
+            order = np.argsort(np.arctan2(rel[:, 1], rel[:, 0]), kind="stable")
+            first = total // 2 - MAX_SAMPLE // 2 - int(hist[s][: lo[s]].sum())
+            xyz = xyz[order[max(first, 0) : max(first, 0) + 2 * (MAX_SAMPLE // 2)]]
         geo = measure_scan_geometry(xyz - o[s], footprint=params.footprint, absolute=xyz)
         if geo is None:
             out.append(None)
