@@ -114,3 +114,11 @@ def test_scan_job_places_returns_by_gps_time(tmp_path):
     tpr = np.mean(marked[scan.is_mixed])
     fpr = np.mean(marked[~scan.is_mixed])
     assert tpr > 0.9 and fpr < 0.013, (tpr, fpr)
+    # each block also holds the returns in front of it along the rays (shadow copies),
+    # so it sees every neighbouring beam the whole scan has: the job marks what the
+    # stage alone marks on the whole scan
+    from terrasift.workers.mixed import MixedParams, mark_mixed
+
+    xyz = np.column_stack([las.x, las.y, las.z])
+    alone = mark_mixed(xyz, MixedParams(), scan.origin, gps_time=scan.gps_time).marked
+    assert np.array_equal(alone, marked)

@@ -143,6 +143,7 @@ def run_job(
             plan.get("input_roots"),
             float(plan.get("occupancy_cell", 0.0)),
             bool(params.get("sensor_origin")),  # ground-based: GPS time gives scan order
+            params.get("sensor_origin"),  # ground-based: the blocks behind each return
         )
         for p in todo
     ]

@@ -31,7 +31,7 @@ SHARD_DTYPE = np.dtype(
         ("z", "<f8"),
         ("index", "<i8"),  # point index within its tile (file order)
         ("tile", "<u2"),
-        ("core", "u1"),  # 1 when the point belongs to this block's core
+        ("core", "u1"),  # 1 in this block's core, 0 halo, 2 shadow (mixed step only)
         ("return_number", "u1"),
         ("number_of_returns", "u1"),
         ("scan_id", "<u2"),
@@ -185,6 +185,49 @@ def assign_blocks(
     return np.concatenate(out_p), np.concatenate(out_b), core
 
 
+def assign_shadow(
+    grid: BlockGrid,
+    x: NDArray,
+    y: NDArray,
+    ox: NDArray,
+    oy: NDArray,
+    own: tuple[NDArray[np.int64], NDArray[np.int64]],
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(point index, flat block id) of the blocks each point's ray passes through beyond
+    the point (from its sensor at ``ox, oy``), other than those in ``own`` (the point's
+    core and halo blocks, from ``assign_blocks``).
+
+    A ground-based scan's neighbouring beams may return from anywhere along their rays:
+    an occluder's edge in front of a block is a neighbour of the background returns in
+    it, though metres outside its halo. The ray is followed in steps of the halo (at
+    most half a block), each step copied to the blocks within the halo of it, so a
+    block gets every return whose ray continues within the halo of its core.
+    """
+    dx, dy = x - ox, y - oy
+    d = np.hypot(dx, dy)
+    ok = d > 1e-6
+    ux = np.where(ok, dx / np.where(ok, d, 1.0), 0.0)
+    uy = np.where(ok, dy / np.where(ok, d, 1.0), 0.0)
+    x1 = grid.x0 + grid.width * grid.resolution
+    y1 = grid.y0 + grid.height * grid.resolution
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(ux > 0, (x1 - x) / ux, np.where(ux < 0, (grid.x0 - x) / ux, np.inf))
+        ty = np.where(uy > 0, (y1 - y) / uy, np.where(uy < 0, (grid.y0 - y) / uy, np.inf))
+    t_exit = np.where(ok, np.maximum(np.minimum(tx, ty), 0.0), 0.0)
+    step = min(grid.buffer, grid.block_size / 2) if grid.buffer > 0 else grid.block_size / 4
+    n = np.ceil(t_exit / step).astype(np.int64)
+    if n.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rep = np.repeat(np.arange(x.size), n)
+    k = np.arange(rep.size) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n per point
+    t = np.minimum(k * step, t_exit[rep])
+    p, bid, _ = assign_blocks(grid, x[rep] + ux[rep] * t, y[rep] + uy[rep] * t)
+    nb = grid.nx * grid.ny
+    key = _sorted_unique(rep[p] * nb + bid)
+    key = key[~np.isin(key, own[0] * nb + own[1])]
+    return key // nb, key % nb
+
+
 #: file of a shard folder holding the occupied cells of its points (``occupied_cells``)
 OCCUPANCY_FILE = "occupancy.npy"
 
@@ -239,12 +282,16 @@ def shard_tile(
     roots: Sequence[str] | None = None,
     occupancy: float = 0.0,
     gps_time: bool = False,
+    origins: Sequence[Sequence[float]] | None = None,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
     files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
     of them when it is opened (``open_input``). With ``occupancy`` (a cell size),
     the cells the points occupy go to ``out_dir/occupancy.npy`` (``occupied_cells``).
-    With ``gps_time`` the records are ``SHARD_DTYPE_TIMED`` (ground-based jobs).
+    With ``gps_time`` the records are ``SHARD_DTYPE_TIMED`` (ground-based jobs). With
+    the scan positions' ``origins`` (numbered by the points' scan ids) each point is also
+    copied, with core 2, to the blocks its ray passes through beyond it
+    (``assign_shadow``): for the mixed-measurement step only.
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -261,6 +308,17 @@ def shard_tile(
             if occupancy > 0:
                 cells.append(occupied_cells(x, y, occupancy))
             p, bid, core = assign_blocks(grid, x, y)
+            core = core.astype(np.uint8)
+            if origins is not None and len(origins) > 0:
+                o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+                sid = chunk.scan_id.astype(np.int64) if o.shape[0] > 1 else np.zeros(x.size, int)
+                has = sid < o.shape[0]
+                sid = np.where(has, sid, 0)
+                sp, sb = assign_shadow(grid, x, y, o[sid, 0], o[sid, 1], (p, bid))
+                keep = has[sp]
+                p = np.concatenate([p, sp[keep]])
+                bid = np.concatenate([bid, sb[keep]])
+                core = np.concatenate([core, np.full(np.count_nonzero(keep), 2, np.uint8)])
             # Stable, so a block's points keep file order; on 16-bit ids numpy
             # sorts by radix (~6x faster than the merge sort of wider ints).
             key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
@@ -284,7 +342,7 @@ def shard_tile(
                 name = block_name(b % grid.nx, b // grid.nx)
                 with open(tmp / f"{name}.bin", "ab") as fh:
                     rec[s:e].tofile(fh)
-                core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
+                core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e] == 1))
         if occupancy > 0:
             merged = _sorted_unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
             np.save(tmp / OCCUPANCY_FILE, merged)

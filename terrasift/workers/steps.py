@@ -62,7 +62,8 @@ def mixed_step(block: Block, models: BlockModels) -> None:
         "loss_rate": float(found.unclassified[core].mean()) if core.any() else 0.0,
         "geometry": found.geometry,
     }
-    block.act = np.flatnonzero(~found.marked)
+    keep = ~found.marked if block.shadow is None else ~found.marked & ~block.shadow
+    block.act = np.flatnonzero(keep)
     block.sub = block.xyz[block.act]
 
 
