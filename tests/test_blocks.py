@@ -188,7 +188,7 @@ def test_shadow_copies_a_return_to_the_blocks_behind_it():
     own = assign_blocks(grid, x, y)[:2]
     p, b = assign_shadow(grid, x, y, ox, oy, own)
     # x = 45 is core of block 0 and halo of block 1; x = 20 is in block 0 only
-    assert set(zip(p.tolist(), b.tolist())) == {(0, 2), (0, 3), (1, 1), (1, 2), (1, 3)}
+    assert set(zip(p.tolist(), b.tolist(), strict=True)) == {(0, 2), (0, 3), (1, 1), (1, 2), (1, 3)}
     west = assign_shadow(
         grid, np.array([2.0]), np.array([5.0]), ox[:1], oy[:1], (np.array([0]), np.array([0]))
     )
