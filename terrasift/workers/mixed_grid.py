@@ -124,17 +124,22 @@ def pulse_numbers(t: NDArray[np.float64], max_jitter: float = 0.15) -> NDArray[n
     return out
 
 
-def _column_length(b: NDArray[np.int64], el: NDArray[np.float64], guess: float) -> int:
+def _column_length(
+    b: NDArray[np.int64], el: NDArray[np.float64], guess: float, step_el: float
+) -> int:
     """Pulses per column: the lag L at which the return of pulse b + L (same row, next
-    column) lies at the same elevation as pulse b's, searched around ``guess``; on a
-    sample of returns (a beam's elevation does not depend on the scene, only its blur)."""
+    column) lies at the same elevation as pulse b's, searched outwards from ``guess``
+    (up to 1.5× either way) on a sample of returns: a beam's elevation does not depend
+    on the scene, only its blur. A lag whose median elevation change is under a quarter
+    step ends the search (a lag off by one changes it by about a step)."""
     order = np.argsort(b)
     bs, es = b[order], el[order]
     pick = np.linspace(0, bs.size - 1, min(bs.size, 4000)).astype(np.int64)
     b0, e0 = bs[pick], es[pick]
     best, best_cost = 0, np.inf
     lo, hi = max(2, int(guess / 1.5)), int(np.ceil(guess * 1.5)) + 1
-    for lag in range(lo, hi + 1):
+    g = int(np.clip(round(guess), lo, hi))
+    for lag in sorted(range(lo, hi + 1), key=lambda v: (abs(v - g), v)):
         j = np.minimum(np.searchsorted(bs, b0 + lag), bs.size - 1)
         hit = bs[j] == b0 + lag
         if np.count_nonzero(hit) < 20:
@@ -142,6 +147,8 @@ def _column_length(b: NDArray[np.int64], el: NDArray[np.float64], guess: float) 
         cost = float(np.median(np.abs(es[j[hit]] - e0[hit])))
         if cost < best_cost:
             best, best_cost = lag, cost
+        if best_cost < 0.25 * step_el:
+            break
     return best
 
 
@@ -177,7 +184,7 @@ def time_index(
     jump = dx[dx > 8.0]
     if jump.size < 4:
         return None
-    per_col = _column_length(b, el, float(np.median(jump)))
+    per_col = _column_length(b, el, float(np.median(jump)), step_el)
     if per_col < 2:
         return None
     y = el / step_el
