@@ -434,6 +434,7 @@ class PointChunk:
     number_of_returns: NDArray[np.uint8]
     scan_id: NDArray[np.uint16]
     classification: NDArray[np.uint8] | None = None  # the input's classes (kept classes)
+    gps_time: NDArray[np.float64] | None = None  # when asked for and the format has it
 
 
 def iter_chunks(
@@ -443,9 +444,12 @@ def iter_chunks(
     start: int = 0,
     stop: int | None = None,
     roots: Sequence[str] | None = None,
+    gps_time: bool = False,
 ) -> Iterator[PointChunk]:
     """Yield the tile's points ``start``..``stop`` (default: all) in file order,
     ``chunk_size`` at a time; with ``roots`` the file is opened by ``open_input``.
+    With ``gps_time`` each chunk carries the points' GPS time (None when the point
+    format has none).
 
     Only the dimensions the science uses are decompressed. ``scan_dim`` names a
     dimension holding a scan-position id (default: point_source_id, 0 if absent).
@@ -458,6 +462,7 @@ def iter_chunks(
         | sel.POINT_SOURCE_ID
         | sel.CLASSIFICATION
         | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+        | (sel.GPS_TIME if gps_time else 0)
     )
     try:
         source = open_input(path, roots)
@@ -517,6 +522,11 @@ def iter_chunks(
                     number_of_returns=np.asarray(pts.number_of_returns, dtype=np.uint8),
                     scan_id=scan,
                     classification=np.asarray(pts.classification, dtype=np.uint8),
+                    gps_time=(
+                        np.asarray(pts.gps_time, dtype=np.float64)
+                        if gps_time and "gps_time" in names
+                        else None
+                    ),
                 )
                 pos += n
         except (InputError, *PASS_THROUGH):
