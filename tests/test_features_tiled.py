@@ -38,9 +38,11 @@ def _key(f) -> tuple:
     return (f.kind, f.tiles, round(c.x, 3), round(c.y, 3))
 
 
-def _tiled(scene: dict, n: int, halo: int | None) -> list:
+def _tiled(scene: dict, n: int, halo: int | None, edges: list[int] | None = None) -> list:
     dtm = scene["dtm"]
-    edges = np.linspace(0, dtm.shape[0], n + 1).astype(int)
+    if edges is None:
+        edges = np.linspace(0, dtm.shape[0], n + 1).astype(int).tolist()
+    n = len(edges) - 1
     pieces = []
     for i in range(n):
         for j in range(n):
@@ -81,3 +83,14 @@ def test_window_reach_covers_the_widest_filter() -> None:
     assert window_reach(resolve_filters("all"), cp, CELL) == ridge
     # the regional window (120 m) alone reaches 60 m and more
     assert ridge * CELL > 60
+
+
+def test_cores_one_tile_thin_without_halo_search_as_the_others(scene: dict) -> None:
+    """Halo 0 and cores one 2 m tile thin along the DTM's edges (their first window is
+    one tile of the regional median's coarser sampling): no error, and the objects
+    of all cores are still the whole DTM's."""
+    dtm = scene["dtm"]
+    n = dtm.shape[0]
+    tiled = sorted(_tiled(scene, 0, 0, [0, 4, n - 4, n]), key=_key)
+    whole = sorted(scene["whole"], key=_key)
+    assert [_key(f) for f in tiled] == [_key(f) for f in whole]
