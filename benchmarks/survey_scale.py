@@ -19,7 +19,7 @@ their tiles (linear: equal), and the ratio of each process's and each task
 kind's peak RSS.
 
     .venv/bin/python benchmarks/survey_scale.py [--tiles 16 64] [--points 500000] [--density 10]
-        [--workers 2] [--json F]
+        [--workers 2] [--no-waves] [--json F]
 
 ``--density`` lower with ``--points`` keeps the survey's width (tile side
 ``sqrt(points / density)``) at a fraction of the points, to see what grows with
@@ -116,11 +116,13 @@ class _Shifted:
         return self.surface(np.asarray(x) + self.dx, np.asarray(y) + self.dy)
 
 
-def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[Path]:
+def make_survey(
+    folder: Path, tiles: int, points: int, density: float, waves: bool = True
+) -> list[Path]:
     """``tiles`` adjacent square tiles of ``points`` pulses on one continuous terrain
     whose content is the same per tile whatever the survey's size: the default slope
-    and waves, a 6 m hill on the shared corner of every 2 x 2 tiles, 4 buildings and
-    trees per tile."""
+    and waves (``waves``: their ridges and valleys run across the whole survey), a 6 m
+    hill on the shared corner of every 2 x 2 tiles, 4 buildings and trees per tile."""
     from terrasift.synthetic.terrain import Surface, make_scene, write_las
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -131,7 +133,7 @@ def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[P
         for a in range(max(1, side // 2))
         for b in range(max(1, side // 2))
     )
-    surface = Surface(hills=hills)
+    surface = Surface(hills=hills) if waves else Surface(waves=(), hills=hills)
     out = []
     for j in range(side):
         for i in range(side):
@@ -307,6 +309,12 @@ def main() -> int:
     )
     ap.add_argument("--density", type=float, default=10.0, help="pulses per m²")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--no-waves",
+        action="store_true",
+        help="terrain without the long waves (objects of bounded size: the feature "
+        "squares' windows need not grow across the survey)",
+    )
     ap.add_argument("--keep", type=Path, help="keep the surveys under this folder")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
@@ -317,7 +325,7 @@ def main() -> int:
         for n in args.tiles:
             root = Path(tempfile.mkdtemp(prefix=f"survey{n}-", dir=args.keep))
             try:
-                tiles = make_survey(root / "tiles", n, args.points, args.density)
+                tiles = make_survey(root / "tiles", n, args.points, args.density, not args.no_waves)
                 task_peaks(peak_dir)  # nothing of the survey's making
                 row = run_one(root, tiles, address, pids, peak_dir)
             finally:
