@@ -379,7 +379,16 @@ def main() -> int:
             for k in a["tasks"]
             if k in b["tasks"]
         )
+        growth = ", ".join(
+            f"{k} {a['tasks'][k]['max_growth_mib']:.0f} -> {b['tasks'][k]['max_growth_mib']:.0f}"
+            for k in a["tasks"]
+            if k in b["tasks"]
+        )
         print(f"peak RSS ratio per task kind: {kinds}")
+        print(
+            "largest growth of a task over the RSS its process held when it started (MiB; "
+            f"a process keeps what earlier tasks left, so peaks carry it): {growth}"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=2))
