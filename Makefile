@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-submit bench-kill bench-malformed bench-driver bench-survey openapi clean
+.PHONY: serve test bench bench-ground bench-features bench-mixed bench-vegetation bench-rotation bench-buildings bench-progress bench-load bench-submit bench-kill bench-audit bench-malformed bench-driver bench-survey openapi clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -55,7 +55,11 @@ bench-kill: $(STAMP)
 	$(PY) benchmarks/kill_timings.py
 
 bench-malformed: $(STAMP)
-	$(PY) benchmarks/malformed_corpus.py
+	$(PY) benchmarks/malformed_corpus.py $(MALFORMED_ARGS)
+
+# the issue's nine failures re-probed against `make serve` (its own port and data folder)
+bench-audit: $(STAMP)
+	$(PY) benchmarks/audit_live.py
 
 bench-driver: $(STAMP)
 	$(PY) benchmarks/driver_overhead.py

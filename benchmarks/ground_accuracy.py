@@ -225,6 +225,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"grow_agree": 0.5},
         {"grow_agree": 0.67},
         {"mask": True},
+        {"vote_phases": 1},
+        {"bin_phases": 2},
     ],
 }
 

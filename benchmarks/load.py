@@ -2,7 +2,13 @@
 
 Starts ``terrasift serve`` on a loopback port with a fresh data directory,
 measures p50/p99 of the status read with the pollers while the service is idle,
-then again while two jobs run, and prints both. Every loop is bounded: pollers
+then again while two jobs run, and prints both. Two jobs run through the whole
+busy window on any machine: a third job waits queued behind them, and whenever
+one of the two ends (a fast machine finishes a tile before the window does)
+the queued one starts in its place, the pollers switch to it and a new one is
+queued; a keeper checks the two every 0.25 s and the output says in what share
+of those checks both were running (and warns when it was not all of them).
+Every loop is bounded: pollers
 stop at ``--seconds`` or after ``--max-requests`` each, and the server is stopped
 with SIGTERM while the jobs run (its exit time and leftover workers are printed).
 Beside what the pollers see it prints the server's own time per request (its
@@ -103,6 +109,51 @@ async def poll(
         gc.enable()
         gc.unfreeze()
     return latencies, app_times
+
+
+async def submit(client: httpx.AsyncClient, tile: Path, params: str) -> str:
+    """Upload ``tile`` as a new job; its id."""
+    r = await client.post(
+        "/jobs", files=[("file", ("tile.laz", tile.read_bytes()))], data={"params": params}
+    )
+    r.raise_for_status()
+    return r.json()["jobID"]
+
+
+async def keep_two_running(
+    base: str, job_ids: list[str], tile: Path, params: str, seconds: float
+) -> dict[str, int]:
+    """For ``seconds``, keep the two jobs of ``job_ids`` running: a standby job waits queued,
+    and when one of the two is no longer running it takes its place in ``job_ids`` (which the
+    pollers read on every request) and a new standby is queued. Counts of the checks (every
+    0.25 s) with both running, of all checks, of the jobs replaced and of those that failed."""
+    counts = {"both": 0, "checks": 0, "replaced": 0, "failed": 0}
+    async with httpx.AsyncClient(base_url=base, timeout=60) as client:
+        standby = await submit(client, tile, params)
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            states = [(await client.get(f"/jobs/{j}")).json()["status"] for j in job_ids]
+            counts["checks"] += 1
+            counts["both"] += all(s == "running" for s in states)
+            for k, state in enumerate(states):
+                if state not in ("accepted", "running"):
+                    counts["replaced"] += 1
+                    counts["failed"] += state != "successful"
+                    job_ids[k] = standby
+                    standby = await submit(client, tile, params)
+            await asyncio.sleep(0.25)
+    return counts
+
+
+async def busy_window(
+    args: argparse.Namespace, base: str, job_ids: list[str], tile: Path, params: str
+) -> tuple[tuple[list[float], list[float]], dict[str, int]]:
+    """The pollers and the keeper of the two running jobs, side by side."""
+    polled, kept = await asyncio.gather(
+        poll(base, job_ids, args.pollers, args.seconds, args.interval, args.max_requests),
+        keep_two_running(base, job_ids, tile, params, args.seconds),
+    )
+    return polled, kept
 
 
 def cpu_seconds(pid: int) -> float:
@@ -213,11 +264,7 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
                         stderr=subprocess.DEVNULL,
                     )
                 cpu0 = (time.process_time(), cpu_seconds(server.pid), time.monotonic())
-                busy = asyncio.run(
-                    poll(
-                        base, busy_ids, args.pollers, args.seconds, args.interval, args.max_requests
-                    )
-                )
+                busy, kept = asyncio.run(busy_window(args, base, busy_ids, tile, params))
                 cpu1 = (time.process_time(), cpu_seconds(server.pid), time.monotonic())
                 if spy is not None:
                     spy.wait(timeout=60)
@@ -245,6 +292,17 @@ def measure(args: argparse.Namespace, tile: Path, pythonpath: str | None) -> Non
             f"two jobs running ({len(still)} still running at the end, progress {still}): {summary(busy[0])}"
         )
         print(f"  server's own time:          {summary(busy[1])}")
+        share = kept["both"] / max(kept["checks"], 1)
+        print(
+            f"  both jobs running in {kept['both']} of {kept['checks']} checks ({100 * share:.0f} %); "
+            f"jobs that ended in the window and were replaced: {kept['replaced']} "
+            f"({kept['failed']} not successful)"
+        )
+        if share < 1.0:
+            print(
+                f"  NOTE: fewer than two jobs were running in {100 * (1 - share):.0f} % of the "
+                "checks (a job starting or ending): those reads were not all under two jobs"
+            )
         wall = cpu1[2] - cpu0[2]
         print(
             f"  CPU while polling: API process {100 * (cpu1[1] - cpu0[1]) / wall:.0f} %, "

@@ -220,7 +220,13 @@ def _decompress(src: Path, dst: Path, chunk_size: int = 1_000_000) -> None:
     with (
         atomic_path(dst) as tmp,
         reader,
-        laspy.open(str(tmp), mode="w", header=reader.header, do_compress=False) as writer,
+        laspy.open(
+            str(tmp),
+            mode="w",
+            header=reader.header,
+            do_compress=False,
+            encoding_errors="replace",  # text fields copied as they are, ASCII or not
+        ) as writer,
     ):
         for pts in reader.chunk_iterator(chunk_size):
             writer.write_points(pts)

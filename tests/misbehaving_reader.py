@@ -27,6 +27,12 @@ def misbehaving_read(path: str, *, max_points: int | None = None) -> TileInfo:
             pass
     if name.startswith("sleepy"):
         time.sleep(60)  # a reader that gets no CPU (a stalled disk, a starved machine)
+    if name.startswith("slow"):
+        # record which reader read it and when, beside the file: two readers at once?
+        started = time.time()
+        time.sleep(0.5)
+        with open(f"{path}.read", "w") as fh:
+            fh.write(f"{os.getpid()} {started} {time.time()}")
     if name.startswith("killed"):
         os.kill(os.getpid(), signal.SIGKILL)  # as the OOM killer would
     return read_tile_info(path, max_points=max_points)

@@ -87,6 +87,11 @@ def test_upload_names_are_safe_and_unique() -> None:
     assert safe_name("tile 1.laz", 2, taken) == "tile_1-1.laz"
     assert safe_name("", 3, taken) == "upload-3.las"
     assert safe_name("..", 4, taken) == "upload-4.las"
+    # a name longer than a file system takes (a 5000-character name was a 500): shortened
+    long = safe_name("a" * 5000 + ".laz", 5, taken)
+    assert long == "a" * 124 + ".laz" and len(long) == 128
+    assert safe_name("a" * 5000 + ".laz", 6, taken) == "a" * 124 + "-1.laz"
+    assert len(safe_name("é" * 300, 7, taken)) <= 128
 
 
 def test_token_file(tmp_path: Path) -> None:

@@ -173,3 +173,23 @@ def test_occupied_density_leaves_voids_out_and_unions_parts(tmp_path, small_tile
     want = occupied_cells(np.asarray(las.x), np.asarray(las.y), 1.3)
     got = np.load(tmp_path / "s" / "occupancy.npy")
     assert np.array_equal(got, want)
+
+
+def test_shadow_copies_a_return_to_the_blocks_behind_it():
+    # a sensor at (5, 5) in a row of four 50 m blocks (10 m halo): a return east of it
+    # reaches, along its ray, the blocks it lies in front of (not those it is core or
+    # halo of), and a return whose ray leaves the grid at once reaches none
+    from terrasift.tiling.blocks import assign_shadow
+
+    grid = BlockGrid.over((0.0, 0.0), (199.0, 49.0), 0.5, 50.0, 10.0)
+    assert (grid.nx, grid.ny) == (4, 1)
+    x, y = np.array([45.0, 20.0]), np.array([5.0, 5.0])
+    ox, oy = np.array([5.0, 5.0]), np.array([5.0, 5.0])
+    own = assign_blocks(grid, x, y)[:2]
+    p, b = assign_shadow(grid, x, y, ox, oy, own)
+    # x = 45 is core of block 0 and halo of block 1; x = 20 is in block 0 only
+    assert set(zip(p.tolist(), b.tolist(), strict=True)) == {(0, 2), (0, 3), (1, 1), (1, 2), (1, 3)}
+    west = assign_shadow(
+        grid, np.array([2.0]), np.array([5.0]), ox[:1], oy[:1], (np.array([0]), np.array([0]))
+    )
+    assert west[0].size == 0

@@ -859,3 +859,35 @@ def test_clear_key_parses_formats_and_marks_tiles_beyond_the_slope_noise():
     assert np.array_equal(m, cats.clear == 1)
     off = compute_categories(z, cell, CategoryParams(noise=0.005, slope_noise=0))
     assert (off.clear[:, :19] == 1).all()
+
+
+def test_clear_share_drops_objects_made_of_tiles_only_just_past_the_flatness_threshold():
+    """``clear-share``: an object is kept when enough of its tiles that are not flat are
+    clearly not flat; the test is per object (connected label), before joining."""
+    inc = np.zeros((30, 30), np.uint8)
+    inc[2:10, 2:10] = 1  # object A: every tile clear
+    inc[15:23, 15:23] = 1  # object B: a quarter of its tiles clear
+    clear = np.zeros_like(inc)
+    clear[2:10, 2:10] = 1
+    clear[15:19, 15:19] = 1
+    zeros = np.zeros_like(inc)
+    cats = Categories(inc, zeros, zeros, zeros, 4, 2.0, clear=clear)
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple 4 -1 4 -1\nclear-share 0.5\n"
+    )
+    flt = parse_filter(text, "c")
+    assert flt.clear_share == 0.5
+    assert parse_filter(format_filter(flt), "c") == flt
+    tt = Affine(2.0, 0, 0, 0, -2.0, 60.0)
+    kept = detect_features(cats, [flt], tt, 2.0).objects
+    assert len(kept) == 1 and kept[0].geometry.centroid.x < 30
+    plain = parse_filter(text.replace("clear-share 0.5\n", ""), "c")
+    assert len(detect_features(cats, [plain], tt, 2.0).objects) == 2
+    half = parse_filter(text.replace("0.5", "0.25"), "c")
+    assert len(detect_features(cats, [half], tt, 2.0).objects) == 2  # B: exactly 25 %
+    with pytest.raises(FilterSyntaxError, match="clear-share"):
+        parse_filter(text.replace("connect simple 4 -1 4 -1\n", ""), "c")
+    with pytest.raises(FilterSyntaxError, match="clear-share"):
+        parse_filter(text.replace("0.5", "1.5"), "c")

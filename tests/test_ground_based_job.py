@@ -85,3 +85,40 @@ def test_concentric_grid_holds_where_square_bins_fail_on_a_dense_scan():
     )
     assert ring.kappa > 0.95 and ring.type1 < 0.01, ring  # measured 0.974, 0.0001
     assert square.kappa < ring.kappa - 0.1, square
+
+
+def test_scan_job_places_returns_by_gps_time(tmp_path):
+    # the same scan as a LAS file with each return's GPS time (point format 6): the shards
+    # carry the times and every block places its returns on the grid by firing order
+    scan = make_scan(step_deg=0.4, seed=4)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.floor(scan.xyz.min(axis=0))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = scan.xyz.T
+    las.gps_time = scan.gps_time
+    path = tmp_path / "timed.laz"
+    las.write(str(path))
+    origin = ",".join(str(v) for v in scan.origin)
+    job = tmp_path / "job"
+    params = jobs.validate_params(
+        {"sensor_origin": origin, "features": "none", "block_size": 40, "buffer": 4}
+    )
+    jobs.prepare_job(job, [path], params)
+    jobs.run_job(job, InlineExecutor(), products="classified")
+    marked = np.asarray(laspy.read(jobs.output_path(job, "classified.laz")).classification) == 7
+    report = json.loads(jobs.output_path(job, "report.json").read_text())
+    geo = report["mixed_measurements"]["geometry"]["0"]
+    assert geo["grid_index"] == {"GPS time (firing order)": geo["blocks"]}
+    assert geo["grid_share"] == 1.0
+    tpr = np.mean(marked[scan.is_mixed])
+    fpr = np.mean(marked[~scan.is_mixed])
+    assert tpr > 0.9 and fpr < 0.013, (tpr, fpr)
+    # each block also holds the returns in front of it along the rays (shadow copies),
+    # so it sees every neighbouring beam the whole scan has: the job marks what the
+    # stage alone marks on the whole scan
+    from terrasift.workers.mixed import MixedParams, mark_mixed
+
+    xyz = np.column_stack([las.x, las.y, las.z])
+    alone = mark_mixed(xyz, MixedParams(), scan.origin, gps_time=scan.gps_time).marked
+    assert np.array_equal(alone, marked)

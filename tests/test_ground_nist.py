@@ -746,7 +746,7 @@ def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere():
     xyz, truth = _isprs("samp52")
     for dx, dy in ((0.0, 5.0), (40.0, 40.0)):
         g = nist.classify_ground(xyz + np.array([dx, dy, 0.0]), nist.NistParams())
-        assert ground_score(truth, g).kappa > 0.86  # measured 87.5 and 87.9 %
+        assert ground_score(truth, g).kappa > 0.86  # measured 88.4 and 88.8 %
 
 
 def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_steps():
@@ -758,7 +758,7 @@ def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_ste
         g = nist.classify_ground(
             xyz + np.array([dx, dy, 0.0]), nist.NistParams(raised_relative=True)
         )
-        assert ground_score(truth, g).kappa > 0.86  # measured 87.5 and 87.9 %
+        assert ground_score(truth, g).kappa > 0.86  # measured 88.4 and 88.8 %
 
 
 def test_masking_off_keeps_a_low_platform_out_of_the_ground():
@@ -790,3 +790,36 @@ def test_growth_needs_its_ground_neighbours_to_agree_before_climbing_a_platform(
     )
     assert anyone.type2 > 0.10
     assert half.type2 < 0.03 and half.type1 < 0.01
+
+
+def test_isprs_samp61_kappa_holds_when_the_bins_fall_elsewhere():
+    # 0.19 pts/m²: with one final grid, whether growth reaches a dike crest (and
+    # which lowest points the final bins hold) is luck of where the bins fall
+    # (kappa 83.2 and 82.1 at these two); the vote over four grid phases holds.
+    xyz, truth = _isprs("samp61")
+    one, voted = [], []
+    for dx, dy in ((0.0, 5.0), (11.0, 7.0)):
+        moved = xyz + np.array([dx, dy, 0.0])
+        voted.append(ground_score(truth, nist.classify_ground(moved, nist.NistParams())).kappa)
+        one.append(
+            ground_score(truth, nist.classify_ground(moved, nist.NistParams(vote_phases=1))).kappa
+        )
+    assert min(voted) > 0.86, voted  # measured 87.1 and 89.2 %
+    assert min(one) < 0.85, one
+
+
+def test_auto_vote_runs_one_grid_on_dense_data_and_four_on_sparse():
+    dense = make_scene(size=60.0, density=8.0, seed=3).xyz
+    sparse = make_scene(size=120.0, density=0.5, seed=3).xyz
+    p = nist.NistParams()
+    assert np.array_equal(
+        nist.classify_ground(dense, p),
+        nist.classify_ground(dense, p.model_copy(update={"vote_phases": 1})),
+    )
+    auto = nist.classify_ground(sparse, p)
+    assert np.array_equal(
+        auto, nist.classify_ground(sparse, p.model_copy(update={"vote_phases": 2}))
+    )
+    assert not np.array_equal(
+        auto, nist.classify_ground(sparse, p.model_copy(update={"vote_phases": 1}))
+    )

@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -152,3 +153,42 @@ def test_every_response_carries_the_apps_own_time(client: TestClient) -> None:
     for r in (client.get("/conformance"), client.get("/jobs/nope"), client.get("/jobs/%00")):
         timing = r.headers["server-timing"]
         assert timing.startswith("app;dur=") and 0 <= float(timing.split("=")[1]) < 10_000
+
+
+@pytest.mark.parametrize("damage", ["file", "removed"])
+def test_a_data_directory_broken_under_the_service_is_503_not_500(
+    client: TestClient, tile: Path, damage: str
+) -> None:
+    """The job folder replaced by a file (as root, whom permissions do not stop) or
+    removed under the running service: the storage is at fault, so 503 or the job is
+    stored (the folder made again), never an internal error."""
+    jobs = client.app.state.settings.jobs_dir
+    aside = jobs.with_name("jobs.aside")
+    jobs.rename(aside)
+    if damage == "file":
+        jobs.write_text("not a folder")
+    try:
+        r = client.post("/jobs", files=[("file", ("t.las", tile.read_bytes()))])
+        if damage == "file":
+            assert "Not a directory" in _problem(r, 503)["detail"]
+        else:
+            assert r.status_code in (201, 503), r.text
+    finally:
+        if jobs.is_file():
+            jobs.unlink()
+        elif jobs.is_dir():
+            shutil.rmtree(jobs)
+        aside.rename(jobs)
+
+
+@pytest.mark.parametrize("name", ["a" * 300 + ".las", "d/" * 3000 + "tile.las", "loop/tile.las"])
+def test_server_paths_the_file_system_cannot_take_are_400(client: TestClient, name: str) -> None:
+    """A name longer than the file system takes (a 500 before), a path longer than PATH_MAX,
+    a symlink loop: a 400 naming the path, for execute and for a survey."""
+    root = client.app.state.settings.input_root
+    if not (root / "loop").is_symlink():
+        (root / "loop").symlink_to(root / "loop")
+    r = client.post("/processes/terrain/execution", json={"inputs": {"files": [name]}})
+    assert "cannot be used" in _problem(r, 400)["detail"]
+    r = client.post("/surveys", json={"files": [name]})
+    assert "cannot be used" in _problem(r, 400)["detail"]

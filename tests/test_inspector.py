@@ -176,3 +176,55 @@ def test_server_paths_and_survey_tiles_are_read_by_the_readers_too(
     assert r.status_code == 422, r.text
     assert "abort.las: reading its header crashed the reader" in r.json()["detail"]
     assert client.get("/health").status_code == 200
+
+
+def test_the_files_of_one_request_are_read_side_by_side(
+    inspector: HeaderInspector, small_tile: Path, tmp_path: Path
+) -> None:
+    """Four files of one request go to both readers at once (their reads overlap in time),
+    the answers come back in the request's order, and a wrong file among them raises
+    naming it."""
+    deadline = time.monotonic() + 30
+    while len(inspector.pids()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    files = [_copy(small_tile, tmp_path, f"slow{i}.las") for i in range(4)]
+    infos = inspector(files)
+    assert [Path(i.path).name for i in infos] == [f.name for f in files]
+    reads = [Path(f"{f}.read").read_text().split() for f in files]
+    by_reader: dict[str, list[tuple[float, float]]] = {}
+    for pid, start, end in reads:
+        by_reader.setdefault(pid, []).append((float(start), float(end)))
+    assert len(by_reader) == 2, reads
+    first, second = by_reader.values()
+    assert any(a0 < b1 and b0 < a1 for a0, a1 in first for b0, b1 in second), reads
+    bad = _copy(small_tile, tmp_path, "abort.las")
+    with pytest.raises(InputError, match=r"^abort\.las: "):
+        inspector([files[0], bad, files[1], files[2]])
+
+
+def test_the_crs_is_parsed_by_the_reader(
+    inspector: HeaderInspector,
+    small_tile: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The reader gives each tile's CRS label with its WKT: checking a job's inputs in the
+    API process parses no CRS when its tiles share one (pyproj's parser is made to fail
+    here), and tiles whose CRS differ are still refused naming both."""
+    import pyproj
+
+    from terrasift.jobs import plan
+    from terrasift.synthetic.terrain import make_scene, write_las
+
+    a, b = _copy(small_tile, tmp_path, "a.laz"), _copy(small_tile, tmp_path, "b.laz")
+    other = write_las(make_scene(size=40, density=2, seed=1), tmp_path / "c.laz", crs="EPSG:25832")
+    old = plan.use_header_reader(inspector)
+    try:
+        with monkeypatch.context() as m:
+            m.setattr(pyproj.CRS, "from_wkt", lambda *a, **k: pytest.fail("parsed in the API"))
+            summary = plan.inspect_inputs([a, b], {})
+        assert summary["crs"] == "EPSG:32632" and summary["tiles"] == 2
+        with pytest.raises(InputError, match=r"c\.laz is EPSG:25832, the first tile is EPSG:32632"):
+            plan.inspect_inputs([a, other], {})
+    finally:
+        plan.use_header_reader(old)

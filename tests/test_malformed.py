@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from terrasift.errors import InputError
+from terrasift.errors import InputError, ParameterError
 from terrasift.service.app import create_app
 from terrasift.service.settings import Settings
 from terrasift.synthetic.malformed import corpus, laszip_items_at, run_through_app, write_pair
@@ -192,3 +192,108 @@ def test_a_decoder_panic_is_an_input_error_naming_the_file(
     assert reader_pool.worker_pids() == before  # an error, not a lost worker
     with pytest.raises(InputError, match=r"panics\.laz: .*decoder crashed \(PanicException"):
         _read_all(str(path))  # in this process too
+
+
+def test_every_header_field_flipped(
+    tmp_path_factory: pytest.TempPathFactory, reader_pool: WorkerPool
+) -> None:
+    """Every field of the LAS 1.2 and 1.4 headers (LAS and LAZ) with all its bits flipped:
+    the header check refuses it naming the file, or every point it declares is read (in a
+    disposable worker, as the service reads them), or reading fails naming the file."""
+    from terrasift.synthetic.malformed import HEADER_12, HEADER_14, full_corpus
+
+    directory = tmp_path_factory.mktemp("flipped")
+    cases = [case for case in full_corpus(directory) if case[0].endswith("-flipped")]
+    assert len(cases) == 2 * 2 * len(HEADER_12) + 2 * len(HEADER_14)
+    outcomes: Counter[str] = Counter()
+    for name, suffix, data in cases:
+        path = directory / f"flip.{suffix}"
+        path.write_bytes(data)
+        try:
+            info = read_tile_info(path)
+        except InputError as exc:
+            assert str(exc).startswith("flip."), (name, str(exc))
+            outcomes["refused"] += 1
+            continue
+        try:
+            read = reader_pool.submit(_read_all, str(path), timeout=30).result(timeout=120)
+        except InputError as exc:
+            assert "flip." in str(exc), (name, str(exc))
+            outcomes["unreadable"] += 1
+            continue
+        assert read == info.point_count, name
+        outcomes["read"] += 1
+    print("every header field flipped:", dict(outcomes))
+    assert outcomes["refused"] > 50 and outcomes["read"] > 20
+
+
+def test_hostile_parameter_sets_are_refused_or_valid() -> None:
+    """Every hostile parameter set is refused with a parameter error at submission, or is
+    a valid set whose block models build (no other exception reaches the request)."""
+    from terrasift.jobs.params import JobParams, block_models, validate_params
+    from terrasift.service.problems import Problem
+    from terrasift.service.submit import parse_params
+    from terrasift.synthetic.malformed import hostile_params
+
+    cases = hostile_params(JobParams)
+    assert len(cases) > 900
+    accepted = []
+    for name, text in cases:
+        try:
+            params = validate_params(parse_params(text))
+        except (ParameterError, Problem):
+            continue
+        block_models(params)
+        accepted.append(name)
+    # bad values for a fixed parameter that pass are ones it can take (null, true as 1, 0)
+    assert "sensor-origin-nan" not in accepted and "sensor-origin-huge" not in accepted
+    assert (
+        "features-80000-names" not in accepted and "ground.ptd.min_spacing=above-50" not in accepted
+    )
+    assert "scan_dimension=bad-17" not in accepted  # a 100 000-character name
+    assert len(accepted) < 60, accepted
+
+
+@pytest.mark.parametrize(
+    "case", ["ground.ptd-all-smallest", "ground.ptd-all-largest", "features-80000-same-name"]
+)
+def test_extreme_parameters_end_a_job_with_a_reason(
+    client: TestClient, good: tuple[bytes, bytes], case: str
+) -> None:
+    """Parameter sets at the edges of their bounds (cells of 5e-324 m, a PTD spacing the
+    low-point test cannot take) ended jobs with "internal error": now a job that ends
+    saying why, or succeeds."""
+    from terrasift.jobs.params import JobParams
+    from terrasift.service.scheduler import GENERIC_FAILURE
+    from terrasift.synthetic.malformed import hostile_params
+
+    text = dict(hostile_params(JobParams))[case]
+    outcome = run_through_app(client, [(case, "laz", good[1], text)], PARAMS)[case]
+    assert outcome[0] in ("refused-4xx", "failed", "successful"), outcome
+    assert outcome[1] != GENERIC_FAILURE, outcome
+
+
+def test_header_text_that_is_not_ascii_is_copied_as_it_is(
+    tmp_path: Path, good: tuple[bytes, bytes]
+) -> None:
+    """A system identifier or generating software with bytes above 0x7F (every bit of the
+    field flipped) passes the header check; the classified copy failed the job on it with
+    an internal error (laspy's strict ASCII check when writing). Now the copy keeps the
+    bytes as the file holds them."""
+    import laspy
+    import numpy as np
+
+    from terrasift.tiling.classified import write_classified_copy
+
+    for field, at in (("system_identifier", 26), ("generating_software", 58)):
+        data = bytearray(good[1])
+        data[at : at + 32] = bytes(b ^ 0xFF for b in data[at : at + 32])
+        src = tmp_path / f"{field}.laz"
+        src.write_bytes(bytes(data))
+        info = read_tile_info(src)
+        out = write_classified_copy(
+            src, tmp_path / f"{field}-out.laz", np.full(info.point_count, 2, np.uint8)
+        )
+        with laspy.open(out) as reader:
+            assert reader.header.point_count == info.point_count
+        assert out.read_bytes()[at : at + 32] == bytes(data[at : at + 32])

@@ -149,3 +149,39 @@ def test_job_geometry_per_scan_position_from_all_shards(tmp_path):
         assert "once per job" in geo[k].how["scope"]
     assert geo[0].step_az == pytest.approx(0.3, rel=0.01)
     assert geo[1].step_az == pytest.approx(0.2, rel=0.01)
+
+
+def test_geometry_does_not_depend_on_point_order_and_job_takes_the_stage_sector(tmp_path):
+    # a job reads a position's points block by block: the measurement must not depend on
+    # their order, and over MAX_SAMPLE points the job takes the very sector the stage does
+    from terrasift.jobs.scan import job_geometry, measure_job_geometry
+    from terrasift.tiling.blocks import SHARD_DTYPE
+    from terrasift.workers import scan_geometry as sg
+    from terrasift.workers.mixed import MixedParams
+
+    s = make_scan(step_deg=0.15, azimuth_deg=(-20.0, 20.0), n_boards=3, n_poles=3, seed=6)
+    assert 30_000 < len(s) < sg.MAX_SAMPLE
+    rel = s.xyz - s.origin
+    perm = np.random.default_rng(0).permutation(len(s))
+    whole = measure_scan_geometry(rel, absolute=s.xyz)
+    assert measure_scan_geometry(rel[perm], absolute=s.xyz[perm]) == whole
+    old = sg.MAX_SAMPLE
+    try:
+        sg.MAX_SAMPLE = 16_000  # the sector is a part of the scan
+        a = measure_scan_geometry(rel, absolute=s.xyz)
+        rec = np.zeros(len(s), SHARD_DTYPE)
+        rec["x"], rec["y"], rec["z"] = s.xyz[perm].T
+        rec["core"] = 1
+        (tmp_path / "p").mkdir()
+        rec[: len(s) // 3].tofile(tmp_path / "p" / "0_0.bin")
+        rec[len(s) // 3 :].tofile(tmp_path / "p" / "1_0.bin")
+        import terrasift.jobs.scan as js
+
+        js.MAX_SAMPLE = 16_000
+        (g,) = job_geometry(measure_job_geometry([tmp_path / "p"], [s.origin], MixedParams()))
+    finally:
+        sg.MAX_SAMPLE = old
+        js.MAX_SAMPLE = old
+    assert g.n_points == a.n_points == 16_000
+    assert g.range_sigma == pytest.approx(a.range_sigma, rel=1e-4)
+    assert g.step_az == pytest.approx(a.step_az, rel=1e-5)

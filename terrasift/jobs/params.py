@@ -22,6 +22,7 @@ from terrasift.workers.registry import block_steps, get_stage, ground_methods, s
 
 DEFAULT_GROUND = "nist"
 DEFAULT_BUFFER = 20.0  # metres of halo when the ground method asks for no more
+MAX_COORDINATE = 1e9  # metres: bound of a sensor origin's coordinates
 MAX_FEATURE_NAMES = 64  # filters in one job; each one searches the whole mosaic twice
 
 
@@ -62,7 +63,9 @@ class JobParams(BaseModel):
     )
     workers: int | None = Field(None, ge=1, le=256, description="worker processes for `process`")
     scan_dimension: str | None = Field(
-        None, description="LAS dimension holding a scan-position id (default point_source_id)"
+        None,
+        max_length=64,  # LAS names a dimension in at most 32 bytes
+        description="LAS dimension holding a scan-position id (default point_source_id)",
     )
 
     @field_validator("sensor_origin", mode="before")
@@ -84,6 +87,21 @@ class JobParams(BaseModel):
             return [tuple(v)]
         return v
 
+    @field_validator("sensor_origin")
+    @classmethod
+    def _finite_origin(
+        cls, v: list[tuple[float, float, float]] | None
+    ) -> list[tuple[float, float, float]] | None:
+        # a NaN or infinite origin would turn every range and angle of its points into NaN,
+        # and squares of coordinates beyond ~1e154 overflow; no CRS of the Earth needs 1e9 m
+        if v is not None and not all(
+            math.isfinite(c) and abs(c) <= MAX_COORDINATE for origin in v for c in origin
+        ):
+            raise ValueError(
+                f"sensor_origin coordinates must be finite numbers within ±{MAX_COORDINATE:g}"
+            )
+        return v
+
     @field_validator("ground")
     @classmethod
     def _registered_method(cls, v: str) -> str:
@@ -99,8 +117,8 @@ class JobParams(BaseModel):
             return "auto"
         try:
             return float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"buffer must be metres or 'auto', not {v!r}") from None
+        except (TypeError, ValueError, OverflowError):  # an integer too large for a float
+            raise ValueError(f"buffer must be metres or 'auto', not {str(v)[:40]!r}") from None
 
     @field_validator("crs")
     @classmethod

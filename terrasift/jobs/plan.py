@@ -20,7 +20,7 @@ from terrasift.errors import InputError
 from terrasift.files import load_json, write_json
 from terrasift.jobs.params import grid_alignment, resolve_buffer
 from terrasift.tiling.blocks import BlockGrid, occupancy_cell
-from terrasift.tiling.lasfile import TileInfo, open_input, read_tile_info
+from terrasift.tiling.lasfile import TileInfo, crs_name, open_input, read_tile_info
 
 #: reads the headers of tiles (paths, max_points) -> one TileInfo per path, in order
 HeaderReader = Callable[[Sequence[str | Path], int | None], list[TileInfo]]
@@ -73,7 +73,7 @@ def inspect_inputs(
         "tiles": len(infos),
         "points": sum(i.point_count for i in infos),
         "bounds": [*mins, *maxs],
-        "crs": _crs_label(crs_wkt),
+        "crs": crs_label(crs_wkt, infos),
         "warnings": warnings,
     }
 
@@ -84,30 +84,43 @@ def resolve_crs(infos: list[TileInfo], override: str | None) -> tuple[str | None
     if override:
         crs = pyproj.CRS.from_user_input(override)
         return crs.to_wkt(), [w for w in warnings if "no CRS" not in w]
-    found = [pyproj.CRS.from_wkt(i.crs_wkt) for i in infos if i.crs_wkt]
-    if not found:
+    with_crs = [i for i in infos if i.crs_wkt]
+    if not with_crs:
         warnings.append(
             "no CRS known: rasters and features.gpkg carry none, features are written in the tiles' own coordinates only (features.native.geojson, features.gpkg; no WGS 84 features.geojson); pass crs=EPSG:..."
         )
         return None, warnings
-    first = found[0]
-    for other, info in zip(found[1:], [i for i in infos if i.crs_wkt][1:], strict=True):
+    # the readers wrote each CRS as pyproj's WKT: the same text is the same CRS, and only
+    # tiles whose text differs need parsing (here, in this process) to compare them
+    first_wkt = str(with_crs[0].crs_wkt)
+    first = None
+    for info in with_crs[1:]:
+        if info.crs_wkt == first_wkt:
+            continue
+        first = first or pyproj.CRS.from_wkt(first_wkt)
+        other = pyproj.CRS.from_wkt(str(info.crs_wkt))
         if not first.equals(other, ignore_axis_order=True):
             raise InputError(
-                f"tiles of one job must share a CRS: {Path(info.path).name} is {_crs_label(other.to_wkt())}, "
-                f"the first tile is {_crs_label(first.to_wkt())}"
+                f"tiles of one job must share a CRS: {Path(info.path).name} is "
+                f"{crs_label(info.crs_wkt, infos)}, the first tile is {crs_label(first_wkt, infos)}"
             )
-    if len(found) < len(infos):
+    if len(with_crs) < len(infos):
         warnings.append("some tiles have no CRS; the others' CRS is used for all")
-    return first.to_wkt(), warnings
+    return first_wkt, warnings
 
 
-def _crs_label(wkt: str | None) -> str | None:
+def crs_label(wkt: str | None, infos: Sequence[TileInfo] = ()) -> str | None:
+    """``EPSG:<code>`` or the name of the CRS ``wkt``: the label a tile's reader found for
+    that text when one did, else from parsing it here."""
     if not wkt:
         return None
-    crs = pyproj.CRS.from_wkt(wkt)
-    code = crs.to_epsg()
-    return f"EPSG:{code}" if code else crs.name
+    for info in infos:
+        if info.crs_wkt == wkt and info.crs_label:
+            return info.crs_label
+    return crs_name(pyproj.CRS.from_wkt(wkt))
+
+
+_crs_label = crs_label
 
 
 def prepare_job(
@@ -170,7 +183,7 @@ def plan_job(job_dir: Path, job: Mapping[str, Any]) -> dict[str, Any]:
         "density": density,
         "occupancy_cell": occupancy_cell(density),
         "crs_wkt": crs_wkt,
-        "crs": _crs_label(crs_wkt),
+        "crs": crs_label(crs_wkt, infos),
         "grid": grid.to_dict(),
         "warnings": warnings,
     }

@@ -150,4 +150,8 @@ def _scan_geometry(mixed: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                     vals.setdefault(k, []).append(float(v))
         out[scan] = {"blocks": len(gs), **{k: float(np.median(v)) for k, v in vals.items()}}
         out[scan]["how"] = gs[0].get("measured", {}).get("how", "stated parameters")
+        # how the returns were placed on the scan grid: blocks per way (GPS time or angles)
+        placed = [g["grid_index"] for g in gs if "grid_index" in g]
+        if placed:
+            out[scan]["grid_index"] = {w: placed.count(w) for w in sorted(set(placed))}
     return out

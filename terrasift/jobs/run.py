@@ -142,6 +142,8 @@ def run_job(
             p.stop,
             plan.get("input_roots"),
             float(plan.get("occupancy_cell", 0.0)),
+            bool(params.get("sensor_origin")),  # ground-based: GPS time gives scan order
+            params.get("sensor_origin"),  # ground-based: the blocks behind each return
         )
         for p in todo
     ]

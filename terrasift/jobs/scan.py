@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from terrasift.tiling.blocks import SHARD_DTYPE
+from terrasift.tiling.blocks import shard_dtype
 from terrasift.workers.mixed import MixedParams
 from terrasift.workers.scan_geometry import MAX_SAMPLE, ScanGeometry, measure_scan_geometry
 
@@ -31,7 +31,7 @@ AZ_BINS = 1 << 16  # azimuth histogram bins over the circle (0.0055° each)
 def _scan_records(files: Sequence[Path], n_scans: int):
     """Core records of every shard file, with each record's scan position."""
     for f in files:
-        rec = np.fromfile(f, dtype=SHARD_DTYPE)
+        rec = np.fromfile(f, dtype=shard_dtype(f.parent))
         rec = rec[rec["core"] == 1]
         if rec.size == 0:
             continue
@@ -75,6 +75,14 @@ def measure_job_geometry(
     out: list[dict[str, Any] | None] = []
     for s in range(k):
         xyz = np.concatenate(pts[s]) if pts[s] else np.zeros((0, 3))
+        total = int(hist[s].sum())
+        if total > MAX_SAMPLE:
+            # the very points the stage alone takes from the whole scan: the middle
+            # MAX_SAMPLE by azimuth rank (those before bin lo are counted in the histogram)
+            rel = xyz - o[s]
+            order = np.argsort(np.arctan2(rel[:, 1], rel[:, 0]), kind="stable")
+            first = total // 2 - MAX_SAMPLE // 2 - int(hist[s][: lo[s]].sum())
+            xyz = xyz[order[max(first, 0) : max(first, 0) + 2 * (MAX_SAMPLE // 2)]]
         geo = measure_scan_geometry(xyz - o[s], footprint=params.footprint, absolute=xyz)
         if geo is None:
             out.append(None)

@@ -232,10 +232,44 @@ class HeaderInspector:
     def __call__(
         self, paths: Sequence[str | Path], max_points: int | None = None
     ) -> list[TileInfo]:
-        """Each path's ``TileInfo``, in order; the first file found wrong raises naming it."""
+        """Each path's ``TileInfo``, in order; a file found wrong raises naming it (the
+        first in order of those read).
+
+        Several files are read side by side, one per reader (this thread and up to
+        ``workers - 1`` more): a request naming eight tiles waits for about half the
+        round trips with two readers. After a file is found wrong no further file starts.
+        """
         self.start()
         task = functools.partial(self.read, max_points=max_points)
-        return [self._read_one(task, Path(p)) for p in paths]
+        todo = [Path(p) for p in paths]
+        lanes = min(len(todo), self.workers)
+        if lanes < 2:
+            return [self._read_one(task, p) for p in todo]
+        results: list[TileInfo | None] = [None] * len(todo)
+        errors: dict[int, BaseException] = {}
+        turns = iter(range(len(todo)))  # next() on it is atomic under the GIL
+        failed = threading.Event()
+
+        def lane() -> None:
+            for i in turns:
+                if failed.is_set():
+                    return
+                try:
+                    results[i] = self._read_one(task, todo[i])
+                except BaseException as exc:  # noqa: BLE001 - raised in the calling thread
+                    errors[i] = exc
+                    failed.set()
+                    return
+
+        helpers = [threading.Thread(target=lane, daemon=True) for _ in range(lanes - 1)]
+        for t in helpers:
+            t.start()
+        lane()
+        for t in helpers:
+            t.join()
+        if errors:
+            raise errors[min(errors)]
+        return [r for r in results if r is not None]
 
     def _checkout(self, name: str) -> _Reader:
         """An idle reader, waiting for one at most the wall budget of those ahead, or start-up."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import os
 import sqlite3
 from dataclasses import dataclass
 from typing import Any
@@ -87,6 +88,23 @@ EXCEPTION_PROBLEMS: dict[type[BaseException], str] = {
 }
 
 _STORAGE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EIO}
+
+
+def _in_data_dir(request: Request, exc: Exception) -> bool:
+    """An OSError on a path in the data directory (a folder replaced by a file or removed
+    under the service, no file handles left): the storage, not the request, is at fault."""
+    settings = getattr(request.app.state, "settings", None)
+    names = [getattr(exc, "filename", None), getattr(exc, "filename2", None)]
+    if settings is None or not any(isinstance(n, (str, bytes, os.PathLike)) for n in names):
+        return False
+    root = os.path.abspath(settings.data_dir)
+    for name in names:
+        if isinstance(name, (str, os.PathLike)):
+            path = os.path.abspath(os.fspath(name))
+            if path == root or path.startswith(root + os.sep):
+                return True
+    return False
+
 
 _HTTP_STATUS_PROBLEMS = {
     404: "not-found",
@@ -176,7 +194,11 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(sqlite3.Error)
     async def _storage(request: Request, exc: Exception) -> JSONResponse:
         # the data directory or job store cannot be written: the service, not the request, is at fault
-        if isinstance(exc, sqlite3.Error) or getattr(exc, "errno", None) in _STORAGE_ERRNOS:
+        if (
+            isinstance(exc, sqlite3.Error)
+            or getattr(exc, "errno", None) in _STORAGE_ERRNOS
+            or _in_data_dir(request, exc)
+        ):
             log.error("storage unavailable on %s %s: %s", request.method, request.url.path, exc)
             return problem_response(
                 request,

@@ -68,23 +68,33 @@ def resolve_server_paths(settings: Settings, items: list[Any]) -> list[Path]:
         text = text.removeprefix("file://")
         if CONTROL_CHARS.search(text):
             raise Problem("invalid-request", f"path {text!r} holds a control character")
-        real = (root_real / text).resolve()  # an absolute `text` replaces the root, then is checked
-        if not real.is_relative_to(root_real):
-            raise Problem("forbidden-path", f"{text!r} is outside the input root")
-        if real.is_dir():
-            found = sorted(
-                p for p in real.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES
-            )
-            if not found:
-                raise Problem("invalid-request", f"directory {text!r} holds no .las/.laz files")
-            out.extend(found)
-        elif real.is_file():
-            out.append(real)
-        else:
-            raise Problem("invalid-request", f"no file {text!r} under the input root")
+        try:
+            out.extend(_server_files(root_real, text))
+        except (OSError, RuntimeError) as exc:  # a name too long, a symlink loop
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise Problem(
+                "invalid-request", f"path {text[:200]!r} cannot be used: {reason}"
+            ) from None
     if len(out) > settings.max_files:
         raise Problem("invalid-request", f"{len(out)} files; the limit is {settings.max_files}")
     return out
+
+
+def _server_files(root_real: Path, text: str) -> list[Path]:
+    """The LAS/LAZ files ``text`` names under ``root_real``: the file, or a directory's."""
+    real = (root_real / text).resolve()  # an absolute `text` replaces the root, then is checked
+    if not real.is_relative_to(root_real):
+        raise Problem("forbidden-path", f"{text!r} is outside the input root")
+    if real.is_dir():
+        found = sorted(
+            p for p in real.iterdir() if p.is_file() and p.suffix.lower() in LAS_SUFFIXES
+        )
+        if not found:
+            raise Problem("invalid-request", f"directory {text!r} holds no .las/.laz files")
+        return found
+    if real.is_file():
+        return [real]
+    raise Problem("invalid-request", f"no file {text!r} under the input root")
 
 
 def inside_root(settings: Settings, paths: list[Path]) -> None:
@@ -94,7 +104,10 @@ def inside_root(settings: Settings, paths: list[Path]) -> None:
     """
     root = settings.input_root
     for p in paths:
-        real = Path(p).resolve()
+        try:
+            real = Path(p).resolve()
+        except (OSError, RuntimeError) as exc:  # a symlink loop swapped in
+            raise Problem("forbidden-path", f"{Path(p).name!r} cannot be resolved: {exc}") from None
         if root is None or not real.is_relative_to(root.resolve()):
             raise Problem("forbidden-path", f"{Path(p).name!r} now lies outside the input root")
 

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 
 MAX_FIELD_BYTES = 1024 * 1024
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+MAX_NAME = 128  # characters of an uploaded file's name (ASCII after _UNSAFE)
 
 
 @dataclass
@@ -41,6 +42,10 @@ def safe_name(filename: str, index: int, taken: set[str]) -> str:
         _UNSAFE.sub("_", Path(filename.replace("\\", "/")).name).strip("._")
         or f"upload-{index}.las"
     )
+    if len(base) > MAX_NAME:  # a file system takes 255 bytes a name: keep the suffix
+        stem, dot, suffix = base.rpartition(".")
+        suffix = suffix[:16]
+        base = f"{stem[: MAX_NAME - len(suffix) - 1]}.{suffix}" if dot and stem else base[:MAX_NAME]
     name, n = base, 1
     while name in taken:
         stem, dot, suffix = base.rpartition(".")

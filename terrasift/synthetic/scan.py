@@ -60,6 +60,7 @@ class Scan:
     origin: NDArray[np.float64]
     boards: list[Board] = field(default_factory=list)  # walls included, sensor-local frame
     poles: list[Pole] = field(default_factory=list)
+    gps_time: NDArray[np.float64] | None = None  # seconds, one per return (scan order)
 
     @property
     def is_mixed(self) -> NDArray[np.bool_]:
@@ -93,6 +94,9 @@ def make_scan(
     origin: tuple[float, float, float] = (500_000.0, 5_400_000.0, 100.0),
     seed: int = 0,
     chunk: int = 20_000,
+    t0: float = 200_000.0,
+    pulse_period: float = 2e-6,
+    time_jitter: float = 0.02,
 ) -> Scan:
     """Ray-cast one scan of boards and poles in front of walls; see the module doc.
 
@@ -103,6 +107,10 @@ def make_scan(
     ``las_scale`` > 0 rounds the absolute coordinates to that step, as a LAS file
     stores them. ``max_range`` defaults to the farthest wall plus 5 m. Truth is
     taken on the noise-free returns, so it does not depend on noise or scale.
+    ``gps_time`` follows the firing order (columns of azimuth, rows of elevation within
+    each) from ``t0`` every ``pulse_period`` seconds, with a normal jitter of
+    ``time_jitter`` periods; it is drawn from its own generator, so the points of a
+    seed do not depend on it.
     """
     rng = np.random.default_rng(seed)
     sensor = np.array([0.0, 0.0, mast_height])
@@ -166,7 +174,18 @@ def make_scan(
     xyz = pts + shift
     if las_scale > 0:
         xyz = np.round(xyz / las_scale) * las_scale
-    return Scan(xyz=xyz, truth=truth, origin=sensor + shift, boards=planes, poles=poles)
+    # A = azimuth column outer, E = elevation row inner: the beam number is the firing order
+    beam = np.flatnonzero(ok).astype(np.float64)
+    jitter = np.random.default_rng([seed, 1]).normal(0.0, time_jitter, beam.size)
+    gps = t0 + (beam + jitter) * pulse_period
+    return Scan(
+        xyz=xyz,
+        truth=truth,
+        origin=sensor + shift,
+        boards=planes,
+        poles=poles,
+        gps_time=gps,
+    )
 
 
 def _cast(
@@ -228,6 +247,7 @@ class ScanTile:
     truth: NDArray[np.uint8]
     origins: NDArray[np.float64]
     scan_id: NDArray[np.intp]
+    gps_time: NDArray[np.float64] | None = None
 
     @property
     def is_mixed(self) -> NDArray[np.bool_]:
@@ -247,13 +267,16 @@ def make_scan_tile(
     """Scans from several positions (dx, dy, mast height) over one level ground.
 
     Each position ray-casts its own objects (a new draw per position), so per-point
-    truth stays exact; positions share the ground plane at ``ground``'s height.
+    truth stays exact; positions share the ground plane at ``ground``'s height. The
+    positions are scanned one after the other, an hour apart in GPS time.
     """
+    t0 = float(scan_kw.pop("t0", 200_000.0))
     parts = [
         make_scan(
             origin=(ground[0] + dx, ground[1] + dy, ground[2]),
             mast_height=mast,
             seed=seed * 1000 + k,
+            t0=t0 + 3600.0 * k,
             **scan_kw,
         )
         for k, (dx, dy, mast) in enumerate(positions)
@@ -263,6 +286,7 @@ def make_scan_tile(
         truth=np.concatenate([p.truth for p in parts]),
         origins=np.vstack([p.origin for p in parts]),
         scan_id=np.concatenate([np.full(len(p), k, dtype=np.intp) for k, p in enumerate(parts)]),
+        gps_time=np.concatenate([p.gps_time for p in parts if p.gps_time is not None]),
     )
 
 

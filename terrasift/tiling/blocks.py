@@ -31,13 +31,23 @@ SHARD_DTYPE = np.dtype(
         ("z", "<f8"),
         ("index", "<i8"),  # point index within its tile (file order)
         ("tile", "<u2"),
-        ("core", "u1"),  # 1 when the point belongs to this block's core
+        ("core", "u1"),  # 1 in this block's core, 0 halo, 2 shadow (mixed step only)
         ("return_number", "u1"),
         ("number_of_returns", "u1"),
         ("scan_id", "<u2"),
         ("classification", "u1"),  # the input's class (kept classes)
     ]
 )
+#: Shards of ground-based jobs also carry each point's GPS time (NaN where the file has
+#: none), which places a return on its beam by firing order; a folder written so holds
+#: the ``TIMED_FILE`` marker.
+SHARD_DTYPE_TIMED = np.dtype(SHARD_DTYPE.descr + [("gps_time", "<f8")])
+TIMED_FILE = "gps_time"
+
+
+def shard_dtype(shard_dir: Path) -> np.dtype:
+    """The record type of the shards in ``shard_dir`` (timed or not, by its marker)."""
+    return SHARD_DTYPE_TIMED if (Path(shard_dir) / TIMED_FILE).exists() else SHARD_DTYPE
 
 
 @dataclass(frozen=True)
@@ -175,6 +185,49 @@ def assign_blocks(
     return np.concatenate(out_p), np.concatenate(out_b), core
 
 
+def assign_shadow(
+    grid: BlockGrid,
+    x: NDArray,
+    y: NDArray,
+    ox: NDArray,
+    oy: NDArray,
+    own: tuple[NDArray[np.int64], NDArray[np.int64]],
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(point index, flat block id) of the blocks each point's ray passes through beyond
+    the point (from its sensor at ``ox, oy``), other than those in ``own`` (the point's
+    core and halo blocks, from ``assign_blocks``).
+
+    A ground-based scan's neighbouring beams may return from anywhere along their rays:
+    an occluder's edge in front of a block is a neighbour of the background returns in
+    it, though metres outside its halo. The ray is followed in steps of the halo (at
+    most half a block), each step copied to the blocks within the halo of it, so a
+    block gets every return whose ray continues within the halo of its core.
+    """
+    dx, dy = x - ox, y - oy
+    d = np.hypot(dx, dy)
+    ok = d > 1e-6
+    ux = np.where(ok, dx / np.where(ok, d, 1.0), 0.0)
+    uy = np.where(ok, dy / np.where(ok, d, 1.0), 0.0)
+    x1 = grid.x0 + grid.width * grid.resolution
+    y1 = grid.y0 + grid.height * grid.resolution
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(ux > 0, (x1 - x) / ux, np.where(ux < 0, (grid.x0 - x) / ux, np.inf))
+        ty = np.where(uy > 0, (y1 - y) / uy, np.where(uy < 0, (grid.y0 - y) / uy, np.inf))
+    t_exit = np.where(ok, np.maximum(np.minimum(tx, ty), 0.0), 0.0)
+    step = min(grid.buffer, grid.block_size / 2) if grid.buffer > 0 else grid.block_size / 4
+    n = np.ceil(t_exit / step).astype(np.int64)
+    if n.sum() == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rep = np.repeat(np.arange(x.size), n)
+    k = np.arange(rep.size) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n per point
+    t = np.minimum(k * step, t_exit[rep])
+    p, bid, _ = assign_blocks(grid, x[rep] + ux[rep] * t, y[rep] + uy[rep] * t)
+    nb = grid.nx * grid.ny
+    key = _sorted_unique(rep[p] * nb + bid)
+    key = key[~np.isin(key, own[0] * nb + own[1])]
+    return key // nb, key % nb
+
+
 #: file of a shard folder holding the occupied cells of its points (``occupied_cells``)
 OCCUPANCY_FILE = "occupancy.npy"
 
@@ -228,11 +281,17 @@ def shard_tile(
     stop: int | None = None,
     roots: Sequence[str] | None = None,
     occupancy: float = 0.0,
+    gps_time: bool = False,
+    origins: Sequence[Sequence[float]] | None = None,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
     files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
     of them when it is opened (``open_input``). With ``occupancy`` (a cell size),
     the cells the points occupy go to ``out_dir/occupancy.npy`` (``occupied_cells``).
+    With ``gps_time`` the records are ``SHARD_DTYPE_TIMED`` (ground-based jobs). With
+    the scan positions' ``origins`` (numbered by the points' scan ids) each point is also
+    copied, with core 2, to the blocks its ray passes through beyond it
+    (``assign_shadow``): for the mixed-measurement step only.
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -241,17 +300,33 @@ def shard_tile(
     cells: list[NDArray[np.int64]] = []
     with atomic_path(out_dir) as tmp:
         tmp.mkdir()
-        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots):
+        dtype = SHARD_DTYPE_TIMED if gps_time else SHARD_DTYPE
+        if gps_time:
+            (tmp / TIMED_FILE).touch()
+        for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots, gps_time):
             x, y = chunk.xyz[:, 0], chunk.xyz[:, 1]
             if occupancy > 0:
                 cells.append(occupied_cells(x, y, occupancy))
             p, bid, core = assign_blocks(grid, x, y)
+            core = core.astype(np.uint8)
+            if origins is not None and len(origins) > 0:
+                o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+                sid = chunk.scan_id.astype(np.int64) if o.shape[0] > 1 else np.zeros(x.size, int)
+                has = sid < o.shape[0]
+                sid = np.where(has, sid, 0)
+                sp, sb = assign_shadow(grid, x, y, o[sid, 0], o[sid, 1], (p, bid))
+                keep = has[sp]
+                p = np.concatenate([p, sp[keep]])
+                bid = np.concatenate([bid, sb[keep]])
+                core = np.concatenate([core, np.full(np.count_nonzero(keep), 2, np.uint8)])
             # Stable, so a block's points keep file order; on 16-bit ids numpy
             # sorts by radix (~6x faster than the merge sort of wider ints).
             key = bid.astype(np.uint16) if grid.nx * grid.ny <= 1 << 16 else bid
             order = np.argsort(key, kind="stable")
             p, bid, core = p[order], bid[order], core[order]
-            rec = np.empty(p.size, SHARD_DTYPE)
+            rec = np.empty(p.size, dtype)
+            if gps_time:
+                rec["gps_time"] = np.nan if chunk.gps_time is None else chunk.gps_time[p]
             rec["x"], rec["y"], rec["z"] = x[p], y[p], chunk.xyz[p, 2]
             rec["index"] = chunk.start + p
             rec["tile"] = tile_index
@@ -267,7 +342,7 @@ def shard_tile(
                 name = block_name(b % grid.nx, b // grid.nx)
                 with open(tmp / f"{name}.bin", "ab") as fh:
                     rec[s:e].tofile(fh)
-                core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e]))
+                core_counts[name] = core_counts.get(name, 0) + int(np.count_nonzero(core[s:e] == 1))
         if occupancy > 0:
             merged = _sorted_unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
             np.save(tmp / OCCUPANCY_FILE, merged)
@@ -306,10 +381,10 @@ def shard_parts(point_counts: list[int], part_points: int = 2_500_000) -> list[S
 def read_block_points(shard_dirs: list[Path], name: str) -> NDArray:
     """All shard records of block ``name`` over every tile, as one structured array."""
     parts = [
-        np.fromfile(d / f"{name}.bin", dtype=SHARD_DTYPE)
+        np.fromfile(d / f"{name}.bin", dtype=shard_dtype(d))
         for d in shard_dirs
         if (d / f"{name}.bin").exists()
     ]
     if not parts:
-        return np.empty(0, SHARD_DTYPE)
+        return np.empty(0, shard_dtype(shard_dirs[0]) if shard_dirs else SHARD_DTYPE)
     return np.concatenate(parts)

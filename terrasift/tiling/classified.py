@@ -40,7 +40,11 @@ def write_classified_copy(
             header.version = laspy.header.Version(1, 2)
         if crs:
             header.add_crs(pyproj.CRS.from_user_input(crs))
-        with laspy.open(str(tmp), mode="w", header=header, do_compress=True) as writer:
+        # the header's text fields (system identifier, software, VLR descriptions) are
+        # copied as the file holds them, ASCII or not (strict checking failed the job)
+        with laspy.open(
+            str(tmp), mode="w", header=header, do_compress=True, encoding_errors="replace"
+        ) as writer:
             start = 0
             for pts in reader.chunk_iterator(chunk_size):
                 pts.classification = classes[start : start + len(pts)]

@@ -13,7 +13,7 @@ import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import laspy
 import numpy as np
@@ -54,6 +54,9 @@ class TileInfo:
     crs_wkt: str | None
     extra_dims: tuple[str, ...] = ()
     warnings: tuple[str, ...] = field(default=())
+    crs_label: str | None = None
+    """``EPSG:<code>`` or the CRS's name, found where the header was read (a reader
+    process in the service), so the API process need not parse the CRS again."""
 
     @property
     def area(self) -> float:
@@ -210,10 +213,11 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
         )
 
     warnings: list[str] = [count_warning] if count_warning else []
-    crs_wkt = None
+    crs_wkt = crs_label = None
     try:
         crs = header.parse_crs()
-        crs_wkt = crs.to_wkt() if crs is not None else None
+        if crs is not None:
+            crs_wkt, crs_label = crs.to_wkt(), crs_name(crs)
     except PASS_THROUGH:
         raise
     except BaseException as exc:  # a malformed CRS record should not sink the tile
@@ -233,7 +237,14 @@ def read_tile_info(path: str | Path, *, max_points: int | None = None) -> TileIn
         crs_wkt=crs_wkt,
         extra_dims=extra,
         warnings=tuple(warnings),
+        crs_label=crs_label,
     )
+
+
+def crs_name(crs: Any) -> str:
+    """``EPSG:<code>`` of a pyproj CRS, else its name."""
+    code = crs.to_epsg()
+    return f"EPSG:{code}" if code else str(crs.name)
 
 
 # Smallest point record of each format (LAS 1.4 R15 table 7 onwards)
@@ -423,6 +434,7 @@ class PointChunk:
     number_of_returns: NDArray[np.uint8]
     scan_id: NDArray[np.uint16]
     classification: NDArray[np.uint8] | None = None  # the input's classes (kept classes)
+    gps_time: NDArray[np.float64] | None = None  # when asked for and the format has it
 
 
 def iter_chunks(
@@ -432,9 +444,12 @@ def iter_chunks(
     start: int = 0,
     stop: int | None = None,
     roots: Sequence[str] | None = None,
+    gps_time: bool = False,
 ) -> Iterator[PointChunk]:
     """Yield the tile's points ``start``..``stop`` (default: all) in file order,
     ``chunk_size`` at a time; with ``roots`` the file is opened by ``open_input``.
+    With ``gps_time`` each chunk carries the points' GPS time (None when the point
+    format has none).
 
     Only the dimensions the science uses are decompressed. ``scan_dim`` names a
     dimension holding a scan-position id (default: point_source_id, 0 if absent).
@@ -447,6 +462,7 @@ def iter_chunks(
         | sel.POINT_SOURCE_ID
         | sel.CLASSIFICATION
         | (sel.ALL_EXTRA_BYTES if scan_dim else 0)
+        | (sel.GPS_TIME if gps_time else 0)
     )
     try:
         source = open_input(path, roots)
@@ -506,6 +522,11 @@ def iter_chunks(
                     number_of_returns=np.asarray(pts.number_of_returns, dtype=np.uint8),
                     scan_id=scan,
                     classification=np.asarray(pts.classification, dtype=np.uint8),
+                    gps_time=(
+                        np.asarray(pts.gps_time, dtype=np.float64)
+                        if gps_time and "gps_time" in names
+                        else None
+                    ),
                 )
                 pos += n
         except (InputError, *PASS_THROUGH):

@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from terrasift.errors import ParameterError, ProcessingError
 from terrasift.workers._kernels import (
     _bounds_kernel,
     _cell_counting_sort,
@@ -96,6 +97,9 @@ def bounds(x: NDArray, y: NDArray) -> tuple[np.floating, np.floating, np.floatin
     return x.min(), x.max(), y.min(), y.max()
 
 
+MAX_CELLS_PER_AXIS = 1 << 31  # a grid this wide could never be held (2^62 cells)
+
+
 @dataclass(frozen=True)
 class Grid:
     """A regular grid: lower-left corner, square cell size, shape (ny, nx)."""
@@ -113,8 +117,19 @@ class Grid:
         xmin, xmax, ymin, ymax = bounds(x, y)
         x0 = np.floor(xmin / cell) * cell
         y0 = np.floor(ymin / cell) * cell
-        nx = int(np.floor((xmax - x0) / cell)) + 1
-        ny = int(np.floor((ymax - y0) / cell)) + 1
+        if not np.all(np.isfinite([xmin, xmax, ymin, ymax])):
+            raise ProcessingError("point coordinates are not finite numbers")
+        span = np.array([(xmax - x0) / cell, (ymax - y0) / cell])
+        if not np.all(np.isfinite(span)) or span.max() >= MAX_CELLS_PER_AXIS:
+            # a cell size a parameter made tiny (5e-324 is a valid positive float) would
+            # overflow the integer shape or ask for more cells than any memory holds
+            raise ParameterError(
+                f"a grid of {cell:.3g} m cells over {xmax - xmin:.6g} x {ymax - ymin:.6g} m of "
+                f"points needs more than {MAX_CELLS_PER_AXIS} cells a side; a cell size or "
+                "spacing parameter of the job is too small"
+            )
+        nx = int(np.floor(span[0])) + 1
+        ny = int(np.floor(span[1])) + 1
         return cls(float(x0), float(y0), float(cell), nx, ny)
 
     @property

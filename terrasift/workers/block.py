@@ -110,6 +110,11 @@ class Block:
     number_of_returns: NDArray | None = None
     given: NDArray | None = None
     """The input's classes (kept classes)."""
+    gps_time: NDArray | None = None
+    """Each point's GPS time (ground-based jobs; NaN where the file has none)."""
+    shadow: NDArray[np.bool_] | None = None
+    """Points from in front of the block along the sensor's rays (not core, not halo):
+    neighbouring beams for the mixed step, left out of every other step."""
     labels: NDArray[np.uint8] = field(init=False)
     act: NDArray[np.intp] = field(init=False)
     sub: NDArray[np.float64] = field(init=False)
@@ -156,7 +161,7 @@ def classify_block(
     # Fields are gathered one by one: a gather of the packed records is ~5x slower.
     order = canonical_order(points["x"], points["y"], points["z"])
     xyz = np.column_stack([points["x"][order], points["y"][order], points["z"][order]])
-    core = points["core"][order].astype(bool)
+    core = points["core"][order] == 1
     names = points.dtype.names or ()
     block = Block(
         xyz,
@@ -170,7 +175,14 @@ def classify_block(
         points["return_number"][order] if "return_number" in names else None,
         points["number_of_returns"][order] if "number_of_returns" in names else None,
         points["classification"][order] if "classification" in names else None,
+        points["gps_time"][order] if "gps_time" in names else None,
     )
+    shadow = points["core"][order] == 2
+    if shadow.any():
+        # returns in front of the block, for the mixed step only (``assign_shadow``)
+        block.shadow = shadow
+        block.act = np.flatnonzero(~shadow)
+        block.sub = block.xyz[block.act]
     block.stats.update({"points_core": int(core.sum()), "points_total": xyz.shape[0]})
     for step in block_steps():
         step.run(block, models)

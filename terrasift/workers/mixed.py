@@ -195,6 +195,7 @@ def mark_mixed(
     sensor_origin: NDArray[np.float64],
     scan_id: NDArray[np.integer] | None = None,
     geometry: Sequence[ScanGeometry | None] | None = None,
+    gps_time: NDArray[np.floating] | None = None,
 ) -> MixedResult:
     """Mark mixed measurements of one or several scans with known sensor origins.
 
@@ -203,12 +204,19 @@ def mark_mixed(
     shifted to its own sensor before anything else. ``geometry`` (one entry per scan
     position) is the scan geometry measured beforehand on more points than these (a
     job measures it once from all its blocks); a position without one is measured here.
+    ``gps_time`` (one per point, or None) places the returns on the scan grid by their
+    firing order (grid method), where the times show a regular pulse period.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"xyz must be (n, 3), got {xyz.shape}")
     origins, ids = _scan_layout(xyz.shape[0], sensor_origin, scan_id)
     n = xyz.shape[0]
+    times = None
+    if gps_time is not None:
+        times = np.asarray(gps_time, dtype=np.float64)
+        if times.shape != (n,):
+            raise ParameterError(f"gps_time must have shape ({n},), got {times.shape}")
     marked = np.zeros(n, dtype=bool)
     unclassified = np.zeros(n, dtype=bool)
     n_regions = n_triggered = 0
@@ -223,7 +231,8 @@ def mark_mixed(
         extra: dict[str, Any] = {"method": "box"}
         if params.method == "grid" and derived.geometry is not None:
             gs = grid_settings(derived.geometry, params)
-            m, judged = mark_grid(rel, gs)
+            t = times[idx] if times is not None else None
+            m, judged, timed = mark_grid(rel, gs, t)
             u = np.zeros(rel.shape[0], dtype=bool)
             nr, nt = int(judged.sum()), int(m.sum())
             rest = ~judged
@@ -237,6 +246,7 @@ def mark_mixed(
             extra = {
                 "method": "grid",
                 "grid_share": round(float(judged.mean()), 4),
+                "grid_index": "GPS time (firing order)" if timed else "angles",
                 "reach": gs.reach,
                 "thin": gs.thin,
             }

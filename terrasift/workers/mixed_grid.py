@@ -41,13 +41,18 @@ on its own ray, up to half a footprint past the edge: those beams are marked
 when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
 the shift is sideways, so range noise does not blur it).
 
+When the returns carry GPS time, each is placed on the grid by its firing
+order instead (``time_index``): the pulse number from its time, the column
+length from the angles of the sharp returns, so returns whose angle the LAS
+scale blurs beyond a beam (near the sensor) are judged on their own beam too.
+
 Everything is array arithmetic on the points sorted by grid index; the only
 loops run over the few beam offsets within reach.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -86,11 +91,142 @@ def grid_index(
     return i, np.abs(f - i) < off_grid
 
 
-def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArray]:
+def pulse_numbers(t: NDArray[np.float64], max_jitter: float = 0.15) -> NDArray[np.int64] | None:
+    """Each return's pulse number from its GPS time (the pulse period measured from the
+    gaps between successive returns), or None when the times show no regular period
+    (more than 5 % of them off their pulse by ``max_jitter`` periods or more)."""
+    if t.size < 16 or not np.isfinite(t).all():
+        return None
+    order = np.argsort(t, kind="stable")
+    ts = t[order] - t[order[0]]
+    d = np.diff(ts)
+    d = d[d > 0]
+    if d.size < 8:
+        return None
+    # the shortest common gap is one period: the 5th percentile of the gaps lies in the
+    # cluster of successive pulses when at least 5 % of them are
+    period = float(np.percentile(d, 5))
+    if period <= 0:
+        return None
+    # refined over ever longer gaps: gaps of k pulses add k periods each
+    for most in (4, 64, 4096):
+        k = np.round(d / period)
+        use = (k >= 1) & (k <= most)
+        if not use.any():
+            return None
+        period = float(d[use].sum() / k[use].sum())
+    u = ts / period
+    b = np.round(u)
+    if np.mean(np.abs(u - b) >= max_jitter) > 0.05:
+        return None
+    out = np.empty(t.size, dtype=np.int64)
+    out[order] = b.astype(np.int64)
+    return out
+
+
+def _column_length(
+    b: NDArray[np.int64], el: NDArray[np.float64], guess: float, step_el: float
+) -> int:
+    """Pulses per column: the lag L at which the return of pulse b + L (same row, next
+    column) lies at the same elevation as pulse b's, searched outwards from ``guess``
+    (up to 1.5× either way) on a sample of returns: a beam's elevation does not depend
+    on the scene, only its blur. A lag whose median elevation change is under a quarter
+    step ends the search (a lag off by one changes it by about a step)."""
+    order = np.argsort(b)
+    bs, es = b[order], el[order]
+    pick = np.linspace(0, bs.size - 1, min(bs.size, 4000)).astype(np.int64)
+    b0, e0 = bs[pick], es[pick]
+    best, best_cost = 0, np.inf
+    lo, hi = max(2, int(guess / 1.5)), int(np.ceil(guess * 1.5)) + 1
+    g = int(np.clip(round(guess), lo, hi))
+    for lag in sorted(range(lo, hi + 1), key=lambda v: (abs(v - g), v)):
+        j = np.minimum(np.searchsorted(bs, b0 + lag), bs.size - 1)
+        hit = bs[j] == b0 + lag
+        if np.count_nonzero(hit) < 20:
+            continue
+        cost = float(np.median(np.abs(es[j[hit]] - e0[hit])))
+        if cost < best_cost:
+            best, best_cost = lag, cost
+        if best_cost < 0.25 * step_el:
+            break
+    return best
+
+
+def time_index(
+    t: NDArray[np.float64],
+    az: NDArray[np.float64],
+    el: NDArray[np.float64],
+    step_az: float,
+    step_el: float,
+    las_scale: float = 0.0,
+    r: NDArray[np.float64] | None = None,
+    agree: float = 0.95,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float] | None:
+    """Grid index (column, row) of every return from its firing order, with the steps
+    in azimuth and elevation refitted on it, or None.
+
+    A scanner fires the rows of one column after the other, so pulse number =
+    column × pulses per column + row (+ a constant). The column length is the lag
+    between pulses at the same elevation (``_column_length``); the row phase is the
+    circular mean of (pulse − elevation in steps) over it, so every return counts,
+    however blurred its angle by the LAS scale (``las_scale`` / √12 / range ``r``).
+    The steps are then refitted by least squares (each angle weighted by its blur),
+    and the result is used only when at least ``agree`` of the returns lie within half
+    a step plus three times their blur of the beam their time gives.
+    """
+    b = pulse_numbers(t)
+    if b is None:
+        return None
+    o = np.argsort(b, kind="stable")
+    # in firing order (pulse − elevation in steps) is about constant along a column
+    # and jumps by about a column length at the next one
+    dx = np.diff(b[o] - el[o] / step_el)
+    jump = dx[dx > 8.0]
+    if jump.size < 4:
+        return None
+    per_col = _column_length(b, el, float(np.median(jump)), step_el)
+    if per_col < 2:
+        return None
+    y = el / step_el
+    ph = np.angle(np.mean(np.exp(2j * np.pi * (b - y) / per_col)))
+    c0 = int(np.round(ph / (2 * np.pi) * per_col))
+    col = np.round((b - c0 - y) / per_col).astype(np.int64)
+    row = b - c0 - col * per_col
+    # the steps refitted on the indexes; azimuth unwrapped in firing order
+    a = np.empty_like(az)
+    a[o] = np.unwrap(az[o])
+    blur = las_scale / np.sqrt(12.0) / np.maximum(r, 1e-6) if r is not None else 0.0
+    w = 1.0 / (np.asarray(blur) ** 2 + (0.01 * min(step_az, step_el)) ** 2) * np.ones_like(a)
+
+    def fit(ang: NDArray[np.float64], idx: NDArray[np.int64]) -> float:
+        i = idx - np.average(idx, weights=w)
+        return float(
+            np.sum(w * i * (ang - np.average(ang, weights=w))) / max(np.sum(w * i * i), 1e-12)
+        )
+
+    s_az = fit(a, col) if np.ptp(col) > 0 else step_az
+    s_el = fit(el, row) if np.ptp(row) > 0 else step_el
+    if not (0.5 * step_az < s_az < 2 * step_az and 0.5 * step_el < s_el < 2 * step_el):
+        return None
+    bl = np.asarray(blur) / min(s_az, s_el)
+    ra = a / s_az - col
+    re = el / s_el - row
+    tol = 0.5 + 3.0 * bl
+    ok = (np.abs(ra - np.median(ra)) < tol) & (np.abs(re - np.median(re)) < tol)
+    if np.mean(ok) < agree:
+        return None
+    return col, row, s_az, s_el
+
+
+def mark_grid(
+    rel: NDArray[np.float64], s: GridSettings, gps_time: NDArray[np.float64] | None = None
+) -> tuple[NDArray, NDArray, bool]:
     """Mixed returns of one scan position (``rel`` relative to the sensor).
 
-    Returns (marked, judged): returns not judged (off the grid, too near for the
-    LAS scale to place them on their beam) are never marked.
+    Returns (marked, judged, timed): returns not judged (off the grid, too near for the
+    LAS scale to place them on their beam) are never marked. With ``gps_time`` (one
+    per return) every return is placed on its beam by its firing order when the times
+    agree with the angles (``time_index``; ``timed`` says so); otherwise by its angles.
     """
     n = rel.shape[0]
     marked = np.zeros(n, dtype=bool)
@@ -103,9 +239,16 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
     if s.las_scale > 0:
         quant = s.las_scale / np.sqrt(12.0) / np.maximum(r_all, 1e-6)
         judged &= quant <= s.resolve * min(s.step_az, s.step_el)
+    timed = None
+    if gps_time is not None:
+        timed = time_index(gps_time, az, el, s.step_az, s.step_el, s.las_scale, r_all)
+    if timed is not None:
+        ia, ie = timed[0], timed[1]
+        s = replace(s, step_az=timed[2], step_el=timed[3])
+        judged = r_all > 1e-6
     idx = np.flatnonzero(judged)
     if idx.size < 3:
-        return marked, judged
+        return marked, judged, timed is not None
     ia, ie, r = ia[idx], ie[idx], r_all[idx]
     pad = 2 * s.reach + 4
     ia = ia - ia.min() + pad
@@ -130,7 +273,7 @@ def mark_grid(rel: NDArray[np.float64], s: GridSettings) -> tuple[NDArray, NDArr
         line = _Line(key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis])
         out |= _mixed_along(line, r, s, pos, axis)
     marked[idx[order]] = out
-    return marked, judged
+    return marked, judged, timed is not None
 
 
 class _Line:

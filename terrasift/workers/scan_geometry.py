@@ -108,6 +108,10 @@ def measure_scan_geometry(
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
     az, el, r = _sector(az, el, r)
+    # one order whatever order the points came in (a job reads them block by block):
+    # the samples drawn below then depend on the points alone
+    o = np.lexsort((r, el, az))
+    az, el, r = az[o], el[o], r[o]
 
     # First pass on the farthest half (quarter, tenth: with 1 cm coordinates at a 0.06°
     # step the nearer returns blur the spacings past any regular grid), then on every
@@ -286,6 +290,8 @@ def _range_sigma(az, el, r, sa, se) -> float:
 
 def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     """Mean number of beams blended between two surfaces at azimuth edges (NaN if none)."""
+    if az.size < 3:
+        return float("nan")
     phase_a = _phase(az, sa)
     phase_e = _phase(el, se)
     ca = np.round((az - phase_a) / sa).astype(np.int64)

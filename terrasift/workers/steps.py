@@ -53,7 +53,7 @@ def mixed_step(block: Block, models: BlockModels) -> None:
         return
     block.check_cancel()
     with block.timer("mixed"):
-        found = _mark_mixed(block.xyz, block.scan_id, models)
+        found = _mark_mixed(block.xyz, block.scan_id, models, block.gps_time)
     block.labels[found.marked] = NOISE
     core = block.core
     block.stats["mixed"] = {
@@ -62,11 +62,14 @@ def mixed_step(block: Block, models: BlockModels) -> None:
         "loss_rate": float(found.unclassified[core].mean()) if core.any() else 0.0,
         "geometry": found.geometry,
     }
-    block.act = np.flatnonzero(~found.marked)
+    keep = ~found.marked if block.shadow is None else ~found.marked & ~block.shadow
+    block.act = np.flatnonzero(keep)
     block.sub = block.xyz[block.act]
 
 
-def _mark_mixed(xyz: NDArray, scan_id: NDArray, models: BlockModels) -> mixed.MixedResult:
+def _mark_mixed(
+    xyz: NDArray, scan_id: NDArray, models: BlockModels, gps_time: NDArray | None = None
+) -> mixed.MixedResult:
     origin_arr = np.asarray(models.sensor_origin, dtype=np.float64)
     ids = None
     if origin_arr.shape[0] > 1:
@@ -77,7 +80,9 @@ def _mark_mixed(xyz: NDArray, scan_id: NDArray, models: BlockModels) -> mixed.Mi
             )
     else:
         origin_arr = origin_arr[0]
-    return mixed.mark_mixed(xyz, models.mixed, origin_arr, ids, models.scan_geometry)
+    # a scan position whose returns are not all timed falls back to their angles
+    times = gps_time if gps_time is not None and np.isfinite(gps_time).any() else None
+    return mixed.mark_mixed(xyz, models.mixed, origin_arr, ids, models.scan_geometry, times)
 
 
 def _ground_halo(models: BlockModels, density: float) -> float:

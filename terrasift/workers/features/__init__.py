@@ -30,6 +30,7 @@ from shapely.geometry.polygon import orient
 
 from terrasift.errors import ParameterError
 from terrasift.workers.categories import (
+    NODATA,
     Categories,
     CategoryParams,
     category_grids,
@@ -278,6 +279,8 @@ def filter_labels(
         labels = _drop_gappy(labels, c.max_error)
     else:
         labels = _connect.edges(categories, h, v, marks)
+    if flt.clear_share is not None:
+        labels = _drop_unclear(labels, categories, flt.clear_share)
     return labels, marks, support
 
 
@@ -309,6 +312,26 @@ def object_options(flt: Filter, params: FeatureParams) -> dict[str, Any]:
         "hull": flt.hull,
         "solidity": flt.solidity,
     }
+
+
+def _drop_unclear(
+    labels: NDArray[np.int32], categories: Categories, share: float
+) -> NDArray[np.int32]:
+    """Remove objects whose tiles that are not flat are clearly not flat (``Categories.clear``)
+    for less than ``share`` of them. Each object is a whole connected label, so the
+    test is the same wherever a window cuts the DTM (``tiled``). Without the band
+    every tile that is not flat counts as clear."""
+    n = int(labels.max())
+    if n == 0 or categories.clear is None:
+        return labels
+    inc, ori, st = categories.inclination, categories.orientation, categories.state
+    not_flat = ((inc | ori | st) != 0) & (inc != NODATA)
+    idx = np.arange(1, n + 1)
+    counted = ndimage.sum_labels(not_flat, labels, idx)
+    clear = ndimage.sum_labels(not_flat & (categories.clear == 1), labels, idx)
+    keep = np.zeros(n + 1, dtype=bool)
+    keep[1:] = clear >= share * counted
+    return np.where(keep[labels], labels, 0).astype(np.int32)
 
 
 def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32]:

@@ -224,6 +224,11 @@ class Filter:
     """``detrend <metres>``: run on categories of tiles set on their regional slope (the
     median tile gradient over a window this wide), so a narrow object on a slope is
     categorised as on level ground."""
+    clear_share: float | None = None
+    """``clear-share <share>``: objects (before joining) whose tiles that are not flat are
+    clearly not flat (``Categories.clear``) for at least this share; on a DTM whose tile
+    slopes carry the noise of sparse points, chance patterns are made of tiles only just
+    past the flatness threshold."""
     h_and_v_share: float | None = None
     """``h-and-v <share>``: a group of tiles marked both ways is kept only when it is at
     least this share of the tiles marked either way that it connects to (a bowl is
@@ -310,6 +315,7 @@ class _Parser:
         detrend: Metres | None = None
         hull = False
         solidity: float | None = None
+        clear_share: float | None = None
         share: float | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
@@ -363,6 +369,13 @@ class _Parser:
                 if not 0 < solidity <= 1:
                     raise self.error("solidity is a share above 0 and at most 1", no)
                 steps.append("solidity")
+            elif key == "clear-share":
+                if clear_share is not None or len(args) != 1:
+                    raise self.error("clear-share takes one share (0-1) once", no)
+                (clear_share,) = self.numbers(args, no, "clear-share")
+                if not 0 < clear_share <= 1:
+                    raise self.error("clear-share is a share above 0 and at most 1", no)
+                steps.append("clear-share")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -395,9 +408,15 @@ class _Parser:
         if not segments:
             raise self.error("a filter needs at least one beginsegment … endsegment", last_line)
         if (
-            aspect is not None or join is not None or hull or solidity is not None
+            aspect is not None
+            or join is not None
+            or hull
+            or solidity is not None
+            or clear_share is not None
         ) and connect is None:
-            raise self.error("aspect, join, fill and solidity need a connect step", last_line)
+            raise self.error(
+                "aspect, join, fill, solidity and clear-share need a connect step", last_line
+            )
         return Filter(
             self.name,
             tuple(segments),
@@ -412,6 +431,7 @@ class _Parser:
             hull,
             solidity,
             detrend,
+            clear_share,
             share,
         )
 
@@ -624,6 +644,8 @@ def format_filter(f: Filter) -> str:
             out.append("fill hull")
         elif step == "solidity" and f.solidity is not None:
             out.append(f"solidity {f.solidity:g}")
+        elif step == "clear-share" and f.clear_share is not None:
+            out.append(f"clear-share {f.clear_share:g}")
     return "\n".join(out) + "\n"
 
 
@@ -641,6 +663,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("fill")
     if f.solidity is not None:
         steps.append("solidity")
+    if f.clear_share is not None:
+        steps.append("clear-share")
     return tuple(steps)
 
 

@@ -40,6 +40,11 @@ grow with slope × bin size, since a TIN one bin apart cuts convex breaks;
 instead of a TIN of millions of points; masking inserts from the lowest and
 highest point per ``mask_pool_cell``.
 
+On sparse data (final bins of a couple of points) everything from pass 3 on
+runs over four phases of the final grid and a point is ground when two of them
+say so (``vote_phases``): which lowest point a bin holds, and whether growth
+finds a path onto a crest, otherwise moves with where the bins fall.
+
 §7 extensions: ``bin_fit="plane"`` judges RMS and the lowest point relative
 to a least-squares plane per bin, so steep bare bins are not taken for
 vegetation; ``grid="concentric"`` bins a ground-based scan in rings around the
@@ -114,6 +119,22 @@ class NistParams(StageParams):
     """Bin size of the second pass (0: max(4 s, 3 m))."""
     cell_3: float = Field(0.0, ge=0, le=500)
     """Bin size of the third, final pass (0: max(1.5 s, 1.5 m))."""
+    bin_phases: int = Field(1, ge=1, le=4)
+    """Regular grids are laid this many times per axis, offset by 1/k of a bin each way
+    (k² grids); every grid's accepted lowest points are candidates, and the growth nodes
+    are the lowest points of every final-pass grid. 1: one grid. More grids make the
+    candidates depend less on where the bins fall (translations, block cuts)."""
+    vote_phases: int = Field(0, ge=0, le=4)
+    """Pass 3, raised segments, growth and labels run over k² phases of the final grid
+    (offset by 1/k of a bin along x and y); a point is ground when at least half of them
+    say so. On sparse data each final bin holds a couple of points, so which one is its
+    lowest, and whether growth finds a path onto a crest, is luck of where the bins fall
+    (a translation of a few metres moved ISPRS kappas by up to 6 points). 0: auto, k = 2
+    where final bins hold fewer than ``vote_points`` points on average, else 1 (one grid;
+    the vote costs about three times the stage time)."""
+    vote_points: float = Field(4.0, ge=0, le=1000)
+    """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
+    1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
     snap_cells: bool = True
     """Bin sizes derived from the density (cells, masking pool) snap to the nearest divisor of
     240 m (``bins.snap_cell``, steps of 4–33 %): blocks of one tile whose densities differ a
@@ -419,21 +440,29 @@ def _grids(
 
 def _surface(
     xyz: NDArray[np.float64],
-    sr: SelectReject,
+    srs: SelectReject | list[SelectReject],
     params: NistParams,
     origin_xy: NDArray,
     scale: float = 1.0,
 ) -> Tin:
-    """Mesh the candidates of ``sr`` and screen them until stable (tolerance × ``scale``)."""
-    cand = xyz[sr.candidates]
+    """Mesh the candidates of ``srs`` (one pass, or the same pass over several grid
+    phases: their candidates pooled, each once) and screen them until stable
+    (tolerance × ``scale``)."""
+    srs = srs if isinstance(srs, list) else [srs]
+    idx = np.concatenate([sr.candidates for sr in srs])
+    idx, first = np.unique(idx, return_index=True)
+    cand = xyz[idx]
     if cand.shape[0] < 3:
         raise _TooSparse
     slopes = None
-    if sr.plane is not None:
-        b = sr.grid.index(cand[:, 0], cand[:, 1])
-        slopes = _vote_slopes(
-            np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]), params.screen_slope_cap
-        )
+    if srs[0].plane is not None:
+        grads = []
+        for sr in srs:
+            assert sr.plane is not None
+            c = xyz[sr.candidates]
+            b = sr.grid.index(c[:, 0], c[:, 1])
+            grads.append(np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]))
+        slopes = _vote_slopes(np.concatenate(grads)[first], params.screen_slope_cap)
     keep, tin = screen(
         cand, params.screen_tol * scale, params.screen_low_tol * scale, slopes=slopes
     )
@@ -525,6 +554,7 @@ def _classify(
     )
     spacing = 1.0 / np.sqrt(params.density) if params.density > 0 else point_spacing(local[:, :2])
     g1, g2, g3 = _grids(local, params, spacing, origin)
+    k = params.bin_phases if isinstance(g3, Grid) else 1
     # Screening tolerances grow with the bin size of a pass: with vertices
     # further apart, smooth terrain departs further from neighbour votes.
     scales = [_cell_of(g) / _cell_of(g3) for g in (g1, g2)]
@@ -534,7 +564,11 @@ def _classify(
     # Pass 1: mask, bin, mesh/screen; mow the original points.
     mask1 = _mask(local, params, spacing) if params.mask else none
     tin1 = _surface(
-        local, select_reject(local, params, g1, mask_xy=mask1), params, centre, scales[0]
+        local,
+        [select_reject(local, params, g, mask_xy=mask1) for g in _phased(g1, k)],
+        params,
+        centre,
+        scales[0],
     )
     mowed = _mow(tin1, local, params.mow_tol_1, _cell_of(g1), params)
 
@@ -545,13 +579,47 @@ def _classify(
         mowed_pts = mowed_pts[_screen_points(mowed_pts, params, spacing)]
         mask2 = _mask(mowed_pts, params, spacing)
     tin2 = _surface(
-        mowed_pts, select_reject(mowed_pts, params, g2, mask_xy=mask2), params, centre, scales[1]
+        mowed_pts,
+        [select_reject(mowed_pts, params, g, mask_xy=mask2) for g in _phased(g2, k)],
+        params,
+        centre,
+        scales[1],
     )
     mowed = _mow(tin2, local, params.mow_tol_2, _cell_of(g2), params)
 
+    # Pass 3 onwards, once per final grid phase (``vote_phases``); a point is
+    # ground when at least half of the phases label it so.
+    votes_k = params.vote_phases or (2 if (_cell_of(g3) / spacing) ** 2 < params.vote_points else 1)
+    finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
+    votes = np.zeros(n, dtype=np.int32)
+    for g in finals:
+        votes += _final(local, mowed, g, k, params, centre, spacing)
+    labels = 2 * votes >= len(finals)
+    ground = np.empty(n, dtype=bool)
+    ground[order] = labels
+    return ground
+
+
+def _final(
+    local: NDArray[np.float64],
+    mowed: NDArray[np.int64],
+    g3: Grid | ConcentricGrid,
+    k: int,
+    params: NistParams,
+    centre: NDArray,
+    spacing: float,
+) -> NDArray[np.bool_]:
+    """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
+    final surface, raised segments, growth, band and supported points."""
+    none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
-    tin3 = _surface(mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre)
+    tin3 = _surface(
+        mowed_pts,
+        [select_reject(mowed_pts, params, g, mask_xy=none) for g in _phased(g3, k)],
+        params,
+        centre,
+    )
     # Repeats of mow → bin → mesh/screen at the final cell size let the
     # surface climb back onto convex breaks that the coarser passes cut.
     for _ in range(params.repeats):
@@ -559,7 +627,10 @@ def _classify(
             local, _mow(tin3, local, params.mow_tol_2, _cell_of(g3), params), axis=0
         )
         tin3 = _surface(
-            mowed_pts, select_reject(mowed_pts, params, g3, mask_xy=none), params, centre
+            mowed_pts,
+            [select_reject(mowed_pts, params, g, mask_xy=none) for g in _phased(g3, k)],
+            params,
+            centre,
         )
     raised = None
     if params.raised_step > 0:
@@ -574,7 +645,7 @@ def _classify(
         }
     )
     if params.grow:
-        tin3 = _grown(local, tin3, g3, params, centre, raised)
+        tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised)
     labels, above = _band(tin3, local, params)
     if params.support_k > 0:
         # Only points above the band may join: those below it are low outliers.
@@ -587,9 +658,7 @@ def _classify(
             tol=params.support_tol,
             rounds=params.support_rounds,
         )
-    ground = np.empty(n, dtype=bool)
-    ground[order] = labels
-    return ground
+    return labels
 
 
 def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:
@@ -633,10 +702,24 @@ def _without_raised(
         return tin, None
 
 
+def _phased(grid: Grid | ConcentricGrid, k: int) -> list[Grid | ConcentricGrid]:
+    """``grid`` and its copies offset by multiples of 1/k of a bin along x and y (k² grids)."""
+    if k <= 1 or not isinstance(grid, Grid):
+        return [grid]
+    c = grid.cell
+    out: list[Grid | ConcentricGrid] = [grid]
+    return out + [
+        Grid(grid.x0 - i * c / k, grid.y0 - j * c / k, c, grid.nx + 1, grid.ny + 1)
+        for j in range(k)
+        for i in range(k)
+        if i or j
+    ]
+
+
 def _grown(
     local: NDArray[np.float64],
     tin: Tin,
-    grid: Grid | ConcentricGrid,
+    grids: list[Grid | ConcentricGrid],
     params: NistParams,
     centre: NDArray,
     raised: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None,
@@ -648,8 +731,13 @@ def _grown(
     nearest a dropped vertex are barred, so growth does not walk back onto a
     raised roof where it meets the terrain at grade (a roof cut into a slope).
     """
-    low = lowest_per_bin(grid.index(local[:, 0], local[:, 1]), local[:, 2], grid.size)
-    nodes = local[low[low >= 0]]
+    grid = grids[0]
+    lows = [lowest_per_bin(g.index(local[:, 0], local[:, 1]), local[:, 2], g.size) for g in grids]
+    low = np.unique(np.concatenate(lows))
+    low = low[low >= 0]
+    # Nodes per final bin: more than one when several grid phases are pooled.
+    per_bin = low.size / max(int(np.count_nonzero(lows[0] >= 0)), 1)
+    nodes = local[low]
     seed = _label(tin, nodes, params)
     barred = None
     if raised is not None:
@@ -677,7 +765,7 @@ def _grown(
         adjacency=None if full is None else full.neighbours(),
         barred=barred,
         peak=params.grow_peak * tol if params.grow_peaks else None,
-        peak_nodes=max(1, int(params.grow_peak_area / _cell_of(grid) ** 2)),
+        peak_nodes=max(1, int(per_bin * params.grow_peak_area / _cell_of(grid) ** 2)),
         agree=params.grow_agree,
     )
     if np.count_nonzero(ground) < 3:

@@ -55,10 +55,12 @@ class PtdParams(StageParams):
     """Metres: neighbourhood radius of the low-outlier test."""
     max_rounds: int = Field(100, ge=1, le=10_000)
     """Upper bound on densification rounds (the filter normally stops earlier)."""
-    min_spacing: float = Field(1.5, gt=0.0, le=100.0)
+    min_spacing: float = Field(1.5, gt=0.0, le=50.0)
     """Metres: TIN vertices are drawn from the lowest point of each min_spacing
     cell, and facets smaller than min_spacing²/2 take no more; the final pass
-    labels every other point. Bounds the TIN (and the cost) on dense clouds."""
+    labels every other point. Bounds the TIN (and the cost) on dense clouds.
+    At most 50 m: the isolated-low-point test of the candidates uses the same
+    cell, and ``ground.lowpoints`` takes no larger one."""
     tail_fraction: float = Field(0.1, ge=0.0, le=1.0)
     """When a round grows the TIN by less than this share, one last round accepts
     every remaining point that passes the tests and the filter stops (0: run every
