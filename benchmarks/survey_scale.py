@@ -9,12 +9,21 @@ separate processes started as a deployment would: ``dask scheduler`` and
 wall time; CPU of the driver (this process, less the thread that polls memory),
 of the scheduler and of the workers (with the task processes they start); the
 peak RSS of the largest single process of each (driver, scheduler, each worker
-tree); the disk used at the end by the survey (product) and its run folder
-against the input LAZ. Then the wall-time ratio of the largest survey to the
-smallest against the ratio of their tiles (linear: equal), and the ratio of
-each process's peak RSS.
+tree); the peak RSS of each kind of task (the largest over its tasks, each
+task's own high-water mark: ``TERRASIFT_TASK_PEAKS`` in the workers'
+environment) with the task that reached it and its growth over the RSS its
+process held when it started; the disk used at the end by the survey
+(product) and its run folder against the input LAZ. Then the wall-time and
+workers' CPU ratios of the largest survey to the smallest against the ratio of
+their tiles (linear: equal), and the ratio of each process's and each task
+kind's peak RSS.
 
-    .venv/bin/python benchmarks/survey_scale.py [--tiles 16 64] [--points 500000] [--workers 2] [--json F]
+    .venv/bin/python benchmarks/survey_scale.py [--tiles 16 64] [--points 500000] [--density 10]
+        [--workers 2] [--no-waves] [--json F]
+
+``--density`` lower with ``--points`` keeps the survey's width (tile side
+``sqrt(points / density)``) at a fraction of the points, to see what grows with
+the width; the DTM's cell follows the density.
 """
 
 from __future__ import annotations
@@ -107,11 +116,13 @@ class _Shifted:
         return self.surface(np.asarray(x) + self.dx, np.asarray(y) + self.dy)
 
 
-def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[Path]:
+def make_survey(
+    folder: Path, tiles: int, points: int, density: float, waves: bool = True
+) -> list[Path]:
     """``tiles`` adjacent square tiles of ``points`` pulses on one continuous terrain
     whose content is the same per tile whatever the survey's size: the default slope
-    and waves, a 6 m hill on the shared corner of every 2 x 2 tiles, 4 buildings and
-    trees per tile."""
+    and waves (``waves``: their ridges and valleys run across the whole survey), a 6 m
+    hill on the shared corner of every 2 x 2 tiles, 4 buildings and trees per tile."""
     from terrasift.synthetic.terrain import Surface, make_scene, write_las
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -122,7 +133,7 @@ def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[P
         for a in range(max(1, side // 2))
         for b in range(max(1, side // 2))
     )
-    surface = Surface(hills=hills)
+    surface = Surface(hills=hills) if waves else Surface(waves=(), hills=hills)
     out = []
     for j in range(side):
         for i in range(side):
@@ -138,7 +149,33 @@ def make_survey(folder: Path, tiles: int, points: int, density: float) -> list[P
     return out
 
 
-def run_one(root: Path, tiles: list[Path], scheduler: str, pids: dict[str, int]) -> dict:
+def task_peaks(folder: Path) -> dict[str, dict[str, Any]]:
+    """Per task kind (function), from the workers' records in ``folder`` (removed after
+    reading): tasks, the largest peak RSS with its task and its growth over the RSS
+    its process started it with, the largest growth, and the median peak."""
+    rows = []
+    for f in folder.glob("*.jsonl"):
+        rows += [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+        f.unlink()
+    kinds: dict[str, dict[str, Any]] = {}
+    for fn in sorted({r["fn"] for r in rows}):
+        mine = [r for r in rows if r["fn"] == fn]
+        top = max(mine, key=lambda r: r["peak_rss"])
+        kinds[fn] = {
+            "tasks": len(mine),
+            "peak_rss_mib": top["peak_rss"] / 2**20,
+            "peak_task": top["task"],
+            "peak_growth_mib": (top["peak_rss"] - top["rss_start"]) / 2**20,
+            "max_growth_mib": max(r["peak_rss"] - r["rss_start"] for r in mine) / 2**20,
+            "median_peak_mib": float(np.median([r["peak_rss"] for r in mine])) / 2**20,
+            "cpu_s": sum(r["cpu_s"] for r in mine),
+        }
+    return kinds
+
+
+def run_one(
+    root: Path, tiles: list[Path], scheduler: str, pids: dict[str, int], peaks: Path
+) -> dict:
     """One full survey run of ``tiles`` on the cluster; its figures."""
     from terrasift.jobs import run_job, validate_params
     from terrasift.jobs.survey import plan_survey_run
@@ -178,17 +215,42 @@ def run_one(root: Path, tiles: list[Path], scheduler: str, pids: dict[str, int])
         "disk_bytes": _du(sdir) + _du(job),
         "product_bytes": _du(sdir),
         "disk_over_input": (_du(sdir) + _du(job)) / laz,
+        "tasks": task_peaks(peaks),
+        "squares": _squares(sdir),
+    }
+
+
+def _squares(survey: Path) -> dict[str, Any]:
+    """The feature squares of the survey's current version: how many, their side, and
+    the largest window a square's search read (cells, and as a share of the mosaic)."""
+    from terrasift.jobs.survey import current_state
+
+    state = current_state(survey) or {}
+    sq = state.get("squares") or {}
+    windows = list((sq.get("windows") or {}).values())
+    if not windows:
+        return {}
+    e = sq["extent"]
+    area = (e[2] - e[0]) * (e[3] - e[1])
+    largest = max(windows, key=lambda w: (w[2] - w[0]) * (w[3] - w[1]))
+    return {
+        "squares": len(windows),
+        "side_cells": sq["side"],
+        "mosaic_cells": [e[2] - e[0], e[3] - e[1]],
+        "largest_window_cells": [largest[2] - largest[0], largest[3] - largest[1]],
+        "largest_window_share": (largest[2] - largest[0]) * (largest[3] - largest[1]) / area,
     }
 
 
 @contextmanager
-def _cluster(workers: int) -> Iterator[tuple[str, dict[str, int]]]:
+def _cluster(workers: int, peaks: Path) -> Iterator[tuple[str, dict[str, int]]]:
     """A Dask scheduler and ``workers`` one-thread ``terrasift worker`` processes,
-    each a process of its own as in a deployment; yields the address and the
-    process ids (scheduler, worker0 ...)."""
+    each a process of its own as in a deployment, whose tasks record their peak RSS
+    in ``peaks``; yields the address and the process ids (scheduler, worker0 ...)."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     exe = Path(sys.executable).parent
+    env = {**os.environ, "TERRASIFT_TASK_PEAKS": str(peaks)}
     procs = [
         subprocess.Popen(
             [str(exe / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
@@ -202,7 +264,7 @@ def _cluster(workers: int) -> Iterator[tuple[str, dict[str, int]]]:
             procs.append(
                 subprocess.Popen(
                     [str(exe / "terrasift"), "worker", address, "--nthreads", "1"],
-                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
                 )
             )  # fmt: skip
         from distributed import Client
@@ -247,17 +309,25 @@ def main() -> int:
     )
     ap.add_argument("--density", type=float, default=10.0, help="pulses per m²")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--no-waves",
+        action="store_true",
+        help="terrain without the long waves (objects of bounded size: the feature "
+        "squares' windows need not grow across the survey)",
+    )
     ap.add_argument("--keep", type=Path, help="keep the surveys under this folder")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
 
     rows = []
-    with _cluster(args.workers) as (address, pids):
+    peak_dir = Path(tempfile.mkdtemp(prefix="task-peaks-"))
+    with _cluster(args.workers, peak_dir) as (address, pids):
         for n in args.tiles:
             root = Path(tempfile.mkdtemp(prefix=f"survey{n}-", dir=args.keep))
             try:
-                tiles = make_survey(root / "tiles", n, args.points, args.density)
-                row = run_one(root, tiles, address, pids)
+                tiles = make_survey(root / "tiles", n, args.points, args.density, not args.no_waves)
+                task_peaks(peak_dir)  # nothing of the survey's making
+                row = run_one(root, tiles, address, pids, peak_dir)
             finally:
                 if args.keep is None:
                     shutil.rmtree(root, ignore_errors=True)
@@ -274,6 +344,24 @@ def main() -> int:
                 f"({row['input_laz_bytes'] / 2**20:.0f} MiB)",
                 flush=True,
             )
+            for kind, t in row["tasks"].items():
+                print(
+                    f"    {kind:<22} {t['tasks']:>4} tasks: peak RSS {t['peak_rss_mib']:.0f} MiB "
+                    f"({t['peak_task']}, +{t['peak_growth_mib']:.0f} MiB over its start), "
+                    f"median {t['median_peak_mib']:.0f}, largest growth {t['max_growth_mib']:.0f} MiB; "
+                    f"CPU {t['cpu_s']:.0f} s",
+                    flush=True,
+                )
+            if row["squares"]:
+                q = row["squares"]
+                print(
+                    f"    feature squares: {q['squares']} of {q['side_cells']} cells on a "
+                    f"{q['mosaic_cells'][0]} x {q['mosaic_cells'][1]} mosaic; largest window "
+                    f"searched {q['largest_window_cells'][0]} x {q['largest_window_cells'][1]} "
+                    f"({100 * q['largest_window_share']:.0f} % of the mosaic)",
+                    flush=True,
+                )
+    shutil.rmtree(peak_dir, ignore_errors=True)
     if len(rows) > 1:
         a, b = rows[0], rows[-1]
         ratios = ", ".join(
@@ -285,6 +373,21 @@ def main() -> int:
             f"(linear: {b['tiles'] / a['tiles']:.2f}), workers' CPU ratio "
             f"{b['worker_cpu_s'] / max(a['worker_cpu_s'], 1e-9):.2f}; "
             f"peak RSS ratio per process: {ratios}"
+        )
+        kinds = ", ".join(
+            f"{k} {b['tasks'][k]['peak_rss_mib'] / max(a['tasks'][k]['peak_rss_mib'], 1e-9):.2f}"
+            for k in a["tasks"]
+            if k in b["tasks"]
+        )
+        growth = ", ".join(
+            f"{k} {a['tasks'][k]['max_growth_mib']:.0f} -> {b['tasks'][k]['max_growth_mib']:.0f}"
+            for k in a["tasks"]
+            if k in b["tasks"]
+        )
+        print(f"peak RSS ratio per task kind: {kinds}")
+        print(
+            "largest growth of a task over the RSS its process held when it started (MiB; "
+            f"a process keeps what earlier tasks left, so peaks carry it): {growth}"
         )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

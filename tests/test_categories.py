@@ -210,6 +210,19 @@ def test_regional_slope_shows_a_ditch_on_a_slope_and_leaves_a_bend_a_bend():
     assert np.count_nonzero(cats.inclination[40, :-1]) == 1 and cats.state[40, 39] == 2
 
 
+def test_regional_gradient_of_a_window_one_tile_thin_is_its_plane():
+    """A wide window sampled every few tiles (120 m: every 3rd 2 m tile) over a DTM only
+    one or two tiles thin along an axis (a feature search's window cut at the DTM's
+    edge) takes its samples from the tiles it has: the plane's gradient, no error."""
+    cell = 0.5
+    p = CategoryParams(noise=0)
+    for shape in ((4, 400), (400, 4), (4, 4), (8, 400)):
+        y, x = np.mgrid[0 : shape[0], 0 : shape[1]] * cell
+        gx, gy = regional_gradient(0.12 * x - 0.05 * y, cell, p, 120.0)
+        assert gx.shape == (shape[0] // 4, shape[1] // 4)
+        assert np.allclose(gx, 0.12, atol=1e-9) and np.allclose(gy, 0.05, atol=1e-9), shape
+
+
 def test_grids_of_one_step_share_their_fits_and_match_separate_runs():
     rng = np.random.default_rng(3)
     y, x = np.mgrid[0:80, 0:80] * 0.5

@@ -38,9 +38,11 @@ def _key(f) -> tuple:
     return (f.kind, f.tiles, round(c.x, 3), round(c.y, 3))
 
 
-def _tiled(scene: dict, n: int, halo: int | None) -> list:
+def _tiled(scene: dict, n: int, halo: int | None, edges: list[int] | None = None) -> list:
     dtm = scene["dtm"]
-    edges = np.linspace(0, dtm.shape[0], n + 1).astype(int)
+    if edges is None:
+        edges = np.linspace(0, dtm.shape[0], n + 1).astype(int).tolist()
+    n = len(edges) - 1
     pieces = []
     for i in range(n):
         for j in range(n):
@@ -81,3 +83,52 @@ def test_window_reach_covers_the_widest_filter() -> None:
     assert window_reach(resolve_filters("all"), cp, CELL) == ridge
     # the regional window (120 m) alone reaches 60 m and more
     assert ridge * CELL > 60
+
+
+def test_cores_one_tile_thin_without_halo_search_as_the_others(scene: dict) -> None:
+    """Halo 0 and cores one 2 m tile thin along the DTM's edges (their first window is
+    one tile of the regional median's coarser sampling): no error, and the objects
+    of all cores are still the whole DTM's."""
+    dtm = scene["dtm"]
+    n = dtm.shape[0]
+    tiled = sorted(_tiled(scene, 0, 0, [0, 4, n - 4, n]), key=_key)
+    whole = sorted(scene["whole"], key=_key)
+    assert [_key(f) for f in tiled] == [_key(f) for f in whole]
+
+
+def test_flat_marks_across_the_dtm_do_not_grow_a_rectangle_filter_s_window(scene: dict) -> None:
+    """Level tiles lie scattered over the whole scene (their support once joined across
+    the DTM, so every window grew to all of it); a flat area's object is its cover:
+    cores away from flat areas keep their first window, and the objects of cores with
+    that halo are still the whole DTM's."""
+    from terrasift.workers.features.tiled import search_core
+
+    dtm, cp = scene["dtm"], scene["cp"]
+    filters = resolve_filters("flat-area")
+    halo = window_reach(filters, cp, CELL) + 16
+    n = dtm.shape[0]
+    edges = [0, 64, n // 2, n - 64, n]
+    pieces, kept = [], 0
+    for i in range(4):
+        for j in range(4):
+            core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
+            found, seen = search_core(
+                lambda a, b, c, d: dtm[a:b, c:d],
+                dtm.shape,
+                scene["t"],
+                core,
+                filters,
+                cp,
+                halo=halo,
+            )
+            pieces += found
+            start = tuple(
+                max(0, min(n, v))
+                for v in (core[0] - halo, core[1] - halo, core[2] + halo, core[3] + halo)
+            )
+            kept += seen == start
+    assert kept >= 2, kept
+    whole = sorted((f for f in scene["whole"] if f.kind == "flat-area"), key=_key)
+    assert whole  # the scene holds flat areas
+    tiled = sorted(merge_pieces(pieces, filters, cp, CELL).objects, key=_key)
+    assert [_key(f) for f in tiled] == [_key(f) for f in whole]

@@ -52,6 +52,14 @@ def grow() -> None:
         time.sleep(0.02)
 
 
+def hold(megabytes: int) -> int:
+    """Touch ``megabytes`` MB, let them go; this process's pid."""
+    block = bytearray(megabytes * 1_000_000)
+    block[::4096] = b"x" * len(block[::4096])
+    del block
+    return os.getpid()
+
+
 def priority() -> tuple[int, int, int, str | None]:
     """The worker's pid, session, nice value and scheduling group (autogroup) line."""
     group = Path("/proc/self/autogroup")
@@ -219,3 +227,24 @@ def test_workers_die_with_their_owner_and_leftovers_are_reaped(tmp_path: Path) -
     assert reap_leftovers(pid_dir) == [stand_in.pid]
     assert stand_in.wait(timeout=10) == -signal.SIGKILL
     assert not list(pid_dir.iterdir())
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="Linux peak reset")
+def test_each_task_records_its_own_peak_memory(tmp_path: Path, monkeypatch) -> None:
+    """With TERRASIFT_TASK_PEAKS set, every task writes its own peak RSS: a large task
+    followed by a small one in the same process, the small one's peak is its own."""
+    import json
+
+    monkeypatch.setenv("TERRASIFT_TASK_PEAKS", str(tmp_path))
+    p = WorkerPool(1)
+    try:
+        big = p.submit(hold, 200).result(60)
+        small = p.submit(hold, 5).result(60)
+    finally:
+        p.shutdown()
+    assert big == small  # one process ran both
+    rows = [json.loads(x) for x in (tmp_path / f"{big}.jsonl").read_text().splitlines()]
+    assert [r["fn"] for r in rows] == ["hold", "hold"] and all(r["ok"] for r in rows)
+    grown = [r["peak_rss"] - r["rss_start"] for r in rows]
+    assert grown[0] >= 190 * 2**20 * 0.95
+    assert grown[1] < 50 * 2**20

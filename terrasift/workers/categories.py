@@ -498,10 +498,13 @@ def regional_gradient(
 def _strided_median(a: NDArray, size: int, stride: int) -> NDArray:
     """Median over ``size`` × ``size`` windows of ``a``; with ``stride`` > 1 over the
     samples every ``stride`` tiles, taken on that coarse grid and spread back."""
-    if stride == 1:
+    if stride == 1 or a.size == 0:
         return ndimage.median_filter(a, size=size, mode="nearest")
+    # the first sample half a stride in; an axis shorter than that (a thin window)
+    # is sampled at its middle tile, so the coarse grid is never empty
+    r0, c0 = (stride // 2 if n > stride // 2 else (n - 1) // 2 for n in a.shape)
     coarse = ndimage.median_filter(
-        a[stride // 2 :: stride, stride // 2 :: stride],
+        a[r0::stride, c0::stride],
         size=max(1, -(-size // stride)),
         mode="nearest",
     )

@@ -249,8 +249,8 @@ def filter_labels(
 ) -> tuple[NDArray[np.int32] | None, NDArray[np.bool_], NDArray[np.bool_]]:
     """A resolved filter's object labels (None without a connect or rectangle step),
     its marked tiles, and the tiles its objects are grown from (marks found either
-    way, and a rectangle's cover): every object lies within that support and
-    depends only on the part of it that it touches."""
+    way; a rectangle's cover): every object lies within that support and depends
+    only on the part of it that it touches."""
     h, v = search_filter(categories, flt)
     support = h | v
     if flt.h_and_v:
@@ -263,7 +263,11 @@ def filter_labels(
         cover = _connect.rectangle_cover(marks, r.width, r.height, r.error)
         labels, _ = ndimage.label(cover)  # one object per connected cover: its marked tiles
         labels[~marks] = 0
-        return labels.astype(np.int32), marks, support | cover
+        # an object is a connected cover's marked tiles, and whether a tile is covered
+        # follows from the marks within one rectangle of it: marks outside the cover
+        # join nothing, so the cover alone is the support (scattered marks on open
+        # terrain would otherwise join into one support across the whole DTM)
+        return labels.astype(np.int32), marks, cover
     if flt.connect is None:
         return None, marks, support
     c = flt.connect

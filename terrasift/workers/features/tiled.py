@@ -250,7 +250,7 @@ def _window_pieces(
     k = cats.cells_per_tile
     s = cats.step
     flt = resolve_lengths(flt, cats.spacing)
-    labels, _, support = filter_labels(cats, flt)
+    labels, marks, support = filter_labels(cats, flt)
     assert labels is not None
     rows, cols = labels.shape
     # tiles whose origin lies in the core, and in the safe part (cut edges only)
@@ -265,9 +265,14 @@ def _window_pieces(
     safe_r = (origin_r >= lo_r) & ((origin_r + k <= hi_r) | (rect[2] >= shape[0]))
     safe_c = (origin_c >= lo_c) & ((origin_c + k <= hi_c) | (rect[3] >= shape[1]))
 
+    if flt.rectangle is not None:
+        # the cover is exact in the safe part only: beyond it a marked tile may lie
+        # in a cover the window cannot see, so it counts as support there
+        support = support | (marks & ~(safe_r[:, None] & safe_c[None, :]))
     r = connect_reach(flt)
     closure = ndimage.binary_dilation(support, structure=np.ones((2 * r + 1, 2 * r + 1), bool))
-    closure = ndimage.binary_fill_holes(closure)
+    if flt.rectangle is None:  # a rectangle's objects fill no holes (covers are its objects)
+        closure = ndimage.binary_fill_holes(closure)
     comp, n = ndimage.label(closure, structure=np.ones((3, 3), bool))
     boxes = ndimage.find_objects(comp)
     core_tiles = np.zeros(labels.shape, bool)
