@@ -72,8 +72,9 @@ BLOCK_RASTERS = ("dtm", "dsm", "chm", "coverage")
 COVERAGE_NODATA = 255
 #: side (metres) of the squares the feature search runs on, each with a halo of the
 #: filters' reach (~190 m for the built-in filters at 0.5 m): memory follows one square
-#: and its halo, not the survey; wider squares redo less of their halo
-FEATURE_CORE_M = 768.0
+#: and its halo, not the survey. 320 m keeps a square and its halo under ~0.9 km, so a
+#: survey of that width already reaches the bound; wider squares redo less of their halo
+FEATURE_CORE_M = 320.0
 #: a version's hidden folder of each feature square's pieces, reused while no cell of
 #: the window the square searched changes
 SQUARES = ".squares"
