@@ -12,6 +12,7 @@ from terrasift.workers.categories import NODATA, Categories
 from terrasift.workers.features import (
     builtin_filter_names,
     categories_for,
+    connect_reach,
     detect_features,
     features_geojson,
     format_filter,
@@ -891,3 +892,51 @@ def test_clear_share_drops_objects_made_of_tiles_only_just_past_the_flatness_thr
         parse_filter(text.replace("connect simple 4 -1 4 -1\n", ""), "c")
     with pytest.raises(FilterSyntaxError, match="clear-share"):
         parse_filter(text.replace("0.5", "1.5"), "c")
+
+
+def test_surround_drops_objects_on_ground_as_busy_as_they_are():
+    """``surround <distance> <share>``: an object is kept when, within the distance around
+    it, at most the share of the tiles the filter does not mark are not flat (a ditch
+    cut into smoother ground), and dropped on ground as busy as itself (a hollow between
+    hummocks); the distance in metres becomes tiles, and widens the object's reach."""
+    inc = np.zeros((40, 40), np.uint8)
+    inc[4:12, 4:12] = 1  # object A: quiet ground around it
+    inc[24:32, 24:32] = 1  # object B: not-flat ground (not marked) all around it
+    inc[22:34, 22:34][inc[22:34, 22:34] == 0] = 3
+    zeros = np.zeros_like(inc)
+    cats = Categories(inc, zeros, zeros, zeros, 4, 2.0)
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple 4 -1 4 -1\nsurround 4m 0.5\n"
+    )
+    flt = parse_filter(text, "s")
+    assert flt.surround == (Metres(4.0), 0.5)
+    assert parse_filter(format_filter(flt), "s") == flt
+    assert resolve_lengths(flt, 2.0).surround == (2, 0.5)
+    assert connect_reach(resolve_lengths(flt, 2.0)) == 2
+    assert connect_reach(resolve_lengths(flt, 0.5)) == 8  # 4 m of 0.5 m tiles
+    tt = Affine(2.0, 0, 0, 0, -2.0, 80.0)
+    kept = detect_features(cats, [flt], tt, 2.0).objects
+    assert len(kept) == 1 and kept[0].geometry.centroid.x < 30
+    plain = parse_filter(text.replace("surround 4m 0.5\n", ""), "s")
+    assert len(detect_features(cats, [plain], tt, 2.0).objects) == 2
+    # B's ring of 2 tiles: 12 x 12 - 8 x 8 = 80 tiles; 40 of them flat -> exactly half busy
+    half = inc.copy()
+    half[half == 3] = 0
+    half[22:24, 22:34] = 3  # the ring's top rows (24 tiles) and left columns (16)
+    half[24:32, 22:24] = 3
+    ring = np.zeros_like(inc, bool)
+    ring[22:34, 22:34] = True
+    ring[24:32, 24:32] = False
+    assert (half[ring] == 3).sum() == 40 and ring.sum() == 80
+    cats_half = Categories(half, zeros, zeros, zeros, 4, 2.0)
+    assert len(detect_features(cats_half, [flt], tt, 2.0).objects) == 2
+    stricter = parse_filter(text.replace("0.5", "0.45"), "s")
+    assert len(detect_features(cats_half, [stricter], tt, 2.0).objects) == 1
+    with pytest.raises(FilterSyntaxError, match="surround"):
+        parse_filter(text.replace("connect simple 4 -1 4 -1\n", ""), "s")
+    with pytest.raises(FilterSyntaxError, match="surround"):
+        parse_filter(text.replace("0.5", "1.5"), "s")
+    with pytest.raises(FilterSyntaxError, match="surround"):
+        parse_filter(text.replace("surround 4m 0.5", "surround 4m"), "s")

@@ -132,3 +132,32 @@ def test_flat_marks_across_the_dtm_do_not_grow_a_rectangle_filter_s_window(scene
     assert whole  # the scene holds flat areas
     tiled = sorted(merge_pieces(pieces, filters, cp, CELL).objects, key=_key)
     assert [_key(f) for f in tiled] == [_key(f) for f in whole]
+
+
+def test_surround_reads_the_same_ground_around_an_object_in_every_core() -> None:
+    """``surround`` reads tiles around an object: on a hummocky slope where it keeps some
+    pieces and drops others, cores without halo still give the whole DTM's objects."""
+    from terrasift.synthetic.feature_family import make_rough_scene
+    from terrasift.workers.features import format_filter, parse_filter
+
+    dtm = surface_raster(make_rough_scene(3, size=160.0), CELL)
+    dtm = dtm + np.random.default_rng(1).normal(0, 0.03, dtm.shape)
+    t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
+    text = format_filter(resolve_filters("ditch")[0])
+    assert "surround 6m 0.5" in text
+    filters = [parse_filter(text.replace("surround 6m 0.5", "surround 6m 0.98"), "ditch")]
+    plain = [parse_filter(text.replace("surround 6m 0.5\n", ""), "ditch")]
+    cp = CategoryParams()
+    cp = cp.model_copy(
+        update={
+            "noise": measure_noise(dtm, CELL, cp),
+            "slope_noise": measure_slope_noise(dtm, CELL, cp),
+        }
+    )
+    cats, stepped = categories_for(dtm, CELL, filters, cp)
+    whole = detect_features(cats, filters, t, cats.tile_size, stepped=stepped).objects
+    n_plain = len(detect_features(cats, plain, t, cats.tile_size, stepped=stepped).objects)
+    assert 0 < len(whole) < n_plain  # some pieces kept, some dropped
+    scene = {"dtm": dtm, "t": t, "filters": filters, "cp": cp}
+    tiled = sorted(_tiled(scene, 2, 0), key=_key)
+    assert [_key(f) for f in tiled] == sorted(_key(f) for f in whole)

@@ -390,6 +390,47 @@ def make_sparse_scene(seed: int, size: float = 240.0) -> FamilyScene:
     )
 
 
+def make_rough_scene(seed: int, size: float = 240.0) -> FamilyScene:
+    """A counter-case scene with no terrain object: a rough, steep, hummocky slope.
+
+    Drawn after ISPRS samp11 (a vegetated hillside), measured on its job DTM:
+    regional slope 0.2-0.55 (median gradient over 24 m; 0.55 under the false
+    ditch networks), hummocks whose DTM departs from its 6 m mean by 0.5-0.6 m
+    RMS with an autocorrelation falling to one half at ~4.5 m, and 0.45-0.55
+    ground points/m^2. Here: a plane of 15-55 % in a random direction plus a
+    sum of 150 cosines with wavelengths 6-30 m in random directions (a smooth
+    random field) of 0.15-0.6 m RMS, scanned at 0.3-3 pulses/m^2 with 2-8 cm
+    of noise. Hollows between hummocks then have banks on both sides like a
+    short ditch. Truth: nothing (a flat-area detection is scored against the
+    flat-area definition on the exact surface, as in the main family)."""
+    rng = np.random.default_rng([2223, seed])
+    slope = rng.uniform(0.15, 0.55)
+    aspect = rng.uniform(0, 2 * np.pi)
+    gx, gy = slope * np.cos(aspect), slope * np.sin(aspect)
+    n = 150
+    wavelength = np.exp(rng.uniform(np.log(6.0), np.log(30.0), n))
+    theta = rng.uniform(0, np.pi, n)
+    kx, ky = 2 * np.pi * np.cos(theta) / wavelength, 2 * np.pi * np.sin(theta) / wavelength
+    phase = rng.uniform(0, 2 * np.pi, n)
+    rms = rng.uniform(0.3, 1.2)
+    amp = rms * np.sqrt(2.0 / n)  # n cosines of equal amplitude a: RMS a sqrt(n / 2)
+
+    def base(x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        z = 100.0 + gx * x + gy * y
+        for i in range(n):
+            z = z + amp * np.cos(kx[i] * x + ky[i] * y + phase[i])
+        return z
+
+    noise = rng.uniform(0.02, 0.08)
+    density = float(np.exp(rng.uniform(np.log(0.3), np.log(3.0))))
+    las_scale = float(rng.choice([0.001, 0.01]))
+    scene = FamilyScene(seed, size, "rough", slope, noise, density, las_scale, _Builder(base))
+    scene.info.append(f"hummocks {rms:.2f} m RMS")
+    return scene
+
+
 def surface_raster(scene: FamilyScene, cell: float = 0.5) -> NDArray[np.float64]:
     """The exact surface at the centres of a north-up ``cell`` grid over the scene (row 0 north)."""
     n = int(round(scene.size / cell))

@@ -281,16 +281,24 @@ def filter_labels(
         labels = _connect.edges(categories, h, v, marks)
     if flt.clear_share is not None:
         labels = _drop_unclear(labels, categories, flt.clear_share)
+    if flt.surround is not None:
+        labels = _drop_busy(labels, categories, support, *flt.surround)
     return labels, marks, support
 
 
 def connect_reach(flt: Filter) -> int:
-    """Tiles across which ``filter_labels`` joins two marked tiles into one object."""
+    """Tiles across which ``filter_labels`` joins two marked tiles into one object, or
+    around an object within which it reads the categories (``surround``): an object
+    depends on its support grown by this much (a resolved filter)."""
     if flt.rectangle is not None or flt.connect is None:
         return 1
     if flt.connect.method == "segment":
-        return int(flt.connect.max_error // 10) + 1
-    return 2 if flt.connect.method == "edge" else 1
+        reach = int(flt.connect.max_error // 10) + 1
+    else:
+        reach = 2 if flt.connect.method == "edge" else 1
+    if flt.surround is not None:
+        reach = max(reach, int(flt.surround[0]))
+    return reach
 
 
 def object_options(flt: Filter, params: FeatureParams) -> dict[str, Any]:
@@ -331,6 +339,39 @@ def _drop_unclear(
     clear = ndimage.sum_labels(not_flat & (categories.clear == 1), labels, idx)
     keep = np.zeros(n + 1, dtype=bool)
     keep[1:] = clear >= share * counted
+    return np.where(keep[labels], labels, 0).astype(np.int32)
+
+
+def _drop_busy(
+    labels: NDArray[np.int32],
+    categories: Categories,
+    support: NDArray[np.bool_],
+    distance: int,
+    share: float,
+) -> NDArray[np.int32]:
+    """Remove objects around which, within ``distance`` tiles, more than ``share`` of the
+    tiles with data that the filter does not mark (``support``) are not flat. Reads only
+    tiles within ``distance`` of the object (``connect_reach`` grows its closure by as
+    much), so the test is the same wherever a window cuts the DTM (``tiled``)."""
+    n = int(labels.max())
+    if n == 0:
+        return labels
+    inc, ori, st = categories.inclination, categories.orientation, categories.state
+    valid = inc != NODATA
+    open_ground = valid & ~support
+    not_flat = open_ground & ((inc | ori | st) != 0)
+    d = 2 * distance + 1
+    keep = np.zeros(n + 1, dtype=bool)
+    for lab, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        # the object's box grown by the distance, clipped to the grid
+        r0, r1 = max(0, box[0].start - distance), min(labels.shape[0], box[0].stop + distance)
+        c0, c1 = max(0, box[1].start - distance), min(labels.shape[1], box[1].stop + distance)
+        ring = ndimage.binary_dilation(labels[r0:r1, c0:c1] == lab, np.ones((d, d), bool))
+        around = int((ring & open_ground[r0:r1, c0:c1]).sum())
+        busy = int((ring & not_flat[r0:r1, c0:c1]).sum())
+        keep[lab] = busy <= share * around
     return np.where(keep[labels], labels, 0).astype(np.int32)
 
 

@@ -235,6 +235,13 @@ class Filter:
     crossed both ways nearly everywhere; the corner where a row-strip meets a
     column-strip is a small part of both)."""
 
+    surround: tuple[Length, float] | None = None
+    """``surround <distance> <share>``: objects (before joining) around which, within the
+    distance, at most this share of the tiles that the filter does not mark are not
+    flat. A ditch is a narrow incision into smoother ground; on a rough, hummocky slope
+    every hollow between hummocks has banks like a short ditch, and so has the ground
+    around it."""
+
     @property
     def makes_objects(self) -> bool:
         return self.connect is not None or self.rectangle is not None
@@ -316,6 +323,7 @@ class _Parser:
         hull = False
         solidity: float | None = None
         clear_share: float | None = None
+        surround: tuple[Length, float] | None = None
         share: float | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
@@ -376,6 +384,15 @@ class _Parser:
                 if not 0 < clear_share <= 1:
                     raise self.error("clear-share is a share above 0 and at most 1", no)
                 steps.append("clear-share")
+            elif key == "surround":
+                if surround is not None or len(args) != 2:
+                    raise self.error("surround takes a distance and a share (0-1) once", no)
+                (dist,) = self.lengths(args[:1], no, "surround", lo=1)
+                (most,) = self.numbers(args[1:], no, "surround")
+                if not 0 <= most <= 1:
+                    raise self.error("surround share is between 0 and 1", no)
+                surround = (dist, most)
+                steps.append("surround")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -413,9 +430,11 @@ class _Parser:
             or hull
             or solidity is not None
             or clear_share is not None
+            or surround is not None
         ) and connect is None:
             raise self.error(
-                "aspect, join, fill, solidity and clear-share need a connect step", last_line
+                "aspect, join, fill, solidity, clear-share and surround need a connect step",
+                last_line,
             )
         return Filter(
             self.name,
@@ -433,6 +452,7 @@ class _Parser:
             detrend,
             clear_share,
             share,
+            surround,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -646,6 +666,8 @@ def format_filter(f: Filter) -> str:
             out.append(f"solidity {f.solidity:g}")
         elif step == "clear-share" and f.clear_share is not None:
             out.append(f"clear-share {f.clear_share:g}")
+        elif step == "surround" and f.surround is not None:
+            out.append(f"surround {_text(f.surround[0])} {f.surround[1]:g}")
     return "\n".join(out) + "\n"
 
 
@@ -665,6 +687,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("solidity")
     if f.clear_share is not None:
         steps.append("clear-share")
+    if f.surround is not None:
+        steps.append("surround")
     return tuple(steps)
 
 
@@ -764,6 +788,9 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         rect = replace(rect, width=t(rect.width, "size"), height=t(rect.height, "size"))
     join = f.join if f.join == "width" else t(f.join, "size")
     aligned = t(f.join_aligned, "size")
+    surround = f.surround
+    if surround is not None:
+        surround = (max(1, t(surround[0], "size")), surround[1])
     return replace(
         f,
         segments=tuple(segs),
@@ -771,4 +798,5 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         rectangle=rect,
         join=join,
         join_aligned=aligned,
+        surround=surround,
     )
