@@ -527,14 +527,22 @@ def classify_ground(
     params: NistParams,
     *,
     sensor_origin: NDArray[np.float64] | None = None,
+    window: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
-    """Ground mask of the (n, 3) block ``xyz`` (core + halo) by the §6.1 schedule."""
+    """Ground mask of the (n, 3) block ``xyz`` (core + halo) by the §6.1 schedule.
+
+    ``window`` (xmin, ymin, xmax, ymax): the box the block's points were cut to
+    (its core and halo) from data that may go on beyond it. Where the data
+    reaches a side of the box it was cut there, so the rules for the edge of
+    the data (``raised_edge``) hold only along the rest of its outline; None:
+    the points are all the data there is.
+    """
     xyz = np.asarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
     if n < 4:
         return np.ones(n, dtype=bool)
     try:
-        return _classify(xyz, params, sensor_origin)
+        return _classify(xyz, params, sensor_origin, window)
     except (_TooSparse, QhullError):
         # A sliver of a block at the edge of the data: too few (or only
         # collinear) bins pass select/reject to mesh anything, so nothing is
@@ -543,7 +551,10 @@ def classify_ground(
 
 
 def _classify(
-    xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None
+    xyz: NDArray[np.float64],
+    params: NistParams,
+    sensor_origin: NDArray[np.float64] | None,
+    window: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
@@ -599,7 +610,7 @@ def _classify(
     finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
     votes = np.zeros(n, dtype=np.int32)
     for g in finals:
-        votes += _final(local, mowed, g, k, params, centre, spacing)
+        votes += _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
     labels = 2 * votes >= len(finals)
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
@@ -614,9 +625,11 @@ def _final(
     params: NistParams,
     centre: NDArray,
     spacing: float,
+    cut: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
-    final surface, raised segments, growth, band and supported points."""
+    final surface, raised segments, growth, band and supported points (``cut``: the
+    block's window in local coordinates, see ``classify_ground``)."""
     none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
@@ -640,7 +653,7 @@ def _final(
         )
     raised = None
     if params.raised_step > 0:
-        tin3, raised = _without_raised(tin3, params)
+        tin3, raised = _without_raised(tin3, params, cut)
     # The final TIN departs further from rough terrain between vertices that
     # are further apart: on sparse data the label tolerances grow with the cell.
     widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
@@ -683,7 +696,7 @@ def _band(
 
 
 def _without_raised(
-    tin: Tin, params: NistParams
+    tin: Tin, params: NistParams, cut: tuple[float, float, float, float] | None = None
 ) -> tuple[Tin, tuple[NDArray[np.float64], NDArray[np.bool_]] | None]:
     """``tin`` without its raised segments (roofs that filled the bins of every pass),
     and, when some were dropped, the local (x, y) of all of ``tin``'s vertices with
@@ -700,6 +713,7 @@ def _without_raised(
         rise=params.raised_rise,
         rim=params.raised_rim,
         edge=params.raised_edge,
+        cut=None if cut is None else _shifted_box(cut, -tin.origin),
     )
     if not drop.any() or np.count_nonzero(~drop) < 3:
         return tin, None
@@ -707,6 +721,21 @@ def _without_raised(
         return tin.without(drop), (tin.xy + tin.origin, drop)
     except (QhullError, ValueError):
         return tin, None
+
+
+def _local_cut(
+    window: tuple[float, float, float, float] | None, shift: NDArray
+) -> tuple[float, float, float, float] | None:
+    """``window`` in the stage's local coordinates (less ``shift``)."""
+    return None if window is None else _shifted_box(window, -np.asarray(shift, dtype=np.float64))
+
+
+def _shifted_box(
+    box: tuple[float, float, float, float], by: NDArray
+) -> tuple[float, float, float, float]:
+    """``box`` (xmin, ymin, xmax, ymax) moved by ``by`` (x, y)."""
+    dx, dy = float(by[0]), float(by[1])
+    return (box[0] + dx, box[1] + dy, box[2] + dx, box[3] + dy)
 
 
 def _phased(grid: Grid | ConcentricGrid, k: int) -> list[Grid | ConcentricGrid]:
