@@ -227,6 +227,9 @@ CANDIDATES: dict[str, list[dict]] = {
         {"mask": True},
         {"vote_phases": 1},
         {"bin_phases": 2},
+        {"vote_share": 0.75},
+        {"vote_weight": "centre"},
+        {"vote_weight": "centre", "vote_share": 0.3},
     ],
 }
 

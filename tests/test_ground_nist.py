@@ -885,3 +885,26 @@ def test_auto_vote_runs_one_grid_on_dense_data_and_four_on_sparse():
     assert not np.array_equal(
         auto, nist.classify_ground(sparse, p.model_copy(update={"vote_phases": 1}))
     )
+
+
+def test_centre_weights_of_the_four_phases_interpolate_between_them():
+    # Two phases per axis, half a bin apart: tents that sum to 1 everywhere (the
+    # weights of bilinear interpolation), 1 for the phase whose bin is centred on a point.
+    g = Grid(0.0, 0.0, 3.0, 40, 40)
+    phases = nist._phased(g, 2)
+    p = nist.NistParams(vote_weight="centre")
+    pts = np.column_stack([np.random.default_rng(1).uniform(0, 100, (500, 2)), np.zeros(500)])
+    pts[0, :2] = (16.5, 16.5)  # the centre of a bin of the unshifted grid
+    w = np.array([nist._vote_weights(pts, ph, p, 4) for ph in phases])
+    assert np.allclose(w.sum(axis=0), 1.0, atol=1e-6)
+    assert w[0, 0] == pytest.approx(1.0) and np.allclose(w[1:, 0], 0.0, atol=1e-6)
+    assert nist._vote_weights(pts, g, nist.NistParams(), 4) == 1.0
+
+
+def test_a_larger_vote_share_keeps_fewer_points_as_ground():
+    sparse = make_scene(size=120.0, density=0.5, seed=3).xyz
+    half = nist.classify_ground(sparse, nist.NistParams())
+    strict = nist.classify_ground(sparse, nist.NistParams(vote_share=0.75))
+    assert not (strict & ~half).any() and (half & ~strict).any()
+    centre = nist.classify_ground(sparse, nist.NistParams(vote_weight="centre"))
+    assert not np.array_equal(centre, half)

@@ -132,6 +132,12 @@ class NistParams(StageParams):
     (a translation of a few metres moved ISPRS kappas by up to 6 points). 0: auto, k = 2
     where final bins hold fewer than ``vote_points`` points on average, else 1 (one grid;
     the vote costs about three times the stage time)."""
+    vote_share: float = Field(0.5, gt=0, le=1)
+    """A point is ground when phases holding at least this share of the vote say so."""
+    vote_weight: Literal["equal", "centre"] = "equal"
+    """Each phase's say in the vote: ``equal``, or ``centre``: by how central the point
+    lies in that phase's final bin (a tent per axis; with two phases per axis the
+    weights are those of bilinear interpolation between the phases)."""
     vote_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
     1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
@@ -608,10 +614,12 @@ def _classify(
     # ground when at least half of the phases label it so.
     votes_k = params.vote_phases or (2 if (_cell_of(g3) / spacing) ** 2 < params.vote_points else 1)
     finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
-    votes = np.zeros(n, dtype=np.int32)
+    votes, weights = np.zeros(n), np.zeros(n)
     for g in finals:
-        votes += _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
-    labels = 2 * votes >= len(finals)
+        w = _vote_weights(local, g, params, len(finals))
+        votes += w * _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
+        weights += w
+    labels = votes >= params.vote_share * weights
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
@@ -721,6 +729,19 @@ def _without_raised(
         return tin.without(drop), (tin.xy + tin.origin, drop)
     except (QhullError, ValueError):
         return tin, None
+
+
+def _vote_weights(
+    local: NDArray[np.float64], g: Grid | ConcentricGrid, params: NistParams, phases: int
+) -> NDArray[np.float64] | float:
+    """Weight of grid phase ``g``'s labels in the vote (``vote_weight``): 1, or with
+    ``centre`` a tent falling from 1 at the centre of a point's bin to 0 at its sides
+    (per axis, multiplied), so a phase counts least where its bin edges pass."""
+    if params.vote_weight == "equal" or phases <= 1 or not isinstance(g, Grid):
+        return 1.0
+    fx = np.mod((local[:, 0] - g.x0) / g.cell, 1.0)
+    fy = np.mod((local[:, 1] - g.y0) / g.cell, 1.0)
+    return (1.0 - np.abs(2.0 * fx - 1.0)) * (1.0 - np.abs(2.0 * fy - 1.0)) + 1e-9
 
 
 def _local_cut(
