@@ -227,6 +227,11 @@ CANDIDATES: dict[str, list[dict]] = {
         {"mask": True},
         {"vote_phases": 1},
         {"bin_phases": 2},
+        {"rough_k": 0},
+        {"rough_k": 32},
+        {"rough_k": 64},
+        {"rough_factor": 4.0},
+        {"rough_factor": 6.0},
     ],
 }
 
