@@ -227,6 +227,9 @@ CANDIDATES: dict[str, list[dict]] = {
         {"mask": True},
         {"vote_phases": 1},
         {"bin_phases": 2},
+        {"plateau_step": 0.0},
+        {"plateau_step": 1.0},
+        {"plateau_share": 0.5},
     ],
 }
 
