@@ -42,6 +42,7 @@ skipped with a note when missing.
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import subprocess
 import sys
@@ -82,14 +83,13 @@ def _row(name: str, s, seconds: float, note: str = "") -> str:
 HEADER = f"{'data':<22} {'points':>8} {'typeI%':>7} {'typeII%':>7} {'total%':>7} {'kappa%':>7} {'kpts/s':>8}  (CPU time, one process)"
 
 
-def _run(stage, xyz, sensor_origin=None, **over):
+def _run(stage, xyz, sensor_origin=None, window=None, **over):
     params = stage.params.preset("default", **over)
+    kw = {} if sensor_origin is None else {"sensor_origin": sensor_origin}
+    if window is not None:
+        kw["window"] = window
     t, c = time.perf_counter(), time.process_time()
-    g = (
-        stage.run(xyz, params)
-        if sensor_origin is None
-        else stage.run(xyz, params, sensor_origin=sensor_origin)
-    )
+    g = stage.run(xyz, params, **kw)
     _run.wall = time.perf_counter() - t
     return g, time.process_time() - c  # CPU seconds: the machine may be shared
 
@@ -230,6 +230,9 @@ CANDIDATES: dict[str, list[dict]] = {
         {"plateau_step": 0.0},
         {"plateau_step": 1.0},
         {"plateau_share": 0.5},
+        {"vote_share": 0.75},
+        {"vote_weight": "centre"},
+        {"vote_weight": "centre", "vote_share": 0.3},
     ],
 }
 
@@ -368,7 +371,9 @@ def families(stage) -> None:
 
 def _block_agreement(stage, xyz: np.ndarray, **over) -> tuple[float, float, int]:
     """Share of points labelled alike by one run and by 2 × 2 blocks with the
-    stage's halo (each block labels its core), overall and within 20 m of a block edge."""
+    stage's halo (each block labels its core), overall and within 20 m of a block edge.
+    Each block is told the box it was cut to when the stage takes ``window``."""
+    windows = "window" in inspect.signature(stage.run).parameters
     lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     mid = (lo + hi) / 2
     area = float(np.prod(hi - lo))
@@ -391,7 +396,9 @@ def _block_agreement(stage, xyz: np.ndarray, **over) -> tuple[float, float, int]
                 & (xyz[:, 1] <= y1 + halo)
             )
             idx = np.flatnonzero(sub)
-            g = _run(stage, xyz[idx], **over)[0]
+            # The box the block was cut to, for a stage that takes it (as a job's block does).
+            box = (x0 - halo, y0 - halo, x1 + halo, y1 + halo) if windows else None
+            g = _run(stage, xyz[idx], window=box, **over)[0]
             keep = core[idx]
             split[idx[keep]] = g[keep]
     near = (np.abs(xyz[:, 0] - mid[0]) < 20) | (np.abs(xyz[:, 1] - mid[1]) < 20)

@@ -232,6 +232,16 @@ def _squares(survey: Path) -> dict[str, Any]:
         return {}
     e = sq["extent"]
     area = (e[2] - e[0]) * (e[3] - e[1])
+    import pickle
+
+    from terrasift.jobs.survey import SQUARES, current_version
+
+    version = current_version(survey)
+    cut = 0
+    for f in (version / SQUARES).glob("*.pkl") if version is not None else []:
+        cut += sum(
+            getattr(p, "cut", None) is not None for p in pickle.loads(f.read_bytes())["pieces"]
+        )
     largest = max(windows, key=lambda w: (w[2] - w[0]) * (w[3] - w[1]))
     return {
         "squares": len(windows),
@@ -239,18 +249,24 @@ def _squares(survey: Path) -> dict[str, Any]:
         "mosaic_cells": [e[2] - e[0], e[3] - e[1]],
         "largest_window_cells": [largest[2] - largest[0], largest[3] - largest[1]],
         "largest_window_share": (largest[2] - largest[0]) * (largest[3] - largest[1]) / area,
+        "cut_pieces": cut,
     }
 
 
 @contextmanager
-def _cluster(workers: int, peaks: Path) -> Iterator[tuple[str, dict[str, int]]]:
+def _cluster(
+    workers: int, peaks: Path, cap: str | None = None
+) -> Iterator[tuple[str, dict[str, int]]]:
     """A Dask scheduler and ``workers`` one-thread ``terrasift worker`` processes,
     each a process of its own as in a deployment, whose tasks record their peak RSS
-    in ``peaks``; yields the address and the process ids (scheduler, worker0 ...)."""
+    in ``peaks`` (and search feature squares with ``cap``: metres or ``none``, else
+    the default); yields the address and the process ids (scheduler, worker0 ...)."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     exe = Path(sys.executable).parent
     env = {**os.environ, "TERRASIFT_TASK_PEAKS": str(peaks)}
+    if cap is not None:
+        env["TERRASIFT_FEATURE_CAP_M"] = cap
     procs = [
         subprocess.Popen(
             [str(exe / "dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
@@ -301,27 +317,11 @@ def _points(path: Path) -> int:
         return int(f.header.point_count)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tiles", type=int, nargs="+", default=[16, 64])
-    ap.add_argument(
-        "--points", type=int, default=500_000, help="pulses per tile (returns: ~10 %% more)"
-    )
-    ap.add_argument("--density", type=float, default=10.0, help="pulses per m²")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument(
-        "--no-waves",
-        action="store_true",
-        help="terrain without the long waves (objects of bounded size: the feature "
-        "squares' windows need not grow across the survey)",
-    )
-    ap.add_argument("--keep", type=Path, help="keep the surveys under this folder")
-    ap.add_argument("--json", type=Path, help="write the figures here")
-    args = ap.parse_args()
-
+def _run_caps(args: argparse.Namespace, cap: str | None) -> list[dict]:
+    """One cluster (feature squares' ``cap``) running a survey of each ``--tiles``."""
     rows = []
     peak_dir = Path(tempfile.mkdtemp(prefix="task-peaks-"))
-    with _cluster(args.workers, peak_dir) as (address, pids):
+    with _cluster(args.workers, peak_dir, cap) as (address, pids):
         for n in args.tiles:
             root = Path(tempfile.mkdtemp(prefix=f"survey{n}-", dir=args.keep))
             try:
@@ -358,37 +358,94 @@ def main() -> int:
                     f"    feature squares: {q['squares']} of {q['side_cells']} cells on a "
                     f"{q['mosaic_cells'][0]} x {q['mosaic_cells'][1]} mosaic; largest window "
                     f"searched {q['largest_window_cells'][0]} x {q['largest_window_cells'][1]} "
-                    f"({100 * q['largest_window_share']:.0f} % of the mosaic)",
+                    f"({100 * q['largest_window_share']:.0f} % of the mosaic); "
+                    f"{q['cut_pieces']} pieces of objects searched in parts",
                     flush=True,
                 )
     shutil.rmtree(peak_dir, ignore_errors=True)
-    if len(rows) > 1:
-        a, b = rows[0], rows[-1]
-        ratios = ", ".join(
-            f"{k} {b['peak_rss_mib'][k] / max(a['peak_rss_mib'][k], 1e-9):.2f}"
-            for k in a["peak_rss_mib"]
-        )
-        print(
-            f"{b['tiles']}/{a['tiles']} tiles: wall-time ratio {b['wall_s'] / a['wall_s']:.2f} "
-            f"(linear: {b['tiles'] / a['tiles']:.2f}), workers' CPU ratio "
-            f"{b['worker_cpu_s'] / max(a['worker_cpu_s'], 1e-9):.2f}; "
-            f"peak RSS ratio per process: {ratios}"
-        )
-        kinds = ", ".join(
-            f"{k} {b['tasks'][k]['peak_rss_mib'] / max(a['tasks'][k]['peak_rss_mib'], 1e-9):.2f}"
-            for k in a["tasks"]
-            if k in b["tasks"]
-        )
-        growth = ", ".join(
-            f"{k} {a['tasks'][k]['max_growth_mib']:.0f} -> {b['tasks'][k]['max_growth_mib']:.0f}"
-            for k in a["tasks"]
-            if k in b["tasks"]
-        )
-        print(f"peak RSS ratio per task kind: {kinds}")
-        print(
-            "largest growth of a task over the RSS its process held when it started (MiB; "
-            f"a process keeps what earlier tasks left, so peaks carry it): {growth}"
-        )
+    return rows
+
+
+def _print_ratios(rows: list[dict]) -> None:
+    """The largest survey's figures against the smallest's."""
+    if len(rows) < 2:
+        return
+    a, b = rows[0], rows[-1]
+    ratios = ", ".join(
+        f"{k} {b['peak_rss_mib'][k] / max(a['peak_rss_mib'][k], 1e-9):.2f}"
+        for k in a["peak_rss_mib"]
+    )
+    print(
+        f"{b['tiles']}/{a['tiles']} tiles: wall-time ratio {b['wall_s'] / a['wall_s']:.2f} "
+        f"(linear: {b['tiles'] / a['tiles']:.2f}), workers' CPU ratio "
+        f"{b['worker_cpu_s'] / max(a['worker_cpu_s'], 1e-9):.2f}; "
+        f"peak RSS ratio per process: {ratios}"
+    )
+    kinds = ", ".join(
+        f"{k} {b['tasks'][k]['peak_rss_mib'] / max(a['tasks'][k]['peak_rss_mib'], 1e-9):.2f}"
+        for k in a["tasks"]
+        if k in b["tasks"]
+    )
+    growth = ", ".join(
+        f"{k} {a['tasks'][k]['max_growth_mib']:.0f} -> {b['tasks'][k]['max_growth_mib']:.0f}"
+        for k in a["tasks"]
+        if k in b["tasks"]
+    )
+    print(f"peak RSS ratio per task kind: {kinds}")
+    print(
+        "largest growth of a task over the RSS its process held when it started (MiB; "
+        f"a process keeps what earlier tasks left, so peaks carry it): {growth}"
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--tiles", type=int, nargs="+", default=[16, 64])
+    ap.add_argument(
+        "--points", type=int, default=500_000, help="pulses per tile (returns: ~10 %% more)"
+    )
+    ap.add_argument("--density", type=float, default=10.0, help="pulses per m²")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--no-waves",
+        action="store_true",
+        help="terrain without the long waves (objects of bounded size: the feature "
+        "squares' windows need not grow across the survey)",
+    )
+    ap.add_argument(
+        "--feature-cap",
+        nargs="+",
+        default=[None],
+        help="metres a feature square's window may grow beyond its halo, or none "
+        "(TERRASIFT_FEATURE_CAP_M); several: each on a cluster of its own, in turn",
+    )
+    ap.add_argument("--keep", type=Path, help="keep the surveys under this folder")
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    args = ap.parse_args()
+
+    every: list[dict] = []
+    for cap in args.feature_cap:
+        if cap is not None:
+            print(f"feature squares' cap: {cap}", flush=True)
+        rows = _run_caps(args, cap)
+        for row in rows:
+            row["feature_cap"] = cap
+        every += rows
+        _print_ratios(rows)
+    if len(args.feature_cap) > 1:
+        for n in args.tiles:
+            mine = [r for r in every if r["tiles"] == n]
+            print(
+                f"{n} tiles, per cap: "
+                + "; ".join(
+                    f"{r['feature_cap']}: workers' peak {r['peak_rss_worker_mib']:.0f} MiB, "
+                    f"search_feature_square peak "
+                    f"{r['tasks'].get('search_feature_square', {}).get('peak_rss_mib', 0):.0f} MiB, "
+                    f"largest window {100 * r['squares'].get('largest_window_share', 0):.0f} %"
+                    for r in mine
+                )
+            )
+    rows = every
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=2))

@@ -193,3 +193,32 @@ def test_shadow_copies_a_return_to_the_blocks_behind_it():
         grid, np.array([2.0]), np.array([5.0]), ox[:1], oy[:1], (np.array([0]), np.array([0]))
     )
     assert west[0].size == 0
+
+
+def test_the_ground_step_tells_the_method_the_box_its_block_was_cut_to():
+    """Core ± buffer: where the block's data meets that box it goes on beyond it."""
+    import dataclasses
+
+    from terrasift import jobs
+    from terrasift.jobs.params import block_models
+    from terrasift.workers import steps
+    from terrasift.workers.block import Block
+    from terrasift.workers.registry import Stage
+
+    seen: dict = {}
+
+    def method(xyz, params, *, sensor_origin=None, window=None):
+        seen["window"] = window
+        return np.zeros(xyz.shape[0], dtype=bool)
+
+    models = block_models(jobs.validate_params({"rotation": "off"}))
+    models = dataclasses.replace(
+        models, ground=Stage("ground.box", type(models.ground_params), method, "records its box")
+    )
+    grid = BlockGrid.over((0.0, 0.0), (299.9, 199.9), resolution=0.5, block_size=100.0, buffer=10.0)
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(90, 210, 500), rng.uniform(0, 110, 500), np.zeros(500)])
+    core = (xyz[:, 0] >= 100) & (xyz[:, 0] < 200) & (xyz[:, 1] < 100)
+    block = Block(xyz, np.zeros(500, np.uint16), core, grid, 1, 0, 1.0, lambda: None)
+    steps.ground_step(block, models)
+    assert seen["window"] == (90.0, -10.0, 210.0, 110.0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 from rasterio import Affine
 from shapely.geometry import box
 
@@ -132,3 +133,78 @@ def test_flat_marks_across_the_dtm_do_not_grow_a_rectangle_filter_s_window(scene
     assert whole  # the scene holds flat areas
     tiled = sorted(merge_pieces(pieces, filters, cp, CELL).objects, key=_key)
     assert [_key(f) for f in tiled] == [_key(f) for f in whole]
+
+
+def _plain_with_road_and_ditch(size: float) -> NDArray[np.float64]:
+    """A level plain (0.2 % tilt, 2 cm noise) crossed west to east by a road on a 0.8 m
+    embankment (6 m top, 1 : 1.5 sides, turned 3°) and north to south by a ditch
+    0.6 m deep (1 m floor, 1 : 1 banks, turned 5°): all three span the whole DTM."""
+    n = int(size / CELL)
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) * CELL
+    z = 100.0 + 0.002 * x
+    d = np.abs((y - 0.3 * size) - 0.05 * (x - size / 2))
+    z = z + np.clip(0.8 - np.maximum(d - 3.0, 0) / 1.5, 0, None)
+    d = np.abs((x - 0.55 * size) + 0.08 * (y - size / 2))
+    z = z - np.clip(0.6 - np.maximum(d - 0.5, 0), 0, None)
+    return z + np.random.default_rng(0).normal(0, 0.02, z.shape)
+
+
+@pytest.mark.parametrize(
+    ("names", "size", "n"), [("flat-area", 400.0, 4), ("road,ditch", 300.0, 3)]
+)
+def test_objects_as_large_as_the_dtm_are_searched_in_parts_within_a_capped_window(
+    names: str, size: float, n: int
+) -> None:
+    """A level plain (one flat area) and a road and a ditch across the whole DTM: with a
+    cap every core's window stays within the core, its halo and the cap (without one
+    it grows to the whole DTM), the objects are searched in parts (``Cut``) and the
+    parts joined equal the whole DTM's objects (unsimplified outlines: the same
+    tiles, outline, length and width)."""
+    from terrasift.workers.features import FeatureParams
+    from terrasift.workers.features.tiled import search_core, window_align
+
+    dtm = _plain_with_road_and_ditch(size)
+    t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
+    filters = resolve_filters(names)
+    cp = CategoryParams()
+    cp = cp.model_copy(
+        update={
+            "noise": measure_noise(dtm, CELL, cp),
+            "slope_noise": measure_slope_noise(dtm, CELL, cp),
+        }
+    )
+    fp = FeatureParams(simplify_tiles=0)
+    cats, stepped = categories_for(dtm, CELL, filters, cp)
+    whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
+    assert sorted(f.kind for f in whole) == sorted(names.split(","))
+    assert all(f.length_m > 0.9 * size for f in whole)  # each spans the DTM
+    reach = window_reach(filters, cp, CELL)
+    halo, cap = reach + 8, 32
+    align = window_align(filters, cp, CELL)
+    ext = max(halo, reach + 2 * align) + cap
+    edges = np.linspace(0, dtm.shape[0], n + 1).astype(int).tolist()
+    pieces, largest = [], 0
+    for i in range(n):
+        for j in range(n):
+            core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
+            found, seen = search_core(
+                lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
+            )
+            pieces += found
+            for a in (0, 1):  # the window: within the core, its halo and the cap
+                assert seen[a] >= core[a] - ext - align and seen[a + 2] <= core[a + 2] + ext
+            largest = max(largest, (seen[2] - seen[0]) * (seen[3] - seen[1]))
+    assert largest < dtm.size
+    # without the cap a core's window grows to the whole DTM around these objects
+    core = (edges[1], edges[1], edges[2], edges[2])
+    seen = search_core(lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo)[
+        1
+    ]
+    assert seen == (0, 0, *dtm.shape)
+    assert sum(p.cut is not None for p in pieces) >= n * n // 2
+    tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
+    assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
+    for a in whole:
+        (b,) = [f for f in tiled if _key(f) == _key(a)]
+        assert a.geometry.hausdorff_distance(b.geometry) < 1e-6
+        assert abs(a.length_m - b.length_m) < 1e-6 and abs(a.width_m - b.width_m) < 1e-6

@@ -10,6 +10,7 @@ the full run's: DTM cells, categories, labels and merged features.
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 
 import laspy
@@ -22,7 +23,13 @@ from terrasift.jobs import run_job, validate_params
 from terrasift.jobs import survey as survey_module
 from terrasift.jobs.finish import dtm_category_grids
 from terrasift.jobs.params import stage_params
-from terrasift.jobs.survey import current_version, plan_survey_run, product_files, publish
+from terrasift.jobs.survey import (
+    SQUARES,
+    current_version,
+    plan_survey_run,
+    product_files,
+    publish,
+)
 from terrasift.synthetic.terrain import Surface, make_scene, write_tiles
 from terrasift.workers import features as feat
 from terrasift.workers.executors import InlineExecutor
@@ -77,6 +84,8 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     # a small halo up front: each square's window grows only around the objects that need
     # it, so squares far from the change keep small windows (and their pieces)
     patch.setattr(survey_module, "FEATURE_HALO_M", 8.0)
+    # and a cap of 4 m: the hill (~20 m) is searched in parts, joined at the publish
+    patch.setattr(survey_module, "FEATURE_CAP_M", 4.0)
 
     def run(name: str, mode: str = "incremental", **kw: object) -> dict:
         summary = plan_survey_run(root / name, sdir, tiles, params, mode=mode, **kw)
@@ -87,6 +96,11 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> dict:
     v1 = current_version(sdir)
     assert v1 is not None
     out["v1"], out["inodes1"] = _product(v1), _inodes(v1)
+    out["cut1"] = sum(
+        p.cut is not None
+        for f in (v1 / SQUARES).glob("*.pkl")
+        for p in pickle.loads(f.read_bytes())["pieces"]
+    )
     out["whole_features1"] = _whole_features(v1, params)
     out["files"] = product_files(v1)
     out["vrt"] = (v1 / "dtm.vrt").read_text()
@@ -201,14 +215,21 @@ def test_only_squares_whose_searched_window_holds_a_changed_cell_are_searched_ag
         "noise": 0.1,
         "slope_noise": 0.02,
         "tiles": {n: {"cells": list(window_bounds(grid, w))} for n, w in windows.items()},
-        "squares": {"extent": [0, 0, 100, 100], "side": 50, "windows": searched},
+        "squares": {"extent": [0, 0, 100, 100], "side": 50, "cap": 20, "windows": searched},
     }
     write_json(prev / "state.json", state)
 
     def stale(
-        outputs: set[str], noise: float = 0.1, slope: float = 0.02, extent=(0, 0, 100, 100), side=50
+        outputs: set[str],
+        noise: float = 0.1,
+        slope: float = 0.02,
+        extent=(0, 0, 100, 100),
+        side=50,
+        cap: int | None = 20,
     ) -> set:
-        return _stale_squares(prev, grid, windows, outputs, (noise, slope), extent, side, squares)
+        return _stale_squares(
+            prev, grid, windows, outputs, (noise, slope), extent, side, squares, cap
+        )
 
     assert stale({"d"}) == {"1_0", "1_1"}
     assert stale({"a"}) == {"0_0", "0_1", "1_0"}  # the halo of "0_1" reads "a"'s cells
@@ -218,6 +239,7 @@ def test_only_squares_whose_searched_window_holds_a_changed_cell_are_searched_ag
     assert stale({"d"}, slope=0.03) == set(squares)  # another slope noise: all
     assert stale(set(), extent=(0, 0, 100, 150)) == set(squares)  # the mosaic grew: all
     assert stale(set(), side=40) == set(squares)
+    assert stale(set(), cap=None) == set(squares)  # another cap: all
     (prev / SQUARES / "0_0.pkl").unlink()
     assert stale(set()) == {"0_0"}  # no pieces kept for it
 
@@ -355,6 +377,7 @@ def test_per_tile_features_equal_one_search_over_the_survey(survey: dict) -> Non
         )
 
     assert survey["v1"]["features"], "the scene's hill is an object"
+    assert survey["cut1"] >= 2  # searched in parts (the cap), joined at the publish
     for v in ("1", "3"):
         assert objects(survey[f"v{v}"]["features"]) == objects(survey[f"whole_features{v}"])
 

@@ -82,6 +82,12 @@ SQUARES = ".squares"
 #: Any halo gives the same objects (the search grows around an object that needs it);
 #: a smaller one reads less up front and grows more often
 FEATURE_HALO_M: float | None = None
+#: metres a square's window may grow beyond its halo (``tiled.search_core``'s cap): an
+#: object larger than that (a level plain, a road across the survey) is searched in
+#: parts, square by square, and joined from them, so no window passes a square, its
+#: halo and this; None: windows grow around whole objects. ``TERRASIFT_FEATURE_CAP_M``
+#: (metres, or ``none``) sets it in the processes that run the squares' tasks
+FEATURE_CAP_M: float | None = 256.0
 Bounds = tuple[float, float, float, float]
 Window = tuple[int, int, int, int]  # row_off, col_off, rows, cols in the survey grid
 
@@ -681,6 +687,20 @@ def _derived_params(
     }
 
 
+def feature_cap_m() -> float | None:
+    """The feature squares' cap in metres: ``TERRASIFT_FEATURE_CAP_M`` if set, else
+    ``FEATURE_CAP_M``."""
+    env = os.environ.get("TERRASIFT_FEATURE_CAP_M", "").strip().lower()
+    if not env:
+        return FEATURE_CAP_M
+    if env == "none":
+        return None
+    value = float(env)
+    if not value >= 0:
+        raise ValueError(f"TERRASIFT_FEATURE_CAP_M must be metres >= 0 or none, not {env!r}")
+    return value
+
+
 def stage_derived(job_dir: str) -> dict[str, Any]:
     """Task: what the run's derived products need, once its tiles' DTMs are written.
 
@@ -762,8 +782,10 @@ def stage_derived(job_dir: str) -> dict[str, Any]:
 
         height, width = extent[2] - extent[0], extent[3] - extent[1]
         squares = {k: list(v) for k, v in feature_squares(height, width, side, spans).items()}
+    cap_m = feature_cap_m()
+    cap = None if cap_m is None else int(round(cap_m / res))
     search = _stale_squares(
-        prev, grid, windows, set(s["outputs"]), (noise, slope_noise), extent, side, squares
+        prev, grid, windows, set(s["outputs"]), (noise, slope_noise), extent, side, squares, cap
     )
     stage = {
         "base": s["base"],
@@ -773,6 +795,7 @@ def stage_derived(job_dir: str) -> dict[str, Any]:
         "tiles": sorted(stale),
         "extent": list(extent),
         "side": side,
+        "cap": cap,
         "squares": squares,
         "search": sorted(search),
     }
@@ -893,6 +916,7 @@ def search_feature_square(job_dir: str, key: str) -> str:
             p["categories"],
             p["features"],
             None if FEATURE_HALO_M is None else int(round(FEATURE_HALO_M / abs(ds.transform.a))),
+            stage.get("cap"),
         )
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(pickle.dumps({"pieces": pieces, "window": list(window)}))
@@ -985,6 +1009,7 @@ def _assemble(
         "squares": {
             "extent": stage["extent"],
             "side": stage["side"],
+            "cap": stage.get("cap"),
             "windows": windows_searched,
             "searched": stage["search"],
         },
@@ -1051,16 +1076,18 @@ def _stale_squares(
     extent: tuple[int, int, int, int],
     side: int,
     squares: Mapping[str, list[int]],
+    cap: int | None = None,
 ) -> set[str]:
     """Feature squares to search again: those whose window searched last time holds a
     changed cell (or reaches past a cut edge); all when the mosaic's extent, the
-    squares or a noise changed. A square's pieces depend only on the DTM cells of
-    the window its search read (``tiled.search_core``), so the others' are the same."""
+    squares, their cap or a noise changed. A square's pieces depend only on the DTM
+    cells of the window its search read (``tiled.search_core``), so the others' are
+    the same."""
     changed = _changed(prev, grid, windows, outputs, noises)
     if changed is None:
         return set(squares)
     old = load_json(prev / STATE).get("squares") or {}  # type: ignore[operator]
-    if old.get("extent") != list(extent) or old.get("side") != side:
+    if old.get("extent") != list(extent) or old.get("side") != side or old.get("cap") != cap:
         return set(squares)
     res = grid.resolution
     r0, c0 = extent[0], extent[1]

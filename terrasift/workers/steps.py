@@ -12,6 +12,7 @@ parameter model and its step, registered with ``registry.block_step``.
 
 from __future__ import annotations
 
+import inspect
 from functools import partial
 
 import numpy as np
@@ -31,7 +32,7 @@ from terrasift.workers.block import (
     BlockModels,
 )
 from terrasift.workers.ground import landforms, lowpoints, lowveg, rotation
-from terrasift.workers.registry import block_step
+from terrasift.workers.registry import Stage, block_step
 
 #: bins of the widest vegetation support window (15) reach this far beyond the core
 VEGETATION_PAD = 7
@@ -103,6 +104,18 @@ def ground_step(block: Block, models: BlockModels) -> None:
     block.stats["low_points"] = int(np.count_nonzero(low[block.core[block.act]]))
 
 
+def _window(block: Block, stage: Stage) -> dict[str, tuple[float, float, float, float]]:
+    """``window=`` the box the block's points were cut to (core and halo), for a ground
+    method that takes it: where the data meets that box it goes on beyond, so the
+    method's rules for the edge of the data hold elsewhere only. Unrotated runs only
+    (a tipped cloud no longer fills the box)."""
+    if "window" not in inspect.signature(stage.run).parameters:
+        return {}
+    xmin, ymin, xmax, ymax = block.grid.core_bounds(block.ix, block.iy)
+    b = float(block.grid.buffer)
+    return {"window": (xmin - b, ymin - b, xmax + b, ymax + b)}
+
+
 def _last_return(block: Block) -> NDArray[np.bool_] | None:
     """Per point still in the pipeline: the last (or only) return of its pulse; None when unknown."""
     if block.return_number is None or block.number_of_returns is None:
@@ -126,7 +139,9 @@ def _ground(block: Block, models: BlockModels) -> tuple[NDArray[np.bool_], NDArr
         return is_ground & ~low, low
 
     with timer("ground"):
-        is_ground = np.asarray(stage.run(xyz, models.ground_params, **kwargs), dtype=bool)
+        is_ground = np.asarray(
+            stage.run(xyz, models.ground_params, **kwargs, **_window(block, stage)), dtype=bool
+        )
         last = _last_return(block)
         if models.landforms is not None:
             # Mesas, buttes and steep hills the filter removed as if buildings.

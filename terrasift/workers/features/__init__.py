@@ -245,12 +245,14 @@ def _run_filter(
 
 
 def filter_labels(
-    categories: Categories, flt: Filter
+    categories: Categories, flt: Filter, whole: bool = True
 ) -> tuple[NDArray[np.int32] | None, NDArray[np.bool_], NDArray[np.bool_]]:
     """A resolved filter's object labels (None without a connect or rectangle step),
     its marked tiles, and the tiles its objects are grown from (marks found either
     way; a rectangle's cover): every object lies within that support and depends
-    only on the part of it that it touches."""
+    only on the part of it that it touches. ``whole=False`` leaves out the rules that
+    judge a label as a whole (``whole_label_rules``), for a window that holds only
+    part of some labels."""
     h, v = search_filter(categories, flt)
     support = h | v
     if flt.h_and_v:
@@ -276,12 +278,27 @@ def filter_labels(
     elif c.method == "segment":
         gap = int(c.max_error // 10)  # runs of missing lines bridged: 2 at 20 %
         labels = _connect.segments(h, v, gap)
-        labels = _drop_gappy(labels, c.max_error)
     else:
         labels = _connect.edges(categories, h, v, marks)
+    if whole:
+        labels = whole_label_rules(labels, categories, flt)
+    return labels, marks, support
+
+
+def whole_label_rules(
+    labels: NDArray[np.int32], categories: Categories, flt: Filter
+) -> NDArray[np.int32]:
+    """Labels without those a rule over the whole label drops: a segment-connected
+    object missing too many lines (``connect segment``'s error), one not clear
+    enough (``clear-share``)."""
+    c = flt.connect
+    if flt.rectangle is not None or c is None:
+        return labels
+    if c.method == "segment":
+        labels = _drop_gappy(labels, c.max_error)
     if flt.clear_share is not None:
         labels = _drop_unclear(labels, categories, flt.clear_share)
-    return labels, marks, support
+    return labels
 
 
 def connect_reach(flt: Filter) -> int:
@@ -324,14 +341,24 @@ def _drop_unclear(
     n = int(labels.max())
     if n == 0 or categories.clear is None:
         return labels
+    counted, clear = clear_counts(labels, categories, n)
+    keep = np.zeros(n + 1, dtype=bool)
+    keep[1:] = clear >= share * counted
+    return np.where(keep[labels], labels, 0).astype(np.int32)
+
+
+def clear_counts(
+    labels: NDArray[np.int32], categories: Categories, n: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per label 1..n: its tiles that are not flat, and of those the clearly not flat
+    ones (``_drop_unclear``'s sums, which add up over the parts of a label)."""
+    assert categories.clear is not None
     inc, ori, st = categories.inclination, categories.orientation, categories.state
     not_flat = ((inc | ori | st) != 0) & (inc != NODATA)
     idx = np.arange(1, n + 1)
     counted = ndimage.sum_labels(not_flat, labels, idx)
     clear = ndimage.sum_labels(not_flat & (categories.clear == 1), labels, idx)
-    keep = np.zeros(n + 1, dtype=bool)
-    keep[1:] = clear >= share * counted
-    return np.where(keep[labels], labels, 0).astype(np.int32)
+    return np.asarray(counted, float), np.asarray(clear, float)
 
 
 def _drop_gappy(labels: NDArray[np.int32], max_error: float) -> NDArray[np.int32]:

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from rasterio import Affine
 from rasterio.features import shapes
 from scipy import ndimage
-from shapely.geometry import MultiPolygon, Polygon, shape
+from shapely.geometry import LinearRing, MultiPolygon, Polygon, shape
 from shapely.ops import unary_union
 
 
@@ -126,10 +126,39 @@ def polygons(
             g = g.buffer(tile * 1e-3, join_style="mitre").buffer(-tile * 1e-3, join_style="mitre")
         if isinstance(g, MultiPolygon):  # pieces joined across bridged gaps (≤ 2 tiles)
             g = g.buffer(tile, join_style="mitre").buffer(-tile, join_style="mitre")
+        g = scan_order(g, transform.e > 0)
         if simplify > 0:
             g = g.simplify(simplify, preserve_topology=True)
         out[lab] = g
     return out
+
+
+def _ring(coords: list, rows_down: bool, outer: bool) -> list:
+    """A closed ring from its top-left vertex (the first tile's corner in scan order),
+    turning as ``rasterio.features.shapes`` traces an outline (holes the other way)."""
+    pts = coords[:-1]
+    sign = 1 if rows_down else -1
+    start = min(range(len(pts)), key=lambda i: (sign * pts[i][1], pts[i][0]))
+    pts = pts[start:] + pts[:start]
+    if LinearRing(pts).is_ccw != (outer != rows_down):
+        pts = [pts[0], *pts[:0:-1]]
+    return [*pts, pts[0]]
+
+
+def scan_order(geom: Polygon | MultiPolygon, rows_down: bool) -> Polygon | MultiPolygon:
+    """``geom`` with every ring starting at its top-left vertex and turning one way
+    (``rows_down``: y grows downwards, as tile indices do). Simplification keeps a
+    ring's first vertex, so an outline made by a union (whose rings start anywhere)
+    or joined from parts is simplified alike however it was made."""
+    parts = geom.geoms if isinstance(geom, MultiPolygon) else [geom]
+    out = [
+        Polygon(
+            _ring(list(p.exterior.coords), rows_down, True),
+            [_ring(list(h.coords), rows_down, False) for h in p.interiors],
+        )
+        for p in parts
+    ]
+    return out[0] if len(out) == 1 else MultiPolygon(out)
 
 
 def objects_from_labels(
@@ -220,7 +249,7 @@ def prepare_labels(
         short = 2 * counts < min_l
         reach = near_reach(limits, join, join_aligned)
         if reach:
-            short &= ~_near_other(labels, reach, counts.size) | (counts < 3)
+            short &= ~near_other(labels, reach, counts.size) | (counts < 3)
         small |= short
     if min_w is not None:
         small |= counts < 0.5 * min_w * min_w
@@ -294,7 +323,7 @@ def finish_pieces(
     return feats
 
 
-def _near_other(labels: NDArray[np.int32], reach: int, n: int) -> NDArray[np.bool_]:
+def near_other(labels: NDArray[np.int32], reach: int, n: int) -> NDArray[np.bool_]:
     """Per label: another label lies within ``reach`` tiles (square neighbourhood)."""
     size = 2 * reach + 1
     hi = ndimage.maximum_filter(labels, size=size)

@@ -23,6 +23,13 @@ whole DTM's. A piece belongs to the core holding its first tile (in row order):
 one core. A closure that touches the core but reaches the unsafe rim is searched
 again on a window grown around it, until it lies in the safe part (at worst the
 window is the whole DTM), so no object is cut or found twice.
+
+With a cap on that growth, a closure larger than the cap is not searched whole:
+marks, covers and labels are exact in the safe part, so each core gives the tiles
+of its labels within the core (``Cut``) with the tiles they connect to just across
+the core's edges, and ``merge_pieces`` joins the parts into labels before judging
+them as a whole (the rules over whole labels add up over parts; holes are those
+enclosed within a window or by the joined outline).
 """
 
 from __future__ import annotations
@@ -34,25 +41,34 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from rasterio import Affine
+from rasterio.features import shapes
 from scipy import ndimage
+from shapely import affinity
+from shapely.geometry import MultiPolygon, Polygon, shape
+from shapely.ops import unary_union
 
 from terrasift.workers.categories import Categories, CategoryParams
 from terrasift.workers.features import (
     FeatureParams,
     FeatureResult,
     categories_for,
+    clear_counts,
     connect_reach,
     filter_labels,
     grid_key,
     object_options,
+    whole_label_rules,
 )
 from terrasift.workers.features.language import Filter, resolve_lengths
 from terrasift.workers.features.objects import (
     Feature,
     finish_pieces,
     label_pieces,
+    near_other,
     near_reach,
     prepare_labels,
+    rectangle_size,
+    scan_order,
 )
 
 #: a window of DTM cells: (row0, col0, row1, col1), ends excluded
@@ -60,13 +76,32 @@ Rect = tuple[int, int, int, int]
 
 
 @dataclass(frozen=True)
+class Cut:
+    """The part within one core of a label too large for a capped window: its tiles
+    as a polygon in tile indices of the filter's grid over the whole DTM (exact
+    integers, unsimplified, holes it encloses within the window filled), what joins
+    it to the parts in other cores, and the sums the whole label is judged by."""
+
+    grid: tuple[float, float, float, float, float, float]  # tile indices -> metres
+    polygon: Polygon | MultiPolygon
+    edge: frozenset[tuple[int, int]]  # its tiles within the connect reach of the core's edge
+    links: frozenset[tuple[int, int]]  # the label's tiles just outside the core (other cores')
+    near: bool  # another label within ``near_reach`` of one of its tiles
+    clear: tuple[float, float] | None  # ``clear_counts`` (tiles not flat, clearly not flat)
+    lines: tuple[frozenset[int], frozenset[int]] | None  # rows, columns (``connect segment``)
+
+
+@dataclass(frozen=True)
 class Piece:
     """An object of filter ``filter`` before joining and sizing; ``key`` is its first
-    tile (row, col) on that filter's grid over the whole DTM (the order of labels)."""
+    tile (row, col) on that filter's grid over the whole DTM (the order of labels).
+    With ``cut``, only the part of a label within one core: ``merge_pieces`` joins
+    the parts of all cores into the label first."""
 
     filter: int
     key: tuple[int, int]
     feature: Feature
+    cut: Cut | None = None
 
 
 def _tile_cells(cparams: CategoryParams, cell: float) -> int:
@@ -151,12 +186,14 @@ def tile_pieces(
     cparams: CategoryParams,
     params: FeatureParams | None = None,
     halo: int | None = None,
+    cap: int | None = None,
 ) -> list[Piece]:
     """The pieces ``core`` owns, searched on the core plus ``halo`` cells (default: the
     filters' ``window_reach`` and 32 m for objects across the core's edges) of the DTM
     of ``shape`` cells and ``transform``; ``read(r0, r1, c0, c1)`` gives its cells (NaN
-    nodata). ``cparams.noise`` and ``cparams.slope_noise`` must be the whole DTM's."""
-    return search_core(read, shape, transform, core, filters, cparams, params, halo)[0]
+    nodata). ``cparams.noise`` and ``cparams.slope_noise`` must be the whole DTM's.
+    With ``cap`` the window grows at most ``cap`` cells beyond the halo (``search_core``)."""
+    return search_core(read, shape, transform, core, filters, cparams, params, halo, cap)[0]
 
 
 def search_core(
@@ -168,10 +205,21 @@ def search_core(
     cparams: CategoryParams,
     params: FeatureParams | None = None,
     halo: int | None = None,
+    cap: int | None = None,
 ) -> tuple[list[Piece], Rect]:
     """``tile_pieces`` with the DTM cells the search read (the union of its windows):
     the pieces stay the same as long as those cells do, so a later search of the same
-    core can be skipped when no cell of that window changed."""
+    core can be skipped when no cell of that window changed.
+
+    ``cap`` (cells) bounds the window at the core plus the halo (at least the
+    filters' reach) plus ``cap`` on each side. An object whose closure spans more
+    than ``cap`` cells (a level plain, a road across the survey) is then not
+    searched whole: each core gives its label's tiles within the core (``Cut``),
+    exact there, and ``merge_pieces`` joins the parts of all cores by the links
+    each saw across its edges. Every core judges a closure large or not alike
+    (a closure of at most ``cap`` cells that touches a core lies in the safe part
+    of that core's largest window), so an object is either whole in one core or
+    cut in all that hold it."""
     if cparams.noise is None or cparams.slope_noise is None:
         raise ValueError("tile_pieces needs the whole DTM's noise and slope noise")
     params = params or FeatureParams()
@@ -180,6 +228,10 @@ def search_core(
     if halo is None:
         halo = window_reach(filters, cparams, cell) + int(np.ceil(32.0 / cell))
     start = _snap((core[0] - halo, core[1] - halo, core[2] + halo, core[3] + halo), shape, align)
+    limit: Rect | None = None
+    if cap is not None:
+        ext = max(halo, window_reach(filters, cparams, cell) + 2 * align) + cap
+        limit = _snap((core[0] - ext, core[1] - ext, core[2] + ext, core[3] + ext), shape, align)
     grids: dict[Rect, tuple[Categories, dict]] = {}
 
     def categories(rect: Rect, flt: Filter) -> Categories:
@@ -201,10 +253,22 @@ def search_core(
         if flt.connect is None and flt.rectangle is None:
             continue  # tile marks, not objects
         rect = start
+        at_limit = rect == limit
         reach = window_reach([flt], cparams, cell)  # this filter's: its grid and its steps
         while True:
             found, grow = _window_pieces(
-                categories(rect, flt), flt, i, rect, shape, transform, core, reach, params, cell
+                categories(rect, flt),
+                flt,
+                i,
+                rect,
+                shape,
+                transform,
+                core,
+                reach,
+                params,
+                cell,
+                cap,
+                at_limit,
             )
             if grow is None:
                 out += found
@@ -222,6 +286,17 @@ def search_core(
                     align,
                 ),
             )
+            if limit is not None:
+                rect = (
+                    max(rect[0], limit[0]),
+                    max(rect[1], limit[1]),
+                    min(rect[2], limit[2]),
+                    min(rect[3], limit[3]),
+                )
+                # at the limit what is still cut is large: searched in parts
+                at_limit = rect in (before, limit)
+                if rect == before:
+                    continue
             if rect == before:  # the whole DTM is safe everywhere: cannot happen
                 raise RuntimeError(f"feature window {rect} cannot grow")
             seen = (
@@ -244,15 +319,19 @@ def _window_pieces(
     reach: int,
     params: FeatureParams,
     cell: float,
+    cap: int | None = None,
+    at_limit: bool = False,
 ) -> tuple[list[Piece], Rect | None]:
     """The pieces of ``flt`` that ``core`` owns in window ``rect``, or the DTM cells the
-    window must grow to cover when a closure touching the core is not in its safe part."""
+    window must grow to cover when a closure touching the core is not in its safe part.
+    Closures larger than ``cap`` cells, and at the window's ``at_limit`` every closure
+    not in its safe part, give the core's parts of their labels (``Cut``) instead."""
     k = cats.cells_per_tile
     s = cats.step
     flt = resolve_lengths(flt, cats.spacing)
-    labels, marks, support = filter_labels(cats, flt)
-    assert labels is not None
-    rows, cols = labels.shape
+    raw, marks, support = filter_labels(cats, flt, whole=False)
+    assert raw is not None
+    rows, cols = raw.shape
     # tiles whose origin lies in the core, and in the safe part (cut edges only)
     origin_r = rect[0] + np.arange(rows) * s
     origin_c = rect[1] + np.arange(cols) * s
@@ -275,10 +354,11 @@ def _window_pieces(
         closure = ndimage.binary_fill_holes(closure)
     comp, n = ndimage.label(closure, structure=np.ones((3, 3), bool))
     boxes = ndimage.find_objects(comp)
-    core_tiles = np.zeros(labels.shape, bool)
+    core_tiles = np.zeros(raw.shape, bool)
     core_tiles[np.ix_(in_core_r, in_core_c)] = True
     mine = set(np.unique(comp[core_tiles & closure]).tolist()) - {0}
     complete = np.zeros(n + 1, bool)
+    cut = np.zeros(n + 1, bool)  # closures searched in parts
     grow: list[Rect] = []
     for c in range(1, n + 1):
         br, bc = boxes[c - 1]
@@ -292,9 +372,19 @@ def _window_pieces(
             and safe_c[bc].all()
         )
         complete[c] = ok
-        if not ok and c in mine:
-            grow.append(_cells(rect, br, bc, s, k))
+        box = _cells(rect, br, bc, s, k)
+        if ok and cap is not None:
+            cut[c] = max(box[2] - box[0], box[3] - box[1]) > cap
+        elif not ok and c in mine:
+            if at_limit:
+                cut[c] = True
+            else:
+                grow.append(box)
 
+    # the rules over whole labels hold for labels whose closure is whole here
+    labels = whole_label_rules(raw, cats, flt)
+    if cut.any():
+        labels = np.where(cut[comp] & closure, raw, labels)
     opts = object_options(flt, params)
     limits = opts.get("limits", (None, None, None, None))
     labels, counts, small = prepare_labels(
@@ -302,6 +392,7 @@ def _window_pieces(
     )
     ids, first = np.unique(labels.ravel(), return_index=True)
     keep = np.zeros(counts.size, bool)
+    parted = np.zeros(counts.size, bool)
     near = near_reach(limits, opts.get("join"), opts.get("join_aligned"))
     lab_boxes = ndimage.find_objects(labels)
     incomplete = closure & ~complete[comp]
@@ -309,6 +400,9 @@ def _window_pieces(
         if lab == 0:
             continue
         fr, fc = divmod(f, cols)
+        if cut[comp[fr, fc]]:
+            parted[lab] = True
+            continue
         if not (in_core_r[fr] and in_core_c[fc]) or not complete[comp[fr, fc]]:
             continue
         if near and 2 * counts[lab] < limits[0] and counts[lab] >= 3:
@@ -316,13 +410,16 @@ def _window_pieces(
             br, bc = lab_boxes[lab - 1]
             a0, a1 = max(0, br.start - near), min(rows, br.stop + near)
             b0, b1 = max(0, bc.start - near), min(cols, bc.stop + near)
-            ok = safe_r[a0:a1].all() and safe_c[b0:b1].all() and not incomplete[a0:a1, b0:b1].any()
-            if not ok:
+            nearby = incomplete[a0:a1, b0:b1]
+            ok = safe_r[a0:a1].all() and safe_c[b0:b1].all() and not nearby.any()
+            if not ok and not at_limit:
                 grow.append(_cells(rect, slice(a0, a1), slice(b0, b1), s, k))
-                for c in np.unique(comp[a0:a1, b0:b1][incomplete[a0:a1, b0:b1]]).tolist():
+                for c in np.unique(comp[a0:a1, b0:b1][nearby]).tolist():
                     cr, cc = boxes[c - 1]
                     grow.append(_cells(rect, cr, cc, s, k))  # the closures nearby, whole
                 continue
+            # at the limit (and near a label searched in parts) the labels nearby count
+            # as they are here: one a rule over its whole label drops may still keep it
         keep[lab] = not small[lab]
     if grow:
         return [], (
@@ -338,9 +435,81 @@ def _window_pieces(
     )
     g0, c0 = rect[0] // s, rect[1] // s
     key = {lab: divmod(f, cols) for lab, f in zip(ids.tolist(), first.tolist(), strict=True)}
-    return [
-        Piece(index, (g0 + key[lab][0], c0 + key[lab][1]), feat) for lab, feat in pieces.items()
-    ], None
+    out = [Piece(index, (g0 + key[lab][0], c0 + key[lab][1]), feat) for lab, feat in pieces.items()]
+    if parted.any():
+        out += _cut_pieces(
+            cats, flt, index, raw, labels, parted, core_tiles, (g0, c0), transform, near
+        )
+    return out, None
+
+
+def _cut_pieces(
+    cats: Categories,
+    flt: Filter,
+    index: int,
+    raw: NDArray[np.int32],
+    labels: NDArray[np.int32],
+    parted: NDArray[np.bool_],
+    core_tiles: NDArray[np.bool_],
+    origin: tuple[int, int],
+    transform: Affine,
+    near: int,
+) -> list[Piece]:
+    """The core's parts of the labels ``parted`` (searched in parts), ``Cut`` pieces."""
+    g0, c0 = origin
+    mine = np.where(parted[labels] & core_tiles, labels, 0)
+    found = np.unique(mine)
+    found = found[found > 0]
+    if found.size == 0:
+        return []
+    n = int(labels.max())
+    # what joins a part to the others: the label's tiles on both sides of the core's
+    # edge, within the reach at which tiles connect
+    w = connect_reach(flt)
+    rr, cc = np.nonzero(core_tiles)
+    r_lo, r_hi, c_lo, c_hi = rr.min(), rr.max(), cc.min(), cc.max()
+    ring = np.zeros(labels.shape, bool)
+    ring[max(0, r_lo - w) : r_hi + w + 1, max(0, c_lo - w) : c_hi + w + 1] = True
+    inner = np.zeros(labels.shape, bool)
+    inner[r_lo + w : r_hi - w + 1, c_lo + w : c_hi - w + 1] = True
+    edge_mask = core_tiles & ~inner & (mine > 0)
+    link_mask = ring & ~core_tiles & parted[labels] & (labels > 0)
+    edges = _tile_sets(labels, edge_mask, origin)
+    links = _tile_sets(labels, link_mask, origin)
+    close = near_other(labels, near, n + 1) if near else np.zeros(n + 1, bool)
+    raw_mine = np.where(mine > 0, raw, 0)  # the rules over whole labels count raw tiles
+    clear = None
+    if flt.clear_share is not None and cats.clear is not None:
+        clear = clear_counts(raw_mine, cats, n)
+    segment = flt.connect is not None and flt.rectangle is None and flt.connect.method == "segment"
+    counts = np.bincount(mine.ravel(), minlength=n + 1)
+    ids, first = np.unique(mine.ravel(), return_index=True)
+    key = dict(zip(ids.tolist(), first.tolist(), strict=True))
+    parts: dict[int, list] = {}
+    for geom, value in shapes(
+        mine, mask=mine > 0, transform=Affine.translation(c0, g0), connectivity=8
+    ):
+        parts.setdefault(int(value), []).append(shape(geom))
+    grid = cats.transform(transform)
+    out = []
+    for lab in found.tolist():
+        lines = None
+        if segment:
+            a, b = np.nonzero(raw_mine == lab)
+            lines = (frozenset((g0 + a).tolist()), frozenset((c0 + b).tolist()))
+        part = Cut(
+            (grid.a, grid.b, grid.c, grid.d, grid.e, grid.f),
+            unary_union(parts[lab]),
+            frozenset(edges.get(lab, ())),
+            frozenset(links.get(lab, ())),
+            bool(close[lab]),
+            None if clear is None else (float(clear[0][lab - 1]), float(clear[1][lab - 1])),
+            lines,
+        )
+        fr, fc = divmod(key[lab], labels.shape[1])
+        feat = Feature(flt.name, part.polygon, 0.0, 0.0, int(counts[lab]))
+        out.append(Piece(index, (g0 + fr, c0 + fc), feat, part))
+    return out
 
 
 def _cells(rect: Rect, br: slice, bc: slice, s: int, k: int) -> Rect:
@@ -370,12 +539,106 @@ def merge_pieces(
     for i, flt in enumerate(filters):
         if flt.connect is None and flt.rectangle is None:
             continue
-        mine = sorted(by_filter.get(i, []), key=lambda p: p.key)
         r = _resolved(flt, cparams, cell)
         spacing = _spacing(flt, cparams, cell)
+        found = by_filter.get(i, [])
+        whole = [p for p in found if p.cut is None]
+        whole += _join_cuts([p for p in found if p.cut is not None], r, params)
+        mine = sorted(whole, key=lambda p: p.key)
         opts = object_options(r, params)
         opts.pop("fill_holes", None)
         opts.pop("simplify_tiles", None)
         limits = opts.pop("limits", (None, None, None, None))
         result.objects += finish_pieces([p.feature for p in mine], spacing, limits, **opts)
     return result
+
+
+def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[Piece]:
+    """The labels searched in parts (``Cut``), each joined from its parts in all cores
+    (a part's links are tiles of the same label in the parts of other cores) and
+    judged as a whole: the rules over whole labels, holes, specks and short pieces
+    (``prepare_labels``), the polygon simplified once over the whole outline."""
+    if not parts:
+        return []
+    owner = {t: n for n, p in enumerate(parts) for t in p.cut.edge}  # type: ignore[union-attr]
+    parent = list(range(len(parts)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for n, p in enumerate(parts):
+        for t in p.cut.links:  # type: ignore[union-attr]
+            m = owner.get(t)
+            if m is not None:
+                a, b = root(n), root(m)
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    groups: dict[int, list[Piece]] = {}
+    for n, p in enumerate(parts):
+        groups.setdefault(root(n), []).append(p)
+    opts = object_options(flt, params)
+    min_l, _, min_w, _ = opts.get("limits", (None, None, None, None))
+    c = flt.connect
+    out = []
+    for members in groups.values():
+        cuts = [p.cut for p in members if p.cut is not None]
+        tiles = sum(p.feature.tiles for p in members)
+        if min_l is not None and 2 * tiles < min_l and (tiles < 3 or not any(x.near for x in cuts)):
+            continue
+        if min_w is not None and tiles < 0.5 * min_w * min_w:
+            continue
+        sums = [x.clear for x in cuts if x.clear is not None]
+        if flt.clear_share is not None and sums and len(sums) == len(cuts):
+            counted = math.fsum(v[0] for v in sums)
+            if math.fsum(v[1] for v in sums) < flt.clear_share * counted:
+                continue
+        lines = [x.lines for x in cuts if x.lines is not None]
+        if c is not None and lines and len(lines) == len(cuts):
+            rows = frozenset[int]().union(*(v[0] for v in lines))
+            cols = frozenset[int]().union(*(v[1] for v in lines))
+            span_r, span_c = max(rows) - min(rows) + 1, max(cols) - min(cols) + 1
+            present, span = (len(rows), span_r) if span_r >= span_c else (len(cols), span_c)
+            if span - present > c.max_error / 100 * span:
+                continue
+        geom = unary_union([x.polygon for x in cuts])
+        if opts.get("fill_holes", True):  # holes that the cores' edges cut open
+            geom = _without_holes(geom)
+        if isinstance(geom, MultiPolygon):  # as ``objects.polygons``: corners, bridged gaps
+            geom = geom.buffer(1e-3, join_style="mitre").buffer(-1e-3, join_style="mitre")
+        if isinstance(geom, MultiPolygon):
+            geom = geom.buffer(1, join_style="mitre").buffer(-1, join_style="mitre")
+        geom = scan_order(geom, rows_down=True)  # simplified as a whole label's outline
+        if params.simplify_tiles > 0:
+            geom = geom.simplify(params.simplify_tiles, preserve_topology=True)
+        geom = affinity.affine_transform(geom, [*cuts[0].grid[:2], *cuts[0].grid[3:5],
+                                                cuts[0].grid[2], cuts[0].grid[5]])  # fmt: skip
+        length, width = rectangle_size(geom)
+        key = min(p.key for p in members)
+        out.append(
+            Piece(
+                members[0].filter, key, Feature(flt.name, geom, float(length), float(width), tiles)
+            )
+        )
+    return out
+
+
+def _tile_sets(
+    labels: NDArray[np.int32], mask: NDArray[np.bool_], origin: tuple[int, int]
+) -> dict[int, set[tuple[int, int]]]:
+    """Per label, its tiles in ``mask`` as (row, col) of the whole DTM's grid."""
+    a, b = np.nonzero(mask)
+    out: dict[int, set[tuple[int, int]]] = {}
+    for lab, r, c in zip(
+        labels[a, b].tolist(), (a + origin[0]).tolist(), (b + origin[1]).tolist(), strict=True
+    ):
+        out.setdefault(lab, set()).add((r, c))
+    return out
+
+
+def _without_holes(geom: Polygon | MultiPolygon) -> Polygon | MultiPolygon:
+    if isinstance(geom, Polygon):
+        return Polygon(geom.exterior)
+    return unary_union([Polygon(g.exterior) for g in geom.geoms])

@@ -136,6 +136,12 @@ class NistParams(StageParams):
     (a translation of a few metres moved ISPRS kappas by up to 6 points). 0: auto, k = 2
     where final bins hold fewer than ``vote_points`` points on average, else 1 (one grid;
     the vote costs about three times the stage time)."""
+    vote_share: float = Field(0.5, gt=0, le=1)
+    """A point is ground when phases holding at least this share of the vote say so."""
+    vote_weight: Literal["equal", "centre"] = "equal"
+    """Each phase's say in the vote: ``equal``, or ``centre``: by how central the point
+    lies in that phase's final bin (a tent per axis; with two phases per axis the
+    weights are those of bilinear interpolation between the phases)."""
     vote_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
     1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
@@ -547,14 +553,22 @@ def classify_ground(
     params: NistParams,
     *,
     sensor_origin: NDArray[np.float64] | None = None,
+    window: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
-    """Ground mask of the (n, 3) block ``xyz`` (core + halo) by the §6.1 schedule."""
+    """Ground mask of the (n, 3) block ``xyz`` (core + halo) by the §6.1 schedule.
+
+    ``window`` (xmin, ymin, xmax, ymax): the box the block's points were cut to
+    (its core and halo) from data that may go on beyond it. Where the data
+    reaches a side of the box it was cut there, so the rules for the edge of
+    the data (``raised_edge``) hold only along the rest of its outline; None:
+    the points are all the data there is.
+    """
     xyz = np.asarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
     if n < 4:
         return np.ones(n, dtype=bool)
     try:
-        return _classify(xyz, params, sensor_origin)
+        return _classify(xyz, params, sensor_origin, window)
     except (_TooSparse, QhullError):
         # A sliver of a block at the edge of the data: too few (or only
         # collinear) bins pass select/reject to mesh anything, so nothing is
@@ -563,7 +577,10 @@ def classify_ground(
 
 
 def _classify(
-    xyz: NDArray[np.float64], params: NistParams, sensor_origin: NDArray[np.float64] | None
+    xyz: NDArray[np.float64],
+    params: NistParams,
+    sensor_origin: NDArray[np.float64] | None,
+    window: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
@@ -617,10 +634,12 @@ def _classify(
     # ground when at least half of the phases label it so.
     votes_k = params.vote_phases or (2 if (_cell_of(g3) / spacing) ** 2 < params.vote_points else 1)
     finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
-    votes = np.zeros(n, dtype=np.int32)
+    votes, weights = np.zeros(n), np.zeros(n)
     for g in finals:
-        votes += _final(local, mowed, g, k, params, centre, spacing)
-    labels = 2 * votes >= len(finals)
+        w = _vote_weights(local, g, params, len(finals))
+        votes += w * _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
+        weights += w
+    labels = votes >= params.vote_share * weights
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
@@ -634,9 +653,11 @@ def _final(
     params: NistParams,
     centre: NDArray,
     spacing: float,
+    cut: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
-    final surface, raised segments, growth, band and supported points."""
+    final surface, raised segments, growth, band and supported points (``cut``: the
+    block's window in local coordinates, see ``classify_ground``)."""
     none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
@@ -660,7 +681,7 @@ def _final(
         )
     raised = None
     if params.raised_step > 0:
-        tin3, raised = _without_raised(tin3, params)
+        tin3, raised = _without_raised(tin3, params, cut)
     # The final TIN departs further from rough terrain between vertices that
     # are further apart: on sparse data the label tolerances grow with the cell.
     widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
@@ -703,7 +724,7 @@ def _band(
 
 
 def _without_raised(
-    tin: Tin, params: NistParams
+    tin: Tin, params: NistParams, cut: tuple[float, float, float, float] | None = None
 ) -> tuple[Tin, tuple[NDArray[np.float64], NDArray[np.bool_]] | None]:
     """``tin`` without its raised segments (roofs that filled the bins of every pass),
     and, when some were dropped, the local (x, y) of all of ``tin``'s vertices with
@@ -721,6 +742,7 @@ def _without_raised(
         rise=params.raised_rise,
         rim=params.raised_rim,
         edge=params.raised_edge,
+        cut=None if cut is None else _shifted_box(cut, -tin.origin),
     )
     if params.raised_islands:
         drop |= walled_islands(
@@ -731,6 +753,7 @@ def _without_raised(
             params.raised_slope,
             walls=params.raised_walls,
             edge=params.raised_edge,
+            cut=None if cut is None else _shifted_box(cut, -tin.origin),
         )
     if not drop.any() or np.count_nonzero(~drop) < 3:
         return tin, None
@@ -738,6 +761,34 @@ def _without_raised(
         return tin.without(drop), (tin.xy + tin.origin, drop)
     except (QhullError, ValueError):
         return tin, None
+
+
+def _vote_weights(
+    local: NDArray[np.float64], g: Grid | ConcentricGrid, params: NistParams, phases: int
+) -> NDArray[np.float64] | float:
+    """Weight of grid phase ``g``'s labels in the vote (``vote_weight``): 1, or with
+    ``centre`` a tent falling from 1 at the centre of a point's bin to 0 at its sides
+    (per axis, multiplied), so a phase counts least where its bin edges pass."""
+    if params.vote_weight == "equal" or phases <= 1 or not isinstance(g, Grid):
+        return 1.0
+    fx = np.mod((local[:, 0] - g.x0) / g.cell, 1.0)
+    fy = np.mod((local[:, 1] - g.y0) / g.cell, 1.0)
+    return (1.0 - np.abs(2.0 * fx - 1.0)) * (1.0 - np.abs(2.0 * fy - 1.0)) + 1e-9
+
+
+def _local_cut(
+    window: tuple[float, float, float, float] | None, shift: NDArray
+) -> tuple[float, float, float, float] | None:
+    """``window`` in the stage's local coordinates (less ``shift``)."""
+    return None if window is None else _shifted_box(window, -np.asarray(shift, dtype=np.float64))
+
+
+def _shifted_box(
+    box: tuple[float, float, float, float], by: NDArray
+) -> tuple[float, float, float, float]:
+    """``box`` (xmin, ymin, xmax, ymax) moved by ``by`` (x, y)."""
+    dx, dy = float(by[0]), float(by[1])
+    return (box[0] + dx, box[1] + dy, box[2] + dx, box[3] + dy)
 
 
 def _phased(grid: Grid | ConcentricGrid, k: int) -> list[Grid | ConcentricGrid]:

@@ -30,7 +30,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay
 
-from terrasift.workers.ground.raised import _along_edge, _median_per_vertex, tin_edges
+from terrasift.workers.ground.raised import (
+    _along_edge,
+    _median_per_vertex,
+    data_border,
+    tin_edges,
+)
 
 
 def walled_plateaus(
@@ -83,6 +88,7 @@ def walled_islands(
     *,
     walls: float,
     edge: float,
+    cut: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (on ``xyz[:, :2]``) in walled islands, beside ``gone`` (dropped already).
 
@@ -97,7 +103,8 @@ def walled_islands(
     their feet, and that does not reach the edge of the data along ``edge`` metres
     (a plateau crossing the data), stands above the terrain all round on walls and
     goes. A steep hill cut into rings by its slope edges climbs from its foot one
-    ring at a time and stays.
+    ring at a time and stays. ``cut``: the box the points were cut to (a block's core
+    and halo), whose sides are not the edge of the data (``raised.raised_segments``).
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -147,5 +154,7 @@ def walled_islands(
     foot_z = np.bincount(isl, weights=xyz[foot, 2], minlength=k) / np.maximum(n_border, 1)
     raised &= _median_per_vertex(isl, rise, k) >= 0.5 * (mean_z - foot_z)
     if edge > 0 and raised.any():
-        raised &= _along_edge(xyz[:, :2], tri, island, k, float(np.median(run))) < edge
+        med = float(np.median(run))
+        border = None if cut is None else data_border(xyz[:, :2], tri, cut, med)
+        raised &= _along_edge(xyz[:, :2], tri, island, k, med, border) < edge
     return cand & raised[island]

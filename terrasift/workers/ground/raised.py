@@ -52,6 +52,7 @@ def raised_segments(
     rise: float = 0.0,
     rim: float = 0.0,
     edge: float = 0.0,
+    cut: tuple[float, float, float, float] | None = None,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -83,6 +84,11 @@ def raised_segments(
     points on a straight edge of the data, so which segment holds one is luck
     (a 1 cm rounding moves them); the span measures how far a segment runs
     along the edge.
+    ``cut`` (xmin, ymin, xmax, ymax in the coordinates of ``xyz``): the box the
+    points were cut to from data that goes on beyond it (a block's core and
+    halo). Hull edges along its sides are cuts, not the edge of the data, so
+    ``edge`` judges only the rest of the hull: a roof crossing the cut is
+    judged by its walls, as in a run over all the data.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -120,11 +126,13 @@ def raised_segments(
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
     size = np.bincount(seg, minlength=n_seg)
+    # The hull's edges that are the edge of the data (None: all of them).
+    border = None if cut is None else data_border(xyz[:, :2], tri, cut, med)
     if edge > 0:
-        fixed = _along_edge(xyz[:, :2], tri, seg, n_seg, med) >= edge
+        fixed = _along_edge(xyz[:, :2], tri, seg, n_seg, med, border) >= edge
     else:
         fixed = np.zeros(n_seg, dtype=bool)
-        fixed[seg[np.unique(tri.convex_hull)]] = True
+        fixed[seg[np.unique(tri.convex_hull if border is None else border)]] = True
     fixed[np.argmax(size)] = True
     st = e[is_step]
     up = dz[is_step] > 0
@@ -163,19 +171,48 @@ def raised_segments(
     return gone[seg]
 
 
-def _hull_distance(
-    xy: NDArray[np.float64], tri: Delaunay, idx: NDArray[np.int64]
-) -> NDArray[np.float64]:
-    """Distance of the vertices ``idx`` of ``tri`` (vertex positions ``xy``) to its hull's border."""
+def data_border(
+    xy: NDArray[np.float64],
+    tri: Delaunay,
+    cut: tuple[float, float, float, float],
+    tol: float,
+) -> NDArray[np.int64]:
+    """Edges (k, 2) of the hull of ``tri`` that are the edge of the data: all of them
+    but those with both ends within ``tol`` of one side of the ``cut`` box."""
     h = np.asarray(tri.convex_hull, dtype=np.int64)
+    x0, y0, x1, y1 = cut
+    ends = [xy[h[:, 0]], xy[h[:, 1]]]
+    along = np.zeros(h.shape[0], dtype=bool)
+    for axis, side in ((0, x0), (1, y0), (0, x1), (1, y1)):
+        along |= (np.abs(ends[0][:, axis] - side) <= tol) & (np.abs(ends[1][:, axis] - side) <= tol)
+    return h[~along]
+
+
+def _hull_distance(
+    xy: NDArray[np.float64],
+    tri: Delaunay,
+    idx: NDArray[np.int64],
+    border: NDArray[np.int64] | None = None,
+) -> NDArray[np.float64]:
+    """Distance of the vertices ``idx`` of ``tri`` (vertex positions ``xy``) to its hull's
+    border, or to the hull edges ``border`` (a part of it; inf when there are none)."""
+    h = np.asarray(tri.convex_hull if border is None else border, dtype=np.int64)
     a, b = xy[h[:, 0]], xy[h[:, 1]]
     xy = xy[idx]
     d = b - a
     length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
+    length2 = length**2
     out = np.full(xy.shape[0], np.inf)
     for k in range(h.shape[0]):  # hull edges are few; points many
-        cross = (xy[:, 0] - a[k, 0]) * d[k, 1] - (xy[:, 1] - a[k, 1]) * d[k, 0]
-        np.minimum(out, np.abs(cross) / length[k], out=out)
+        u, v = xy[:, 0] - a[k, 0], xy[:, 1] - a[k, 1]
+        if border is None:
+            # Inside a convex hull, the distance to the nearest line through an
+            # edge is the distance to the border.
+            np.minimum(out, np.abs(u * d[k, 1] - v * d[k, 0]) / length[k], out=out)
+        else:
+            # Part of the border: distance to the edges themselves, not their lines.
+            t = np.clip((u * d[k, 0] + v * d[k, 1]) / length2[k], 0.0, 1.0)
+            np.minimum(out, np.hypot(u - t * d[k, 0], v - t * d[k, 1]), out=out)
     return out
 
 
@@ -185,10 +222,11 @@ def _along_edge(
     seg: NDArray[np.int64],
     n_seg: int,
     near: float,
+    border: NDArray[np.int64] | None = None,
 ) -> NDArray[np.float64]:
     """Per segment: the diagonal of the bounding box of its vertices within ``near``
-    of the hull's border (0 for a segment with none or one)."""
-    idx = np.flatnonzero(_hull_distance(xy, tri, np.arange(xy.shape[0])) <= near)
+    of the hull's border (or of its edges ``border``; 0 for a segment with none or one)."""
+    idx = np.flatnonzero(_hull_distance(xy, tri, np.arange(xy.shape[0]), border) <= near)
     s, p = seg[idx], xy[idx]
     lo = np.full((n_seg, 2), np.inf)
     hi = np.full((n_seg, 2), -np.inf)
