@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import laspy
 import numpy as np
+import pytest
 
 from terrasift.tiling.blocks import (
     BlockGrid,
@@ -193,6 +194,24 @@ def test_shadow_copies_a_return_to_the_blocks_behind_it():
         grid, np.array([2.0]), np.array([5.0]), ox[:1], oy[:1], (np.array([0]), np.array([0]))
     )
     assert west[0].size == 0
+    # bounded by the farthest return of the position (60 m from the sensor): the rays
+    # stop at x = 65, inside block 1's halo
+    p, b = assign_shadow(grid, x, y, ox, oy, own, np.array([60.0, 60.0]))
+    assert set(zip(p.tolist(), b.tolist(), strict=True)) == {(1, 1)}
+
+
+def test_scan_reach_is_the_farthest_return_of_each_position(small_tile):
+    from terrasift.tiling.blocks import scan_reach
+
+    las = laspy.read(small_tile)
+    o = (float(np.mean(las.x)), float(np.mean(las.y)), 0.0)
+    want = float(np.max(np.hypot(np.asarray(las.x) - o[0], np.asarray(las.y) - o[1])))
+    assert scan_reach(str(small_tile), [o]) == pytest.approx([want])
+    n = len(las.x)
+    parts = [
+        scan_reach(str(small_tile), [o], start=a, stop=b) for a, b in ((0, n // 2), (n // 2, n))
+    ]
+    assert max(v[0] for v in parts) == pytest.approx(want)
 
 
 def test_the_ground_step_tells_the_method_the_box_its_block_was_cut_to():

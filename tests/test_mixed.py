@@ -412,3 +412,34 @@ def test_gps_time_judges_returns_the_angles_cannot_place(near_scan):
     assert np.array_equal(same.marked, without.marked)
     with pytest.raises(ParameterError):
         mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time[:-1])
+
+
+def test_grid_bleeding_needs_a_surface_that_would_have_answered():
+    # Grazing ground (2 m below the sensor, 0.43° steps) returns up to a range limit of
+    # 30 m, where the next beam would meet it 3-4 m farther: the ground recedes out of
+    # reach, it does not end, so its last row is kept. A wall at 12 m whose top edge lies
+    # at 4.76° returns its range on beams up to half the 3-step footprint above the edge
+    # (a far face at 35 m behind, above the horizon): those lie 8 cm past it, marked.
+    step = np.radians(0.43)
+    az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-40, 14) * step, indexing="ij")
+    az, el = az.ravel(), el.ravel()
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    with np.errstate(divide="ignore"):
+        t_ground = np.where(d[:, 2] < 0, -2.0 / d[:, 2], np.inf)
+    t_ground = np.where(t_ground <= 30.0, t_ground, np.inf)
+    top = np.arctan2(1.0, 12.0)
+    wall = az < 0
+    t_wall = np.where(wall & (el < top + 1.5 * step), 12.0 / (np.cos(el) * np.cos(az)), np.inf)
+    far = np.where(el > np.radians(0.5), 35.0, np.inf)
+    t = np.minimum(np.minimum(t_ground, t_wall), far)
+    r = t + np.random.default_rng(0).normal(0.0, 0.004, az.size)
+    keep = np.isfinite(r)
+    res = mark_mixed(d[keep] * r[keep, None], MixedParams(footprint=1.29), np.zeros(3)).marked
+    az, el, t = az[keep], el[keep], t[keep]
+    past = (t == t_wall[keep]) & (el > top)
+    ground = t == t_ground[keep]
+    last_ground = ground & ~wall[keep] & (el > np.radians(-4.3))
+    assert past.sum() >= 30 and res[past].mean() > 0.9
+    assert last_ground.sum() >= 30 and not res[last_ground].any()
+    # (the wall's side edge at azimuth 0 is left out: it has no beams bleeding past it)
+    assert res[(ground | ((t == t_wall[keep]) & ~past)) & (az < -2 * step)].mean() < 0.002

@@ -35,6 +35,7 @@ from terrasift.tiling.blocks import (
     OCCUPANCY_FILE,
     BlockGrid,
     occupied_density,
+    scan_reach,
     shard_parts,
     shard_tile,
 )
@@ -130,6 +131,30 @@ def run_job(
 
     # Shard: one streaming pass per tile (per part of a large tile).
     t = time.perf_counter()
+    reach = None
+    if todo and params.get("sensor_origin"):
+        # each scan position's farthest return over every part: the copies along its
+        # rays stop there (else they ran to the grid's edge: on a 1.2 km grid 7.8x the
+        # records of plain sharding for a scan 160 m across)
+        found = _run_tasks(
+            executor,
+            job_dir,
+            scan_reach,
+            [
+                (
+                    plan["tiles"][p.tile]["path"],
+                    params.get("sensor_origin"),
+                    params.get("scan_dimension"),
+                    p.start,
+                    p.stop,
+                    plan.get("input_roots"),
+                )
+                for p in parts
+            ],
+            lambda i, _: None,
+            meter.report,
+        )
+        reach = [max(v) for v in zip(*found, strict=True)]
     shard_args = [
         (
             plan["tiles"][p.tile]["path"],
@@ -144,6 +169,7 @@ def run_job(
             float(plan.get("occupancy_cell", 0.0)),
             bool(params.get("sensor_origin")),  # ground-based: GPS time gives scan order
             params.get("sensor_origin"),  # ground-based: the blocks behind each return
+            reach,  # ... up to each position's farthest return
         )
         for p in todo
     ]

@@ -185,6 +185,29 @@ def assign_blocks(
     return np.concatenate(out_p), np.concatenate(out_b), core
 
 
+def scan_reach(
+    tile_path: str,
+    origins: Sequence[Sequence[float]],
+    scan_dim: str | None = None,
+    start: int = 0,
+    stop: int | None = None,
+    roots: Sequence[str] | None = None,
+    chunk_size: int = 1_000_000,
+) -> list[float]:
+    """Per scan position (numbered by the points' scan ids), the horizontal distance of
+    its farthest return among the tile's points ``start``..``stop`` (0 where none): no
+    return lies farther along any of its rays, so ``assign_shadow`` stops there."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(o.shape[0])
+    for chunk in iter_chunks(tile_path, chunk_size, scan_dim, start, stop, roots):
+        sid = chunk.scan_id.astype(np.int64) if o.shape[0] > 1 else np.zeros(len(chunk.xyz), int)
+        has = sid < o.shape[0]
+        sid = sid[has]
+        d = np.hypot(chunk.xyz[has, 0] - o[sid, 0], chunk.xyz[has, 1] - o[sid, 1])
+        np.maximum.at(out, sid, d)
+    return [float(v) for v in out]
+
+
 def assign_shadow(
     grid: BlockGrid,
     x: NDArray,
@@ -192,6 +215,7 @@ def assign_shadow(
     ox: NDArray,
     oy: NDArray,
     own: tuple[NDArray[np.int64], NDArray[np.int64]],
+    reach: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(point index, flat block id) of the blocks each point's ray passes through beyond
     the point (from its sensor at ``ox, oy``), other than those in ``own`` (the point's
@@ -201,7 +225,9 @@ def assign_shadow(
     an occluder's edge in front of a block is a neighbour of the background returns in
     it, though metres outside its halo. The ray is followed in steps of the halo (at
     most half a block), each step copied to the blocks within the halo of it, so a
-    block gets every return whose ray continues within the halo of its core.
+    block gets every return whose ray continues within the halo of its core. The ray
+    ends at the grid's edge or, with ``reach`` (per point: the horizontal distance of
+    its scan position's farthest return, ``scan_reach``), where no return lies beyond.
     """
     dx, dy = x - ox, y - oy
     d = np.hypot(dx, dy)
@@ -214,6 +240,8 @@ def assign_shadow(
         tx = np.where(ux > 0, (x1 - x) / ux, np.where(ux < 0, (grid.x0 - x) / ux, np.inf))
         ty = np.where(uy > 0, (y1 - y) / uy, np.where(uy < 0, (grid.y0 - y) / uy, np.inf))
     t_exit = np.where(ok, np.maximum(np.minimum(tx, ty), 0.0), 0.0)
+    if reach is not None:
+        t_exit = np.minimum(t_exit, np.maximum(reach - d, 0.0))
     step = min(grid.buffer, grid.block_size / 2) if grid.buffer > 0 else grid.block_size / 4
     n = np.ceil(t_exit / step).astype(np.int64)
     if n.sum() == 0:
@@ -283,6 +311,7 @@ def shard_tile(
     occupancy: float = 0.0,
     gps_time: bool = False,
     origins: Sequence[Sequence[float]] | None = None,
+    reach: Sequence[float] | None = None,
 ) -> dict[str, int]:
     """Stream one tile (or its points ``start``..``stop``) into per-block shard
     files ``out_dir/<block>.bin``; with ``roots`` the tile must lie inside one
@@ -291,7 +320,8 @@ def shard_tile(
     With ``gps_time`` the records are ``SHARD_DTYPE_TIMED`` (ground-based jobs). With
     the scan positions' ``origins`` (numbered by the points' scan ids) each point is also
     copied, with core 2, to the blocks its ray passes through beyond it
-    (``assign_shadow``): for the mixed-measurement step only.
+    (``assign_shadow``): for the mixed-measurement step only, up to the position's
+    ``reach`` when given (``scan_reach`` over the whole job), else to the grid's edge.
 
     Writes into a temporary sibling folder and renames it when complete, so a
     crash leaves no half-written shard set. Returns core point counts per block.
@@ -314,7 +344,8 @@ def shard_tile(
                 sid = chunk.scan_id.astype(np.int64) if o.shape[0] > 1 else np.zeros(x.size, int)
                 has = sid < o.shape[0]
                 sid = np.where(has, sid, 0)
-                sp, sb = assign_shadow(grid, x, y, o[sid, 0], o[sid, 1], (p, bid))
+                lim = None if reach is None else np.asarray(reach, dtype=np.float64)[sid]
+                sp, sb = assign_shadow(grid, x, y, o[sid, 0], o[sid, 1], (p, bid), lim)
                 keep = has[sp]
                 p = np.concatenate([p, sp[keep]])
                 bid = np.concatenate([bid, sb[keep]])

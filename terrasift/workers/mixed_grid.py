@@ -38,8 +38,11 @@ nothing: the part of a footprint still on a sloped surface answers at that part'
 mean range (nearer than where the central ray meets grazing ground towards the
 range limit). Otherwise a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
-when more likely than not displaced by more than ``min_offset`` (``_bleeding``;
-the shift is sideways, so range noise does not blur it).
+when displaced by more than ``min_offset`` with a probability above ``bleed_prob``
+(``_bleeding``; the shift is sideways, so range noise does not blur it). An edge
+counts only where the surface, continued to the next beam, would have answered
+within ``max_gap``: grazing ground ending at the range limit recedes out of reach
+and does not end there.
 
 When the returns carry GPS time, each is placed on the grid by its firing
 order instead (``time_index``): the pulse number from its time, the column
@@ -75,7 +78,7 @@ class GridSettings:
     las_scale: float = 0.0
     resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
     min_offset: float = 0.0  # returns nearer a surface than this (across it) count as on it
-    bleed_prob: float = 0.5  # least probability of a bleeding beam being past by the margin
+    bleed_prob: float = 0.5  # least probability of a bleeding beam being past by min_offset
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
 
 
@@ -422,8 +425,8 @@ def _bleeding(
     surface returns its range on its own central ray, up to half a footprint past the edge.
     The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
     evenly; it is marked when past by more than ``min_offset`` with a probability above
-    ``bleed_prob`` (one half: more likely than not). Beams outside the extent of the
-    returns (the field of view) are not edges."""
+    ``bleed_prob``. Beams outside the extent of the returns (the field of view) are not
+    edges, nor beams the surface, continued, would reach only beyond ``max_gap``."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
     # a shift sideways, which range noise does not blur: min_offset (the margin if 0)
@@ -439,6 +442,11 @@ def _bleeding(
                 beyond = R[sd * k]
                 inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
                 edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
+                # the inner surface, continued to that beam, would have answered within
+                # max_gap of p: a receding surface (grazing ground towards the range
+                # limit) continues out of reach there, which is no edge
+                v = V[-sd] + (V[-sd] - V[-2 * sd]) * (k + 1)
+                edge &= (v > 0) & (1.0 / v <= r + s.max_gap)
                 # past the edge by x steps, x even in [half - k, half - k + 1)
                 prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
                 out |= inner & same & edge & (prob > s.bleed_prob)
