@@ -233,6 +233,11 @@ CANDIDATES: dict[str, list[dict]] = {
         {"vote_share": 0.75},
         {"vote_weight": "centre"},
         {"vote_weight": "centre", "vote_share": 0.3},
+        {"rough_k": 0},
+        {"rough_k": 32},
+        {"rough_k": 64},
+        {"rough_factor": 4.0},
+        {"rough_factor": 6.0},
     ],
 }
 

@@ -108,7 +108,7 @@ def reject_low_vegetation(
         if test.size == 0:
             continue
         # The point itself left out of its plane.
-        height, dev, grad = _local_plane(pts[a + test], pts[nb[test, 1:]], params.clip)
+        height, dev, grad = local_plane(pts[a + test], pts[nb[test, 1:]], params.clip)
         high[a + test] = (height > np.maximum(params.floor, params.factor * dev)) & (
             grad <= tan_max
         )
@@ -116,7 +116,7 @@ def reject_low_vegetation(
     return ground
 
 
-def _local_plane(
+def local_plane(
     centre: NDArray[np.float64], near: NDArray[np.float64], clip: float, rounds: int = 4
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Per row: height of ``centre`` above the plane of its neighbours ``near``

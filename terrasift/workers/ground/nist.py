@@ -95,6 +95,7 @@ from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
 from terrasift.workers.ground.plateaus import walled_islands, walled_plateaus
 from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.roughness import rough_points
 from terrasift.workers.ground.support import supported_points
 from terrasift.workers.ground.tin import ABOVE, IN_BAND, Tin, screen
 from terrasift.workers.registry import StageParams, register
@@ -300,6 +301,23 @@ class NistParams(StageParams):
     """Concentric grid: angular step of the final pass (earlier passes scale it up)."""
     ring_inner: float = Field(2.0, gt=0, le=100)
     """Concentric grid: inner radius; closer points share the central bin."""
+    rough_k: int = Field(48, ge=0, le=128)
+    """Low vegetation on sparse data (``roughness.py``): a ground point is taken back when it
+    stands above the plane of its ``rough_k`` nearest ground points by more than
+    ``rough_factor`` times their deviation below it (0: off). Runs where final bins hold
+    fewer than ``rough_points`` points on average: there the ground band is widened with
+    the cell and the slope, and shrub returns 0.25–1 m high pass it."""
+    rough_factor: float = Field(5.0, gt=0, le=20)
+    """…deviations (of the neighbours below the plane: noise and curvature, the data's own;
+    never less than the median deviation over the tile, so rough ground is held to its own
+    roughness)."""
+    rough_clip: float = Field(2.0, gt=0, le=10)
+    """…the plane refitted without neighbours more than this many deviations above it."""
+    rough_floor: float = Field(0.05, ge=0, le=5)
+    """…and never less than this many metres (LAS quantisation, perfectly smooth ground)."""
+    rough_points: float = Field(4.0, ge=0, le=1000)
+    """Mean points per final bin below which the roughness test runs (4: up to about 1.8
+    points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
 
     presets = {
         "conservative": {
@@ -640,9 +658,27 @@ def _classify(
         votes += w * _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
         weights += w
     labels = votes >= params.vote_share * weights
+    labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
+
+
+def _rough(
+    local: NDArray[np.float64], labels: NDArray[np.bool_], params: NistParams, per_side: float
+) -> NDArray[np.bool_]:
+    """Ground points standing above their neighbours' plane by more than its roughness
+    (``roughness.py``), on sparse data only (``per_side``: final cell / point spacing)."""
+    if params.rough_k == 0 or per_side**2 >= params.rough_points:
+        return np.zeros(labels.shape[0], dtype=bool)
+    return rough_points(
+        local,
+        labels,
+        params.rough_k,
+        params.rough_factor,
+        params.rough_clip,
+        params.rough_floor,
+    )
 
 
 def _final(
