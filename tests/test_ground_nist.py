@@ -841,14 +841,18 @@ def test_growth_needs_its_ground_neighbours_to_agree_before_climbing_a_platform(
     # Railway yard seed 103 (0.96 pts/m², a tuning seed): slopes fitted at the foot of
     # platforms from two close ground nodes predicted the tops; growth then spread
     # over them (Type II 14 %). With grow_agree=0.5 half of a node's ground
-    # neighbours must predict it. Measured with masking on, as when the rule was made.
+    # neighbours must predict it. Measured with masking on, as when the rule was made,
+    # and without walled plateaus (which drop those tops after growth).
     from terrasift.synthetic import rural
 
     sc = rural.FAMILIES["railway_yard"](103)
     truth = sc.truth == 2
-    anyone = ground_score(truth, nist.classify_ground(sc.xyz, nist.NistParams(mask=True)))
+    anyone = ground_score(
+        truth, nist.classify_ground(sc.xyz, nist.NistParams(mask=True, plateau_step=0.0))
+    )
     half = ground_score(
-        truth, nist.classify_ground(sc.xyz, nist.NistParams(mask=True, grow_agree=0.5))
+        truth,
+        nist.classify_ground(sc.xyz, nist.NistParams(mask=True, grow_agree=0.5, plateau_step=0.0)),
     )
     assert anyone.type2 > 0.10
     assert half.type2 < 0.03 and half.type1 < 0.01
@@ -886,6 +890,77 @@ def test_auto_vote_runs_one_grid_on_dense_data_and_four_on_sparse():
     assert not np.array_equal(
         auto, nist.classify_ground(sparse, p.model_copy(update={"vote_phases": 1}))
     )
+
+
+def test_walled_plateaus_drop_a_platform_growth_climbed_but_keep_a_grown_crest():
+    from terrasift.workers.ground.plateaus import walled_plateaus
+
+    rng = np.random.default_rng(4)
+    g = np.arange(0.0, 60.0, 1.5)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(-0.2, 0.2, (g.size**2, 2))
+    # A platform 1 m high (x 10–16, y 10–50) with vertical walls, and a dike 2 m high
+    # (x 35–50) whose sides fall at 1:1.5 onto level ground.
+    platform = (np.abs(xy[:, 0] - 13.0) < 3.0) & (np.abs(xy[:, 1] - 30.0) < 20.0)
+    d = np.abs(xy[:, 0] - 42.5)
+    z = 1.0 * platform + np.clip((7.5 - d) / 1.5, 0.0, 2.0) + rng.normal(0, 0.02, len(xy))
+    # The passes found the level ground (seeds); growth added the platform top and the
+    # whole dike, its sides included.
+    seed = ~platform & (d >= 7.5)
+    ground = np.ones(len(xy), dtype=bool)
+    adjacency = Delaunay(xy).vertex_neighbor_vertices
+    drop = walled_plateaus(z, ground, seed, adjacency, margin=0.18, step=0.5, share=1.0)
+    assert np.array_equal(drop, platform)
+    # Without the walls (a ramp onto its top from the seeds) the platform stays.
+    ramp = platform | ((np.abs(xy[:, 0] - 13.0) < 6.0) & (np.abs(xy[:, 1] - 30.0) < 20.0))
+    z2 = np.where(ramp & ~platform, np.clip(1.0 - (np.abs(xy[:, 0] - 13.0) - 3.0) / 3.0, 0, 1), z)
+    seed2 = ~ramp & (d >= 7.5)
+    drop2 = walled_plateaus(z2, ground, seed2, adjacency, margin=0.18, step=0.5, share=1.0)
+    assert not drop2.any()
+
+
+def test_walled_plateaus_take_railway_platforms_off_the_ground():
+    # Railway yard seed 103 (0.96 pts/m², a tuning seed): growth climbs a platform
+    # 0.8 m high from slopes fitted at its foot (Type II 7.8 % with the vote); its top
+    # drops straight onto the passes' ground all round and goes (0.0 % measured).
+    from terrasift.synthetic import rural
+
+    sc = rural.FAMILIES["railway_yard"](103)
+    truth = sc.truth == 2
+    off = ground_score(truth, nist.classify_ground(sc.xyz, nist.NistParams(plateau_step=0.0)))
+    on = ground_score(truth, nist.classify_ground(sc.xyz, nist.NistParams()))
+    assert off.type2 > 0.05
+    assert on.type2 < 0.01 and on.type1 <= off.type1 + 0.001
+
+
+def test_walled_islands_drop_a_pitched_roof_cut_into_rows_but_keep_a_terrace():
+    from terrasift.workers.ground.plateaus import walled_islands
+
+    rng = np.random.default_rng(5)
+    g = np.arange(0.0, 110.0, 1.5)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(-0.2, 0.2, (g.size**2, 2))
+    x, y = xy[:, 0], xy[:, 1]
+    # A gabled roof 20 m wide (x 10–30), 40 m long, eaves 7 m up, ridge 11 m (22°):
+    # every row of TIN edges across it climbs 0.6 m at 22°, a step, so the roof is
+    # cut into rows, each the lower side of the row above.
+    roof = (np.abs(x - 20.0) < 10.0) & (np.abs(y - 45.0) < 20.0)
+    z = np.where(roof, 11.0 - 0.4 * np.abs(x - 20.0), 0.0)
+    # A terrace on a hillside (x 50–90): a wall 3 m up at x 60, a tread, the slope above.
+    z = z + np.where(x > 50.0, np.where(x > 60.0, 3.0 + 0.3 * np.clip(x - 70.0, 0, None), 0.0), 0.0)
+    # A steep hill (a cone at 35°, 8.4 m high, 24 m across) whose slope edges cut it
+    # into rings.
+    r = np.hypot(x - 20.0, y - 88.0)
+    hill = r < 12.0
+    z = z + np.where(hill, 0.7 * (12.0 - r), 0.0)
+    z = z + rng.normal(0, 0.02, len(xy))
+    xyz = np.column_stack([xy, z])
+    tri = Delaunay(xy)
+    gone = raised_segments(xyz, tri, 0.3, 10.0, up_share=0.7, min_lift=1.5, walls=0.5)
+    assert not gone[roof].all()  # no single row is raised on its own
+    drop = walled_islands(xyz, tri, gone, 0.3, 10.0, walls=0.5, edge=20.0)
+    assert (gone | drop)[roof].all()
+    assert not drop[hill].any()
+    # The hillside stepping up from the terrace wall to the data's edge stays.
+    assert not (gone | drop)[x > 40.0].any()
 
 
 def test_centre_weights_of_the_four_phases_interpolate_between_them():
