@@ -16,19 +16,24 @@ from terrasift.workers.features.tiled import merge_pieces, tile_pieces, window_r
 CELL = 0.5
 
 
+def _measured(dtm: np.ndarray) -> CategoryParams:
+    """Default category parameters with the noise and slope noise measured on ``dtm``."""
+    cp = CategoryParams()
+    return cp.model_copy(
+        update={
+            "noise": measure_noise(dtm, CELL, cp),
+            "slope_noise": measure_slope_noise(dtm, CELL, cp),
+        }
+    )
+
+
 @pytest.fixture(scope="module")
 def scene() -> dict:
     dtm = surface_raster(make_family_scene(0), CELL)  # 320 m: every kind of object
     dtm = dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
     transform = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     filters = resolve_filters("all")
-    cp = CategoryParams()
-    cp = cp.model_copy(
-        update={
-            "noise": measure_noise(dtm, CELL, cp),
-            "slope_noise": measure_slope_noise(dtm, CELL, cp),
-        }
-    )
+    cp = _measured(dtm)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped).objects
     return {"dtm": dtm, "t": transform, "filters": filters, "cp": cp, "whole": whole}
@@ -166,13 +171,7 @@ def test_objects_as_large_as_the_dtm_are_searched_in_parts_within_a_capped_windo
     dtm = _plain_with_road_and_ditch(size)
     t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     filters = resolve_filters(names)
-    cp = CategoryParams()
-    cp = cp.model_copy(
-        update={
-            "noise": measure_noise(dtm, CELL, cp),
-            "slope_noise": measure_slope_noise(dtm, CELL, cp),
-        }
-    )
+    cp = _measured(dtm)
     fp = FeatureParams(simplify_tiles=0)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
@@ -223,13 +222,7 @@ def test_surround_reads_the_same_ground_around_an_object_in_every_core() -> None
     assert "surround 6m 0.5" in text
     filters = [parse_filter(text.replace("surround 6m 0.5", "surround 6m 0.98"), "ditch")]
     plain = [parse_filter(text.replace("surround 6m 0.5\n", ""), "ditch")]
-    cp = CategoryParams()
-    cp = cp.model_copy(
-        update={
-            "noise": measure_noise(dtm, CELL, cp),
-            "slope_noise": measure_slope_noise(dtm, CELL, cp),
-        }
-    )
+    cp = _measured(dtm)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, t, cats.tile_size, stepped=stepped).objects
     n_plain = len(detect_features(cats, plain, t, cats.tile_size, stepped=stepped).objects)
@@ -252,13 +245,7 @@ def test_surround_judges_an_object_searched_in_parts_by_its_whole_ring() -> None
     t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     text = format_filter(resolve_filters("ditch")[0])
     filters = [parse_filter(text.replace("surround 6m 0.5", "surround 6m 0.98"), "ditch")]
-    cp = CategoryParams()
-    cp = cp.model_copy(
-        update={
-            "noise": measure_noise(dtm, CELL, cp),
-            "slope_noise": measure_slope_noise(dtm, CELL, cp),
-        }
-    )
+    cp = _measured(dtm)
     fp = FeatureParams(simplify_tiles=0)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects

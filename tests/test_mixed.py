@@ -255,16 +255,23 @@ def test_grid_marks_a_surface_bleeding_past_its_edge_by_half_a_footprint():
     assert not narrow.any()
 
 
+def _beams():
+    """A 60 × 54 beam grid at 0.43° steps around the horizon: the step, each beam's
+    azimuth and elevation, and its unit direction."""
+    step = np.radians(0.43)
+    az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-40, 14) * step, indexing="ij")
+    az, el = az.ravel(), el.ravel()
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return step, az, el, d
+
+
 def _ground_and_wall(foot_pull: float, seed: int = 0):
     """Grazing ground (2 m below the sensor) up to a wall 12 m away, 0.43° steps, 4 mm
     noise. The last ground beam before the wall's foot is pulled ``foot_pull`` metres
     nearer along its ray (a blend of ground and foot): at 9.5° below the horizon that
     moves it foot_pull × 0.165 off the ground. Returns points and the foot beam's mask."""
     rng = np.random.default_rng(seed)
-    step = np.radians(0.43)
-    az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-40, 14) * step, indexing="ij")
-    az, el = az.ravel(), el.ravel()
-    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    step, az, el, d = _beams()
     with np.errstate(divide="ignore"):
         t_ground = np.where(d[:, 2] < 0, -2.0 / d[:, 2], np.inf)
     t_wall = 12.0 / d[:, 0]
@@ -420,10 +427,7 @@ def test_grid_bleeding_needs_a_surface_that_would_have_answered():
     # reach, it does not end, so its last row is kept. A wall at 12 m whose top edge lies
     # at 4.76° returns its range on beams up to half the 3-step footprint above the edge
     # (a far face at 35 m behind, above the horizon): those lie 8 cm past it, marked.
-    step = np.radians(0.43)
-    az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-40, 14) * step, indexing="ij")
-    az, el = az.ravel(), el.ravel()
-    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    step, az, el, d = _beams()
     with np.errstate(divide="ignore"):
         t_ground = np.where(d[:, 2] < 0, -2.0 / d[:, 2], np.inf)
     t_ground = np.where(t_ground <= 30.0, t_ground, np.inf)
