@@ -309,8 +309,8 @@ class NistParams(StageParams):
     the cell and the slope, and shrub returns 0.25–1 m high pass it."""
     rough_factor: float = Field(5.0, gt=0, le=20)
     """…deviations (of the neighbours below the plane: noise and curvature, the data's own;
-    never less than the median deviation over the tile, so rough ground is held to its own
-    roughness)."""
+    never less than the median deviation of those neighbours, so rough ground is held to its
+    own roughness and a block labels as the whole tile does)."""
     rough_clip: float = Field(2.0, gt=0, le=10)
     """…the plane refitted without neighbours more than this many deviations above it."""
     rough_floor: float = Field(0.05, ge=0, le=5)

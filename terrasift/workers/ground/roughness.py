@@ -17,9 +17,10 @@ neighbours more than ``clip`` robust deviations above it (other shrub returns
 among them), the deviation taken from the residuals below the plane (ground
 noise is two-sided, vegetation stands only above; ``lowveg.local_plane``).
 The point is not ground when it stands above that plane by more than
-``factor`` times that deviation, or times the median deviation over all
-points where that is larger (the tile's own roughness: range noise, LAS
-quantisation, ploughed or rocky ground), and at least ``floor``. Both the radius (k
+``factor`` times that deviation, or times the median deviation of its
+neighbours where that is larger (the ground's own roughness there: range
+noise, LAS quantisation, ploughed or rocky ground; taken locally so that a
+block labels as the whole tile does), and at least ``floor``. Both the radius (k
 neighbours cover k / density m²) and the threshold (the local deviation) are
 the data's own; on a crest or an embankment's edge the neighbours fall away on
 both sides, their deviation about the plane grows with the curvature, and so
@@ -45,7 +46,8 @@ def rough_points(
     chunk: int = 20_000,
 ) -> NDArray[np.bool_]:
     """The points of ``ground`` that stand above the plane of their ``k`` nearest ground
-    neighbours by more than ``max(floor, factor × max(deviation, median deviation))``
+    neighbours by more than ``max(floor, factor × max(deviation, neighbours' median
+    deviation))``
     (module doc)."""
     ground = np.asarray(ground, dtype=bool)
     out = np.zeros(ground.shape[0], dtype=bool)
@@ -56,13 +58,16 @@ def rough_points(
     tree = cKDTree(pts[:, :2])
     height = np.empty(g.size)
     dev = np.empty(g.size)
+    near = np.empty((g.size, k), dtype=np.int64)
     for a in range(0, g.size, chunk):
         b = min(a + chunk, g.size)
         _, nb = tree.query(pts[a:b, :2], k=k + 1)
         # Column 0 is the point itself (distance 0), unless another point shares
         # its x, y; then one of the two is left out, which changes little.
+        near[a:b] = nb[:, 1:]
         height[a:b], dev[a:b], _ = local_plane(pts[a:b], pts[nb[:, 1:]], clip)
-    # The tile's own roughness: no point is held to less than the median deviation.
-    scale = np.maximum(dev, float(np.median(dev)))
+    # The ground's own roughness around each point: no point is held to less than the
+    # median deviation of its neighbours (local, so a block and the whole tile agree).
+    scale = np.maximum(dev, np.median(dev[near], axis=1))
     out[g[height > np.maximum(floor, factor * scale)]] = True
     return out
