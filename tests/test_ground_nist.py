@@ -1010,6 +1010,29 @@ def test_roughness_takes_shrub_returns_off_a_slope_but_not_a_dike_crest():
     assert high[crest].mean() < 0.05, high[crest].mean()
 
 
+def test_roughness_labels_a_block_as_the_whole_tile_does():
+    # Rough ground (15 cm noise) on the west half, smooth (1 cm) on the east, shrub
+    # returns 0.2-0.4 m high on both, 0.5 pts/m². A block of the east half with a 20 m
+    # halo must label its core as the whole tile does: the threshold may depend on the
+    # ground around a point, not on how much rough ground the block happens to hold.
+    from terrasift.workers.ground.roughness import rough_points
+
+    rng = np.random.default_rng(7)
+    n = 8000
+    xy = rng.uniform(0, 160, (n, 2))
+    z = 0.05 * xy[:, 0] + rng.normal(0, np.where(xy[:, 0] < 80, 0.15, 0.01))
+    shrub = rng.random(n) < 0.03
+    z[shrub] += rng.uniform(0.2, 0.4, np.count_nonzero(shrub))
+    xyz = np.column_stack([xy, z])
+    args = {"k": 48, "factor": 5.0, "clip": 2.0, "floor": 0.05}
+    whole = rough_points(xyz, np.ones(n, dtype=bool), **args)
+    block = xy[:, 0] >= 100.0 - 20.0
+    part = rough_points(xyz[block], np.ones(np.count_nonzero(block), dtype=bool), **args)
+    core = xy[block, 0] >= 100.0
+    assert np.array_equal(part[core], whole[block][core])
+    assert whole[shrub & (xy[:, 0] >= 100)].mean() > 0.8  # the east's shrubs do go
+
+
 def test_roughness_rule_runs_on_sparse_data_only_and_takes_low_vegetation_back():
     # Rural slope seed 7 (0.2-1 pts/m², not one of the benchmark's seeds): the filter's
     # band takes shrub returns 0.25-1 m high; the roughness test takes most back.
