@@ -98,3 +98,30 @@ def test_the_top_of_a_round_hill_is_no_vegetation():
     # outlier or two; 16 neighbours see the top's curvature as lift (3-6)
     assert max(taken32) <= 2, (taken16, taken32)
     assert sum(taken16) >= 2 * sum(taken32), (taken16, taken32)
+
+
+def test_rural_family_writes_echoes_above_the_dead_zone_only():
+    # Pulses into vegetation higher than the scene's dead zone may return twice
+    # (first in the vegetation, last on the ground, at the same x, y); lower
+    # vegetation returns once. The echoes come from a generator of their own, so
+    # the scene's single returns are those drawn without echoes.
+    from terrasift.synthetic import rural
+
+    seed = 101
+    sc, plain = rural.rural_slope(seed), rural.rural_slope(seed, echoes=False)
+    dead = rural.Echoes.draw(seed).dead_zone
+    first = (sc.return_number == 1) & (sc.number_of_returns == 2)
+    second = sc.return_number == 2
+    assert 0 < first.sum() == second.sum()
+    assert np.all(sc.truth[second] == 2) and np.all(sc.truth[first] >= 3)
+    one = sc.number_of_returns == 1
+    assert len(plain) == one.sum() + first.sum()
+    assert np.array_equal(np.sort(plain.xyz[:, 0]), np.sort(sc.xyz[sc.return_number == 1, 0]))
+    # Each second return lies under a first return, more than the dead zone below it.
+    f = sc.xyz[first][np.lexsort(sc.xyz[first, :2].T)]
+    s = sc.xyz[second][np.lexsort(sc.xyz[second, :2].T)]
+    assert np.allclose(f[:, :2], s[:, :2])
+    assert np.all(f[:, 2] - s[:, 2] > dead - 0.2)  # less the ground noise of either
+    # A scene whose dead zone is above its tallest vegetation carries single returns.
+    assert rural.Echoes.draw(107).dead_zone > 2.5
+    assert np.all(rural.rural_slope(107).number_of_returns == 1)

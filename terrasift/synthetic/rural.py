@@ -11,10 +11,19 @@ the samples they were tuned on, each drawn from ranges by a seed, with exact tru
 
 Objects are oriented rectangles with flat tops (truth class 6); vegetation
 returns are class 3/4/5 by height above ground; embankments and cuttings
-change the ground itself (their sides are ground). Low vegetation gives one
-return per pulse (a shrub under ~2 m is shorter than the pulse's dead zone)
-somewhere between its top and half its height (returns under 0.25 m count as
-ground: grass), or the ground when the pulse passes through a gap. Each scene may lose a strip of data (a missing
+change the ground itself (their sides are ground). A pulse into low vegetation
+returns somewhere between its top and half its height (returns under 0.25 m
+count as ground: grass), or from the ground when it passes through a gap.
+Echoes as a discrete-return sensor records them: where the vegetation return
+stands higher above the ground than the scene's dead zone (the least
+separation of two returns of one pulse: 0.6–3.5 m, log-uniform, drawn per
+scene, as sensors differ), a share of those pulses (30–80 % per scene) goes on
+to a second, last return from the ground (return 2 of 2, the first 1 of 2);
+lower vegetation merges with the ground into one return (1 of 1). Scenes whose
+dead zone is above their tallest vegetation carry single returns only (about
+one in five). The echoes are drawn from a generator of their own (seeded by
+the scene's seed), so the pulses, heights and truth of the single-return
+scenes are those drawn before echoes were written. Each scene may lose a strip of data (a missing
 flight-line overlap) and keeps ``make_scene``'s share of outliers (class 7).
 Every length is drawn from the ranges in the docstrings; ``family(name, seed)``
 draws one scene.
@@ -32,6 +41,25 @@ from terrasift.synthetic.terrain import BUILDING, GROUND, NOISE, Scene, Surface,
 
 ORIGIN = (500_000.0, 5_400_000.0)
 GRASS = 0.25  # m: vegetation returns lower than this above the ground count as ground
+DEAD_ZONE = (0.6, 3.5)  # m: least separation of two returns of a pulse, by sensor
+THROUGH = (0.3, 0.8)  # share of pulses into vegetation above the dead zone reaching the ground
+
+
+@dataclass(frozen=True)
+class Echoes:
+    """How a scene's sensor records echoes: its own generator, the dead zone (m)
+    and the share of pulses into vegetation above it that also return from the ground."""
+
+    rng: np.random.Generator
+    dead_zone: float
+    through: float
+
+    @classmethod
+    def draw(cls, seed: int) -> Echoes:
+        rng = np.random.default_rng([seed, 23])
+        lo, hi = DEAD_ZONE
+        dead = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+        return cls(rng, dead, float(rng.uniform(*THROUGH)))
 
 
 @dataclass(frozen=True)
@@ -92,9 +120,12 @@ def _assemble(
     shrubs: NDArray[np.float64],
     noise_sigma: float,
     missing_strip: bool,
+    echoes: Echoes | None = None,
 ) -> Scene:
     """Pulses over ``size``² m at ``density``: box tops, shrub returns (rows of
-    ``shrubs``: x, y, radius, top height, gap fraction), else ground; plus outliers."""
+    ``shrubs``: x, y, radius, top height, gap fraction), else ground; plus outliers.
+    With ``echoes``, pulses into vegetation higher than its dead zone may go on to
+    a last return from the ground (module doc); without, every pulse returns once."""
     n = int(round(size * size * density))
     px, py = rng.uniform(0, size, n), rng.uniform(0, size, n)
     if missing_strip:
@@ -109,6 +140,7 @@ def _assemble(
     z = gz.copy()
     cls = np.full(n, GROUND, dtype=np.uint8)
     roof = np.zeros(n, dtype=bool)
+    second = np.zeros(0, dtype=np.int64)  # pulses with a last return from the ground
     for b in boxes:
         inside = b.inside(px, py) & ~roof
         # Level across, following the ground along its length (as platforms and tracks do).
@@ -133,6 +165,11 @@ def _assemble(
         z[hit] = gz[hit] + rh
         # Returns within GRASS of the ground are grass: no filter parts them from ground noise.
         cls[hit] = np.where(rh < GRASS, GROUND, _veg_class(rh))
+        if echoes is not None:
+            # Vegetation returns more than the dead zone above the ground: the pulse
+            # may go on to the ground, a second (last) return of the same pulse.
+            tall = np.flatnonzero(hit)[rh > echoes.dead_zone]
+            second = tall[echoes.rng.random(tall.size) < echoes.through]
     z = z + rng.normal(0, noise_sigma, n)
     n_out = rng.binomial(n, 0.001)
     if n_out:
@@ -144,12 +181,30 @@ def _assemble(
     order = rng.permutation(px.size)
     ox0, oy0 = ORIGIN
     xyz = np.column_stack([px[order] + ox0, py[order] + oy0, z[order]])
-    ones = np.ones(px.size, dtype=np.uint8)
+    cls = cls[order]
+    ret = np.ones(px.size, dtype=np.uint8)
+    nret = np.ones(px.size, dtype=np.uint8)
 
     def absolute(ax: NDArray, ay: NDArray) -> NDArray[np.float64]:
         return ground(np.asarray(ax) - ox0, np.asarray(ay) - oy0)
 
-    return Scene(xyz, cls[order], ones, ones, absolute, (ox0, oy0, ox0 + size, oy0 + size))
+    bounds = (ox0, oy0, ox0 + size, oy0 + size)
+    if echoes is None or second.size == 0:
+        return Scene(xyz, cls, ret, nret, absolute, bounds)
+    # The first returns of the pulses that went on are 1 of 2; their last returns
+    # (on the ground, with the scene's noise) 2 of 2, mixed into the order.
+    where = np.empty(order.size, dtype=np.int64)
+    where[order] = np.arange(order.size)
+    first = where[second]
+    nret[first] = 2
+    sx, sy = px[second], py[second]
+    sz = gz[second] + echoes.rng.normal(0, noise_sigma, second.size)
+    xyz = np.concatenate([xyz, np.column_stack([sx + ox0, sy + oy0, sz])])
+    cls = np.concatenate([cls, np.full(second.size, GROUND, np.uint8)])
+    ret = np.concatenate([ret, np.full(second.size, 2, np.uint8)])
+    nret = np.concatenate([nret, np.full(second.size, 2, np.uint8)])
+    mix = echoes.rng.permutation(xyz.shape[0])
+    return Scene(xyz[mix], cls[mix], ret[mix], nret[mix], absolute, bounds)
 
 
 def _terrain(rng: np.random.Generator, grade: float, size: float) -> Surface:
@@ -163,13 +218,14 @@ def _terrain(rng: np.random.Generator, grade: float, size: float) -> Surface:
     )
 
 
-def railway_yard(seed: int, size: float = 200.0) -> Scene:
+def railway_yard(seed: int, size: float = 200.0, echoes: bool = True) -> Scene:
     """Level ground (grade 0–2 %) with 3–6 rows of low flat objects 1–4 m high:
     wagons 2.8–3.2 m wide and 12–25 m long, 1–1.5 m apart, on tracks 4.5–6 m apart;
     parked rows of cars (1.4–2 m, 4.5 × 1.8 m, 0.6–1 m apart); long low sheds (8–15 m wide,
     40–100 m long, 3–4 m high); platforms 4–8 m wide, 60–150 m long, 0.8–1.3 m high.
     0.5–4 pulses/m²; half the scenes have a road embankment 1–3 m high with sides at
-    1:1.5–1:2 and a 6–10 m crest (ground). Orientation, counts and positions from ``seed``."""
+    1:1.5–1:2 and a 6–10 m crest (ground). Orientation, counts and positions from ``seed``;
+    ``echoes`` false: one return per pulse (the scene as drawn before echoes were written)."""
     rng = np.random.default_rng(seed)
     density = float(np.exp(rng.uniform(np.log(0.5), np.log(4.0))))
     surf = _terrain(rng, rng.uniform(0.0, 0.02), size)
@@ -239,6 +295,7 @@ def railway_yard(seed: int, size: float = 200.0) -> Scene:
         shrubs,
         rng.uniform(0.01, 0.05),
         rng.random() < 0.3,
+        Echoes.draw(seed) if echoes else None,
     )
 
 
@@ -254,12 +311,12 @@ def _crosses(b: Box, e: Embankment) -> bool:
     return bool(np.any(e.lift(x, y) != 0))
 
 
-def rural_slope(seed: int, size: float = 200.0) -> Scene:
+def rural_slope(seed: int, size: float = 200.0, echoes: bool = True) -> Scene:
     """Mostly ground: a slope of grade 2–5 % (gentle) or 15–40 % (steep, half the seeds)
     with low vegetation — 40–400 shrubs (radius 0.7–3 m, 0.3–2.5 m high, 10–50 % of
     pulses through to the ground), 1–4 hedges along the contour (2–4 m wide, 1–2.5 m
     high) and scrub patches — and 0–2 embankments or cuttings 0.5–3 m high with
-    sides at 1:1–1:2. 0.2–1 pulses/m²."""
+    sides at 1:1–1:2. 0.2–1 pulses/m². ``echoes`` false: one return per pulse."""
     rng = np.random.default_rng(seed)
     density = float(np.exp(rng.uniform(np.log(0.2), np.log(1.0))))
     steep = seed % 2 == 1
@@ -335,6 +392,7 @@ def rural_slope(seed: int, size: float = 200.0) -> Scene:
         np.concatenate(shrubs),
         rng.uniform(0.01, 0.05),
         rng.random() < 0.3,
+        Echoes.draw(seed) if echoes else None,
     )
 
 
