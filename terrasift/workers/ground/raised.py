@@ -53,6 +53,7 @@ def raised_segments(
     rim: float = 0.0,
     edge: float = 0.0,
     cut: tuple[float, float, float, float] | None = None,
+    along: bool = False,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -89,6 +90,13 @@ def raised_segments(
     halo). Hull edges along its sides are cuts, not the edge of the data, so
     ``edge`` judges only the rest of the hull: a roof crossing the cut is
     judged by its walls, as in a run over all the data.
+    ``along``: the rise the slope at an edge's foot predicts is taken along the
+    edge's direction (the gradient of the plane through the foot and its
+    neighbours less than ``step`` from it, none where the edge runs downhill)
+    instead of the slope's size times the run. The size alone predicts a rise
+    for an edge running downhill onto a platform too: over a 25 m edge across a
+    hole, 1-2 % of grade is the whole margin, and which foot vertex the TIN
+    holds (a 1 cm rounding decides) flips the verdict.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -108,6 +116,18 @@ def raised_segments(
         if rise > 0:
             # Only edges under the step gradient: steeper ones are judged as walls above.
             big = (grad < tan_step) & (np.abs(dz) - base[lower] * run >= rise)
+            if along:
+                big = (grad < tan_step) & (np.abs(dz) >= rise)
+                cand = np.flatnonzero(big)
+                if cand.size:
+                    g, ok = _foot_gradient(xyz, e, dz, lower[cand], step)
+                    d = xyz[upper[cand], :2] - xyz[lower[cand], :2]
+                    pred = np.where(
+                        ok,
+                        np.maximum(g[:, 0] * d[:, 0] + g[:, 1] * d[:, 1], 0.0),
+                        base[lower[cand]] * run[cand],
+                    )
+                    big[cand] = np.abs(dz[cand]) - pred >= rise
             wall |= big
         if relative:
             grad = grad - base[lower]
@@ -278,6 +298,40 @@ def _plane_per_group(
     if ok.any():
         coef[ok] = np.linalg.solve(m[ok], r[ok][..., None])[..., 0]
     return coef, cnt
+
+
+def _foot_gradient(
+    xyz: NDArray[np.float64],
+    e: NDArray[np.int64],
+    dz: NDArray[np.float64],
+    feet: NDArray[np.int64],
+    step: float,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Gradient (gx, gy) of the terrain at each vertex of ``feet``: the least-squares
+    plane through it and its neighbours along edges of less than ``step`` height
+    (the wall's top is not terrain), and whether they span a plane (three or more)."""
+    n = xyz.shape[0]
+    uniq, inv = np.unique(feet, return_inverse=True)
+    slot = np.full(n, -1, dtype=np.int64)
+    slot[uniq] = np.arange(uniq.size)
+    low = np.abs(dz) < step
+    a = np.concatenate([e[low, 0], e[low, 1]])
+    b = np.concatenate([e[low, 1], e[low, 0]])
+    keep = slot[a] >= 0
+    grp = np.concatenate([slot[a[keep]], np.arange(uniq.size)])
+    v = np.concatenate([b[keep], uniq])
+    centre = xyz[uniq[grp]]
+    coef, cnt = _plane_per_group(
+        grp,
+        xyz[v, 0] - centre[:, 0],
+        xyz[v, 1] - centre[:, 1],
+        xyz[v, 2],
+        uniq.size,
+        3,
+    )
+    # _plane_per_group leaves the slope 0 where the points do not span a plane.
+    ok = (cnt >= 3) & np.any(coef[:, 1:] != 0.0, axis=1)
+    return coef[inv, 1:], ok[inv]
 
 
 def _median_per_vertex(

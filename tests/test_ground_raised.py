@@ -1,0 +1,67 @@
+"""Raised segments of a ground TIN: the rise rule judges an edge along its own direction."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import Delaunay
+
+from terrasift.workers.ground import nist
+from terrasift.workers.ground.raised import raised_segments
+
+
+def _yard(noise: float, seed: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Ground at a 2 % grade rising to +y, vertices 2 m apart, and a platform 1 m
+    high (40 x 10 m) whose uphill neighbours (wagons) left a 25 m hole: the TIN
+    joins its uphill edge to the ground by long edges that run downhill onto it."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(-40.0, 100.0, 2.0)
+    x, y = (a.ravel() for a in np.meshgrid(g, np.arange(-40.0, 90.0, 2.0)))
+    x = x + rng.uniform(-0.5, 0.5, x.size)
+    y = y + rng.uniform(-0.5, 0.5, y.size)
+    top = (x > 10) & (x < 50) & (y > 0) & (y < 10)
+    hole = (x > 10) & (x < 50) & (y >= 10) & (y < 35)
+    keep = ~hole
+    x, y, top = x[keep], y[keep], top[keep]
+    z = 0.02 * y + 0.004 * x + np.where(top, 1.0, 0.0) + rng.normal(0.0, noise, x.size)
+    return np.column_stack([x, y, z]), top
+
+
+def _dropped(xyz: NDArray[np.float64], along: bool = True) -> NDArray[np.bool_]:
+    p = nist.NistParams(raised_along=along)
+    return raised_segments(
+        xyz,
+        Delaunay(xyz[:, :2]),
+        p.raised_step,
+        p.raised_slope,
+        up_share=p.raised_share,
+        min_lift=p.raised_lift,
+        relative=p.raised_relative,
+        walls=p.raised_walls,
+        rise=p.raised_rise,
+        rim=p.raised_rim,
+        edge=p.raised_edge,
+        along=p.raised_along,
+    )
+
+
+def test_platform_in_a_hole_is_dropped_whether_coordinates_are_rounded_or_not():
+    # The ground falls 0.5 m along the 25 m edges from its foot to the platform:
+    # judged by the size of the slope at the foot alone, that fall counted as a
+    # rise the terrain predicts, and the platform joined the terrain on some
+    # draws of the noise or of a 1 cm rounding and not on others.
+    verdicts = []
+    for seed in range(6):
+        xyz, top = _yard(0.02, seed)
+        for pts in (xyz, np.round(xyz, 2)):
+            assert np.array_equal(_dropped(pts), top), seed
+            verdicts.append(np.array_equal(_dropped(pts, along=False), top))
+    assert not all(verdicts)  # the slope's size alone: the verdict depends on the draw
+
+
+def test_rise_rule_keeps_a_slope_that_a_long_edge_climbs():
+    # No platform: long edges across the hole climb the 2 % grade, as the slope
+    # at their foot predicts, so nothing is raised.
+    xyz, top = _yard(0.02, 0)
+    xyz[top, 2] -= 1.0
+    assert not _dropped(xyz).any()
