@@ -388,7 +388,8 @@ def test_gps_time_places_every_return_on_its_beam(near_scan):
     step = np.radians(0.066)
     found = time_index(s.gps_time, az, el, step, step, 0.01, r)
     assert found is not None
-    col, row, s_az, s_el = found
+    col, row, s_az, s_el, per_col = found
+    assert per_col == 584
     assert np.unique(col - col_true).size == 1 and np.unique(row - row_true).size == 1
     assert np.degrees(s_az) == pytest.approx(0.06, rel=1e-3)
     assert np.degrees(s_el) == pytest.approx(0.06, rel=1e-3)

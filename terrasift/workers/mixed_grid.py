@@ -164,9 +164,9 @@ def time_index(
     las_scale: float = 0.0,
     r: NDArray[np.float64] | None = None,
     agree: float = 0.95,
-) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float] | None:
+) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float, int] | None:
     """Grid index (column, row) of every return from its firing order, with the steps
-    in azimuth and elevation refitted on it, or None.
+    in azimuth and elevation refitted on it and the pulses per column, or None.
 
     A scanner fires the rows of one column after the other, so pulse number =
     column × pulses per column + row (+ a constant). The column length is the lag
@@ -218,7 +218,7 @@ def time_index(
     ok = (np.abs(ra - np.median(ra)) < tol) & (np.abs(re - np.median(re)) < tol)
     if np.mean(ok) < agree:
         return None
-    return col, row, s_az, s_el
+    return col, row, s_az, s_el, per_col
 
 
 def mark_grid(
@@ -236,6 +236,8 @@ def mark_grid(
     ``fov`` (first and last azimuth, lowest and highest elevation, radians;
     ``scan_geometry.field_of_view``) bounds the beams that were fired: a beam beyond
     it is no edge. None: the returns at hand bound it (the whole scan, not a block).
+    With the firing order, each column fired its pulse count of rows from the lowest
+    elevation up, returns or not.
     """
     n = rel.shape[0]
     marked = np.zeros(n, dtype=bool)
@@ -249,11 +251,13 @@ def mark_grid(
         quant = s.las_scale / np.sqrt(12.0) / np.maximum(r_all, 1e-6)
         judged &= quant <= s.resolve * min(s.step_az, s.step_el)
     timed = None
+    fired_rows = 0  # pulses per column, when the firing order gives it
     if gps_time is not None:
         timed = time_index(gps_time, az, el, s.step_az, s.step_el, s.las_scale, r_all)
     if timed is not None:
         ia, ie = timed[0], timed[1]
         s = replace(s, step_az=timed[2], step_el=timed[3])
+        fired_rows = timed[4]
         judged = r_all > 1e-6
     idx = np.flatnonzero(judged)
     if idx.size < 3:
@@ -284,6 +288,11 @@ def mark_grid(
         lo, hi = int(pos.min()), int(pos.max())
         if bounds is not None:
             lo, hi = min(lo, bounds[axis][0]), max(hi, bounds[axis][1])
+        if axis == 1 and fired_rows:
+            # every column fired fired_rows pulses upwards from its lowest beam, which
+            # meets the ground around the sensor: rows above the highest return (a wall
+            # top under an empty sky) were fired too
+            hi = max(hi, lo + fired_rows - 1)
         out |= _mixed_along(line, r, s, pos, axis, (lo, hi))
     marked[idx[order]] = out
     return marked, judged, timed is not None
