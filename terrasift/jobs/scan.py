@@ -69,8 +69,8 @@ def measure_job_geometry(
     # the field of view: azimuths counted from inside the widest empty arc of bins, so
     # its first and last return are those the stage alone finds on the whole scan
     outside = np.array([_empty_arc(hist[s]) for s in range(k)])
-    first = np.full(k, np.inf)  # (azimuth - outside) mod 2π of the first / last return
-    last = np.full(k, -np.inf)
+    to_first = np.full(k, np.inf)  # (azimuth - outside) mod 2π of the first / last return
+    to_last = np.full(k, -np.inf)
     fov = np.zeros((k, 4))
     fov[:, 2], fov[:, 3] = np.inf, -np.inf
     pts: list[list[NDArray[np.float64]]] = [[] for _ in range(k)]
@@ -83,11 +83,12 @@ def measure_job_geometry(
             el = np.arcsin(np.clip(rel[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))
             from_c = (az - outside[s]) % (2 * np.pi)
             i, j = int(np.argmin(from_c)), int(np.argmax(from_c))
-            if from_c[i] < first[s]:
-                first[s], fov[s, 0] = from_c[i], az[i]
-            if from_c[j] > last[s]:
-                last[s], fov[s, 1] = from_c[j], az[j]
-            fov[s, 2], fov[s, 3] = min(fov[s, 2], el.min()), max(fov[s, 3], el.max())
+            if from_c[i] < to_first[s]:
+                to_first[s], fov[s, 0] = from_c[i], az[i]
+            if from_c[j] > to_last[s]:
+                to_last[s], fov[s, 1] = from_c[j], az[j]
+            fov[s, 2] = np.minimum(fov[s, 2], el.min())
+            fov[s, 3] = np.maximum(fov[s, 3], el.max())
             b = _az_bin(sel, o[s])
             sel = sel[(b >= lo[s]) & (b <= hi[s])]
             pts[s].append(np.column_stack([sel["x"], sel["y"], sel["z"]]))
@@ -106,7 +107,8 @@ def measure_job_geometry(
         if geo is None:
             out.append(None)
             continue
-        d = replace(geo, field_of_view=tuple(float(v) for v in fov[s])).to_dict()
+        a0, a1, e0, e1 = (float(v) for v in fov[s])
+        d = replace(geo, field_of_view=(a0, a1, e0, e1)).to_dict()
         d["how"] = {
             **geo.how,
             "scope": f"once per job and scan position, from {int(hist[s].sum())} points of all "
