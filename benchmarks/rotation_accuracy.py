@@ -547,7 +547,10 @@ def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
     pts["return_number"] = pts["number_of_returns"] = 1
     mins, maxs = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     span = float(np.max(maxs - mins)) + 2.0
-    grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=0.0)
+    # A halo beyond the data, as a job's edge block has: with none the block's
+    # window is the data's box, `nist` takes the data to go on past every edge
+    # and drops the plateau reaching it (the block was then found not steep).
+    grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=20.0)
     models = block_models(validate_params({"ground": METHOD.removeprefix("ground.")}))
     density = xyz.shape[0] / float(np.prod(maxs - mins))
     times, steep = [], False
