@@ -28,7 +28,12 @@ from terrasift.workers.features.language import (
     rotate_orientation,
     transform_segment,
 )
-from terrasift.workers.features.objects import object_size, objects_from_labels
+from terrasift.workers.features.objects import (
+    object_size,
+    objects_from_labels,
+    path_length,
+    rectangle_size,
+)
 from terrasift.workers.features.search import search_filter, search_rows
 
 
@@ -517,6 +522,37 @@ def test_objects_from_labels_polygons_and_limits():
     assert (
         len(objects_from_labels(lab, "thing", t, 2.0, (20, None, None, None))) == 1
     )  # square too short
+
+
+def test_an_elongated_object_is_no_longer_than_the_way_through_it():
+    """A ragged, branching piece (short strips at angles, as a hummocky slope's level
+    patches chain into a 'road') measures as long as the path through it, not as
+    its perimeter suggests; a winding strip keeps its length along its bends."""
+    t = Affine(1.0, 0, 0.0, 0, -1.0, 200.0)
+    zig = np.zeros((60, 120), np.int32)
+    rr, cc = np.indices(zig.shape)
+    for k in range(6):  # six 3 m-wide strips 14 m long, alternately up and down: a comb
+        x0 = 4 + 18 * k
+        zig[(cc >= x0) & (cc < x0 + 3) & (rr >= 20) & (rr < 34)] = 1
+    zig[(rr >= 34) & (rr < 37) & (cc >= 4) & (cc < 97)] = 1  # the spine joining them
+    ragged = objects_from_labels(zig, "road", t, 1.0)[0]
+    through = path_length(ragged.geometry, 0.5)
+    assert 105 <= through <= 125  # the spine plus a tooth at either end
+    assert abs(ragged.length_m - through) < 1e-6
+    area_perimeter, _ = rectangle_size(ragged.geometry)
+    assert area_perimeter > 1.3 * through  # what the outline alone would say
+    # with a 130 m minimum the comb goes; measured by its outline it would pass
+    assert not objects_from_labels(zig, "road", t, 1.0, (130, None, None, None))
+    # a winding strip: its path follows the bends (centreline about 185 m)
+    wind = np.zeros((80, 200), np.int32)
+    x = np.arange(10, 190)
+    y = (40 + 15 * np.sin(2 * np.pi * x / 90)).astype(int)
+    for dx in range(-2, 3):
+        wind[np.clip(y + dx, 0, 79), x] = 1
+        wind[y, np.clip(x + dx, 0, 199)] = 1
+    (strip,) = objects_from_labels(wind, "ditch", t, 1.0)
+    centre = float(np.hypot(np.diff(x), np.diff(15 * np.sin(2 * np.pi * x / 90))).sum())
+    assert abs(strip.length_m - centre) < 0.1 * centre
 
 
 # --------------------------------------------------------------------------- end to end

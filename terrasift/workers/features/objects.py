@@ -23,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from rasterio import Affine
-from rasterio.features import shapes
+from rasterio.features import rasterize, shapes
 from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 from shapely.geometry import LinearRing, MultiPolygon, Polygon, shape
 from shapely.ops import unary_union
 
@@ -95,6 +97,57 @@ def rectangle_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
     width = (perim / 2 - np.sqrt(disc)) / 2 if disc > 0 else np.sqrt(area)
     width = max(width, 1e-9)
     return area / width, width
+
+
+def path_length(poly: Polygon | MultiPolygon, res: float) -> float:
+    """The longest path inside ``poly`` (its geodesic diameter) in metres, on a raster of
+    ``res`` metres: two sweeps of shortest paths through 8-connected cells, from any
+    cell to the farthest one, then from there to the farthest again, plus one cell.
+
+    It follows bends, as an object's length should, but unlike area and perimeter it
+    is not lengthened by a ragged or branching outline: a zigzag of short strips is
+    as long as the way through it. Parts of a multipolygon (pieces joined across
+    gaps) add up with the gaps of the shortest tree linking them (a bound from above)."""
+    if isinstance(poly, MultiPolygon):
+        parts = list(poly.geoms)
+        total = sum(path_length(p, res) for p in parts)
+        linked = [parts[0]]  # Prim's tree over the parts' distances
+        rest = parts[1:]
+        while rest:
+            j, gap = min(
+                ((i, min(q.distance(r) for q in linked)) for i, r in enumerate(rest)),
+                key=lambda t: t[1],
+            )
+            total += gap
+            linked.append(rest.pop(j))
+        return float(total)
+    x0, y0, x1, y1 = poly.bounds
+    shape_ = (int(np.ceil((y1 - y0) / res)) + 2, int(np.ceil((x1 - x0) / res)) + 2)
+    inside = rasterize(
+        [poly], out_shape=shape_, transform=Affine(res, 0, x0 - res, 0, -res, y1 + res)
+    ).astype(bool)
+    n = int(inside.sum())
+    if n < 2:
+        return float(n * res)
+    idx = np.full(shape_, -1, dtype=np.int64)
+    idx[inside] = np.arange(n)
+    h, w = shape_
+    src, dst, cost = [], [], []
+    for dr, dc, d in ((0, 1, 1.0), (1, 0, 1.0), (1, 1, np.sqrt(2)), (1, -1, np.sqrt(2))):
+        a = idx[: h - dr, max(0, -dc) : w - max(0, dc)]
+        b = idx[dr:, max(0, dc) : w - max(0, -dc)]
+        ok = (a >= 0) & (b >= 0)
+        src.append(a[ok])
+        dst.append(b[ok])
+        cost.append(np.full(int(ok.sum()), d))
+    graph = coo_matrix(
+        (np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))), shape=(n, n)
+    ).tocsr()
+    far = dijkstra(graph, directed=False, indices=0)
+    far[~np.isfinite(far)] = -1
+    far = dijkstra(graph, directed=False, indices=int(np.argmax(far)))
+    far[~np.isfinite(far)] = -1
+    return float((far.max() + 1) * res)
 
 
 def _smoothed(poly: Polygon | MultiPolygon, tile_size: float) -> Polygon | MultiPolygon:
@@ -308,6 +361,11 @@ def finish_pieces(
             length, width = (v * np.sqrt(12) / 4 for v in moment_size(f.geometry))
         else:
             length, width = object_size(_smoothed(f.geometry, tile_size))
+            if length >= 3 * width:
+                # an elongated object is no longer than the way through it
+                through = path_length(f.geometry, tile_size / 2)
+                if through < length:
+                    length, width = through, length * width / through
         f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
         lt, wt = f.length_m / tile_size, f.width_m / tile_size
         if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
