@@ -810,6 +810,42 @@ def test_road_along_the_contour_of_an_11_percent_slope_is_bounded_by_a_flat_benc
     assert not detect_features(cats, [plain], tt, cats.tile_size, stepped=stepped).objects
 
 
+def test_a_bench_on_a_slope_at_the_flatness_threshold_may_read_inclined_up_away():
+    """A 0.6 m embankment along the contour of an 11.5 % slope (0.23 m across a 2 m
+    tile, just past the flatness threshold) with 3 cm of noise: the uphill bench reads
+    flat and not flat by turns, so no run of four flat tiles bounds the road; tiles
+    inclined up away from the road count as bench too, and the road is found whole."""
+    from dataclasses import replace
+
+    cell, size, s, off, half = 0.5, 200.0, 0.115, 0.6, 2.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * x
+    d = np.abs(x - 100)
+    top = 100 + s * 100 + off
+    t = np.clip((d - half) / (1.5 * (off + s * half) + 0.5), 0, 1)
+    z = np.where((np.abs(y - 100) <= 80) & (t < 1), top + t * (z - top), z)
+    z += np.random.default_rng(3).normal(0, 0.03, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    (road,) = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert road.length_m > 150 and abs(road.geometry.centroid.x - 100) < 3
+    # the bench as four flat tiles only: the road is missed
+    flat_only = []
+    for seg in flt.segments:
+        subs = tuple(
+            replace(sub, categories=sub.categories[:1])
+            if sub.min_len == sub.max_len == 4 and len(sub.categories) == 2
+            else sub
+            for sub in seg.subsegments
+        )
+        flat_only.append(replace(seg, subsegments=subs))
+    assert flat_only != list(flt.segments)
+    strict = replace(flt, segments=tuple(flat_only))
+    assert not detect_features(cats, [strict], tt, cats.tile_size, stepped=stepped).objects
+
+
 def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():
     h = np.zeros((40, 40), dtype=bool)
     v = np.zeros((40, 40), dtype=bool)
