@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -235,7 +236,8 @@ def blocked_categories(
     assert first is not None
 
     def whole(key: object, g: Categories) -> Categories:
-        return replace(g, **{n: bands[key].get(n) for n in _BANDS if getattr(g, n) is not None})
+        made: dict[str, Any] = {n: bands[key][n] for n in _BANDS if getattr(g, n) is not None}
+        return replace(g, **made)
 
     return whole(None, first[0]), {key: whole(key, g) for key, g in first[1].items()}
 
