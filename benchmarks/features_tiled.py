@@ -162,13 +162,14 @@ def one(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--start", type=int, default=0, help="first scene (seed)")
     ap.add_argument("--mosaic", type=int, default=2)
     ap.add_argument("--cores", type=int, default=4)
     ap.add_argument("--cap", type=float, default=None, help="metres (default: none)")
     ap.add_argument("--simplify", type=float, default=0.5, help="tiles")
     args = ap.parse_args()
     rows = []
-    for seed in range(args.scenes):
+    for seed in range(args.start, args.start + args.scenes):
         r = one(seed, args.mosaic, args.cores, args.cap, args.simplify)
         rows.append(r)
         print(

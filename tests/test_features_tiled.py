@@ -345,3 +345,55 @@ def test_surround_judges_an_object_searched_in_parts_by_its_whole_ring() -> None
     assert cut and all(p.cut.ring is not None for p in cut)
     tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
     assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
+
+
+def test_a_label_touching_itself_at_a_corner_is_joined_with_its_holes() -> None:
+    """A flat area (holes kept) whose tiles enclose a gap around an island of its own,
+    touching it at one corner, cut by a core edge: the parts' union is two polygons
+    touching at a point, which the corner buffer does not join, so the bridging
+    buffer used to fill the gap. The joined outline is now the one a single search
+    traces for the same tiles (exact and simplified)."""
+    from rasterio.features import shapes
+    from shapely.geometry import shape
+    from shapely.ops import unary_union
+
+    from terrasift.workers.features import FeatureParams
+    from terrasift.workers.features.objects import Feature, polygons
+    from terrasift.workers.features.tiled import Cut, Piece, _join_cuts, _resolved
+
+    lab = np.zeros((14, 18), np.int32)
+    lab[1:13, 1:17] = 1
+    lab[3:11, 3:15] = 0  # the gap
+    lab[4:10, 4:14] = 1  # the island
+    lab[3, 3] = 1  # the ring touches the island at one corner: (3, 3) and (4, 4)
+    edge = 9  # core columns [0, 9) and [9, 18)
+    grid = (2.0, 0.0, 500_000.0, 0.0, -2.0, 5_400_000.0)
+    at = Affine(*grid)
+    flt = _resolved(resolve_filters("flat-area")[0], CategoryParams(), CELL)
+    for simplify in (0.0, 0.5):
+        fp = FeatureParams(simplify_tiles=simplify)
+        parts = []
+        for c0, c1 in ((0, edge), (edge, lab.shape[1])):
+            mine = np.zeros_like(lab)
+            mine[:, c0:c1] = lab[:, c0:c1]
+            other = (lab > 0) & (mine == 0)
+            polys = [shape(g) for g, _ in shapes(mine, mask=mine > 0, connectivity=8)]
+            tiles = {(int(r), int(c)) for r, c in zip(*np.nonzero(mine), strict=True)}
+            cut = Cut(
+                grid,
+                unary_union(polys),
+                frozenset(tiles),
+                frozenset((int(r), int(c)) for r, c in zip(*np.nonzero(other), strict=True)),
+                False,
+                None,
+                None,
+            )
+            key = min(tiles)
+            feat = Feature("flat-area", cut.polygon, 0.0, 0.0, len(tiles))
+            parts.append(Piece(0, key, feat, cut))
+        (joined,) = _join_cuts(parts, flt, fp)
+        (whole,) = polygons(lab, at, simplify * 2.0).values()
+        assert joined.feature.tiles == int(lab.sum())
+        assert joined.feature.geometry.area == pytest.approx(whole.area, abs=1e-6)
+        assert joined.feature.geometry.symmetric_difference(whole).area < 1e-6
+        assert joined.feature.geometry.hausdorff_distance(whole) < 1e-6

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from rasterio import Affine
-from rasterio.features import shapes
+from rasterio.features import rasterize, shapes
 from scipy import ndimage
 from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon, shape
@@ -719,6 +719,8 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
         geom = unary_union([x.polygon for x in cuts])
         if opts.get("fill_holes", True):  # holes that the cores' edges cut open
             geom = _without_holes(geom)
+        if isinstance(geom, MultiPolygon):  # tiles touching at corners: traced as one search's
+            geom = _traced(geom)
         if isinstance(geom, MultiPolygon):  # as ``objects.polygons``: corners, bridged gaps
             geom = geom.buffer(1e-3, join_style="mitre").buffer(-1e-3, join_style="mitre")
         if isinstance(geom, MultiPolygon):
@@ -788,6 +790,20 @@ def _tile_sets(
     ):
         out.setdefault(lab, set()).add((r, c))
     return out
+
+
+def _traced(geom: Polygon | MultiPolygon) -> Polygon | MultiPolygon:
+    """The union of tile-index polygons as ``objects.polygons`` makes a label's: its tiles
+    traced by ``shapes`` with 8-connectivity, then united. A union of parts splits a
+    label whose tiles touch at corners only (an island in its own hole) into polygons
+    that the corner buffer does not join, where the trace gives one polygon; the
+    bridging buffer would then fill its small holes."""
+    c0, r0, c1, r1 = (int(round(v)) for v in geom.bounds)
+    at = Affine.translation(c0, r0)
+    mask = rasterize([geom], out_shape=(r1 - r0, c1 - c0), transform=at, dtype=np.uint8)
+    return unary_union(
+        [shape(g) for g, _ in shapes(mask, mask=mask > 0, transform=at, connectivity=8)]
+    )
 
 
 def _without_holes(geom: Polygon | MultiPolygon) -> Polygon | MultiPolygon:
