@@ -238,6 +238,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_k": 64},
         {"rough_factor": 4.0},
         {"rough_factor": 6.0},
+        {"grow_reach": 6.0},
+        {"mow_share": 0.25},
     ],
 }
 

@@ -2,7 +2,7 @@
 
     python benchmarks/rotation_accuracy.py [--split tune|holdout|all] [--seeds N ...]
         [--town 4] [--param KEY=VALUE ...] [--method ground.nist] [--no-family]
-        [--no-cost] [--no-isprs] [--shift DX DY]
+        [--no-cost] [--no-isprs] [--shift DX DY] [--ceilings 12]
 
 Family (ROBUSTNESS.md): 180 m tiles, each written as LAS and processed alone
 through the whole job (blocks with halos, stages, classified output) and
@@ -28,6 +28,10 @@ share of building points called ground.
 ``--shift DX DY`` translates every family tile by (DX, DY) metres before it
 is written (ROBUSTNESS.md rule 3: a figure that moves under a translation of
 centimetres is noise, not accuracy).
+
+Ceilings (``--ceilings N``): N overhangs whose underside leans 95–130°
+(drawn), beams ±35–40° so that they sample it; recall by the angle of the
+ground past vertical, pooled over the scenes.
 
 Cost: steepness test vs a default run on a flat block, and a steep block vs a
 flat block (ground alone and the whole block task). ISPRS: mean kappa of the
@@ -239,6 +243,72 @@ def make_family_scene(seed: int):
         heading=float(rng.uniform(0, 90)),
     )
     return kind, a, make_landforms(spec, seed=int(rng.integers(1 << 30)))
+
+
+def underside_profile(angle: float) -> tuple[tuple[float, float], ...]:
+    """``OVERHANG`` with its 20 m high underside at ``angle`` degrees (90: a
+    vertical face under the lip, 180: a level ceiling), the lip kept in place."""
+    back = 112.0 - 20.0 * float(np.tan(np.radians(angle - 90.0)))
+    return (*OVERHANG[:5], (back, 27.0), *OVERHANG[6:])
+
+
+def make_ceiling_scene(seed: int):
+    """Scene ``seed`` of the ceiling ladder: an overhang whose underside leans
+    95–130° (drawn), beams ±35–40° off nadir so that they reach under it
+    (they see an underside leaning less than their angle past vertical),
+    2–16 pulses/m²."""
+    rng = np.random.default_rng(10_000 + seed)
+    angle = float(rng.uniform(95.0, 130.0))
+    density = float(np.exp(rng.uniform(np.log(2.0), np.log(16.0))))
+    scan = float(rng.uniform(35.0, 40.0))
+    scene = make_cliffs(
+        length=300.0,
+        density=density,
+        profile=underside_profile(angle),
+        azimuth=float(rng.uniform(0, 360)),
+        max_scan_angle=scan,
+        seed=int(rng.integers(1 << 30)),
+        square=TILE,
+        face_clear=float(rng.uniform(-1.0, 1.0)),
+        bush_density=0.01,
+    )
+    return {"angle": angle, "density": density, "scan": scan}, scene
+
+
+def ceilings(seeds, params: dict) -> None:
+    """Recall of sampled ground leaning past vertical, by its angle, through the whole job."""
+    bins = (90.0, 100.0, 110.0, 120.0, 130.0)
+    print(
+        f"{'seed':>4} {'under°':>6} {'pts/m2':>6} {'scan':>5} "
+        + " ".join(f"{f'{a:.0f}-{b:.0f}°':>12}" for a, b in zip(bins[:-1], bins[1:], strict=True))
+        + f" {'type2':>6} {'kappa':>6}"
+    )
+    hit = np.zeros(len(bins) - 1)
+    tot = np.zeros(len(bins) - 1)
+    for seed in seeds:
+        a, scene = make_ceiling_scene(seed)
+        pred, _ = run_job(scene, params)
+        face = np.nan_to_num(scene.extra["face_angle"])
+        cells = []
+        for j, (lo, hi) in enumerate(zip(bins[:-1], bins[1:], strict=True)):
+            m = scene.extra["steep"] & (face > lo) & (face <= hi)
+            hit[j] += np.count_nonzero(pred & m)
+            tot[j] += np.count_nonzero(m)
+            cells.append(f"{share(pred, m):6.1f} ({np.count_nonzero(m):4d})")
+        sc = ground_score(scene.is_ground, pred).as_percent()
+        print(
+            f"{seed:4d} {a['angle']:6.1f} {a['density']:6.1f} {a['scan']:5.1f} "
+            + " ".join(cells)
+            + f" {sc['type2']:6.2f} {sc['kappa']:6.2f}",
+            flush=True,
+        )
+    print(
+        "  ceiling ladder, ground leaning past vertical found % (points) over all scenes: "
+        + ", ".join(
+            f"{lo:.0f}-{hi:.0f}° {100 * h / t if t else float('nan'):.1f} ({int(t)})"
+            for lo, hi, h, t in zip(bins[:-1], bins[1:], hit, tot, strict=True)
+        )
+    )
 
 
 def make_town(seed: int):
@@ -477,7 +547,10 @@ def block_cpu(xyz: np.ndarray) -> tuple[float, bool]:
     pts["return_number"] = pts["number_of_returns"] = 1
     mins, maxs = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
     span = float(np.max(maxs - mins)) + 2.0
-    grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=0.0)
+    # A halo beyond the data, as a job's edge block has: with none the block's
+    # window is the data's box, `nist` takes the data to go on past every edge
+    # and drops the plateau reaching it (the block was then found not steep).
+    grid = BlockGrid.over(tuple(mins), tuple(maxs), 1.0, block_size=span, buffer=20.0)
     models = block_models(validate_params({"ground": METHOD.removeprefix("ground.")}))
     density = xyz.shape[0] / float(np.prod(maxs - mins))
     times, steep = [], False
@@ -538,6 +611,9 @@ def main() -> None:
         metavar=("DX", "DY"),
         help="translate every family tile by DX, DY metres before writing it",
     )
+    ap.add_argument(
+        "--ceilings", type=int, default=0, help="scenes of the ceiling ladder (0: none)"
+    )
     ap.add_argument("--no-family", action="store_true")
     ap.add_argument("--no-isprs", action="store_true")
     ap.add_argument("--no-cost", action="store_true")
@@ -561,6 +637,8 @@ def main() -> None:
         if any(args.shift):
             print(f"family tiles translated by {args.shift[0]:g}, {args.shift[1]:g} m")
         family(seeds, params, tuple(args.shift))
+    if args.ceilings:
+        ceilings(range(args.ceilings), params)
     if args.town:
         town(range(200, 200 + args.town), params)
     if not args.no_cost:

@@ -28,7 +28,12 @@ from terrasift.workers.features.language import (
     rotate_orientation,
     transform_segment,
 )
-from terrasift.workers.features.objects import object_size, objects_from_labels
+from terrasift.workers.features.objects import (
+    object_size,
+    objects_from_labels,
+    path_length,
+    rectangle_size,
+)
 from terrasift.workers.features.search import search_filter, search_rows
 
 
@@ -519,6 +524,37 @@ def test_objects_from_labels_polygons_and_limits():
     )  # square too short
 
 
+def test_an_elongated_object_is_no_longer_than_the_way_through_it():
+    """A ragged, branching piece (short strips at angles, as a hummocky slope's level
+    patches chain into a 'road') measures as long as the path through it, not as
+    its perimeter suggests; a winding strip keeps its length along its bends."""
+    t = Affine(1.0, 0, 0.0, 0, -1.0, 200.0)
+    zig = np.zeros((60, 120), np.int32)
+    rr, cc = np.indices(zig.shape)
+    for k in range(6):  # six 3 m-wide strips 14 m long, alternately up and down: a comb
+        x0 = 4 + 18 * k
+        zig[(cc >= x0) & (cc < x0 + 3) & (rr >= 20) & (rr < 34)] = 1
+    zig[(rr >= 34) & (rr < 37) & (cc >= 4) & (cc < 97)] = 1  # the spine joining them
+    ragged = objects_from_labels(zig, "road", t, 1.0)[0]
+    through = path_length(ragged.geometry, 0.5)
+    assert 105 <= through <= 125  # the spine plus a tooth at either end
+    assert abs(ragged.length_m - through) < 1e-6
+    area_perimeter, _ = rectangle_size(ragged.geometry)
+    assert area_perimeter > 1.3 * through  # what the outline alone would say
+    # with a 130 m minimum the comb goes; measured by its outline it would pass
+    assert not objects_from_labels(zig, "road", t, 1.0, (130, None, None, None))
+    # a winding strip: its path follows the bends (centreline about 185 m)
+    wind = np.zeros((80, 200), np.int32)
+    x = np.arange(10, 190)
+    y = (40 + 15 * np.sin(2 * np.pi * x / 90)).astype(int)
+    for dx in range(-2, 3):
+        wind[np.clip(y + dx, 0, 79), x] = 1
+        wind[y, np.clip(x + dx, 0, 199)] = 1
+    (strip,) = objects_from_labels(wind, "ditch", t, 1.0)
+    centre = float(np.hypot(np.diff(x), np.diff(15 * np.sin(2 * np.pi * x / 90))).sum())
+    assert abs(strip.length_m - centre) < 0.1 * centre
+
+
 # --------------------------------------------------------------------------- end to end
 
 
@@ -772,6 +808,42 @@ def test_road_along_the_contour_of_an_11_percent_slope_is_bounded_by_a_flat_benc
     # the segments bounded by a tile that is not flat (or three tiles not level) alone
     plain = replace(flt, segments=flt.segments[:6])
     assert not detect_features(cats, [plain], tt, cats.tile_size, stepped=stepped).objects
+
+
+def test_a_bench_on_a_slope_at_the_flatness_threshold_may_read_inclined_up_away():
+    """A 0.6 m embankment along the contour of an 11.5 % slope (0.23 m across a 2 m
+    tile, just past the flatness threshold) with 3 cm of noise: the uphill bench reads
+    flat and not flat by turns, so no run of four flat tiles bounds the road; tiles
+    inclined up away from the road count as bench too, and the road is found whole."""
+    from dataclasses import replace
+
+    cell, size, s, off, half = 0.5, 200.0, 0.115, 0.6, 2.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * x
+    d = np.abs(x - 100)
+    top = 100 + s * 100 + off
+    t = np.clip((d - half) / (1.5 * (off + s * half) + 0.5), 0, 1)
+    z = np.where((np.abs(y - 100) <= 80) & (t < 1), top + t * (z - top), z)
+    z += np.random.default_rng(3).normal(0, 0.03, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    (road,) = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert road.length_m > 150 and abs(road.geometry.centroid.x - 100) < 3
+    # the bench as four flat tiles only: the road is missed
+    flat_only = []
+    for seg in flt.segments:
+        subs = tuple(
+            replace(sub, categories=sub.categories[:1])
+            if sub.min_len == sub.max_len == 4 and len(sub.categories) == 2
+            else sub
+            for sub in seg.subsegments
+        )
+        flat_only.append(replace(seg, subsegments=subs))
+    assert flat_only != list(flt.segments)
+    strict = replace(flt, segments=tuple(flat_only))
+    assert not detect_features(cats, [strict], tt, cats.tile_size, stepped=stepped).objects
 
 
 def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():

@@ -398,6 +398,32 @@ def test_growth_drops_peaks_it_stepped_onto_but_keeps_a_crest():
     assert ground[~bush].all()
 
 
+def test_growth_reach_makes_a_node_depend_only_on_nodes_within_it():
+    # An embankment 3 m high with vertical walls along x, reached only by a
+    # ramp at its east end: growth walks onto it there and along its top. Cut
+    # the nodes off west of the ramp (a block's edge) and without a reach the
+    # top far from the cut changes; with one it does not.
+    xy = _grid_nodes(140, 2.0, 23)
+    x = xy[:, 0]
+    bank = np.abs(xy[:, 1] - 70.0) < 10.0
+    z = np.where(bank, 3.0 * np.clip((130.0 - x) / 30.0, 0.0, 1.0), 0.0)
+    xyz = np.column_stack([xy, z])
+    seed = z < 0.5
+    kw = {"tol": 0.3, "bend_deg": 7.0, "max_rise": 2.5}
+    kept = x < 95.0  # the ramp cut off
+    far = kept & bank & (x < 95.0 - 40.0 - 5.0)
+    whole = grow_ground(xyz, seed, **kw)
+    cut = grow_ground(xyz[kept], seed[kept], **kw)
+    assert whole[far].all()  # the whole top grown from the ramp...
+    assert not cut[far[kept]].any()  # ...and none of it without the ramp
+    whole = grow_ground(xyz, seed, reach=40.0, **kw)
+    cut = grow_ground(xyz[kept], seed[kept], reach=40.0, **kw)
+    near_ramp = bank & (x > 90.0) & (x < 100.0)
+    assert whole[near_ramp].all()  # within reach of the ramp's foot: still grown
+    assert not whole[far].any()
+    assert np.array_equal(whole[kept][x[kept] < 50.0], cut[x[kept] < 50.0])
+
+
 def test_growth_peak_rule_keeps_a_cut_ridge():
     xy = _grid_nodes(120, 2.0, 11)
     ridge = np.clip(10.0 - np.tan(np.radians(30)) * np.abs(xy[:, 0] - 40.0), 0.0, None)
@@ -1049,3 +1075,22 @@ def test_roughness_rule_runs_on_sparse_data_only_and_takes_low_vegetation_back()
         nist.classify_ground(dense, nist.NistParams()),
         nist.classify_ground(dense, nist.NistParams(rough_k=0)),
     )
+
+
+def test_passes_one_and_two_vote_over_grid_phases_when_asked():
+    # mow_share: a point survives a pass's mowing when that share of the phases'
+    # surfaces keep it, so "any of them" keeps a superset of "all of them".
+    xyz = make_scene(150, 0.5, seed=4).xyz
+    local = xyz - np.array([*xyz[:, :2].min(axis=0), 0.0])
+    spacing = nist.point_spacing(local[:, :2])
+    g1 = nist._grids(local, nist.NistParams(), spacing, None)[0]
+
+    def kept(share: float) -> set[int]:
+        params = nist.NistParams(mow_share=share)
+        phases = [[nist.select_reject(local, params, g)] for g in nist._phased(g1, 2)]
+        centre = local[:, :2].mean(axis=0)
+        return set(nist._voted_mow(local, local, phases, params, centre, 1.0, 0.5, g1.cell))
+
+    any_, all_ = kept(0.25), kept(1.0)
+    assert all_ < any_  # strictly: the phases' surfaces differ somewhere
+    assert len(all_) > 0.5 * len(local)

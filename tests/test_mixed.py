@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from terrasift.errors import ParameterError
 from terrasift.synthetic.scan import CORRECT, make_scan
 from terrasift.workers.mixed import MixedParams, mark_mixed
+from terrasift.workers.scan_geometry import field_of_view, measure_scan_geometry
 
 VARIANTS = (
     "naive",
@@ -385,7 +388,8 @@ def test_gps_time_places_every_return_on_its_beam(near_scan):
     step = np.radians(0.066)
     found = time_index(s.gps_time, az, el, step, step, 0.01, r)
     assert found is not None
-    col, row, s_az, s_el = found
+    col, row, s_az, s_el, per_col = found
+    assert per_col == 584
     assert np.unique(col - col_true).size == 1 and np.unique(row - row_true).size == 1
     assert np.degrees(s_az) == pytest.approx(0.06, rel=1e-3)
     assert np.degrees(s_el) == pytest.approx(0.06, rel=1e-3)
@@ -447,3 +451,33 @@ def test_grid_bleeding_needs_a_surface_that_would_have_answered():
     assert last_ground.sum() >= 30 and not res[last_ground].any()
     # (the wall's side edge at azimuth 0 is left out: it has no beams bleeding past it)
     assert res[(ground | ((t == t_wall[keep]) & ~past)) & (az < -2 * step)].mean() < 0.002
+
+
+def test_a_block_sees_the_scans_field_of_view_not_its_own():
+    # Wall A (columns < 0) ends at 2° elevation with nothing above it; wall B (columns
+    # >= 0) goes higher. With a footprint of three steps wall A's top row bleeds past its
+    # edge and is marked on the whole scan. A block holding wall A only has that row as
+    # its highest: it is an edge only if the block knows the scan fired beams above it.
+    step = 0.15
+    cols, rows = np.arange(-40, 40), np.arange(-40, 40)
+    c, w = (g.ravel() for g in np.meshgrid(cols, rows, indexing="ij"))
+    az, el = np.radians(c * step), np.radians(w * step)
+    r = np.where((c >= 0) | (w * step <= 2.0), 20.0, np.nan)
+    r = r + np.random.default_rng(0).normal(0.0, 0.004, r.size)
+    keep = np.isfinite(r)
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    xyz, c, w, az, el = d[keep] * r[keep, None], c[keep], w[keep], az[keep], el[keep]
+    p = MixedParams(footprint=0.45)
+    whole = mark_mixed(xyz, p, np.zeros(3)).marked
+    top = (c < 0) & (w == w[c < 0].max())
+    assert whole[top].mean() > 0.9
+
+    geo = measure_scan_geometry(xyz, footprint=0.45)
+    assert geo is not None
+    fov = replace(geo, field_of_view=field_of_view(az, el))
+    block = c < -10
+    core = c[block] < -20  # away from the block's own side edge
+    seen = mark_mixed(xyz[block], p, np.zeros(3), geometry=[fov]).marked
+    own = mark_mixed(xyz[block], p, np.zeros(3), geometry=[geo]).marked
+    assert np.array_equal(seen[core], whole[block][core])
+    assert not own[top[block]].any()

@@ -596,3 +596,27 @@ def test_landform_cells_hold_ground_under_crowns_at_the_foot_of_faces():
     crowns = {k: int(np.count_nonzero(g & tall & ~before)) for k, g in got.items()}
     assert crowns[2.0] < 0.7 * crowns[1.5], crowns
     assert np.mean(got[2.0][land]) > 0.85
+
+
+def test_a_thinly_sampled_face_is_linked_by_its_own_spacing():
+    from terrasift.workers.ground.rotation import _on_faces
+
+    rng = np.random.default_rng(3)
+    # Level ground (x < 20, 5 pts/m²) and a vertical face at x = 20 up to 15 m that
+    # the beams graze: 0.15 pts/m², its points metres apart.
+    floor = np.column_stack([rng.uniform(0, 20, 3000), rng.uniform(0, 30, 3000), np.zeros(3000)])
+    face = np.column_stack([np.full(70, 20.0), rng.uniform(0, 30, 70), rng.uniform(0.5, 15, 70)])
+    # A dense smooth patch (a trunk's side) 5 m in front of the face, 6 m up: smooth and
+    # steep like a face, but its returns crowd and nothing ground lies within its reach.
+    patch = np.column_stack([np.full(40, 15.0), rng.uniform(14, 15, 40), rng.uniform(6, 7, 40)])
+    xyz = np.vstack([floor, face, patch]) + rng.normal(0, 0.02, (3110, 3))
+    base = np.r_[np.ones(3000, bool), np.zeros(110, bool)]
+    foot = xyz.copy()
+    foot[:, 2] = np.minimum(xyz[:, 2], 0.0)
+    own = _on_faces(xyz, base, ~base, foot, RotationParams())
+    one = _on_faces(xyz, base, ~base, foot, RotationParams(face_local_link=False))
+    # 0.74 linked of the 0.79 that lie on a surface; 0.27 with one reach for all
+    assert own[3000:3070].mean() > 0.6
+    assert one[3000:3070].mean() < 0.5 * own[3000:3070].mean()
+    # The patch passes the surface tests; the face's long reach does not pull it in.
+    assert not own[3070:].any()

@@ -15,6 +15,7 @@ result and every block task passes it to the stage.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -65,10 +66,29 @@ def measure_job_geometry(
         half = cum[-1] / 2.0
         lo[s] = np.searchsorted(cum, half - MAX_SAMPLE / 2, side="left")
         hi[s] = np.searchsorted(cum, half + MAX_SAMPLE / 2, side="left")
+    # the field of view: azimuths counted from inside the widest empty arc of bins, so
+    # its first and last return are those the stage alone finds on the whole scan
+    outside = np.array([_empty_arc(hist[s]) for s in range(k)])
+    to_first = np.full(k, np.inf)  # (azimuth - outside) mod 2π of the first / last return
+    to_last = np.full(k, -np.inf)
+    fov = np.zeros((k, 4))
+    fov[:, 2], fov[:, 3] = np.inf, -np.inf
     pts: list[list[NDArray[np.float64]]] = [[] for _ in range(k)]
     for rec, ids in _scan_records(files, k):
         for s in np.unique(ids[ids < k]):
             sel = rec[ids == s]
+            rel = np.column_stack([sel["x"], sel["y"], sel["z"]]) - o[s]
+            az = np.arctan2(rel[:, 1], rel[:, 0])
+            r = np.linalg.norm(rel, axis=1)
+            el = np.arcsin(np.clip(rel[:, 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+            from_c = (az - outside[s]) % (2 * np.pi)
+            i, j = int(np.argmin(from_c)), int(np.argmax(from_c))
+            if from_c[i] < to_first[s]:
+                to_first[s], fov[s, 0] = from_c[i], az[i]
+            if from_c[j] > to_last[s]:
+                to_last[s], fov[s, 1] = from_c[j], az[j]
+            fov[s, 2] = np.minimum(fov[s, 2], el.min())
+            fov[s, 3] = np.maximum(fov[s, 3], el.max())
             b = _az_bin(sel, o[s])
             sel = sel[(b >= lo[s]) & (b <= hi[s])]
             pts[s].append(np.column_stack([sel["x"], sel["y"], sel["z"]]))
@@ -87,7 +107,8 @@ def measure_job_geometry(
         if geo is None:
             out.append(None)
             continue
-        d = geo.to_dict()
+        a0, a1, e0, e1 = (float(v) for v in fov[s])
+        d = replace(geo, field_of_view=(a0, a1, e0, e1)).to_dict()
         d["how"] = {
             **geo.how,
             "scope": f"once per job and scan position, from {int(hist[s].sum())} points of all "
@@ -95,6 +116,17 @@ def measure_job_geometry(
         }
         out.append(d)
     return out
+
+
+def _empty_arc(hist: NDArray[np.int64]) -> float:
+    """Azimuth (radians) in the middle of the widest circular run of empty bins."""
+    full = np.flatnonzero(hist > 0)
+    if full.size == 0:
+        return float(np.pi)
+    gaps = np.diff(np.append(full, full[0] + AZ_BINS))  # bins from one full bin to the next
+    i = int(np.argmax(gaps))
+    mid = full[i] + 0.5 * gaps[i] + 0.5  # bin units, centre of the empty run
+    return float(mid / AZ_BINS * 2 * np.pi - np.pi)
 
 
 def job_geometry(

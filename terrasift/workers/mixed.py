@@ -51,7 +51,7 @@ from terrasift.errors import InputError, ParameterError
 from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
 from terrasift.workers.mixed_grid import GridSettings, mark_grid
 from terrasift.workers.registry import StageParams, register
-from terrasift.workers.scan_geometry import ScanGeometry, measure_scan_geometry
+from terrasift.workers.scan_geometry import ScanGeometry, field_of_view, measure_scan_geometry
 
 GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
@@ -240,7 +240,14 @@ def mark_mixed(
         if params.method == "grid" and derived.geometry is not None:
             gs = grid_settings(derived.geometry, params)
             t = times[idx] if times is not None else None
-            m, judged, timed = mark_grid(rel, gs, t)
+            fov = derived.geometry.field_of_view
+            if fov is None:
+                r_ = np.linalg.norm(rel, axis=1)
+                fov = field_of_view(
+                    np.arctan2(rel[:, 1], rel[:, 0]),
+                    np.arcsin(np.clip(rel[:, 2] / np.maximum(r_, 1e-12), -1.0, 1.0)),
+                )
+            m, judged, timed = mark_grid(rel, gs, t, fov)
             u = np.zeros(rel.shape[0], dtype=bool)
             nr, nt = int(judged.sum()), int(m.sum())
             rest = ~judged

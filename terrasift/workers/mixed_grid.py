@@ -164,9 +164,9 @@ def time_index(
     las_scale: float = 0.0,
     r: NDArray[np.float64] | None = None,
     agree: float = 0.95,
-) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float] | None:
+) -> tuple[NDArray[np.int64], NDArray[np.int64], float, float, int] | None:
     """Grid index (column, row) of every return from its firing order, with the steps
-    in azimuth and elevation refitted on it, or None.
+    in azimuth and elevation refitted on it and the pulses per column, or None.
 
     A scanner fires the rows of one column after the other, so pulse number =
     column × pulses per column + row (+ a constant). The column length is the lag
@@ -218,11 +218,14 @@ def time_index(
     ok = (np.abs(ra - np.median(ra)) < tol) & (np.abs(re - np.median(re)) < tol)
     if np.mean(ok) < agree:
         return None
-    return col, row, s_az, s_el
+    return col, row, s_az, s_el, per_col
 
 
 def mark_grid(
-    rel: NDArray[np.float64], s: GridSettings, gps_time: NDArray[np.float64] | None = None
+    rel: NDArray[np.float64],
+    s: GridSettings,
+    gps_time: NDArray[np.float64] | None = None,
+    fov: tuple[float, float, float, float] | None = None,
 ) -> tuple[NDArray, NDArray, bool]:
     """Mixed returns of one scan position (``rel`` relative to the sensor).
 
@@ -230,6 +233,11 @@ def mark_grid(
     LAS scale to place them on their beam) are never marked. With ``gps_time`` (one
     per return) every return is placed on its beam by its firing order when the times
     agree with the angles (``time_index``; ``timed`` says so); otherwise by its angles.
+    ``fov`` (first and last azimuth, lowest and highest elevation, radians;
+    ``scan_geometry.field_of_view``) bounds the beams that were fired: a beam beyond
+    it is no edge. None: the returns at hand bound it (the whole scan, not a block).
+    With the firing order, each column fired its pulse count of rows from the lowest
+    elevation up, returns or not.
     """
     n = rel.shape[0]
     marked = np.zeros(n, dtype=bool)
@@ -243,11 +251,13 @@ def mark_grid(
         quant = s.las_scale / np.sqrt(12.0) / np.maximum(r_all, 1e-6)
         judged &= quant <= s.resolve * min(s.step_az, s.step_el)
     timed = None
+    fired_rows = 0  # pulses per column, when the firing order gives it
     if gps_time is not None:
         timed = time_index(gps_time, az, el, s.step_az, s.step_el, s.las_scale, r_all)
     if timed is not None:
         ia, ie = timed[0], timed[1]
         s = replace(s, step_az=timed[2], step_el=timed[3])
+        fired_rows = timed[4]
         judged = r_all > 1e-6
     idx = np.flatnonzero(judged)
     if idx.size < 3:
@@ -271,12 +281,48 @@ def mark_grid(
         stride = n_e if axis == 1 else 1  # neighbours along the other axis
         both = np.fmin(np.abs(r_pad[find(key + stride)] - r), np.abs(r_pad[find(key - stride)] - r))
         across[axis] = np.where(np.isfinite(both), both, 0.0)
+    bounds = _fov_bounds(fov, az[idx][order], el[idx][order], key // n_e, key % n_e, s)
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
         line = _Line(key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis])
-        out |= _mixed_along(line, r, s, pos, axis)
+        lo, hi = int(pos.min()), int(pos.max())
+        if bounds is not None:
+            lo, hi = min(lo, bounds[axis][0]), max(hi, bounds[axis][1])
+        if axis == 1 and fired_rows:
+            # every column fired fired_rows pulses upwards from its lowest beam, which
+            # meets the ground around the sensor: rows above the highest return (a wall
+            # top under an empty sky) were fired too
+            hi = max(hi, lo + fired_rows - 1)
+        out |= _mixed_along(line, r, s, pos, axis, (lo, hi))
     marked[idx[order]] = out
     return marked, judged, timed is not None
+
+
+def _fov_bounds(
+    fov: tuple[float, float, float, float] | None,
+    az: NDArray[np.float64],
+    el: NDArray[np.float64],
+    ia: NDArray[np.int64],
+    ie: NDArray[np.int64],
+    s: GridSettings,
+) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """Grid index range (azimuth, elevation) of the field of view ``fov``: each angle's
+    offset from its index (the median over the returns) carries the bounds onto the grid."""
+    if fov is None or ia.size == 0:
+        return None
+    a0, a1, e0, e1 = fov
+    c = a0 + 0.5 * ((a1 - a0) % (2 * np.pi))  # middle of the field of view
+    turn = 2 * np.pi
+
+    def rel(a: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        return (np.asarray(a) - c + np.pi) % turn - np.pi
+
+    off_a = float(np.median(rel(az) / s.step_az - ia))
+    off_e = float(np.median(el / s.step_el - ie))
+    return (
+        (int(np.round(rel(a0) / s.step_az - off_a)), int(np.round(rel(a1) / s.step_az - off_a))),
+        (int(np.round(e0 / s.step_el - off_e)), int(np.round(e1 / s.step_el - off_e))),
+    )
 
 
 class _Line:
@@ -320,8 +366,10 @@ def _mixed_along(
     s: GridSettings,
     pos: NDArray[np.int64],
     axis: int,
+    extent: tuple[int, int],
 ) -> NDArray[np.bool_]:
-    """Mixed returns along one axis of the grid (``pos`` each return's index along it)."""
+    """Mixed returns along one axis of the grid (``pos`` each return's index along it,
+    ``extent`` the first and last index of the field of view)."""
     n = r.size
     reach = s.reach
     R, V = line.R, line.V
@@ -402,13 +450,13 @@ def _mixed_along(
     # below it is in front of the ground's continuation, yet on the board).
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
-            inside = (pos + sd >= pos.min()) & (pos + sd <= pos.max())
+            inside = (pos + sd >= extent[0]) & (pos + sd <= extent[1])
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
             between |= open_ & off_end[-sd] & ~own
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
-    between |= _bleeding(R, V, r, s, step, pos)
+    between |= _bleeding(R, V, r, s, step, pos, extent)
     return between
 
 
@@ -419,13 +467,14 @@ def _bleeding(
     s: GridSettings,
     step: float,
     pos: NDArray[np.int64],
+    extent: tuple[int, int],
 ) -> NDArray[np.bool_]:
     """Returns of a surface beyond its edge: where nothing answers behind an edge (no
     return, or a background beyond ``max_gap``), a beam whose footprint still touches the
     surface returns its range on its own central ray, up to half a footprint past the edge.
     The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
     evenly; it is marked when past by more than ``min_offset`` with a probability above
-    ``bleed_prob``. Beams outside the extent of the returns (the field of view) are not
+    ``bleed_prob``. Beams outside the field of view (``extent``) are not
     edges, nor beams the surface, continued, would reach only beyond ``max_gap``."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
@@ -440,7 +489,7 @@ def _bleeding(
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
                 beyond = R[sd * k]
-                inside = (pos + sd * k >= pos.min()) & (pos + sd * k <= pos.max())
+                inside = (pos + sd * k >= extent[0]) & (pos + sd * k <= extent[1])
                 edge = inside & ~(beyond <= r + s.max_gap)  # no return, or far behind
                 # the inner surface, continued to that beam, would have answered within
                 # max_gap of p: a receding surface (grazing ground towards the range

@@ -52,6 +52,10 @@ class ScanGeometry:
     footprint_steps: float
     n_points: int
     how: dict[str, str] = field(default_factory=dict)
+    # first and last azimuth, lowest and highest elevation of the position's returns, in
+    # radians at full precision (beams beyond lie outside the field of view; a block of a
+    # job holds only part of it); None: the returns at hand bound it
+    field_of_view: tuple[float, float, float, float] | None = None
 
     @property
     def step(self) -> float:
@@ -66,11 +70,16 @@ class ScanGeometry:
     def from_dict(cls, d: dict[str, Any]) -> ScanGeometry:
         """The geometry ``to_dict`` wrote (derived keys such as ``step`` are left out)."""
         names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        kw = {k: v for k, v in d.items() if k in names}
+        if kw.get("field_of_view") is not None:
+            kw["field_of_view"] = tuple(float(v) for v in kw["field_of_view"])
+        return cls(**kw)
 
     def to_dict(self) -> dict[str, object]:
         d = asdict(self)
         d["step"] = self.step
+        if self.field_of_view is not None:
+            d["field_of_view"] = [float(v) for v in self.field_of_view]
         for k, v in d.items():
             if isinstance(v, float):
                 d[k] = float(f"{v:.6g}")
@@ -189,6 +198,38 @@ def measure_scan_geometry(
         footprint_steps=float(steps),
         n_points=int(r.size),
         how=how,
+    )
+
+
+def outside_azimuth(az: NDArray[np.float64]) -> float:
+    """An azimuth in the widest empty arc between the returns' azimuths (radians): the
+    field of view runs from the first return after it to the last before it."""
+    a = np.sort(np.asarray(az, dtype=np.float64))
+    if a.size == 0:
+        return float(np.pi)
+    gaps = np.diff(np.append(a, a[0] + 2 * np.pi))
+    i = int(np.argmax(gaps))
+    return float(a[i] + 0.5 * gaps[i])
+
+
+def field_of_view(
+    az: NDArray[np.float64], el: NDArray[np.float64], outside: float | None = None
+) -> tuple[float, float, float, float]:
+    """(first azimuth, last azimuth, lowest, highest elevation) of one position's returns,
+    each the angle of a return itself (radians). Azimuths count anticlockwise from
+    ``outside``, an azimuth in the empty arc beyond the field of view (the widest empty
+    arc when None), so a scan across ±180° keeps its extent."""
+    az = np.asarray(az, dtype=np.float64)
+    el = np.asarray(el, dtype=np.float64)
+    if az.size == 0:
+        return (-np.pi, np.pi, -np.pi / 2, np.pi / 2)
+    c = outside_azimuth(az) if outside is None else outside
+    from_c = (az - c) % (2 * np.pi)
+    return (
+        float(az[np.argmin(from_c)]),
+        float(az[np.argmax(from_c)]),
+        float(el.min()),
+        float(el.max()),
     )
 
 

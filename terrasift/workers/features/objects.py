@@ -23,10 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from rasterio import Affine
-from rasterio.features import shapes
+from rasterio.features import rasterize, shapes
 from scipy import ndimage
-from shapely.geometry import LinearRing, MultiPolygon, Polygon, shape
-from shapely.ops import unary_union
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+from shapely.geometry import LinearRing, LineString, MultiPolygon, Polygon, shape
+from shapely.ops import nearest_points, unary_union
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,64 @@ def rectangle_size(poly: Polygon | MultiPolygon) -> tuple[float, float]:
     width = (perim / 2 - np.sqrt(disc)) / 2 if disc > 0 else np.sqrt(area)
     width = max(width, 1e-9)
     return area / width, width
+
+
+def path_length(poly: Polygon | MultiPolygon, res: float) -> float:
+    """The longest path inside ``poly`` (its geodesic diameter) in metres, on a raster of
+    ``res`` metres: two sweeps of shortest paths through the 8-connected cells it
+    touches, from any cell to the farthest one, then from there to the farthest again.
+
+    It follows bends, as an object's length should, but unlike area and perimeter it
+    is not lengthened by a ragged or branching outline: a zigzag of short strips is
+    as long as the way through it. Parts of a multipolygon (pieces joined across
+    gaps) are linked by the shortest tree of straight bridges and measured as one."""
+    if isinstance(poly, MultiPolygon):
+        # the way through pieces joined across gaps crosses the gaps: link the parts by
+        # the shortest tree of straight bridges (Prim's) and measure the whole
+        parts = list(poly.geoms)
+        linked, rest, bridges = [parts[0]], parts[1:], []
+        while rest:
+            j, q = min(
+                ((i, q) for i in range(len(rest)) for q in linked),
+                key=lambda t: t[1].distance(rest[t[0]]),
+            )
+            a, b = nearest_points(q, rest[j])
+            bridges.append(LineString([a, b]).buffer(0.75 * res, cap_style="square"))
+            linked.append(rest.pop(j))
+        whole = unary_union([poly, *bridges])
+        if isinstance(whole, MultiPolygon):  # not expected: add the parts up
+            return float(sum(path_length(p, res) for p in whole.geoms))
+        return path_length(whole, res)
+    x0, y0, x1, y1 = poly.bounds
+    shape_ = (int(np.ceil((y1 - y0) / res)) + 2, int(np.ceil((x1 - x0) / res)) + 2)
+    inside = rasterize(  # every cell touched, so a strip one cell wide stays connected
+        [poly],
+        out_shape=shape_,
+        transform=Affine(res, 0, x0 - res, 0, -res, y1 + res),
+        all_touched=True,
+    ).astype(bool)
+    n = int(inside.sum())
+    if n < 2:
+        return float(n * res)
+    idx = np.full(shape_, -1, dtype=np.int64)
+    idx[inside] = np.arange(n)
+    h, w = shape_
+    src, dst, cost = [], [], []
+    for dr, dc, d in ((0, 1, 1.0), (1, 0, 1.0), (1, 1, np.sqrt(2)), (1, -1, np.sqrt(2))):
+        a = idx[: h - dr, max(0, -dc) : w - max(0, dc)]
+        b = idx[dr:, max(0, dc) : w - max(0, -dc)]
+        ok = (a >= 0) & (b >= 0)
+        src.append(a[ok])
+        dst.append(b[ok])
+        cost.append(np.full(int(ok.sum()), d))
+    graph = coo_matrix(
+        (np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))), shape=(n, n)
+    ).tocsr()
+    far = dijkstra(graph, directed=False, indices=0)
+    far[~np.isfinite(far)] = -1
+    far = dijkstra(graph, directed=False, indices=int(np.argmax(far)))
+    far[~np.isfinite(far)] = -1
+    return float(far.max() * res)
 
 
 def _smoothed(poly: Polygon | MultiPolygon, tile_size: float) -> Polygon | MultiPolygon:
@@ -308,14 +368,24 @@ def finish_pieces(
             length, width = (v * np.sqrt(12) / 4 for v in moment_size(f.geometry))
         else:
             length, width = object_size(_smoothed(f.geometry, tile_size))
-        f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
-        lt, wt = f.length_m / tile_size, f.width_m / tile_size
-        if (min_l is not None and lt < min_l) or (max_l is not None and lt > max_l):
+        lt, wt = length / tile_size, width / tile_size
+        if (min_l is not None and lt < min_l) or (min_w is not None and wt < min_w):
             continue
-        if (min_w is not None and wt < min_w) or (max_w is not None and wt > max_w):
+        if max_w is not None and wt > max_w:
             continue
         if solidity is not None and f.geometry.area < solidity * f.geometry.convex_hull.area:
             continue
+        if measure != "rectangle" and length >= 3 * width:
+            # an elongated object is no longer than the way through it; its width
+            # stays the strip's (a ragged zigzag of 3 m strips is 3 m wide). Measured
+            # last: it only shortens, and costs a path search
+            length = min(length, path_length(f.geometry, tile_size / 2))
+            lt = length / tile_size
+            if min_l is not None and lt < min_l:
+                continue
+        if max_l is not None and lt > max_l:
+            continue
+        f = Feature(f.kind, f.geometry, float(length), float(width), f.tiles)
         ratio = f.length_m / max(f.width_m, 1e-9)
         if (lo_a is not None and ratio < lo_a) or (hi_a is not None and ratio > hi_a):
             continue

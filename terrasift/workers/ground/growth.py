@@ -64,6 +64,7 @@ def grow_ground(
     peak: float | None = None,
     peak_nodes: int = 1,
     agree: float = 0.0,
+    reach: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Ground flags of the nodes ``xyz`` (n, 3) grown from ``seed``; see the module doc.
 
@@ -77,7 +78,10 @@ def grow_ground(
     ground neighbours are dropped, and so are level groups of up to
     ``peak_nodes`` grown nodes that do (see the module doc). With ``agree``
     (0–1), a node joins only when at least that share of its ground neighbours
-    predict it (see the module doc).
+    predict it (see the module doc). With ``reach`` (metres, 0: none), a node joins
+    only through an edge that ends at most that far from a seed along the path
+    growth took (sum of edge lengths): what decides a node then lies within
+    ``reach`` of it, so data cut off further away cannot change it.
     """
     n = xyz.shape[0]
     ground = seed.copy()
@@ -108,12 +112,19 @@ def grow_ground(
     if barred is not None:
         usable &= ~barred[nbr]
     own, nbr, du, dv, dz = own[usable], nbr[usable], du[usable], dv[usable], dz[usable]
-    limit, limit_below = limit[usable], limit_below[usable]
+    limit, limit_below, dist = limit[usable], limit_below[usable], dist[usable]
+    # Path length from a seed along the edges growth took (first arrival, shortest then).
+    path = np.where(seed, 0.0, np.inf) if reach > 0 else np.zeros(0)
     for _ in range(max_rounds):
         gx, gy = _ground_slopes(ground, own, nbr, du, dv, dz, n)
         cand = ground[own] & ~ground[nbr]
         err = dz[cand] - gx[own[cand]] * du[cand] - gy[own[cand]] * dv[cand]
         ok = (err <= limit[cand]) & (err >= -limit_below[cand])
+        if reach > 0:
+            arrive = path[own[cand]] + dist[cand]
+            ok &= arrive <= reach
+            first = np.full(n, np.inf)
+            np.minimum.at(first, nbr[cand][ok], arrive[ok])
         if agree > 0:
             votes = np.bincount(nbr[cand][ok], minlength=n)
             voters = np.bincount(nbr[cand], minlength=n)
@@ -123,6 +134,8 @@ def grow_ground(
         if new.size == 0:
             break
         ground[new] = True
+        if reach > 0:
+            path[new] = first[new]
     if peak is not None:
         ground = _without_peaks(ground, seed, *all_edges, margin=peak, max_nodes=peak_nodes)
     return ground

@@ -143,6 +143,10 @@ class NistParams(StageParams):
     """Each phase's say in the vote: ``equal``, or ``centre``: by how central the point
     lies in that phase's final bin (a tent per axis; with two phases per axis the
     weights are those of bilinear interpolation between the phases)."""
+    mow_share: float = Field(0.0, ge=0, le=1)
+    """Passes 1 and 2 vote too when the final pass does (0: off, one grid each): each pass
+    is run over the final vote's phases of its own grid, and a point survives its mowing
+    when the surfaces of phases holding at least this share of them keep it."""
     vote_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
     1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
@@ -278,6 +282,10 @@ class NistParams(StageParams):
     (README *Measured*), so it is off by default."""
     grow_peaks: bool = True
     """…switch for those rules."""
+    grow_reach: float = Field(0.0, ge=0, le=100)
+    """Growth reaches a node only along a path of at most this many first-pass cells from the
+    final surface's ground (0: no limit). The halo is 2.5 of those cells, so with a reach
+    inside it a block grows its core as a run over the whole tile does."""
     plateau_step: float = Field(0.5, ge=0, le=100)
     """After growth, a level group of grown nodes that stands above all its ground neighbours
     and drops this many metres or more straight onto the passes' own ground along most of its
@@ -622,16 +630,26 @@ def _classify(
     centre = local[:, :2].mean(axis=0)
     none = np.zeros((0, 2))
 
+    # Pass 3 onwards runs once per final grid phase (``vote_phases``); with
+    # ``mow_share`` passes 1 and 2 vote over as many phases of their own grids.
+    votes_k = params.vote_phases or (2 if (_cell_of(g3) / spacing) ** 2 < params.vote_points else 1)
+    mow_k = votes_k if params.mow_share > 0 else 1
+
     # Pass 1: mask, bin, mesh/screen; mow the original points.
     mask1 = _mask(local, params, spacing) if params.mask else none
-    tin1 = _surface(
+    mowed = _voted_mow(
         local,
-        [select_reject(local, params, g, mask_xy=mask1) for g in _phased(g1, k)],
+        local,
+        [
+            [select_reject(local, params, g, mask_xy=mask1) for g in _phased(p, k)]
+            for p in _phased(g1, mow_k)
+        ],
         params,
         centre,
         scales[0],
+        params.mow_tol_1,
+        _cell_of(g1),
     )
-    mowed = _mow(tin1, local, params.mow_tol_1, _cell_of(g1), params)
 
     # Pass 2: screen the mowed points, mask them, bin, mesh/screen; mow the originals again.
     mowed_pts = np.take(local, mowed, axis=0)
@@ -639,29 +657,56 @@ def _classify(
     if params.mask:
         mowed_pts = mowed_pts[_screen_points(mowed_pts, params, spacing)]
         mask2 = _mask(mowed_pts, params, spacing)
-    tin2 = _surface(
+    mowed = _voted_mow(
+        local,
         mowed_pts,
-        [select_reject(mowed_pts, params, g, mask_xy=mask2) for g in _phased(g2, k)],
+        [
+            [select_reject(mowed_pts, params, g, mask_xy=mask2) for g in _phased(p, k)]
+            for p in _phased(g2, mow_k)
+        ],
         params,
         centre,
         scales[1],
+        params.mow_tol_2,
+        _cell_of(g2),
     )
-    mowed = _mow(tin2, local, params.mow_tol_2, _cell_of(g2), params)
 
-    # Pass 3 onwards, once per final grid phase (``vote_phases``); a point is
-    # ground when at least half of the phases label it so.
-    votes_k = params.vote_phases or (2 if (_cell_of(g3) / spacing) ** 2 < params.vote_points else 1)
+    # A point is ground when at least ``vote_share`` of the final phases label it so.
     finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
+    reach = params.grow_reach * _cell_of(g1)
     votes, weights = np.zeros(n), np.zeros(n)
     for g in finals:
         w = _vote_weights(local, g, params, len(finals))
-        votes += w * _final(local, mowed, g, k, params, centre, spacing, _local_cut(window, shift))
+        votes += w * _final(
+            local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach
+        )
         weights += w
     labels = votes >= params.vote_share * weights
     labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
+
+
+def _voted_mow(
+    local: NDArray[np.float64],
+    pts: NDArray[np.float64],
+    phases: list[list[SelectReject]],
+    params: NistParams,
+    centre: NDArray,
+    scale: float,
+    tol: float,
+    cell: float,
+) -> NDArray[np.int64]:
+    """Indices of ``local`` that survive mowing against the surfaces meshed from each
+    entry of ``phases`` (select/reject over ``pts``, which are ``local``'s points or a
+    subset): kept by at least ``mow_share`` of them, or by the one surface."""
+    if len(phases) == 1:
+        return _mow(_surface(pts, phases[0], params, centre, scale), local, tol, cell, params)
+    kept = np.zeros(local.shape[0])
+    for srs in phases:
+        kept[_mow(_surface(pts, srs, params, centre, scale), local, tol, cell, params)] += 1
+    return np.flatnonzero(kept >= params.mow_share * len(phases))
 
 
 def _rough(
@@ -690,10 +735,12 @@ def _final(
     centre: NDArray,
     spacing: float,
     cut: tuple[float, float, float, float] | None = None,
+    reach: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
     final surface, raised segments, growth, band and supported points (``cut``: the
-    block's window in local coordinates, see ``classify_ground``)."""
+    block's window in local coordinates, see ``classify_ground``; ``reach``: growth's
+    path limit in metres, 0 none)."""
     none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
@@ -728,7 +775,7 @@ def _final(
         }
     )
     if params.grow:
-        tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised)
+        tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised, reach)
     labels, above = _band(tin3, local, params)
     if params.support_k > 0:
         # Only points above the band may join: those below it are low outliers.
@@ -848,6 +895,7 @@ def _grown(
     params: NistParams,
     centre: NDArray,
     raised: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None,
+    reach: float = 0.0,
 ) -> Tin:
     """The surface through the lowest point of every final bin that ``tin``
     labels ground or that growth reaches from there (``growth.py``).
@@ -892,6 +940,7 @@ def _grown(
         peak=params.grow_peak * tol if params.grow_peaks else None,
         peak_nodes=max(1, int(per_bin * params.grow_peak_area / _cell_of(grid) ** 2)),
         agree=params.grow_agree,
+        reach=reach,
     )
     if params.plateau_step > 0 and full is not None:
         ground &= ~walled_plateaus(
