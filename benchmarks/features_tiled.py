@@ -4,11 +4,12 @@ Each scene: a mosaic of ``--mosaic`` × ``--mosaic`` feature-family scenes (320 
 each, seeds drawn in turn; exact surfaces plus 2 cm noise; the seams between
 scenes are steps, which make more objects along core edges), cut into ``--cores``
 × ``--cores`` cores. The whole DTM is searched once (``categories_for`` +
-``detect_features``) and core by core (``tiled.tile_pieces`` with the default
+``detect_features``) and core by core (``tiled.search_core`` with the default
 halo, then ``merge_pieces``). Reported per scene: objects of each, how many match
 one to one (kind, tiles, centroid within 1 mm), the largest Hausdorff distance
 and length/width difference between matched objects, and the peak memory traced
-(numpy included) of the whole search against the largest core's.
+(numpy included) of the whole search against the largest core's, and the largest
+window a core's search read (a share of the DTM).
 
     .venv/bin/python benchmarks/features_tiled.py [--scenes 3] [--mosaic 2] [--cores 4]
         [--cap M] [--simplify T]
@@ -38,7 +39,7 @@ from terrasift.workers.features import (
     detect_features,
     resolve_filters,
 )
-from terrasift.workers.features.tiled import merge_pieces, tile_pieces
+from terrasift.workers.features.tiled import merge_pieces, search_core
 
 CELL = 0.5
 
@@ -106,15 +107,18 @@ def one(
     edges = np.linspace(0, dtm.shape[0], cores + 1).astype(int)
     pieces = []
     core_peak = 0
+    windows: list[float] = []
     t0 = time.process_time()
     for i in range(cores):
         for j in range(cores):
             tracemalloc.reset_peak()
             base, _ = tracemalloc.get_traced_memory()
             core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
-            pieces += tile_pieces(
+            found, seen = search_core(
                 lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, cap=cap
             )
+            pieces += found
+            windows.append((seen[2] - seen[0]) * (seen[3] - seen[1]) / dtm.size)
             core_peak = max(core_peak, tracemalloc.get_traced_memory()[1] - base)
     cut = sum(p.cut is not None for p in pieces)
     tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
@@ -149,6 +153,8 @@ def one(
         "core_peak_mib": core_peak / 2**20,
         "cpu_ratio": tiled_cpu / max(whole_cpu, 1e-9),
         "cut_pieces": cut,
+        "largest_window": max(windows),
+        "cores_within": sum(w < 1.0 for w in windows),
         **_paired(a, b),
     }
 
@@ -156,13 +162,14 @@ def one(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--start", type=int, default=0, help="first scene (seed)")
     ap.add_argument("--mosaic", type=int, default=2)
     ap.add_argument("--cores", type=int, default=4)
     ap.add_argument("--cap", type=float, default=None, help="metres (default: none)")
     ap.add_argument("--simplify", type=float, default=0.5, help="tiles")
     args = ap.parse_args()
     rows = []
-    for seed in range(args.scenes):
+    for seed in range(args.start, args.start + args.scenes):
         r = one(seed, args.mosaic, args.cores, args.cap, args.simplify)
         rows.append(r)
         print(
@@ -171,6 +178,8 @@ def main() -> None:
             f"{r['hausdorff_m']:.2e} m, size diff {r['size_diff_m']:.2e} m; peak memory whole "
             f"{r['whole_peak_mib']:.0f} MiB, largest core {r['core_peak_mib']:.0f} MiB; "
             f"CPU tiled/whole {r['cpu_ratio']:.2f}; {r['cut_pieces']} pieces searched in parts; "
+            f"largest window {100 * r['largest_window']:.0f} % of the DTM, "
+            f"{r['cores_within']} of {args.cores**2} cores' windows within it; "
             f"paired {r['paired']} (unpaired whole {r['unpaired_whole']}, tiled "
             f"{r['unpaired_tiled']}): hausdorff {r['pair_hausdorff_m']:.2f} m, area diff "
             f"{100 * r['pair_area_diff']:.2f} %, size diff {r['pair_size_diff_m']:.2f} m",

@@ -209,6 +209,88 @@ def test_objects_as_large_as_the_dtm_are_searched_in_parts_within_a_capped_windo
         assert abs(a.length_m - b.length_m) < 1e-6 and abs(a.width_m - b.width_m) < 1e-6
 
 
+@pytest.mark.parametrize("names", ["ditch", "ridge", "road", "flat-area", "all"])
+def test_categories_made_block_by_block_equal_the_window_s(scene: dict, names: str) -> None:
+    """A grown window's categories are made in blocks read with a margin of the
+    categories' reach: every band of every grid equals ``categories_for`` over the
+    whole window (an aligned window, ends off the block grid, a nodata hole)."""
+    from dataclasses import fields
+
+    from terrasift.workers.features.tiled import blocked_categories, window_align
+
+    dtm = scene["dtm"].copy()
+    dtm[300:340, 200:260] = np.nan
+    filters = resolve_filters(names)
+    cp = scene["cp"]
+    align = window_align(resolve_filters("all"), cp, CELL)
+    rect = (align, 2 * align, dtm.shape[0] - 5, dtm.shape[1] - 3)
+    whole, whole_stepped = categories_for(
+        dtm[rect[0] : rect[2], rect[1] : rect[3]], CELL, filters, cp
+    )
+    reads: list[tuple[int, int, int, int]] = []
+
+    def read(a: int, b: int, c: int, d: int) -> NDArray:
+        reads.append((a, b, c, d))
+        return dtm[a:b, c:d]
+
+    cats, stepped = blocked_categories(read, rect, filters, cp, CELL, block=100)
+    assert len(reads) >= 9  # in blocks, none the whole window
+    assert all(
+        (b - a) * (d - c) < (rect[2] - rect[0]) * (rect[3] - rect[1]) for a, b, c, d in reads
+    )
+    assert stepped.keys() == whole_stepped.keys()
+    for a, b in [(whole, cats)] + [(whole_stepped[k], stepped[k]) for k in whole_stepped]:
+        for f in fields(a):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(x, y, err_msg=f.name)
+            else:
+                assert x == y, f.name
+
+
+def test_a_grown_window_holds_one_filter_s_grids_and_never_the_start_window_s(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A square's memory is the larger of its start window (every filter's grids) and
+    its largest grown window (one filter's), not their sum: every filter is searched
+    on the start window first, and no window's grids are alive when another window
+    is read. Road, ditch and flat area across a level plain grow every window."""
+    import gc
+    import weakref
+
+    from terrasift.workers.features import tiled
+
+    dtm = _plain_with_road_and_ditch(300.0)
+    t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
+    filters = resolve_filters("road,ditch,flat-area")
+    cp = _measured(dtm)
+    made: list[tuple[int, weakref.ref]] = []
+    reads: list[tuple[int, int, int, int]] = []
+    real = tiled.categories_for
+
+    def counted(window, cell, todo, params):  # type: ignore[no-untyped-def]
+        cats, stepped = real(window, cell, todo, params)
+        made.append((len(todo), weakref.ref(cats)))
+        made.extend((len(todo), weakref.ref(c)) for c in stepped.values())
+        return cats, stepped
+
+    def read(a: int, b: int, c: int, d: int) -> NDArray:
+        gc.collect()
+        assert all(ref() is None for _, ref in made), "a window's grids outlive it"
+        reads.append((a, c, b, d))
+        return dtm[a:b, c:d]
+
+    monkeypatch.setattr(tiled, "categories_for", counted)
+    n = dtm.shape[0]
+    core = (n // 3, n // 3, 2 * n // 3, 2 * n // 3)
+    for cap in (None, 32):
+        made.clear(), reads.clear()
+        tiled.search_core(read, dtm.shape, t, core, filters, cp, None, 0, cap)
+        assert len(reads) >= 3, reads  # the start window and at least two grown ones
+        assert len(set(reads)) >= 2 and reads[0] not in reads[1:]  # the start: once
+        assert made[0][0] == len(filters) and all(k == 1 for k, _ in made[len(filters) :])
+
+
 def test_surround_reads_the_same_ground_around_an_object_in_every_core() -> None:
     """``surround`` reads tiles around an object: on a hummocky slope where it keeps some
     pieces and drops others, cores without halo still give the whole DTM's objects."""
@@ -263,3 +345,55 @@ def test_surround_judges_an_object_searched_in_parts_by_its_whole_ring() -> None
     assert cut and all(p.cut.ring is not None for p in cut)
     tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
     assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
+
+
+def test_a_label_touching_itself_at_a_corner_is_joined_with_its_holes() -> None:
+    """A flat area (holes kept) whose tiles enclose a gap around an island of its own,
+    touching it at one corner, cut by a core edge: the parts' union is two polygons
+    touching at a point, which the corner buffer does not join, so the bridging
+    buffer used to fill the gap. The joined outline is now the one a single search
+    traces for the same tiles (exact and simplified)."""
+    from rasterio.features import shapes
+    from shapely.geometry import shape
+    from shapely.ops import unary_union
+
+    from terrasift.workers.features import FeatureParams
+    from terrasift.workers.features.objects import Feature, polygons
+    from terrasift.workers.features.tiled import Cut, Piece, _join_cuts, _resolved
+
+    lab = np.zeros((14, 18), np.int32)
+    lab[1:13, 1:17] = 1
+    lab[3:11, 3:15] = 0  # the gap
+    lab[4:10, 4:14] = 1  # the island
+    lab[3, 3] = 1  # the ring touches the island at one corner: (3, 3) and (4, 4)
+    edge = 9  # core columns [0, 9) and [9, 18)
+    grid = (2.0, 0.0, 500_000.0, 0.0, -2.0, 5_400_000.0)
+    at = Affine(*grid)
+    flt = _resolved(resolve_filters("flat-area")[0], CategoryParams(), CELL)
+    for simplify in (0.0, 0.5):
+        fp = FeatureParams(simplify_tiles=simplify)
+        parts = []
+        for c0, c1 in ((0, edge), (edge, lab.shape[1])):
+            mine = np.zeros_like(lab)
+            mine[:, c0:c1] = lab[:, c0:c1]
+            other = (lab > 0) & (mine == 0)
+            polys = [shape(g) for g, _ in shapes(mine, mask=mine > 0, connectivity=8)]
+            tiles = {(int(r), int(c)) for r, c in zip(*np.nonzero(mine), strict=True)}
+            cut = Cut(
+                grid,
+                unary_union(polys),
+                frozenset(tiles),
+                frozenset((int(r), int(c)) for r, c in zip(*np.nonzero(other), strict=True)),
+                False,
+                None,
+                None,
+            )
+            key = min(tiles)
+            feat = Feature("flat-area", cut.polygon, 0.0, 0.0, len(tiles))
+            parts.append(Piece(0, key, feat, cut))
+        (joined,) = _join_cuts(parts, flt, fp)
+        (whole,) = polygons(lab, at, simplify * 2.0).values()
+        assert joined.feature.tiles == int(lab.sum())
+        assert joined.feature.geometry.area == pytest.approx(whole.area, abs=1e-6)
+        assert joined.feature.geometry.symmetric_difference(whole).area < 1e-6
+        assert joined.feature.geometry.hausdorff_distance(whole) < 1e-6

@@ -254,8 +254,12 @@ def category_grids(
     dtm = np.asarray(dtm, dtype=np.float64)
     s = k if step is None else max(1, min(k, int(round(step / cell))))
     rows, cols = -(-dtm.shape[0] // s), -(-dtm.shape[1] // s)
-    padded = np.full(((rows - 1) * s + k, (cols - 1) * s + k), np.nan)
-    padded[: dtm.shape[0], : dtm.shape[1]] = dtm
+    full = ((rows - 1) * s + k, (cols - 1) * s + k)
+    if dtm.shape == full:  # the tiles cover it exactly: no padded copy (a large window's)
+        padded = np.ascontiguousarray(dtm)
+    else:
+        padded = np.full(full, np.nan)
+        padded[: dtm.shape[0], : dtm.shape[1]] = dtm
     _, _, h, hnorm, plane_of_hinge = _models(k, cell)
     sigma = params.noise
     if sigma is None:

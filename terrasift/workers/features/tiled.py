@@ -36,12 +36,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from rasterio import Affine
-from rasterio.features import shapes
+from rasterio.features import rasterize, shapes
 from scipy import ndimage
 from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon, shape
@@ -143,17 +144,25 @@ def window_align(filters: list[Filter], cparams: CategoryParams, cell: float) ->
     return out
 
 
-def window_reach(filters: list[Filter], cparams: CategoryParams, cell: float) -> int:
-    """DTM cells inside a window's cut edges beyond which its closures may differ from
-    the whole DTM's: the categories' reach (a partial tile; half a regional window
-    and its sampling) plus the farthest filter's (longest segment, rectangle window,
-    connect and near reach), each in its grid's steps."""
+def category_reach(filters: list[Filter], cparams: CategoryParams, cell: float) -> int:
+    """DTM cells inside a window's cut edges beyond which its categories may differ from
+    the whole DTM's: a partial tile, or half a regional window and its sampling."""
     k = _tile_cells(cparams, cell)
     cats = k
     for f in filters:
         if f.detrend is not None:
             size = max(1, int(round(f.detrend.value / (k * cell))))
             cats = max(cats, (size // 2 + 2 * _stride(f.detrend.value, k, cell) + 2) * k)
+    return cats
+
+
+def window_reach(filters: list[Filter], cparams: CategoryParams, cell: float) -> int:
+    """DTM cells inside a window's cut edges beyond which its closures may differ from
+    the whole DTM's: the categories' reach (a partial tile; half a regional window
+    and its sampling) plus the farthest filter's (longest segment, rectangle window,
+    connect and near reach), each in its grid's steps."""
+    k = _tile_cells(cparams, cell)
+    cats = category_reach(filters, cparams, cell)
     far = 0
     for f in filters:
         r = _resolved(f, cparams, cell)
@@ -168,6 +177,69 @@ def window_reach(filters: list[Filter], cparams: CategoryParams, cell: float) ->
             )
         far = max(far, tiles * _step_cells(f, k, cell) + k)
     return cats + far
+
+
+#: DTM cells a side of the blocks a grown window's categories are made in (each read
+#: with a margin of the categories' reach): a grown window holds its category grids,
+#: never its DTM or the float arrays its categories are computed from
+BLOCK_CELLS = 1024
+
+_BANDS = ("inclination", "orientation", "state", "height10", "relief10", "lying10", "clear")
+
+
+def blocked_categories(
+    read: Callable[[int, int, int, int], NDArray],
+    rect: Rect,
+    filters: list[Filter],
+    cparams: CategoryParams,
+    cell: float,
+    block: int = BLOCK_CELLS,
+) -> tuple[Categories, dict]:
+    """``categories_for`` of window ``rect`` (origin aligned to ``window_align``), made
+    block by block: each block of ``block`` cells a side is read with a margin of the
+    categories' reach and gives the tiles whose origin lies in it, which are those of
+    the whole window (the tile grids, regional medians and their samples fall alike:
+    the blocks' origins are multiples of the alignment). Memory: one block's DTM and
+    float arrays, and the window's uint8 grids."""
+    align = window_align(filters, cparams, cell)
+    h, w = rect[2] - rect[0], rect[3] - rect[1]
+    b = max(align, block // align * align)
+    if h <= b and w <= b:
+        return categories_for(read(rect[0], rect[2], rect[1], rect[3]), cell, filters, cparams)
+    m = -(-category_reach(filters, cparams, cell) // align) * align
+    first: tuple[Categories, dict] | None = None
+    bands: dict[object, dict[str, NDArray]] = {}
+    for a0 in range(0, h, b):
+        for c0 in range(0, w, b):
+            a1, c1 = min(h, a0 + b), min(w, c0 + b)
+            ra0, rc0 = max(0, a0 - m), max(0, c0 - m)
+            dtm = read(
+                rect[0] + ra0, rect[0] + min(h, a1 + m), rect[1] + rc0, rect[1] + min(w, c1 + m)
+            )
+            cats, stepped = categories_for(dtm, cell, filters, cparams)
+            del dtm
+            first = first or (cats, stepped)
+            for key, g in [(None, cats), *stepped.items()]:
+                st = g.step
+                # the tiles whose origin lies in the block: window tiles tr0:tr1, tc0:tc1
+                tr0, tr1, tc0, tc1 = a0 // st, -(-a1 // st), c0 // st, -(-c1 // st)
+                fr, fc = (a0 - ra0) // st, (c0 - rc0) // st
+                out = bands.setdefault(key, {})
+                for name in _BANDS:
+                    part = getattr(g, name)
+                    if part is None:
+                        continue
+                    if name not in out:
+                        out[name] = np.empty((-(-h // st), -(-w // st)), part.dtype)
+                    out[name][tr0:tr1, tc0:tc1] = part[fr : fr + tr1 - tr0, fc : fc + tc1 - tc0]
+            del cats, stepped
+    assert first is not None
+
+    def whole(key: object, g: Categories) -> Categories:
+        made: dict[str, Any] = {n: bands[key][n] for n in _BANDS if getattr(g, n) is not None}
+        return replace(g, **made)
+
+    return whole(None, first[0]), {key: whole(key, g) for key, g in first[1].items()}
 
 
 def _snap(rect: Rect, shape: tuple[int, int], align: int) -> Rect:
@@ -237,45 +309,57 @@ def search_core(
         limit = _snap((core[0] - ext, core[1] - ext, core[2] + ext, core[3] + ext), shape, align)
     grids: dict[Rect, tuple[Categories, dict]] = {}
 
-    def categories(rect: Rect, flt: Filter) -> Categories:
+    def categories(rect: Rect, flt: Filter, every: bool = False) -> Categories:
+        """``flt``'s grids on ``rect``, made for ``every`` filter or for ``flt`` alone
+        (another filter may have grown to the same window: its grids lack this one's);
+        only one window's grids are held at a time."""
         key = grid_key(flt)
-        # the start window's grids for all filters, a grown one's for one (another
-        # filter may have grown to the same window: its grids lack this filter's)
         if rect not in grids or (key is not None and key not in grids[rect][1]):
-            todo = filters if rect == start else [flt]
-            dtm = read(rect[0], rect[2], rect[1], rect[3])
-            for other in [r for r in grids if r != start]:
-                del grids[other]
-            grids[rect] = categories_for(dtm, cell, todo, cparams)
+            grids.clear()
+            if every:
+                dtm = read(rect[0], rect[2], rect[1], rect[3])
+                grids[rect] = categories_for(dtm, cell, filters, cparams)
+                del dtm
+            else:  # a grown window: block by block, so its DTM is never held whole
+                grids[rect] = blocked_categories(read, rect, [flt], cparams, cell)
         cats, stepped = grids[rect]
         return cats if key is None else stepped[key]
 
-    out: list[Piece] = []
-    seen = start
+    found: dict[int, list[Piece]] = {}
+    todo: list[tuple[int, Filter, Rect]] = []
+    # every filter on the start window first, then the start window's grids go before
+    # any window grows: a grown window holds one filter's grids, never the start
+    # window's too, so the peak is the larger of the two, not their sum
     for i, flt in enumerate(filters):
         if flt.connect is None and flt.rectangle is None:
             continue  # tile marks, not objects
+        reach = window_reach([flt], cparams, cell)  # this filter's: its grid and its steps
+        pieces, grow = _window_pieces(
+            categories(start, flt, every=True),
+            flt,
+            i,
+            start,
+            shape,
+            transform,
+            core,
+            reach,
+            params,
+            cell,
+            cap,
+            start == limit,
+        )
+        if grow is None:
+            found[i] = pieces
+        else:
+            todo.append((i, flt, grow))
+    if todo:
+        grids.clear()
+    seen = start
+    for i, flt, grow in todo:
+        reach = window_reach([flt], cparams, cell)
         rect = start
         at_limit = rect == limit
-        reach = window_reach([flt], cparams, cell)  # this filter's: its grid and its steps
         while True:
-            found, grow = _window_pieces(
-                categories(rect, flt),
-                flt,
-                i,
-                rect,
-                shape,
-                transform,
-                core,
-                reach,
-                params,
-                cell,
-                cap,
-                at_limit,
-            )
-            if grow is None:
-                out += found
-                break
             before, rect = (
                 rect,
                 _snap(
@@ -298,9 +382,7 @@ def search_core(
                 )
                 # at the limit what is still cut is large: searched in parts
                 at_limit = rect in (before, limit)
-                if rect == before:
-                    continue
-            if rect == before:  # the whole DTM is safe everywhere: cannot happen
+            if rect == before and not at_limit:  # the whole DTM is safe everywhere
                 raise RuntimeError(f"feature window {rect} cannot grow")
             seen = (
                 min(seen[0], rect[0]),
@@ -308,6 +390,25 @@ def search_core(
                 max(seen[2], rect[2]),
                 max(seen[3], rect[3]),
             )
+            pieces, next_grow = _window_pieces(
+                categories(rect, flt),
+                flt,
+                i,
+                rect,
+                shape,
+                transform,
+                core,
+                reach,
+                params,
+                cell,
+                cap,
+                at_limit,
+            )
+            if next_grow is None:
+                found[i] = pieces
+                break
+            grow = next_grow
+    out = [p for i in sorted(found) for p in found[i]]
     return out, seen
 
 
@@ -618,6 +719,8 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
         geom = unary_union([x.polygon for x in cuts])
         if opts.get("fill_holes", True):  # holes that the cores' edges cut open
             geom = _without_holes(geom)
+        if isinstance(geom, MultiPolygon):  # tiles touching at corners: traced as one search's
+            geom = _traced(geom)
         if isinstance(geom, MultiPolygon):  # as ``objects.polygons``: corners, bridged gaps
             geom = geom.buffer(1e-3, join_style="mitre").buffer(-1e-3, join_style="mitre")
         if isinstance(geom, MultiPolygon):
@@ -687,6 +790,20 @@ def _tile_sets(
     ):
         out.setdefault(lab, set()).add((r, c))
     return out
+
+
+def _traced(geom: Polygon | MultiPolygon) -> Polygon | MultiPolygon:
+    """The union of tile-index polygons as ``objects.polygons`` makes a label's: its tiles
+    traced by ``shapes`` with 8-connectivity, then united. A union of parts splits a
+    label whose tiles touch at corners only (an island in its own hole) into polygons
+    that the corner buffer does not join, where the trace gives one polygon; the
+    bridging buffer would then fill its small holes."""
+    c0, r0, c1, r1 = (int(round(v)) for v in geom.bounds)
+    at = Affine.translation(c0, r0)
+    mask = rasterize([geom], out_shape=(r1 - r0, c1 - c0), transform=at, dtype=np.uint8)
+    return unary_union(
+        [shape(g) for g, _ in shapes(mask, mask=mask > 0, transform=at, connectivity=8)]
+    )
 
 
 def _without_holes(geom: Polygon | MultiPolygon) -> Polygon | MultiPolygon:
