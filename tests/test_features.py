@@ -1012,3 +1012,90 @@ def test_surround_drops_objects_on_ground_as_busy_as_they_are():
         parse_filter(text.replace("0.5", "1.5"), "s")
     with pytest.raises(FilterSyntaxError, match="surround"):
         parse_filter(text.replace("surround 4m 0.5", "surround 4m"), "s")
+
+
+def test_yield_drops_an_object_lying_on_another_filter_s_object_only():
+    """``yield road 1 0.5``: a ditch lying within one tile of a road (the road's bounding
+    tiles) is that road; a ditch beside the road's shoulder, or with no road run, stays."""
+    from terrasift.workers.features import apply_yields
+    from terrasift.workers.features.objects import Feature
+
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 -1 -1\nyield road 1 0.5\n",
+        "ditch",
+    )
+    assert flt.yields == ((("road", 1, 0.5)),)
+    assert parse_filter(format_filter(flt), "ditch") == flt
+    road = Feature("road", box(0, 0, 200, 4), 200, 4, 200)
+    on_road = Feature("ditch", box(0, -1, 200, 5), 200, 6, 300)  # the road and its bounds
+    beside = Feature("ditch", box(0, 7, 200, 11), 200, 4, 200)  # 3 m past the road's edge
+    kept = apply_yields([road, on_road, beside], [flt], 2.0)
+    assert kept == [road, beside]
+    assert apply_yields([on_road, beside], [flt], 2.0) == [on_road, beside]
+    for bad in ("yield road 1", "yield road 1 0", "yield ditch 1 0.5"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(format_filter(flt).replace("yield road 1 0.5", bad), "ditch")
+
+
+def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
+    """A level road cut 0.21 m into a 13 % slope along its contour is, on the ditch
+    filter's detrended tiles, a trough falling to the foot of its uphill wall; the
+    ditch filter alone takes it for a ditch, and yields it to the road filter."""
+    cell, size, s = 0.5, 120.0, 0.13
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    ang = np.radians(25)
+    u = -np.sin(ang) * (x - 60) + np.cos(ang) * (y - 60)  # across the road, uphill
+    half, cut = 2.25, 0.21
+    shoulder = 1.5 * (cut + s * half) + 0.5
+    t = np.clip((np.abs(u) - half) / shoulder, 0, 1)
+    z = 100 + s * u
+    z = np.where(np.abs(u) <= half + shoulder, 100 - cut + t * (z - 100 + cut), z)
+    z += np.random.default_rng(5).normal(0, 0.015, z.shape)
+    ditch, road = load_filter("ditch"), load_filter("road")
+    assert ditch.yields == (("road", 1, 0.5),)
+    cats, stepped = categories_for(z, cell, [ditch, road])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    kinds = [f.kind for f in detect_features(cats, [ditch, road], tt, 2.0, stepped=stepped).objects]
+    assert kinds == ["road"]
+    alone = detect_features(cats, [ditch], tt, 2.0, stepped=stepped).objects
+    assert [f.kind for f in alone] == ["ditch"]
+
+
+def test_enclosed_keeps_a_bowl_and_drops_level_ground_between_two_rises():
+    """``enclosed 8m 7``: a floor with banks rising away from it all around is kept; a
+    floor between two long rises (banks on two sides) is not."""
+    from terrasift.workers.features import rim_sectors, rim_sets, whole_label_rules
+
+    n = 40
+    rr, cc = np.mgrid[0:n, 0:n]
+    dy, dx = -(rr - 19.5), cc - 19.5  # north up
+    # inclination of a bank rising away from the centre: the nearest of the 8 directions
+    away = (np.round(np.arctan2(dy, dx) / (np.pi / 4)).astype(int) % 8 + 1).astype(np.uint8)
+    dist = np.hypot(dx, dy)
+    bowl = np.where((dist > 8) & (dist < 12), away, 0).astype(np.uint8)
+    # a strip between two rises running north-west/south-east: banks inclined NE and SW
+    across = (dx + dy) / np.sqrt(2)
+    strip = np.where(
+        (across > 6) & (across < 10), 2, np.where((across < -6) & (across > -10), 6, 0)
+    )
+    labels = np.zeros((n, n), np.int32)
+    labels[13:27, 13:27] = 1
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 0\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple -1 -1 -1 -1\nenclosed 8m 7\n",
+        "pond",
+    )
+    assert parse_filter(format_filter(flt), "pond") == flt
+    r = resolve_lengths(flt, 2.0)
+    assert r.enclosed == (4, 7) and connect_reach(r) == 4
+    got = {}
+    for name, inc in (("bowl", bowl), ("strip", strip)):
+        cats = cats_from(inc)
+        got[name] = rim_sectors(rim_sets(labels, [1], cats, 4)[1])
+        got[name + " kept"] = bool(whole_label_rules(labels, cats, r).any())
+    # the strip's banks, seen from the floor's centre, rise away in 3 sectors each
+    assert got == {"bowl": 8, "bowl kept": True, "strip": 6, "strip kept": False}

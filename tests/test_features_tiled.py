@@ -397,3 +397,45 @@ def test_a_label_touching_itself_at_a_corner_is_joined_with_its_holes() -> None:
         assert joined.feature.geometry.area == pytest.approx(whole.area, abs=1e-6)
         assert joined.feature.geometry.symmetric_difference(whole).area < 1e-6
         assert joined.feature.geometry.hausdorff_distance(whole) < 1e-6
+
+
+def test_enclosed_judges_a_pond_searched_in_parts_by_its_whole_rim() -> None:
+    """With a capped window a pond is searched in parts (``Cut``); ``enclosed`` then
+    judges the rim of the joined label around its whole centre, so the ponds kept are
+    the whole DTM's, asking for 7 of the 8 sectors and for all 8."""
+    from terrasift.workers.features import FeatureParams, format_filter, parse_filter
+    from terrasift.workers.features.tiled import search_core
+
+    size = 160.0
+    scene = make_family_scene(0)
+    n = int(size / CELL)
+    c = (np.arange(n) + 0.5) * CELL
+    pond = next(t for t in scene.truth if t.kind == "pond").polygon.centroid
+    x0, y0 = pond.x - size / 2, pond.y - size / 2
+    x, y = np.meshgrid(x0 + c, y0 + size - c)
+    dtm = scene.surface(x.ravel(), y.ravel()).reshape(n, n)
+    dtm = dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
+    t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
+    text = format_filter(resolve_filters("pond")[0])
+    assert "enclosed 8m 7" in text
+    cp = _measured(dtm)
+    fp = FeatureParams(simplify_tiles=0)
+    for sectors in (7, 8):
+        filters = [parse_filter(text.replace("enclosed 8m 7", f"enclosed 8m {sectors}"), "pond")]
+        cats, stepped = categories_for(dtm, CELL, filters, cp)
+        whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
+        halo, cap = window_reach(filters, cp, CELL) + 8, 16
+        edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
+        pieces = []
+        for i in range(3):
+            for j in range(3):
+                core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
+                pieces += search_core(
+                    lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
+                )[0]
+        cut = [p for p in pieces if p.cut is not None]
+        assert cut and all(p.cut.rim is not None for p in cut)
+        tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
+        assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
+        if sectors == 7:
+            assert len(whole) == 1  # the pond

@@ -41,6 +41,7 @@ from terrasift.workers.categories import (
 from terrasift.workers.features import connect as _connect
 from terrasift.workers.features.language import (
     Filter,
+    Metres,
     format_filter,
     parse_filter,
     resolve_lengths,
@@ -54,6 +55,7 @@ __all__ = [
     "FeatureParams",
     "FeatureResult",
     "Filter",
+    "apply_yields",
     "builtin_filter_names",
     "categories_for",
     "check_filters",
@@ -224,7 +226,35 @@ def detect_features(
                 grid = cats.transform(transform)
         flt = resolve_lengths(flt, cats.spacing)
         result.objects += _run_filter(cats, flt, grid, params, result)
+    result.objects = apply_yields(result.objects, filters, categories.tile_size)
     return result
+
+
+def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float) -> list[Feature]:
+    """``objects`` without those a filter's ``yield`` drops: an object with at least the
+    share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
+    object of the named filter, as that filter found it. A named filter that did not run
+    takes nothing away."""
+    rules = {f.name: f.yields for f in filters if f.yields}
+    if not rules:
+        return objects
+    by_kind: dict[str, list[Feature]] = {}
+    for o in objects:
+        by_kind.setdefault(o.kind, []).append(o)
+    drop: set[int] = set()
+    for kind, yields in rules.items():
+        mine = [i for i, o in enumerate(objects) if o.kind == kind]
+        for other, reach, share in yields:
+            theirs = by_kind.get(other)
+            if not theirs or not mine:
+                continue
+            d = reach.value if isinstance(reach, Metres) else reach * tile_size
+            zone = shapely.union_all([o.geometry for o in theirs]).buffer(d)
+            for i in mine:
+                g = objects[i].geometry
+                if g.area > 0 and g.intersection(zone).area >= share * g.area:
+                    drop.add(i)
+    return [o for i, o in enumerate(objects) if i not in drop]
 
 
 def _run_filter(
@@ -294,7 +324,7 @@ def whole_label_rules(
     """Labels without those a rule over the whole label drops: a segment-connected
     object missing too many lines (``connect segment``'s error), one not clear
     enough (``clear-share``), one on ground as busy as itself (``surround``, which
-    needs the filter's ``support``)."""
+    needs the filter's ``support``), one not enclosed by rising ground (``enclosed``)."""
     c = flt.connect
     if flt.rectangle is not None or c is None:
         return labels
@@ -306,7 +336,83 @@ def whole_label_rules(
         if support is None:
             raise ParameterError(f"filter {flt.name}: surround needs the filter's support")
         labels = _drop_busy(labels, categories, support, *flt.surround)
+    if flt.enclosed is not None:
+        labels = _drop_open(labels, categories, *flt.enclosed)
     return labels
+
+
+Rim = tuple[frozenset[tuple[int, int, int]], float, float, int]
+"""Around a label (or a part of it): the inclined tiles within the distance, as (row,
+column, inclination) over the whole grid, and the sums of its tiles' rows and columns
+and their count (its centre), which add up over the parts of a label."""
+
+
+def rim_sets(
+    labels: NDArray[np.int32],
+    found: list[int],
+    categories: Categories,
+    distance: int,
+    origin: tuple[int, int] = (0, 0),
+) -> dict[int, Rim]:
+    """Per label in ``found``: its ``Rim`` within ``distance`` tiles (its holes filled,
+    the tiles outside it). ``origin`` offsets a window's rows and columns."""
+    inc = categories.inclination
+    inclined = (inc > 0) & (inc != NODATA)
+    g0, c0 = origin
+    d = 2 * distance + 1
+    boxes = ndimage.find_objects(labels)
+    out: dict[int, Rim] = {}
+    for lab in found:
+        box = boxes[lab - 1] if lab <= len(boxes) else None
+        if box is None:
+            out[lab] = (frozenset(), 0.0, 0.0, 0)
+            continue
+        r0, r1 = max(0, box[0].start - distance), min(labels.shape[0], box[0].stop + distance)
+        b0, b1 = max(0, box[1].start - distance), min(labels.shape[1], box[1].stop + distance)
+        mine = ndimage.binary_fill_holes(labels[r0:r1, b0:b1] == lab)
+        ring = ndimage.binary_dilation(mine, np.ones((d, d), bool)) & ~mine
+        a, b = np.nonzero(ring & inclined[r0:r1, b0:b1])
+        tiles = frozenset(
+            zip(
+                (g0 + r0 + a).tolist(),
+                (c0 + b0 + b).tolist(),
+                inc[r0:r1, b0:b1][a, b].tolist(),
+                strict=True,
+            )
+        )
+        rr, cc = np.nonzero(labels[r0:r1, b0:b1] == lab)
+        out[lab] = (tiles, float((g0 + r0 + rr).sum()), float((c0 + b0 + cc).sum()), rr.size)
+    return out
+
+
+def rim_sectors(rim: Rim) -> int:
+    """Bearing sectors (of 8, from the centre) holding a tile of the rim that rises away
+    from the centre: its inclination within 45° of the tile's bearing."""
+    tiles, sum_r, sum_c, n = rim
+    if n == 0 or not tiles:
+        return 0
+    t = np.array(sorted(tiles), dtype=float)
+    bearing = np.arctan2(-(t[:, 0] - sum_r / n), t[:, 1] - sum_c / n)  # rows run south
+    rising = (t[:, 2] - 1) * np.pi / 4  # 1 east, 3 north, counter-clockwise
+    away = np.abs((rising - bearing + np.pi) % (2 * np.pi) - np.pi) <= np.pi / 4 + 1e-9
+    sector = np.floor(((bearing[away] + np.pi / 8) % (2 * np.pi)) / (np.pi / 4)).astype(int)
+    return int(np.unique(sector % 8).size)
+
+
+def _drop_open(
+    labels: NDArray[np.int32], categories: Categories, distance: int, sectors: int
+) -> NDArray[np.int32]:
+    """Remove objects whose rim (``rim_sets``) rises away from them in fewer than
+    ``sectors`` of the 8 bearing sectors (``enclosed``); reads tiles within ``distance``
+    of the object only (``connect_reach`` grows its closure by as much)."""
+    n = int(labels.max())
+    if n == 0:
+        return labels
+    rims = rim_sets(labels, list(range(1, n + 1)), categories, distance)
+    keep = np.zeros(n + 1, dtype=bool)
+    for lab, rim in rims.items():
+        keep[lab] = rim[3] > 0 and rim_sectors(rim) >= sectors
+    return np.where(keep[labels], labels, 0).astype(np.int32)
 
 
 def connect_reach(flt: Filter) -> int:
@@ -321,6 +427,8 @@ def connect_reach(flt: Filter) -> int:
         reach = 2 if flt.connect.method == "edge" else 1
     if flt.surround is not None:
         reach = max(reach, int(flt.surround[0]))
+    if flt.enclosed is not None:
+        reach = max(reach, int(flt.enclosed[0]))
     return reach
 
 

@@ -242,6 +242,21 @@ class Filter:
     every hollow between hummocks has banks like a short ditch, and so has the ground
     around it."""
 
+    enclosed: tuple[Length, int] | None = None
+    """``enclosed <distance> <sectors>``: objects (before joining) around which, within the
+    distance, tiles rising away from the object (inclined within 45° of the bearing from
+    the object's centre) lie in at least this many of the 8 bearing sectors (45° each,
+    centred on the eight directions). A pond is a hollow with banks all around; level
+    ground between two long rises (a road embankment and a ridge) has banks on two sides."""
+
+    yields: tuple[tuple[str, Length, float], ...] = ()
+    """``yield <filter> <distance> <share>`` (each once per filter named): objects of which
+    at least this share of the area lies within the distance (tiles of the category tile
+    size, or metres) of an object of the named filter are dropped once every filter has
+    run (Sjövall §5.3.1: filters in an order of priority, an object found by the first
+    taken out before the next looks). A road cut into a slope is, on the ditch filter's
+    detrended tiles, a trough falling to the foot of its uphill wall."""
+
     @property
     def makes_objects(self) -> bool:
         return self.connect is not None or self.rectangle is not None
@@ -325,6 +340,8 @@ class _Parser:
         clear_share: float | None = None
         surround: tuple[Length, float] | None = None
         share: float | None = None
+        yields: list[tuple[str, Length, float]] = []
+        enclosed: tuple[Length, int] | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -393,6 +410,29 @@ class _Parser:
                     raise self.error("surround share is between 0 and 1", no)
                 surround = (dist, most)
                 steps.append("surround")
+            elif key == "enclosed":
+                if enclosed is not None or len(args) != 2:
+                    raise self.error("enclosed takes a distance and a number of sectors once", no)
+                (dist,) = self.lengths(args[:1], no, "enclosed", lo=1)
+                (sectors,) = self.ints(args[1:], no, "enclosed", lo=1)
+                if sectors > 8:
+                    raise self.error("enclosed: at most 8 sectors", no)
+                enclosed = (dist, sectors)
+                steps.append("enclosed")
+            elif key == "yield":
+                if len(args) != 3 or any(y[0] == args[0] for y in yields):
+                    raise self.error(
+                        "yield takes a filter name, a distance and a share (0-1), once per name", no
+                    )
+                (reach,) = self.lengths(args[1:2], no, "yield", lo=0)
+                (most,) = self.numbers(args[2:], no, "yield")
+                if not 0 < most <= 1:
+                    raise self.error("yield share is above 0 and at most 1", no)
+                if args[0] == self.name:
+                    raise self.error("a filter cannot yield to itself", no)
+                yields.append((args[0], reach, most))
+                if "yield" not in steps:
+                    steps.append("yield")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -431,11 +471,15 @@ class _Parser:
             or solidity is not None
             or clear_share is not None
             or surround is not None
+            or enclosed is not None
         ) and connect is None:
             raise self.error(
-                "aspect, join, fill, solidity, clear-share and surround need a connect step",
+                "aspect, join, fill, solidity, clear-share, surround and enclosed need a"
+                " connect step",
                 last_line,
             )
+        if yields and connect is None and rect is None:
+            raise self.error("yield needs a connect or findrectangle step", last_line)
         return Filter(
             self.name,
             tuple(segments),
@@ -453,6 +497,8 @@ class _Parser:
             clear_share,
             share,
             surround,
+            enclosed,
+            tuple(yields),
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -668,6 +714,10 @@ def format_filter(f: Filter) -> str:
             out.append(f"clear-share {f.clear_share:g}")
         elif step == "surround" and f.surround is not None:
             out.append(f"surround {_text(f.surround[0])} {f.surround[1]:g}")
+        elif step == "enclosed" and f.enclosed is not None:
+            out.append(f"enclosed {_text(f.enclosed[0])} {f.enclosed[1]}")
+        elif step == "yield":
+            out += [f"yield {k} {_text(d)} {v:g}" for k, d, v in f.yields]
     return "\n".join(out) + "\n"
 
 
@@ -689,6 +739,10 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("clear-share")
     if f.surround is not None:
         steps.append("surround")
+    if f.enclosed is not None:
+        steps.append("enclosed")
+    if f.yields:
+        steps.append("yield")
     return tuple(steps)
 
 
@@ -791,6 +845,9 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     surround = f.surround
     if surround is not None:
         surround = (max(1, t(surround[0], "size")), surround[1])
+    enclosed = f.enclosed
+    if enclosed is not None:
+        enclosed = (max(1, t(enclosed[0], "size")), enclosed[1])
     return replace(
         f,
         segments=tuple(segs),
@@ -799,4 +856,5 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         join=join,
         join_aligned=aligned,
         surround=surround,
+        enclosed=enclosed,
     )

@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import shapely
 from numpy.typing import NDArray
 from rasterio import Affine
 from rasterio.features import rasterize, shapes
@@ -52,12 +53,16 @@ from terrasift.workers.categories import NODATA, Categories, CategoryParams
 from terrasift.workers.features import (
     FeatureParams,
     FeatureResult,
+    Rim,
+    apply_yields,
     categories_for,
     clear_counts,
     connect_reach,
     filter_labels,
     grid_key,
     object_options,
+    rim_sectors,
+    rim_sets,
     whole_label_rules,
 )
 from terrasift.workers.features.language import Filter, resolve_lengths
@@ -93,6 +98,9 @@ class Cut:
     ring: tuple[frozenset[tuple[int, int]], frozenset[tuple[int, int]]] | None = None
     """``surround``: the open ground within its distance of the part's tiles, and the
     tiles of it that are not flat (their unions over the parts are the whole label's)."""
+    rim: Rim | None = None
+    """``enclosed``: the part's ``Rim`` (the union of the parts' rims, less the tiles of
+    the label itself, is the whole label's)."""
 
 
 @dataclass(frozen=True)
@@ -588,6 +596,11 @@ def _cut_pieces(
         clear = clear_counts(raw_mine, cats, n)
     segment = flt.connect is not None and flt.rectangle is None and flt.connect.method == "segment"
     rings = _ring_sets(raw_mine, found, cats, support, origin, flt.surround)
+    rims = (
+        rim_sets(raw_mine, found.tolist(), cats, int(flt.enclosed[0]), origin)
+        if flt.enclosed is not None
+        else {}
+    )
     counts = np.bincount(mine.ravel(), minlength=n + 1)
     ids, first = np.unique(mine.ravel(), return_index=True)
     key = dict(zip(ids.tolist(), first.tolist(), strict=True))
@@ -612,6 +625,7 @@ def _cut_pieces(
             None if clear is None else (float(clear[0][lab - 1]), float(clear[1][lab - 1])),
             lines,
             rings.get(lab),
+            rims.get(lab),
         )
         fr, fc = divmod(key[lab], labels.shape[1])
         feat = Feature(flt.name, part.polygon, 0.0, 0.0, int(counts[lab]))
@@ -657,6 +671,7 @@ def merge_pieces(
         opts.pop("simplify_tiles", None)
         limits = opts.pop("limits", (None, None, None, None))
         result.objects += finish_pieces([p.feature for p in mine], spacing, limits, **opts)
+    result.objects = apply_yields(result.objects, filters, _tile_cells(cparams, cell) * cell)
     return result
 
 
@@ -707,6 +722,22 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
             around = frozenset[tuple[int, int]]().union(*(v[0] for v in rings))
             busy = frozenset[tuple[int, int]]().union(*(v[1] for v in rings))
             if len(busy) > flt.surround[1] * len(around):
+                continue
+        rims = [x.rim for x in cuts if x.rim is not None]
+        if flt.enclosed is not None and rims and len(rims) == len(cuts):
+            inside = _without_holes(unary_union([x.polygon for x in cuts]))
+            around_t = sorted(frozenset[tuple[int, int, int]]().union(*(v[0] for v in rims)))
+            if around_t:  # less the label's own tiles (another core's part's ring holds them)
+                xy = np.array(around_t, dtype=float)
+                out_of = ~shapely.contains_xy(inside, xy[:, 1] + 0.5, xy[:, 0] + 0.5)
+                around_t = [v for v, o in zip(around_t, out_of.tolist(), strict=True) if o]
+            rim: Rim = (
+                frozenset(around_t),
+                math.fsum(v[1] for v in rims),
+                math.fsum(v[2] for v in rims),
+                sum(v[3] for v in rims),
+            )
+            if rim_sectors(rim) < flt.enclosed[1]:
                 continue
         lines = [x.lines for x in cuts if x.lines is not None]
         if c is not None and lines and len(lines) == len(cuts):
