@@ -19,6 +19,11 @@ Parts (``--part``):
 ``kept``
     Scores the features kept by earlier ``job --keep DIR`` runs (``--keep DIR``),
     so seeds run in several processes are summarised together.
+``refilter``
+    The current filters re-run on the DTMs kept by earlier ``job --keep DIR``
+    runs (``--keep DIR``; categories and every built-in filter on the job's
+    ``dtm.tif``, as the job searches it), scored as ``job``: a filter change is
+    measured through the whole job's DTM without running the ground filter again.
 ``sparse``
     The counter-case family (``make_sparse_scene``): plain fields of 0-12 %
     scanned at 0.15-0.6 pulses/m^2 with 3-10 cm of noise, no object, through
@@ -50,7 +55,7 @@ precision = correct detections / detections, per scene; the table gives the
 worst case, the 10th percentile and the median over scenes holding the kind
 (scenes with no detection of a kind have no precision for it).
 
-Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept sparse rough dtm scene speed]
+Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept refilter sparse rough dtm scene speed]
      [--seeds 32 .. 47] [--tune-seeds 100 .. 111] [--rough-seeds 0 .. 11] [--workers 1]
 """
 
@@ -248,6 +253,34 @@ def score_kept_scene(seed: int, keep: Path, make=make_family_scene) -> tuple[str
     return scene.describe(), score_scene(_shifted_truth(scene), dets, flat, tt)
 
 
+def refilter_scene(seed: int, keep: Path, make=make_family_scene) -> tuple[str, dict]:
+    """Score the current filters on the DTM a ``--part job --keep`` run kept for ``seed``."""
+    import rasterio
+
+    scene = make(seed)
+    with rasterio.open(keep / f"scene{seed}_dtm.tif") as ds:
+        dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+        transform = ds.transform
+    filters = [load_filter(n) for n in builtin_filter_names()]
+    cats, stepped = categories_for(dtm, abs(transform.a), filters)
+    res = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped)
+    dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
+    flat, tt = _exact_flat(scene)
+    return scene.describe(), score_scene(_shifted_truth(scene), dets, flat, tt)
+
+
+def part_refilter(seeds: list[int], keep: Path) -> None:
+    rows = []
+    for s in seeds:
+        label, sc = refilter_scene(s, keep)
+        rows.append((label, sc))
+        brief = ", ".join(
+            f"{k} {v[1]}/{v[0]} ({v[3]}/{v[2]})" for k, v in sc.items() if v[0] or v[2]
+        )
+        print(f"{label}: {brief}", flush=True)
+    summarise(rows, f"current filters on the job DTMs kept in {keep}")
+
+
 def part_kept(seeds: list[int], keep: Path) -> None:
     rows = [score_kept_scene(s, keep) for s in seeds]
     summarise(rows, f"whole job, features kept in {keep}")
@@ -373,6 +406,10 @@ if __name__ == "__main__":
         if args.keep is None:
             ap.error("--part kept needs --keep DIR")
         part_kept(args.seeds, args.keep)
+    if "refilter" in args.part:  # current filters on the DTMs of earlier job runs
+        if args.keep is None:
+            ap.error("--part refilter needs --keep DIR")
+        part_refilter(args.seeds, args.keep)
     if "sparse" in args.part:  # counter-case family: tune on 100-111, report on 0-11
         part_sparse(args.sparse_seeds, args.workers, args.keep)
     if "rough" in args.part:  # counter-case family: tune on 100-111, report on 0-11
