@@ -193,20 +193,27 @@ def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bo
     return marks
 
 
-def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
+def search_filter(
+    cats: Categories, flt: Filter, band: int = 512
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Horizontal and vertical marks of all segments of ``flt`` on the tile grid.
+
+    Rows (then columns) go through in bands of ``band`` lines, every segment over one
+    band before the next, so the class masks and mismatch counts the segments share
+    are kept for one band only."""
     flt = resolve_lengths(flt, cats.spacing)
     arrays = _arrays(cats)
-    arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
-    v = np.zeros(cats.shape, dtype=bool)
-    masks_h: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
-    masks_v: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
-    sums_h: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
-    sums_v: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
-    for seg in flt.segments:
-        if seg.direction in ("both", "horizontal"):
-            h |= search_rows(arrays, transform_segment(seg, 0), masks=masks_h, sums=sums_h)
-        if seg.direction in ("both", "vertical"):
-            v |= search_rows(arrays_t, transform_segment(seg, 1), masks=masks_v, sums=sums_v).T
-    return h, v
+    v = np.zeros(cats.shape[::-1], dtype=bool)
+    for marks, grid, turn, way in (
+        (h, arrays, 0, "horizontal"),
+        (v, tuple(np.ascontiguousarray(a.T) for a in arrays), 1, "vertical"),
+    ):
+        segs = [transform_segment(g, turn) for g in flt.segments if g.direction in ("both", way)]
+        for r in range(0, grid[0].shape[0], band):
+            part = tuple(a[r : r + band] for a in grid)
+            masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
+            sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
+            for seg in segs:
+                marks[r : r + band] |= search_rows(part, seg, band, masks, sums)
+    return h, np.ascontiguousarray(v.T)
