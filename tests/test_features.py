@@ -16,6 +16,7 @@ from terrasift.workers.features import (
     detect_features,
     features_geojson,
     format_filter,
+    grid_key,
     load_filter,
     parse_filter,
     resolve_filters,
@@ -651,6 +652,21 @@ def test_search_in_row_bands_matches_one_pass():
     arrays = (inc, np.zeros_like(inc), np.zeros_like(inc))
     seg = parse_filter(DITCHLIKE).segments[0]
     assert (search_rows(arrays, seg, band=7) == search_rows(arrays, seg)).all()
+
+
+def test_search_filter_in_bands_matches_one_pass_for_the_road_filter():
+    """Segments sharing classes (the road's) count each class once per band: the marks do
+    not depend on the band, rows or columns."""
+    rng = np.random.default_rng(4)
+    z = np.cumsum(rng.normal(0, 0.08, (120, 90)), axis=1)  # a rough surface, 0.5 m cells
+    flt = load_filter("road")
+    _, stepped = categories_for(z, 0.5, [flt])
+    cats = stepped[grid_key(flt)]
+    h, v = search_filter(cats, flt)
+    assert h.any() or v.any()
+    for band in (5, 17):
+        hb, vb = search_filter(cats, flt, band)
+        assert (hb == h).all() and (vb == v).all() and vb.flags.c_contiguous
 
 
 def test_job_parameters_check_filter_sizes_against_the_tile_size():

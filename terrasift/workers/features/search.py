@@ -88,39 +88,46 @@ def search_rows(
     seg: Segment,
     band: int = 512,
     masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] | None = None,
+    sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] | None = None,
 ) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
     Rows are independent, so they go through in bands of ``band`` rows to bound
     memory (the length sets take 8 bytes per tile and subsegment). ``masks``
-    keeps the class masks of these ``cats`` by subsegment categories, so a class
-    repeated across segments (a road's level strip) is matched once.
+    keeps the class masks of these ``cats`` by subsegment categories, and ``sums``
+    their mismatch counts along each band's rows, so a class repeated across
+    segments (a road's level strip) is matched and counted once.
     """
     masks = {} if masks is None else masks
-    bad = []
+    sums = {} if sums is None else sums
+    keys = []
     for sub in seg.subsegments:
         if sub.categories not in masks:
             masks[sub.categories] = ~class_mask(cats, sub)
-        bad.append(masks[sub.categories])
+        keys.append(sub.categories)
     nrows = cats[0].shape[0]
-    if nrows <= band:
-        return _search_band(bad, seg)
-    return np.concatenate(
-        [_search_band([b[r : r + band] for b in bad], seg) for r in range(0, nrows, band)]
-    )
+    out = []
+    for r in range(0, nrows, band):
+        mism = []
+        for key in keys:
+            if (key, r) not in sums:
+                miss = masks[key][r : r + band]
+                # counts rise along a row, so differences of them never go below 0
+                small = miss.shape[1] < np.iinfo(np.uint16).max
+                cm = np.zeros((miss.shape[0], miss.shape[1] + 1), np.uint16 if small else np.int32)
+                np.cumsum(miss, axis=1, out=cm[:, 1:])
+                sums[(key, r)] = cm
+            mism.append(sums[(key, r)])
+        out.append(_search_band(mism, seg))
+    return out[0] if len(out) == 1 else np.concatenate(out)
 
 
-def _search_band(bad: list[NDArray[np.bool_]], seg: Segment) -> NDArray[np.bool_]:
-    """Marks of ``seg`` along rows, given each subsegment's tiles that do not match it."""
-    nrows, ncols = bad[0].shape
-    nb = ncols + 1
+def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bool_]:
+    """Marks of ``seg`` along rows, given each subsegment's mismatch prefix counts:
+    ``mism[i][:, b]`` is the number of tiles in [0, b) not matching subsegment i."""
+    nrows, nb = mism[0].shape
+    ncols = nb - 1
     subs = seg.subsegments
-    # mismatch prefix counts per subsegment: mism[:, b] = mismatches in tiles [0, b)
-    mism = []
-    for miss in bad:
-        cm = np.zeros((nrows, nb), dtype=np.int32)
-        np.cumsum(miss, axis=1, out=cm[:, 1:])
-        mism.append(cm)
 
     one = np.uint64(1)
     prefix = [
@@ -186,18 +193,27 @@ def _search_band(bad: list[NDArray[np.bool_]], seg: Segment) -> NDArray[np.bool_
     return marks
 
 
-def search_filter(cats: Categories, flt: Filter) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Horizontal and vertical marks of all segments of ``flt`` on the tile grid."""
+def search_filter(
+    cats: Categories, flt: Filter, band: int = 512
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Horizontal and vertical marks of all segments of ``flt`` on the tile grid.
+
+    Rows (then columns) go through in bands of ``band`` lines, every segment over one
+    band before the next, so the class masks and mismatch counts the segments share
+    are kept for one band only."""
     flt = resolve_lengths(flt, cats.spacing)
     arrays = _arrays(cats)
-    arrays_t = tuple(np.ascontiguousarray(a.T) for a in arrays)
     h = np.zeros(cats.shape, dtype=bool)
-    v = np.zeros(cats.shape, dtype=bool)
-    masks_h: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
-    masks_v: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
-    for seg in flt.segments:
-        if seg.direction in ("both", "horizontal"):
-            h |= search_rows(arrays, transform_segment(seg, 0), masks=masks_h)
-        if seg.direction in ("both", "vertical"):
-            v |= search_rows(arrays_t, transform_segment(seg, 1), masks=masks_v).T
-    return h, v
+    v = np.zeros(cats.shape[::-1], dtype=bool)
+    for marks, grid, turn, way in (
+        (h, arrays, 0, "horizontal"),
+        (v, tuple(np.ascontiguousarray(a.T) for a in arrays), 1, "vertical"),
+    ):
+        segs = [transform_segment(g, turn) for g in flt.segments if g.direction in ("both", way)]
+        for r in range(0, grid[0].shape[0], band):
+            part = tuple(a[r : r + band] for a in grid)
+            masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
+            sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
+            for seg in segs:
+                marks[r : r + band] |= search_rows(part, seg, band, masks, sums)
+    return h, np.ascontiguousarray(v.T)
