@@ -574,6 +574,37 @@ def test_screening_votes_follow_bin_planes_only_up_to_the_slope_cap():
     assert np.allclose(v, [[0.3, -0.4], [0.9, 1.2], [0.0, 0.0]])
 
 
+def test_slivers_along_the_data_edge_cast_no_screening_vote():
+    # A plateau 40 m up reaching the data's lower edge (y = 0) at one vertex a
+    # little inside it; the terrain along that edge is 40 m away either side.
+    # The TIN joins that vertex to the terrain by slivers along the edge: they
+    # voted it down, then the next plateau vertex became the outline and went
+    # too, until the whole plateau was screened away. Six-metre bins, slivers
+    # longer than 4 bins within a bin of the outline: no vote.
+    low = [(x, y, 0.0) for x in (-60.0, -40.0, 40.0, 60.0) for y in (0.0, 12.0, 24.0, 36.0)]
+    top = [(0.0, 0.4, 40.0)] + [(x, y, 40.0) for x in (-3.0, 3.0) for y in range(6, 37, 6)]
+    xyz = np.array(low + top, dtype=np.float64)
+    flat = np.zeros((xyz.shape[0], 2))
+    plateau = set(range(len(low), xyz.shape[0]))
+    old, _ = screen(xyz, 3.0, 4.0, slopes=flat)
+    new, _ = screen(xyz, 3.0, 4.0, slopes=flat, rim_len=24.0, rim_band=6.0)
+    assert not plateau & set(old)
+    assert plateau <= set(new) and len(new) == xyz.shape[0]
+    # A spike inside the outline is still voted down.
+    spike = np.vstack([xyz, [50.0, 20.0, 30.0]])
+    kept, _ = screen(
+        spike, 3.0, 4.0, slopes=np.zeros((spike.shape[0], 2)), rim_len=24.0, rim_band=6.0
+    )
+    assert spike.shape[0] - 1 not in kept
+
+
+def test_within_of_hull_measures_distance_to_the_outline():
+    xy = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, 5.0], [5.0, 0.5]])
+    edges = Delaunay(xy).convex_hull
+    assert tin_module._within_of_hull(xy, edges, 1.0).tolist() == [True] * 4 + [False, True]
+    assert tin_module._within_of_hull(xy, edges, 5.0).all()
+
+
 def test_growth_bends_faster_going_down_over_a_crest():
     # Nodes 3.5 m apart (sparse data); a sharp ridge with 30° flanks along y,
     # seeded on its west side only: the east side is reached over the crest,

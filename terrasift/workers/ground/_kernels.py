@@ -466,11 +466,15 @@ def _judge_kernel(
     sl: NDArray[np.float64],
     screen_tol: float,
     low_tol: float,
+    rim: NDArray[np.bool_],
+    rim_len2: float,
     bad: NDArray[np.bool_],
 ) -> None:
     """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
     median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
-    the second lowest of their pit votes (see ``screen``).
+    the second lowest of their pit votes (see ``screen``). A neighbour u does
+    not vote when both ``rim[v]`` and ``rim[u]`` hold and their squared
+    distance exceeds ``rim_len2`` (> 0): a sliver along the data's edge.
 
     With slopes ``sl`` (one row per vertex; none: zero rows), a neighbour u
     votes z_u + g·(v - u) with g the mean of both ends' slopes (the
@@ -489,17 +493,24 @@ def _judge_kernel(
         deg = indptr[v + 1] - a
         if deg == 0:
             continue
+        m = 0
         for k in range(deg):
             u = indices[a + k]
+            d0 = xy[v, 0] - xy[u, 0]
+            d1 = xy[v, 1] - xy[u, 1]
+            if rim_len2 > 0 and rim[v] and rim[u] and d0 * d0 + d1 * d1 > rim_len2:
+                continue
             zu = z[u]
             if with_slopes:
-                d0 = xy[v, 0] - xy[u, 0]
-                d1 = xy[v, 1] - xy[u, 1]
-                votes[k] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
-                pits[k] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
+                votes[m] = zu + 0.5 * (sl[u, 0] + sl[v, 0]) * d0 + 0.5 * (sl[u, 1] + sl[v, 1]) * d1
+                pits[m] = zu + sl[u, 0] * d0 + sl[u, 1] * d1
             else:
-                votes[k] = zu
-                pits[k] = zu
+                votes[m] = zu
+                pits[m] = zu
+            m += 1
+        if m == 0:
+            continue
+        deg = m
         vs = votes[:deg]
         ps = pits[:deg]
         if deg <= _SORT_WIDTH:

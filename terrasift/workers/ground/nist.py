@@ -186,6 +186,12 @@ class NistParams(StageParams):
     """Screening with plane bins: neighbours' votes follow their bin planes up to this gradient
     (rise/run, 1.5 ≈ 56°, above the 35–45° of steep terrain; 0: uncapped). Steeper planes fit bins
     astride walls and deck edges."""
+    screen_rim: float = Field(4.0, ge=0, le=100)
+    """Screening: a TIN edge longer than this many of the pass's bins with both ends within
+    one bin of the outline of the pass's candidates (a sliver along the data's edge) casts no
+    vote (0: every edge votes). Such slivers joined plateau vertices at a tile's edge to terrain
+    26–112 m away along it (6 m bins), which voted them down one after the other, so a plateau
+    crossing the tile no longer reached its edge and went as a raised segment."""
     screen_low_tol: float = Field(1.0, ge=0, le=100)
     """A vertex more than this below its second-lowest neighbour is a low outlier (0: off)."""
     mow_tol_1: float = Field(3.0, gt=0, le=100)
@@ -525,8 +531,14 @@ def _surface(
             b = sr.grid.index(c[:, 0], c[:, 1])
             grads.append(np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]))
         slopes = _vote_slopes(np.concatenate(grads)[first], params.screen_slope_cap)
+    cell = _cell_of(srs[0].grid)
     keep, tin = screen(
-        cand, params.screen_tol * scale, params.screen_low_tol * scale, slopes=slopes
+        cand,
+        params.screen_tol * scale,
+        params.screen_low_tol * scale,
+        slopes=slopes,
+        rim_len=params.screen_rim * cell,
+        rim_band=cell,
     )
     if tin is not None:
         return tin

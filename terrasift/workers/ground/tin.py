@@ -585,6 +585,8 @@ def screen(
     *,
     slopes: NDArray[np.float64] | None = None,
     max_rounds: int = 50,
+    rim_len: float = 0.0,
+    rim_band: float = 0.0,
 ) -> tuple[NDArray[np.int64], Tin | None]:
     """Points of ``xyz`` kept by TIN screening (NIST §3.2), repeated until stable, and their TIN.
 
@@ -604,6 +606,12 @@ def screen(
     the plane of the vertex's bin is tilted by the outlier itself.
     ``low_tol <= 0`` skips that test.
 
+    Along the data's edge the TIN joins vertices far apart by slivers: with
+    ``rim_len`` > 0 a neighbour does not vote when the edge to it is longer
+    than that and both ends lie within ``rim_band`` of the outline (the
+    convex hull of ``xyz``). Otherwise a plateau reaching the edge is voted
+    down by terrain tens of metres away along the edge, vertex after vertex.
+
     Rounds after the first only re-triangulate the holes the deletions
     leave (``Tin.without``) and judge again only the vertices around them,
     the only ones whose neighbours changed.
@@ -618,11 +626,14 @@ def screen(
         return np.arange(n), None
     hull = np.zeros(n, dtype=bool)
     hull[np.unique(tin.tri.convex_hull)] = True
+    rim = np.zeros(n, dtype=bool)
+    if rim_len > 0:
+        rim = _within_of_hull(tin.xy, tin.tri.convex_hull, rim_band)
     ids = np.arange(n)  # global id of each vertex of the current TIN
     test = np.arange(n)  # vertices of the current TIN to judge
     for _ in range(max_rounds):
         ptr, idx = tin.neighbours()
-        bad = _judge(tin, ptr, idx, ids, test, xyz, screen_tol, low_tol, slopes)
+        bad = _judge(tin, ptr, idx, ids, test, xyz, screen_tol, low_tol, slopes, rim[ids], rim_len)
         if slopes is None:
             bad &= ~hull[ids]
         if not bad.any():
@@ -652,6 +663,8 @@ def _judge(
     screen_tol: float,
     low_tol: float,
     slopes: NDArray[np.float64] | None,
+    rim: NDArray[np.bool_] | None = None,
+    rim_len: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Screening verdict for every vertex of ``tin`` (only ``test`` can be True).
 
@@ -660,5 +673,26 @@ def _judge(
     """
     bad = np.zeros(ids.size, dtype=bool)
     sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes[ids], dtype=np.float64)
-    _judge_kernel(indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, bad)
+    on_rim = np.zeros(ids.size, dtype=bool) if rim is None else np.ascontiguousarray(rim)
+    _judge_kernel(
+        indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, on_rim, rim_len**2, bad
+    )
     return bad
+
+
+def _within_of_hull(
+    xy: NDArray[np.float64], hull_edges: NDArray[np.int32], band: float
+) -> NDArray[np.bool_]:
+    """Which of ``xy`` lie within ``band`` of the convex hull's outline (its
+    edges ``hull_edges``, pairs of indices into ``xy``)."""
+    a, b = xy[hull_edges[:, 0]], xy[hull_edges[:, 1]]
+    d = b - a
+    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
+    out = np.zeros(xy.shape[0], dtype=bool)
+    for lo in range(0, xy.shape[0], 4096):
+        q = xy[lo : lo + 4096]
+        # Distance to each edge's line; inside a convex hull the nearest line
+        # is the nearest edge.
+        off = np.abs((q[:, None, 0] - a[:, 0]) * d[:, 1] - (q[:, None, 1] - a[:, 1]) * d[:, 0])
+        out[lo : lo + 4096] = (off / length).min(axis=1) <= band
+    return out
