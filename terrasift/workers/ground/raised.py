@@ -103,7 +103,8 @@ def raised_segments(
     (``_excess``): an end standing ``rise`` above what the terrain behind the other
     end predicts for it, while that end is not above the prediction from it (a
     hollow), is the upper side of a step and a wall, also where the edge is level
-    (ground rising away from a platform across the hole). The slope at the foot
+    (ground rising away from a platform across the hole). Terrain behind steeper
+    than ``step_slope_deg`` (a wall's gradient) is not extrapolated. The slope at the foot
     alone, fitted from neighbours half a metre to two metres away, carries the
     1 cm rounding and the noise of the data as 1-2 % of grade, which over a 25-46 m
     run is the whole margin; its size alone also predicts a rise for an edge
@@ -135,7 +136,9 @@ def raised_segments(
                 # over the edge's own run, predicts the other end (``_excess``).
                 far = np.flatnonzero((grad < tan_step) & (run >= _ALONG_RUNS * med))
                 if far.size:
-                    to_1, to_0 = _excess(xyz, heights or _heights_of(xyz, tri), e[far], base)
+                    to_1, to_0 = _excess(
+                        xyz, heights or _heights_of(xyz, tri), e[far], base, tan_step
+                    )
                     # Above the prediction from one end only; from both, it is a hollow.
                     up_1, up_0 = (to_1 >= rise) & (to_0 < rise), (to_0 >= rise) & (to_1 < rise)
                     big[far] = up_1 | up_0
@@ -317,6 +320,7 @@ def _excess(
     heights: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     pairs: NDArray[np.int64],
     fallback: NDArray[np.float64],
+    steepest: float = np.inf,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """How far each end of the edges ``pairs`` (k, 2) stands above the height the terrain
     behind the other end predicts for it: (end 1 seen from end 0, end 0 seen from end 1).
@@ -327,6 +331,8 @@ def _excess(
     edge's own run, so a platform met across a hole tens of metres wide is judged by
     the terrain's slope over as many metres, not by two neighbours half a metre away
     (whose 1 cm rounding alone is a 2 % slope). Where no sample lies inside the TIN,
+    or the terrain behind is steeper than ``steepest`` (rise/run: steep slopes bend
+    within such a run, and extrapolated they move labels with where the bins fall),
     the other end is predicted to rise by ``fallback`` (a gradient per vertex) times the run."""
     a, b = xyz[pairs[:, 0]], xyz[pairs[:, 1]]
     d = b[:, :2] - a[:, :2]
@@ -340,9 +346,10 @@ def _excess(
         k = np.isfinite(rises).sum(axis=0)
         lo = rises[np.maximum(k - 1, 0) // 2, np.arange(k.size)]
         hi = rises[np.maximum(k, 1) // 2, np.arange(k.size)]
-        pred = np.where(
-            k > 0, (lo + np.where(k % 2 == 1, lo, hi)) / 2, fallback[pairs[:, end]] * run
-        )
+        pred = (lo + np.where(k % 2 == 1, lo, hi)) / 2
+        # Steep terrain bends within such a run: extrapolated, its slope predicts nothing.
+        ok = (k > 0) & (np.abs(pred) <= steepest * run)
+        pred = np.where(ok, pred, fallback[pairs[:, end]] * run)
         out.append(top[:, 2] - foot[:, 2] - pred)
     return out[0], out[1]
 
