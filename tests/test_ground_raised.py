@@ -65,3 +65,22 @@ def test_rise_rule_keeps_a_slope_that_a_long_edge_climbs():
     xyz, top = _yard(0.02, 0)
     xyz[top, 2] -= 1.0
     assert not _dropped(xyz).any()
+
+
+def test_platform_level_with_the_ground_across_a_hole_is_dropped():
+    # The ground rises 3 % away from a 1.2 m platform: across a 40 m hole its far
+    # side stands as high as the platform's top, so the long edges are level. The
+    # terrain behind their far end, over as many metres, predicts a fall of 1.2 m
+    # onto the platform: its top stands that much above the prediction.
+    rng = np.random.default_rng(0)
+    x, y = (
+        a.ravel() for a in np.meshgrid(np.arange(-40.0, 100.0, 2.0), np.arange(-40.0, 130, 2.0))
+    )
+    x, y = x + rng.uniform(-0.5, 0.5, x.size), y + rng.uniform(-0.5, 0.5, y.size)
+    top = (x > 10) & (x < 50) & (y > 0) & (y < 10)
+    keep = ~((x > 10) & (x < 50) & (y >= 10) & (y < 50))
+    x, y, top = x[keep], y[keep], top[keep]
+    z = 0.03 * y + np.where(top, 1.2, 0.0) + rng.normal(0.0, 0.02, x.size)
+    xyz = np.round(np.column_stack([x, y, z]), 2)
+    assert np.array_equal(_dropped(xyz), top)
+    assert not _dropped(xyz, along=False).any()

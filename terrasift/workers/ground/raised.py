@@ -23,11 +23,18 @@ lower side about as often as the upper.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay
+
+#: ``along``: edges at least this many median edges long are judged by the terrain behind them
+_ALONG_RUNS = 2.0
+#: ...sampled this many runs behind the end (the median of the slopes they give)
+_BEHIND = (0.5, 0.75, 1.0)
 
 
 def tin_edges(tri: Delaunay) -> NDArray[np.int64]:
@@ -54,6 +61,7 @@ def raised_segments(
     edge: float = 0.0,
     cut: tuple[float, float, float, float] | None = None,
     along: bool = False,
+    heights: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -90,13 +98,19 @@ def raised_segments(
     halo). Hull edges along its sides are cuts, not the edge of the data, so
     ``edge`` judges only the rest of the hull: a roof crossing the cut is
     judged by its walls, as in a run over all the data.
-    ``along``: the rise the slope at an edge's foot predicts is taken along the
-    edge's direction (the gradient of the plane through the foot and its
-    neighbours less than ``step`` from it, none where the edge runs downhill)
-    instead of the slope's size times the run. The size alone predicts a rise
-    for an edge running downhill onto a platform too: over a 25 m edge across a
-    hole, 1-2 % of grade is the whole margin, and which foot vertex the TIN
-    holds (a 1 cm rounding decides) flips the verdict.
+    ``along``: an edge across a hole (at least ``_ALONG_RUNS`` median edges long)
+    is judged by the terrain behind each of its ends, over the edge's own run
+    (``_excess``): an end standing ``rise`` above what the terrain behind the other
+    end predicts for it, while that end is not above the prediction from it (a
+    hollow), is the upper side of a step and a wall, also where the edge is level
+    (ground rising away from a platform across the hole). Terrain behind steeper
+    than ``step_slope_deg`` (a wall's gradient) is not extrapolated. The slope at the foot
+    alone, fitted from neighbours half a metre to two metres away, carries the
+    1 cm rounding and the noise of the data as 1-2 % of grade, which over a 25-46 m
+    run is the whole margin; its size alone also predicts a rise for an edge
+    running downhill onto a platform.
+    ``heights``: the TIN's height at points (k, 2), nan outside it (``along``; None:
+    interpolated on ``tri``, which must then be a scipy ``Delaunay``).
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -107,6 +121,7 @@ def raised_segments(
     tan_step = np.tan(np.radians(step_slope_deg))
     wall = grad >= tan_step
     big = np.zeros(e.shape[0], dtype=bool)
+    rising = dz > 0  # the step's upper end is e[:, 1]
     if relative or walls > 0 or rise > 0:
         # The terrain at an edge's foot: the edges going down from its lower end.
         upper = np.where(dz > 0, e[:, 1], e[:, 0])
@@ -117,21 +132,21 @@ def raised_segments(
             # Only edges under the step gradient: steeper ones are judged as walls above.
             big = (grad < tan_step) & (np.abs(dz) - base[lower] * run >= rise)
             if along:
-                big = (grad < tan_step) & (np.abs(dz) >= rise)
-                cand = np.flatnonzero(big)
-                if cand.size:
-                    g, ok = _foot_gradient(xyz, e, dz, lower[cand], step)
-                    d = xyz[upper[cand], :2] - xyz[lower[cand], :2]
-                    pred = np.where(
-                        ok,
-                        np.maximum(g[:, 0] * d[:, 0] + g[:, 1] * d[:, 1], 0.0),
-                        base[lower[cand]] * run[cand],
+                # Edges across holes (a few median edges long): the terrain behind each end,
+                # over the edge's own run, predicts the other end (``_excess``).
+                far = np.flatnonzero((grad < tan_step) & (run >= _ALONG_RUNS * med))
+                if far.size:
+                    to_1, to_0 = _excess(
+                        xyz, heights or _heights_of(xyz, tri), e[far], base, tan_step
                     )
-                    big[cand] = np.abs(dz[cand]) - pred >= rise
+                    # Above the prediction from one end only; from both, it is a hollow.
+                    up_1, up_0 = (to_1 >= rise) & (to_0 < rise), (to_0 >= rise) & (to_1 < rise)
+                    big[far] = up_1 | up_0
+                    rising[far] = np.where(up_1 | up_0, up_1, rising[far])
             wall |= big
         if relative:
             grad = grad - base[lower]
-    is_step = (np.abs(dz) >= step) & ((grad >= tan_step) | big)
+    is_step = ((np.abs(dz) >= step) & (grad >= tan_step)) | (big & ((np.abs(dz) >= step) | along))
     joins = ~is_step
     if rim > 0:
         # Slivers along the border of the data: long edges between vertices near
@@ -155,7 +170,7 @@ def raised_segments(
         fixed[seg[np.unique(tri.convex_hull if border is None else border)]] = True
     fixed[np.argmax(size)] = True
     st = e[is_step]
-    up = dz[is_step] > 0
+    up = rising[is_step]
     lo_v = np.where(up, st[:, 0], st[:, 1])
     hi_v = np.where(up, st[:, 1], st[:, 0])
     lo, hi = seg[lo_v], seg[hi_v]
@@ -300,38 +315,62 @@ def _plane_per_group(
     return coef, cnt
 
 
-def _foot_gradient(
+def _excess(
     xyz: NDArray[np.float64],
-    e: NDArray[np.int64],
-    dz: NDArray[np.float64],
-    feet: NDArray[np.int64],
-    step: float,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Gradient (gx, gy) of the terrain at each vertex of ``feet``: the least-squares
-    plane through it and its neighbours along edges of less than ``step`` height
-    (the wall's top is not terrain), and whether they span a plane (three or more)."""
-    n = xyz.shape[0]
-    uniq, inv = np.unique(feet, return_inverse=True)
-    slot = np.full(n, -1, dtype=np.int64)
-    slot[uniq] = np.arange(uniq.size)
-    low = np.abs(dz) < step
-    a = np.concatenate([e[low, 0], e[low, 1]])
-    b = np.concatenate([e[low, 1], e[low, 0]])
-    keep = slot[a] >= 0
-    grp = np.concatenate([slot[a[keep]], np.arange(uniq.size)])
-    v = np.concatenate([b[keep], uniq])
-    centre = xyz[uniq[grp]]
-    coef, cnt = _plane_per_group(
-        grp,
-        xyz[v, 0] - centre[:, 0],
-        xyz[v, 1] - centre[:, 1],
-        xyz[v, 2],
-        uniq.size,
-        3,
-    )
-    # _plane_per_group leaves the slope 0 where the points do not span a plane.
-    ok = (cnt >= 3) & np.any(coef[:, 1:] != 0.0, axis=1)
-    return coef[inv, 1:], ok[inv]
+    heights: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+    pairs: NDArray[np.int64],
+    fallback: NDArray[np.float64],
+    steepest: float = np.inf,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """How far each end of the edges ``pairs`` (k, 2) stands above the height the terrain
+    behind the other end predicts for it: (end 1 seen from end 0, end 0 seen from end 1).
+
+    The terrain behind an end is the TIN sampled on the line through the edge, beyond
+    that end, at ``_BEHIND`` times the edge's run; the median of the slopes from those
+    samples to the end, continued over the run, is the prediction. The baseline is the
+    edge's own run, so a platform met across a hole tens of metres wide is judged by
+    the terrain's slope over as many metres, not by two neighbours half a metre away
+    (whose 1 cm rounding alone is a 2 % slope). Where no sample lies inside the TIN,
+    or the terrain behind is steeper than ``steepest`` (rise/run: steep slopes bend
+    within such a run, and extrapolated they move labels with where the bins fall),
+    the other end is predicted to rise by ``fallback`` (a gradient per vertex) times the run."""
+    a, b = xyz[pairs[:, 0]], xyz[pairs[:, 1]]
+    d = b[:, :2] - a[:, :2]
+    out = []
+    run = np.hypot(d[:, 0], d[:, 1])
+    for end, foot, top, sign in ((0, a, b, 1.0), (1, b, a, -1.0)):
+        rises = np.sort(
+            [(foot[:, 2] - heights(foot[:, :2] - sign * t * d)) / t for t in _BEHIND],
+            axis=0,
+        )  # nan (outside the TIN) sort last
+        k = np.isfinite(rises).sum(axis=0)
+        lo = rises[np.maximum(k - 1, 0) // 2, np.arange(k.size)]
+        hi = rises[np.maximum(k, 1) // 2, np.arange(k.size)]
+        pred = (lo + np.where(k % 2 == 1, lo, hi)) / 2
+        # Steep terrain bends within such a run: extrapolated, its slope predicts nothing.
+        ok = (k > 0) & (np.abs(pred) <= steepest * run)
+        pred = np.where(ok, pred, fallback[pairs[:, end]] * run)
+        out.append(top[:, 2] - foot[:, 2] - pred)
+    return out[0], out[1]
+
+
+def _heights_of(
+    xyz: NDArray[np.float64], tri: Delaunay
+) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+    """Heights of the TIN ``tri`` (a scipy ``Delaunay``; vertex heights ``xyz[:, 2]``) at
+    points (k, 2), linear in each triangle; nan outside it."""
+
+    def at(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        s = tri.find_simplex(p)
+        inside = s >= 0
+        out = np.full(p.shape[0], np.nan)
+        t = tri.transform[s[inside]]
+        bc = np.einsum("kij,kj->ki", t[:, :2], p[inside] - t[:, 2])
+        w = np.column_stack([bc, 1.0 - bc.sum(axis=1)])
+        out[inside] = (w * xyz[tri.simplices[s[inside]], 2]).sum(axis=1)
+        return out
+
+    return at
 
 
 def _median_per_vertex(
