@@ -334,6 +334,21 @@ class NistParams(StageParams):
     """…the plane refitted without neighbours more than this many deviations above it."""
     rough_floor: float = Field(0.05, ge=0, le=5)
     """…and never less than this many metres (LAS quantisation, perfectly smooth ground)."""
+    rough_envelope: bool = False
+    """…the plane started from the neighbours' lower envelope (the lowest of each of 8
+    angular sectors, then refitted to those within ``rough_clip`` deviations above it;
+    ``envelope.py``), so that scrub among them does not lift it (off: the least-squares
+    plane clipped from above)."""
+    rough_shrub: float = Field(0.0, ge=0, le=5)
+    """Isolated-shrub test (metres; 0: off): a ground point is also taken back when it
+    stands this much above the lower-envelope plane of its ``rough_k`` neighbours and, in
+    each of ``rough_sectors`` angular sectors, one of its ``rough_near`` nearest neighbours
+    there lies under half its height (a crest or an embankment's edge has neighbours as
+    high along its length); held to no deviation, so it acts near breaks too."""
+    rough_sectors: int = Field(4, ge=3, le=16)
+    """…sectors of the isolated-shrub test."""
+    rough_near: int = Field(3, ge=1, le=16)
+    """…nearest neighbours per sector it looks at."""
     rough_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the roughness test runs (4: up to about 1.8
     points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
@@ -740,6 +755,10 @@ def _rough(
         params.rough_factor,
         params.rough_clip,
         params.rough_floor,
+        envelope=params.rough_envelope,
+        shrub=params.rough_shrub,
+        sectors=params.rough_sectors,
+        nearest=params.rough_near,
     )
 
 
