@@ -128,6 +128,26 @@ FAMILIES: dict[str, dict] = {
         scale=SCALES[3:],
         seed=3200,
     ),
+    # 2-3 positions 5-15 m apart scanning one scene (the families above give each
+    # position its own scene 60 m away, so no position sees where another's beams pass)
+    "shared": dict(
+        step=(0.3, 0.5),
+        far=(10.0, 25.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=4000,
+        shared=True,
+    ),
+    "shared-report": dict(
+        step=(0.03, 0.5),
+        far=(10.0, 40.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=4100,
+        shared=True,
+    ),
 }
 
 
@@ -159,6 +179,15 @@ def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
         (float(60.0 * k), float(rng.uniform(-10, 10)), float(rng.uniform(1.0, 3.0)))
         for k in range(n_pos)
     ]
+    shared = bool(fam.get("shared", False))
+    if shared:
+        # positions along a line across the view, 5-15 m apart, each 0-3 m forward or back
+        n_pos = info["positions"] = int(rng.integers(2, 4))
+        gaps = np.concatenate([[0.0], np.cumsum(rng.uniform(5.0, 15.0, n_pos - 1))])
+        positions = [
+            (float(rng.uniform(-3, 3)), float(g - gaps.mean()), float(rng.uniform(1.0, 3.0)))
+            for g in gaps
+        ]
     info["masts"] = [p[2] for p in positions]
     tile = make_scan_tile(
         positions,
@@ -173,6 +202,7 @@ def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
         n_boards=n_obj // 2,
         n_poles=n_obj - n_obj // 2,
         object_range=(near, far),
+        shared=shared,
     )
     return info, tile
 
