@@ -352,6 +352,9 @@ def main() -> None:
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--no-random", action="store_true")
     ap.add_argument(
+        "--no-ebw", action="store_true", help="leave out the exclusive blind window's whole job"
+    )
+    ap.add_argument(
         "--shard-cost",
         action="store_true",
         help="shard the first scene in its own grid and in one 1 km wider: records and CPU "
@@ -408,7 +411,7 @@ def main() -> None:
     combos = (
         [(t, v) for t in TRIGGERS for v in VARIANTS]
         if args.variants == "all"
-        else ([(dp.trigger, dp.variant)] if dp.method == "grid" else [])
+        else ([(dp.trigger, dp.variant)] if dp.method == "grid" and not args.no_ebw else [])
     )
     for trig, var in combos:
         p = MixedParams(**{**overrides, "variant": var, "trigger": trig, "method": "box"})
@@ -419,7 +422,7 @@ def main() -> None:
     # beside the default, with the interest boxes everywhere (method=box, its trigger).
     ebw = {**overrides, "method": "box", "variant": "exclusive_blind_window"}
     ebw_name = f"box exclusive_blind_window / {MixedParams(**ebw).trigger}"
-    with_ebw = not args.no_job and dp.method == "grid"
+    with_ebw = not args.no_job and not args.no_ebw and dp.method == "grid"
     print(
         "\ndefault per scene, "
         + " ; ".join(

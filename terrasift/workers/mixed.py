@@ -291,7 +291,12 @@ def mark_mixed(
         margin = params.cross_free_margin if params.cross_free else None
         seen, free = cross_check(xyz, ids, origins, grids, marked, params.cross_sigmas, margin)
         marked = (marked & ~seen) | free
-        found.append({"cross_positions": {"unmarked": int(seen.sum()), "marked": int(free.sum())}})
+        for entry in found:
+            on = ids == entry["scan"]
+            entry["cross_positions"] = {
+                "unmarked": int(np.count_nonzero(seen & on)),
+                "marked": int(np.count_nonzero(free & on)),
+            }
     n_unc = int(unclassified.sum())
     return MixedResult(
         marked=marked,
