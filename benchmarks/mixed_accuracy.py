@@ -1,7 +1,8 @@
 """Mixed-measurement filter over a family of ground-based scans with exact truth.
 
-Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse|edge|wide|quant] [--scenes 12]
-[--first-seed N] [--variants all|default] [--no-job] [--no-speed] [--shard-cost] [--params k=v ...]``.
+Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse|edge|wide|quant|shared|
+shared-report] [--scenes 12] [--first-seed N] [--variants all|default] [--no-job] [--no-speed]
+[--no-ebw] [--shard-cost] [--params k=v ...]``.
 
 Each scene draws its scanner and its objects from the ranges of ROBUSTNESS.md:
 angular step 0.03–0.5° (log-uniform), beam footprint 1–3 steps (a mixed return
@@ -14,7 +15,10 @@ draw at steps 0.3–0.5°) and three regions where report scans fell short: ``ed
 (3000+: steps 0.15–0.3°, footprints 1–1.7 steps, objects out to 25–40 m),
 ``wide`` (3100+: footprints 2.5–3 steps at 0.12–0.2°, noise 7–10 mm) and
 ``quant`` (3200+: 1 cm coordinates at 0.05–0.09°); the ``report`` family (seeds
-0+, the full ranges) is what the figures come from.
+0+, the full ranges) is what the figures come from. In all of these every scan position scans its own
+scene, 60 m from the next; ``shared`` (tune, 4000+, steps 0.3–0.5°) and
+``shared-report`` (4100+, the report ranges) put 2–3 positions 5–15 m apart in one
+scene, so one position's returns lie where another's beams pass (``mixed.cross_*``).
 
 Printed: the default (grid method) and, for the interest boxes alone (method=box),
 each variant × trigger: tpr, fpr, precision and F1 as the worst case, the 10th
