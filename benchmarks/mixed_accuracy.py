@@ -1,7 +1,8 @@
 """Mixed-measurement filter over a family of ground-based scans with exact truth.
 
-Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse|edge|wide|quant] [--scenes 12]
-[--first-seed N] [--variants all|default] [--no-job] [--no-speed] [--shard-cost] [--params k=v ...]``.
+Run: ``python benchmarks/mixed_accuracy.py [--family report|tune|coarse|edge|wide|quant|shared|
+shared-report] [--scenes 12] [--first-seed N] [--variants all|default] [--no-job] [--no-speed]
+[--no-ebw] [--shard-cost] [--params k=v ...]``.
 
 Each scene draws its scanner and its objects from the ranges of ROBUSTNESS.md:
 angular step 0.03–0.5° (log-uniform), beam footprint 1–3 steps (a mixed return
@@ -14,7 +15,10 @@ draw at steps 0.3–0.5°) and three regions where report scans fell short: ``ed
 (3000+: steps 0.15–0.3°, footprints 1–1.7 steps, objects out to 25–40 m),
 ``wide`` (3100+: footprints 2.5–3 steps at 0.12–0.2°, noise 7–10 mm) and
 ``quant`` (3200+: 1 cm coordinates at 0.05–0.09°); the ``report`` family (seeds
-0+, the full ranges) is what the figures come from.
+0+, the full ranges) is what the figures come from. In all of these every scan position scans its own
+scene, 60 m from the next; ``shared`` (tune, 4000+, steps 0.3–0.5°) and
+``shared-report`` (4100+, the report ranges) put 2–3 positions 5–15 m apart in one
+scene, so one position's returns lie where another's beams pass (``mixed.cross_*``).
 
 Printed: the default (grid method) and, for the interest boxes alone (method=box),
 each variant × trigger: tpr, fpr, precision and F1 as the worst case, the 10th
@@ -128,6 +132,26 @@ FAMILIES: dict[str, dict] = {
         scale=SCALES[3:],
         seed=3200,
     ),
+    # 2-3 positions 5-15 m apart scanning one scene (the families above give each
+    # position its own scene 60 m away, so no position sees where another's beams pass)
+    "shared": dict(
+        step=(0.3, 0.5),
+        far=(10.0, 25.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=4000,
+        shared=True,
+    ),
+    "shared-report": dict(
+        step=(0.03, 0.5),
+        far=(10.0, 40.0),
+        fp=(1.0, 3.0),
+        noise=(0.002, 0.010),
+        scale=SCALES,
+        seed=4100,
+        shared=True,
+    ),
 }
 
 
@@ -159,6 +183,15 @@ def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
         (float(60.0 * k), float(rng.uniform(-10, 10)), float(rng.uniform(1.0, 3.0)))
         for k in range(n_pos)
     ]
+    shared = bool(fam.get("shared", False))
+    if shared:
+        # positions along a line across the view, 5-15 m apart, each 0-3 m forward or back
+        n_pos = info["positions"] = int(rng.integers(2, 4))
+        gaps = np.concatenate([[0.0], np.cumsum(rng.uniform(5.0, 15.0, n_pos - 1))])
+        positions = [
+            (float(rng.uniform(-3, 3)), float(g - gaps.mean()), float(rng.uniform(1.0, 3.0)))
+            for g in gaps
+        ]
     info["masts"] = [p[2] for p in positions]
     tile = make_scan_tile(
         positions,
@@ -173,6 +206,7 @@ def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
         n_boards=n_obj // 2,
         n_poles=n_obj - n_obj // 2,
         object_range=(near, far),
+        shared=shared,
     )
     return info, tile
 
@@ -322,6 +356,9 @@ def main() -> None:
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--no-random", action="store_true")
     ap.add_argument(
+        "--no-ebw", action="store_true", help="leave out the exclusive blind window's whole job"
+    )
+    ap.add_argument(
         "--shard-cost",
         action="store_true",
         help="shard the first scene in its own grid and in one 1 km wider: records and CPU "
@@ -378,7 +415,7 @@ def main() -> None:
     combos = (
         [(t, v) for t in TRIGGERS for v in VARIANTS]
         if args.variants == "all"
-        else ([(dp.trigger, dp.variant)] if dp.method == "grid" else [])
+        else ([(dp.trigger, dp.variant)] if dp.method == "grid" and not args.no_ebw else [])
     )
     for trig, var in combos:
         p = MixedParams(**{**overrides, "variant": var, "trigger": trig, "method": "box"})
@@ -389,7 +426,7 @@ def main() -> None:
     # beside the default, with the interest boxes everywhere (method=box, its trigger).
     ebw = {**overrides, "method": "box", "variant": "exclusive_blind_window"}
     ebw_name = f"box exclusive_blind_window / {MixedParams(**ebw).trigger}"
-    with_ebw = not args.no_job and dp.method == "grid"
+    with_ebw = not args.no_job and not args.no_ebw and dp.method == "grid"
     print(
         "\ndefault per scene, "
         + " ; ".join(

@@ -97,6 +97,8 @@ def make_scan(
     t0: float = 200_000.0,
     pulse_period: float = 2e-6,
     time_jitter: float = 0.02,
+    scene: tuple[list[Board], list[Pole], list[Board]] | None = None,
+    at: tuple[float, float] = (0.0, 0.0),
 ) -> Scan:
     """Ray-cast one scan of boards and poles in front of walls; see the module doc.
 
@@ -110,13 +112,17 @@ def make_scan(
     ``gps_time`` follows the firing order (columns of azimuth, rows of elevation within
     each) from ``t0`` every ``pulse_period`` seconds, with a normal jitter of
     ``time_jitter`` periods; it is drawn from its own generator, so the points of a
-    seed do not depend on it.
+    seed do not depend on it. ``scene`` (boards, poles, walls) replaces the drawn
+    objects with given ones, placed in a frame where this sensor stands at ``at``.
     """
     rng = np.random.default_rng(seed)
     sensor = np.array([0.0, 0.0, mast_height])
-    boards, poles, walls = _place_objects(
-        rng, n_boards, n_poles, azimuth_deg, object_range, wall_gap
-    )
+    if scene is None:
+        boards, poles, walls = _place_objects(
+            rng, n_boards, n_poles, azimuth_deg, object_range, wall_gap
+        )
+    else:
+        boards, poles, walls = _shift_scene(scene, at)
     planes = boards + walls
     if max_range is None:
         max_range = object_range[1] + wall_gap[1] + 5.0
@@ -262,25 +268,44 @@ def make_scan_tile(
     *,
     ground: tuple[float, float, float] = (500_000.0, 5_400_000.0, 100.0),
     seed: int = 0,
+    shared: bool = False,
     **scan_kw,
 ) -> ScanTile:
     """Scans from several positions (dx, dy, mast height) over one level ground.
 
     Each position ray-casts its own objects (a new draw per position), so per-point
-    truth stays exact; positions share the ground plane at ``ground``'s height. The
-    positions are scanned one after the other, an hour apart in GPS time.
+    truth stays exact; positions share the ground plane at ``ground``'s height. With
+    ``shared`` all positions scan one scene instead (drawn around the first position,
+    each position's azimuth window turned to cover all its walls), so a return of one
+    position may lie where another position's beams pass. The positions are scanned
+    one after the other, an hour apart in GPS time.
     """
     t0 = float(scan_kw.pop("t0", 200_000.0))
-    parts = [
-        make_scan(
-            origin=(ground[0] + dx, ground[1] + dy, ground[2]),
-            mast_height=mast,
-            seed=seed * 1000 + k,
-            t0=t0 + 3600.0 * k,
-            **scan_kw,
+    scene = None
+    if shared:
+        scene = _place_objects(
+            np.random.default_rng([seed, 7]),
+            scan_kw.get("n_boards", 8),
+            scan_kw.get("n_poles", 10),
+            scan_kw.get("azimuth_deg", (-60.0, 60.0)),
+            scan_kw.get("object_range", (3.0, 15.0)),
+            scan_kw.get("wall_gap", (1.0, 2.5)),
         )
-        for k, (dx, dy, mast) in enumerate(positions)
-    ]
+    parts = []
+    for k, (dx, dy, mast) in enumerate(positions):
+        kw = dict(scan_kw)
+        if scene is not None:
+            at = (dx - positions[0][0], dy - positions[0][1])
+            kw.update(scene=scene, at=at, azimuth_deg=_scene_azimuths(scene, at, 2.0))
+        parts.append(
+            make_scan(
+                origin=(ground[0] + dx, ground[1] + dy, ground[2]),
+                mast_height=mast,
+                seed=seed * 1000 + k,
+                t0=t0 + 3600.0 * k,
+                **kw,
+            )
+        )
     return ScanTile(
         xyz=np.vstack([p.xyz for p in parts]),
         truth=np.concatenate([p.truth for p in parts]),
@@ -288,6 +313,36 @@ def make_scan_tile(
         scan_id=np.concatenate([np.full(len(p), k, dtype=np.intp) for k, p in enumerate(parts)]),
         gps_time=np.concatenate([p.gps_time for p in parts if p.gps_time is not None]),
     )
+
+
+def _shift_scene(
+    scene: tuple[list[Board], list[Pole], list[Board]], at: tuple[float, float]
+) -> tuple[list[Board], list[Pole], list[Board]]:
+    """The objects of ``scene`` seen from a sensor standing at ``at`` (x, y)."""
+    bs, ps, ws = scene
+    dx, dy = at
+
+    def mv(b: Board) -> Board:
+        return Board(b.cx - dx, b.cy - dy, b.nx, b.ny, b.half_width, b.z0, b.z1)
+
+    return (
+        [mv(b) for b in bs],
+        [Pole(p.cx - dx, p.cy - dy, p.radius, p.z1) for p in ps],
+        [mv(w) for w in ws],
+    )
+
+
+def _scene_azimuths(
+    scene: tuple[list[Board], list[Pole], list[Board]], at: tuple[float, float], pad: float
+) -> tuple[float, float]:
+    """Azimuth window (degrees) over the ends of every wall of ``scene`` seen from ``at``."""
+    ends = []
+    for w in scene[2]:
+        e = np.array([-w.ny, w.nx])
+        for sgn in (-1.0, 1.0):
+            ends.append(np.array([w.cx, w.cy]) + sgn * w.half_width * e - np.asarray(at))
+    az = np.degrees(np.arctan2([v[1] for v in ends], [v[0] for v in ends]))
+    return float(az.min() - pad), float(az.max() + pad)
 
 
 def _direction(az: NDArray, el: NDArray) -> NDArray[np.float64]:

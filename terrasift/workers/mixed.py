@@ -49,6 +49,7 @@ from pydantic import Field, model_validator
 
 from terrasift.errors import InputError, ParameterError
 from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
+from terrasift.workers.mixed_cross import PositionGrid, cross_check
 from terrasift.workers.mixed_grid import GridSettings, mark_grid
 from terrasift.workers.registry import StageParams, register
 from terrasift.workers.scan_geometry import ScanGeometry, field_of_view, measure_scan_geometry
@@ -162,6 +163,19 @@ class MixedParams(StageParams):
     """Share of the box content that must have a surface behind it (within box_depth,
     in its own or the next cell across the box). A mixed return blends a foreground
     with a background; random clutter has none (seed §V-D)."""
+    cross_positions: bool = False
+    """grid: take off the marks of returns that another scan position of the tile sees
+    on a surface (``mixed_cross``); needs several positions seeing the same place."""
+    cross_sigmas: float = Field(2.0, gt=0.0, le=50.0)
+    """grid: another position's surface, interpolated to a return's direction, passes
+    within cross_sigmas × the two positions' combined range scatter of it."""
+    cross_free: bool = False
+    """grid, with cross_positions: also mark returns lying where another position's
+    beams pass to returns more than cross_free_margin beyond them, unless their own
+    position sees them on a smooth surface."""
+    cross_free_margin: float = Field(0.3, gt=0.0, le=10.0)
+    """Free space must reach this far beyond a return (m); chosen on shared-scene tune
+    scans at 0.3-0.5° steps, 2-10 mm range noise."""
     min_points: int = Field(8, ge=3, le=1000)
     """Boxes with fewer content points are not classified. Saliency needs three (the
     seed's minimum); a few more keep the fitted plane meaningful."""
@@ -229,6 +243,7 @@ def mark_mixed(
     unclassified = np.zeros(n, dtype=bool)
     n_regions = n_triggered = 0
     found: list[dict[str, Any]] = []
+    grids: list[PositionGrid | None] = [None] * origins.shape[0]
     for k in range(origins.shape[0]):
         idx = np.flatnonzero(ids == k) if ids is not None else slice(None)
         rel = xyz[idx] - origins[k]
@@ -239,6 +254,7 @@ def mark_mixed(
         extra: dict[str, Any] = {"method": "box"}
         if params.method == "grid" and derived.geometry is not None:
             gs = grid_settings(derived.geometry, params)
+            grids[k] = PositionGrid(gs.step_az, gs.step_el, gs.sigma, gs.footprint)
             t = times[idx] if times is not None else None
             fov = derived.geometry.field_of_view
             if fov is None:
@@ -271,6 +287,16 @@ def mark_mixed(
         n_regions += nr
         n_triggered += nt
         found.append({"scan": k, "points": int(rel.shape[0]), **derived.report(), **extra})
+    if params.cross_positions and ids is not None and origins.shape[0] > 1:
+        margin = params.cross_free_margin if params.cross_free else None
+        seen, free = cross_check(xyz, ids, origins, grids, marked, params.cross_sigmas, margin)
+        marked = (marked & ~seen) | free
+        for entry in found:
+            on = ids == entry["scan"]
+            entry["cross_positions"] = {
+                "unmarked": int(np.count_nonzero(seen & on)),
+                "marked": int(np.count_nonzero(free & on)),
+            }
     n_unc = int(unclassified.sum())
     return MixedResult(
         marked=marked,
