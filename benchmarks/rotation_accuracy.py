@@ -504,23 +504,30 @@ def cost() -> None:
         f"share {test.facet_share:.3f} steep={test.steep}"
     )
 
-    # CPU seconds, median of 3: other processes share the machine's cores.
-    def cpu(points: np.ndarray) -> tuple[float, dict]:
-        times, info = [], {}
-        for _ in range(3):
-            t0 = time.process_time()
-            _, info = auto(points)
-            times.append(time.process_time() - t0)
-        return float(np.median(times)), info
-
-    t_flat, info_flat = cpu(xyz)
+    # CPU seconds, medians of 5 with the flat and steep runs alternating, so
+    # that both see the same load from other processes on the machine's cores.
     steep_scene = make_cliffs(length=200.0, density=8, seed=6, square=130.0)
-    t_steep, info = cpu(steep_scene.xyz)
+    flat_times, steep_times = [], []
+    info_flat: dict = {}
+    info: dict = {}
+    for _ in range(5):
+        t0 = time.process_time()
+        _, info_flat = auto(xyz)
+        flat_times.append(time.process_time() - t0)
+        t0 = time.process_time()
+        _, info = auto(steep_scene.xyz)
+        steep_times.append(time.process_time() - t0)
+    t_flat, t_steep = float(np.median(flat_times)), float(np.median(steep_times))
     ratio = (t_steep / len(steep_scene)) / (t_flat / len(flat))
+    pair = [
+        (s / len(steep_scene)) / (f / len(flat))
+        for f, s in zip(flat_times, steep_times, strict=True)
+    ]
     print(
         f"auto flat block {len(flat)} pts {t_flat:.2f} s CPU (steep={info_flat['steep']}); "
         f"auto steep block {len(steep_scene)} pts {t_steep:.2f} s CPU (steep={info['steep']}); "
-        f"per-point cost ratio {ratio:.1f}x (medians of 3)"
+        f"per-point cost ratio {ratio:.1f}x (medians of 5, alternating; "
+        f"pairs {min(pair):.1f}-{max(pair):.1f}x)"
     )
     # The whole block task (ground, low points, vegetation, DTM/DSM, classes).
     b_flat, s_flat = block_cpu(flat.xyz)
