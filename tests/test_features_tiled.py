@@ -140,6 +140,23 @@ def test_flat_marks_across_the_dtm_do_not_grow_a_rectangle_filter_s_window(scene
     assert [_key(f) for f in tiled] == [_key(f) for f in whole]
 
 
+def _searched_in_nine(dtm: NDArray[np.float64], t: Affine, filters, cp, fp) -> list:
+    """The pieces found by searching ``dtm`` as 3 × 3 cores with a capped window
+    (16 tiles), so objects larger than a core are searched in parts."""
+    from terrasift.workers.features.tiled import search_core
+
+    halo, cap = window_reach(filters, cp, CELL) + 8, 16
+    edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
+    pieces = []
+    for i in range(3):
+        for j in range(3):
+            core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
+            pieces += search_core(
+                lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
+            )[0]
+    return pieces
+
+
 def _plain_with_road_and_ditch(size: float) -> NDArray[np.float64]:
     """A level plain (0.2 % tilt, 2 cm noise) crossed west to east by a road on a 0.8 m
     embankment (6 m top, 1 : 1.5 sides, turned 3°) and north to south by a ditch
@@ -320,7 +337,6 @@ def test_surround_judges_an_object_searched_in_parts_by_its_whole_ring() -> None
     objects kept and dropped are the whole DTM's."""
     from terrasift.synthetic.feature_family import make_rough_scene
     from terrasift.workers.features import FeatureParams, format_filter, parse_filter
-    from terrasift.workers.features.tiled import search_core
 
     dtm = surface_raster(make_rough_scene(3, size=160.0), CELL)
     dtm = dtm + np.random.default_rng(1).normal(0, 0.03, dtm.shape)
@@ -332,15 +348,7 @@ def test_surround_judges_an_object_searched_in_parts_by_its_whole_ring() -> None
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
     assert whole
-    halo, cap = window_reach(filters, cp, CELL) + 8, 16
-    edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
-    pieces = []
-    for i in range(3):
-        for j in range(3):
-            core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
-            pieces += search_core(
-                lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
-            )[0]
+    pieces = _searched_in_nine(dtm, t, filters, cp, fp)
     cut = [p for p in pieces if p.cut is not None]
     assert cut and all(p.cut.ring is not None for p in cut)
     tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
@@ -404,7 +412,6 @@ def test_enclosed_judges_a_pond_searched_in_parts_by_its_whole_rim() -> None:
     judges the rim of the joined label around its whole centre, so the ponds kept are
     the whole DTM's, asking for 7 of the 8 sectors and for all 8."""
     from terrasift.workers.features import FeatureParams, format_filter, parse_filter
-    from terrasift.workers.features.tiled import search_core
 
     size = 160.0
     scene = make_family_scene(0)
@@ -424,15 +431,7 @@ def test_enclosed_judges_a_pond_searched_in_parts_by_its_whole_rim() -> None:
         filters = [parse_filter(text.replace("enclosed 8m 7", f"enclosed 8m {sectors}"), "pond")]
         cats, stepped = categories_for(dtm, CELL, filters, cp)
         whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
-        halo, cap = window_reach(filters, cp, CELL) + 8, 16
-        edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
-        pieces = []
-        for i in range(3):
-            for j in range(3):
-                core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
-                pieces += search_core(
-                    lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
-                )[0]
+        pieces = _searched_in_nine(dtm, t, filters, cp, fp)
         cut = [p for p in pieces if p.cut is not None]
         assert cut and all(p.cut.rim is not None for p in cut)
         tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
