@@ -1155,3 +1155,34 @@ def test_isolated_keeps_a_hill_and_drops_an_outline_running_on_into_a_ridge():
     assert got["ridge"] > 0.1 and not got["ridge kept"]
     with pytest.raises(FilterSyntaxError):
         parse_filter(format_filter(flt).replace("isolated 4m 0.1", "isolated 4m 2"), "hill")
+
+
+def test_ridge_filter_yields_two_round_hills_it_joined_to_the_hill_filter():
+    """Feature family seed 243 as a DTM: a cosine 32 m and a triangle 24 m hill lined up a
+    few metres apart give the ridge filter a cross-section each, which ``join width``
+    joins into one 73 × 15 m ridge; both are hills to the hill filter, and the ridge
+    (``yield hill 1 0.5``) yields to them. The scene's real ridge stays."""
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(243)
+    exact = surface_raster(scene, 0.5)
+    dtm = exact + np.random.default_rng([7, 243]).normal(0, scene.noise, exact.shape)
+    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    hill, ridge = load_filter("hill"), load_filter("ridge")
+    assert ridge.yields == (("hill", 1, 0.5),)
+    cats, stepped = categories_for(dtm, 0.5, [hill, ridge])
+    hills = [t.polygon for t in scene.truth if t.kind == "hill"]
+    real = next(t.polygon for t in scene.truth if t.kind == "ridge")
+
+    def on(g, truth) -> bool:
+        return g.intersection(truth.buffer(2)).area >= 0.5 * g.area
+
+    alone = detect_features(cats, [ridge], tt, 2.0, stepped=stepped).objects
+    assert sum(on(o.geometry, real) for o in alone) == 1
+    over_hills = [o for o in alone if not on(o.geometry, real)]
+    assert len(over_hills) == 1
+    assert all(over_hills[0].geometry.intersects(h) for h in hills)
+    both = detect_features(cats, [hill, ridge], tt, 2.0, stepped=stepped).objects
+    assert [o.kind for o in both].count("hill") == 2
+    kept = [o for o in both if o.kind == "ridge"]
+    assert len(kept) == 1 and on(kept[0].geometry, real)
