@@ -1115,3 +1115,74 @@ def test_enclosed_keeps_a_bowl_and_drops_level_ground_between_two_rises():
         got[name + " kept"] = bool(whole_label_rules(labels, cats, r).any())
     # the strip's banks, seen from the floor's centre, rise away in 3 sectors each
     assert got == {"bowl": 8, "bowl kept": True, "strip": 6, "strip kept": False}
+
+
+def test_isolated_keeps_a_hill_and_drops_an_outline_running_on_into_a_ridge():
+    """``isolated 4m 0.1``: an object whose surroundings are flat or rise toward it is
+    kept; one whose surroundings on one side incline across the bearing (a ridge's
+    flanks running on past the outline closed on its end) is not."""
+    from terrasift.workers.features import rim_leak, rim_sets, whole_label_rules
+
+    n = 40
+    rr, cc = np.mgrid[0:n, 0:n]
+    dy, dx = -(rr - 19.5), cc - 19.5  # north up
+    # inclination rising toward the centre: opposite the bearing from it
+    toward = (np.round(np.arctan2(-dy, -dx) / (np.pi / 4)).astype(int) % 8 + 1).astype(np.uint8)
+    dist = np.hypot(dx, dy)
+    hill = np.where((dist > 7) & (dist < 10), toward, 0).astype(np.uint8)
+    # the same foot, plus a ridge running on westward: flanks inclined north and south
+    ridge = hill.copy()
+    west = (dx < -6) & (np.abs(dy) < 7)
+    ridge[west & (dy > 0)] = 7  # the north flank rises south, toward the crest
+    ridge[west & (dy < 0)] = 3
+    labels = np.zeros((n, n), np.int32)
+    labels[13:27, 13:27] = 1
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination any\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect simple -1 -1 -1 -1\nisolated 4m 0.1\n",
+        "hill",
+    )
+    assert parse_filter(format_filter(flt), "hill") == flt
+    r = resolve_lengths(flt, 2.0)
+    assert r.isolated == (2, 0.1) and connect_reach(r) == 2
+    got = {}
+    for name, inc in (("hill", hill), ("ridge", ridge)):
+        cats = cats_from(inc)
+        got[name] = rim_leak(rim_sets(labels, [1], cats, 2, every=True)[1])
+        got[name + " kept"] = bool(whole_label_rules(labels, cats, r).any())
+    assert got["hill"] == 0.0 and got["hill kept"]
+    assert got["ridge"] > 0.1 and not got["ridge kept"]
+    with pytest.raises(FilterSyntaxError):
+        parse_filter(format_filter(flt).replace("isolated 4m 0.1", "isolated 4m 2"), "hill")
+
+
+def test_ridge_filter_yields_two_round_hills_it_joined_to_the_hill_filter():
+    """Feature family seed 243 as a DTM: a cosine 32 m and a triangle 24 m hill lined up a
+    few metres apart give the ridge filter a cross-section each, which ``join width``
+    joins into one 73 × 15 m ridge; both are hills to the hill filter, and the ridge
+    (``yield hill 1 0.5``) yields to them. The scene's real ridge stays."""
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(243)
+    exact = surface_raster(scene, 0.5)
+    dtm = exact + np.random.default_rng([7, 243]).normal(0, scene.noise, exact.shape)
+    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    hill, ridge = load_filter("hill"), load_filter("ridge")
+    assert ridge.yields == (("hill", 1, 0.5),)
+    cats, stepped = categories_for(dtm, 0.5, [hill, ridge])
+    hills = [t.polygon for t in scene.truth if t.kind == "hill"]
+    real = next(t.polygon for t in scene.truth if t.kind == "ridge")
+
+    def on(g, truth) -> bool:
+        return g.intersection(truth.buffer(2)).area >= 0.5 * g.area
+
+    alone = detect_features(cats, [ridge], tt, 2.0, stepped=stepped).objects
+    assert sum(on(o.geometry, real) for o in alone) == 1
+    over_hills = [o for o in alone if not on(o.geometry, real)]
+    assert len(over_hills) == 1
+    assert all(over_hills[0].geometry.intersects(h) for h in hills)
+    both = detect_features(cats, [hill, ridge], tt, 2.0, stepped=stepped).objects
+    assert [o.kind for o in both].count("hill") == 2
+    kept = [o for o in both if o.kind == "ridge"]
+    assert len(kept) == 1 and on(kept[0].geometry, real)

@@ -438,3 +438,45 @@ def test_enclosed_judges_a_pond_searched_in_parts_by_its_whole_rim() -> None:
         assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
         if sectors == 7:
             assert len(whole) == 1  # the pond
+
+
+def test_isolated_judges_a_hill_searched_in_parts_by_its_whole_rim() -> None:
+    """With a capped window a hill is searched in parts (``Cut``); ``isolated`` then
+    judges the rim of the joined label around its whole centre, so the hills kept are
+    the whole DTM's: the built-in filter's (kept) and one that reads 16 m around and
+    allows none of it to run on (dropped: the far ring reaches the background's waves)."""
+    from terrasift.workers.features import FeatureParams, format_filter, parse_filter
+    from terrasift.workers.features.tiled import search_core
+
+    size = 140.0
+    scene = make_family_scene(0)
+    n = int(size / CELL)
+    c = (np.arange(n) + 0.5) * CELL
+    hill = next(t for t in scene.truth if t.kind == "hill").polygon.centroid
+    x0, y0 = hill.x - size / 2, hill.y - size / 2
+    x, y = np.meshgrid(x0 + c, y0 + size - c)
+    dtm = scene.surface(x.ravel(), y.ravel()).reshape(n, n)
+    dtm = dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
+    t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
+    text = format_filter(resolve_filters("hill")[0])
+    assert "isolated 4m 0.1" in text
+    cp = _measured(dtm)
+    fp = FeatureParams(simplify_tiles=0)
+    for rule, kept in (("isolated 4m 0.1", 1), ("isolated 16m 0.005", 0)):
+        filters = [parse_filter(text.replace("isolated 4m 0.1", rule), "hill")]
+        cats, stepped = categories_for(dtm, CELL, filters, cp)
+        whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
+        assert len(whole) == kept
+        halo, cap = window_reach(filters, cp, CELL) + 8, 16
+        edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
+        pieces = []
+        for i in range(3):
+            for j in range(3):
+                core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
+                pieces += search_core(
+                    lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
+                )[0]
+        cut = [p for p in pieces if p.cut is not None]
+        assert cut and all(p.cut.fall is not None for p in cut)
+        tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
+        assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)

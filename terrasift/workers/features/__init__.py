@@ -324,7 +324,8 @@ def whole_label_rules(
     """Labels without those a rule over the whole label drops: a segment-connected
     object missing too many lines (``connect segment``'s error), one not clear
     enough (``clear-share``), one on ground as busy as itself (``surround``, which
-    needs the filter's ``support``), one not enclosed by rising ground (``enclosed``)."""
+    needs the filter's ``support``), one not enclosed by rising ground (``enclosed``), one
+    that runs on into inclined ground around it (``isolated``)."""
     c = flt.connect
     if flt.rectangle is not None or c is None:
         return labels
@@ -338,13 +339,16 @@ def whole_label_rules(
         labels = _drop_busy(labels, categories, support, *flt.surround)
     if flt.enclosed is not None:
         labels = _drop_open(labels, categories, *flt.enclosed)
+    if flt.isolated is not None:
+        labels = _drop_continued(labels, categories, *flt.isolated)
     return labels
 
 
 Rim = tuple[frozenset[tuple[int, int, int]], float, float, int]
-"""Around a label (or a part of it): the inclined tiles within the distance, as (row,
-column, inclination) over the whole grid, and the sums of its tiles' rows and columns
-and their count (its centre), which add up over the parts of a label."""
+"""Around a label (or a part of it): the inclined tiles within the distance (with
+``every``, all tiles with data, 0 for flat ones), as (row, column, inclination) over the
+whole grid, and the sums of its tiles' rows and columns and their count (its centre),
+which add up over the parts of a label."""
 
 
 def rim_sets(
@@ -353,11 +357,13 @@ def rim_sets(
     categories: Categories,
     distance: int,
     origin: tuple[int, int] = (0, 0),
+    every: bool = False,
 ) -> dict[int, Rim]:
     """Per label in ``found``: its ``Rim`` within ``distance`` tiles (its holes filled,
-    the tiles outside it). ``origin`` offsets a window's rows and columns."""
+    the tiles outside it); ``every`` keeps the flat tiles too. ``origin`` offsets a
+    window's rows and columns."""
     inc = categories.inclination
-    inclined = (inc > 0) & (inc != NODATA)
+    inclined = (inc != NODATA) if every else (inc > 0) & (inc != NODATA)
     g0, c0 = origin
     d = 2 * distance + 1
     boxes = ndimage.find_objects(labels)
@@ -392,11 +398,27 @@ def rim_sectors(rim: Rim) -> int:
     if n == 0 or not tiles:
         return 0
     t = np.array(sorted(tiles), dtype=float)
+    t = t[t[:, 2] > 0]
     bearing = np.arctan2(-(t[:, 0] - sum_r / n), t[:, 1] - sum_c / n)  # rows run south
     rising = (t[:, 2] - 1) * np.pi / 4  # 1 east, 3 north, counter-clockwise
     away = np.abs((rising - bearing + np.pi) % (2 * np.pi) - np.pi) <= np.pi / 4 + 1e-9
     sector = np.floor(((bearing[away] + np.pi / 8) % (2 * np.pi)) / (np.pi / 4)).astype(int)
     return int(np.unique(sector % 8).size)
+
+
+def rim_leak(rim: Rim) -> float:
+    """Share of a rim's tiles (one made with ``every``) that are inclined other than rising
+    toward the centre (their inclination more than 45° from the bearing to it): ground
+    that runs on past the object rather than falling to its foot."""
+    tiles, sum_r, sum_c, n = rim
+    if n == 0 or not tiles:
+        return 0.0
+    t = np.array(sorted(tiles), dtype=float)
+    bearing = np.arctan2(-(t[:, 0] - sum_r / n), t[:, 1] - sum_c / n)  # centre -> tile
+    rising = (t[:, 2] - 1) * np.pi / 4
+    toward = np.abs((rising - bearing) % (2 * np.pi) - np.pi) <= np.pi / 4 + 1e-9
+    leak = (t[:, 2] > 0) & ~toward
+    return float(leak.mean())
 
 
 def _drop_open(
@@ -415,6 +437,22 @@ def _drop_open(
     return np.where(keep[labels], labels, 0).astype(np.int32)
 
 
+def _drop_continued(
+    labels: NDArray[np.int32], categories: Categories, distance: int, share: float
+) -> NDArray[np.int32]:
+    """Remove objects whose rim (``rim_sets`` with every tile) holds more than ``share``
+    of tiles inclined other than rising toward them (``rim_leak``; ``isolated``); reads
+    tiles within ``distance`` of the object only (``connect_reach`` grows its closure)."""
+    n = int(labels.max())
+    if n == 0:
+        return labels
+    rims = rim_sets(labels, list(range(1, n + 1)), categories, distance, every=True)
+    keep = np.zeros(n + 1, dtype=bool)
+    for lab, rim in rims.items():
+        keep[lab] = rim[3] > 0 and rim_leak(rim) <= share
+    return np.where(keep[labels], labels, 0).astype(np.int32)
+
+
 def connect_reach(flt: Filter) -> int:
     """Tiles across which ``filter_labels`` joins two marked tiles into one object, or
     around an object within which it reads the categories (``surround``): an object
@@ -429,6 +467,8 @@ def connect_reach(flt: Filter) -> int:
         reach = max(reach, int(flt.surround[0]))
     if flt.enclosed is not None:
         reach = max(reach, int(flt.enclosed[0]))
+    if flt.isolated is not None:
+        reach = max(reach, int(flt.isolated[0]))
     return reach
 
 

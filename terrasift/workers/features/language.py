@@ -249,6 +249,13 @@ class Filter:
     centred on the eight directions). A pond is a hollow with banks all around; level
     ground between two long rises (a road embankment and a ridge) has banks on two sides."""
 
+    isolated: tuple[Length, float] | None = None
+    """``isolated <distance> <share>``: objects (before joining) around which, within the
+    distance, at most this share of the tiles with data are inclined other than rising
+    toward the object (within 45° of the bearing to its centre). A hill's flanks fade
+    into ground that is flat or still rises toward it; the rounded end of a ridge, closed
+    into an outline of its own, runs on into the ridge's flanks, inclined across it."""
+
     yields: tuple[tuple[str, Length, float], ...] = ()
     """``yield <filter> <distance> <share>`` (each once per filter named): objects of which
     at least this share of the area lies within the distance (tiles of the category tile
@@ -342,6 +349,7 @@ class _Parser:
         share: float | None = None
         yields: list[tuple[str, Length, float]] = []
         enclosed: tuple[Length, int] | None = None
+        isolated: tuple[Length, float] | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -419,6 +427,15 @@ class _Parser:
                     raise self.error("enclosed: at most 8 sectors", no)
                 enclosed = (dist, sectors)
                 steps.append("enclosed")
+            elif key == "isolated":
+                if isolated is not None or len(args) != 2:
+                    raise self.error("isolated takes a distance and a share (0-1) once", no)
+                (dist,) = self.lengths(args[:1], no, "isolated", lo=1)
+                (most,) = self.numbers(args[1:], no, "isolated")
+                if not 0 <= most <= 1:
+                    raise self.error("isolated share is between 0 and 1", no)
+                isolated = (dist, most)
+                steps.append("isolated")
             elif key == "yield":
                 if len(args) != 3 or any(y[0] == args[0] for y in yields):
                     raise self.error(
@@ -472,10 +489,11 @@ class _Parser:
             or clear_share is not None
             or surround is not None
             or enclosed is not None
+            or isolated is not None
         ) and connect is None:
             raise self.error(
-                "aspect, join, fill, solidity, clear-share, surround and enclosed need a"
-                " connect step",
+                "aspect, join, fill, solidity, clear-share, surround, enclosed and isolated"
+                " need a connect step",
                 last_line,
             )
         if yields and connect is None and rect is None:
@@ -498,6 +516,7 @@ class _Parser:
             share,
             surround,
             enclosed,
+            isolated,
             tuple(yields),
         )
 
@@ -716,6 +735,8 @@ def format_filter(f: Filter) -> str:
             out.append(f"surround {_text(f.surround[0])} {f.surround[1]:g}")
         elif step == "enclosed" and f.enclosed is not None:
             out.append(f"enclosed {_text(f.enclosed[0])} {f.enclosed[1]}")
+        elif step == "isolated" and f.isolated is not None:
+            out.append(f"isolated {_text(f.isolated[0])} {f.isolated[1]:g}")
         elif step == "yield":
             out += [f"yield {k} {_text(d)} {v:g}" for k, d, v in f.yields]
     return "\n".join(out) + "\n"
@@ -741,6 +762,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("surround")
     if f.enclosed is not None:
         steps.append("enclosed")
+    if f.isolated is not None:
+        steps.append("isolated")
     if f.yields:
         steps.append("yield")
     return tuple(steps)
@@ -848,6 +871,9 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
     enclosed = f.enclosed
     if enclosed is not None:
         enclosed = (max(1, t(enclosed[0], "size")), enclosed[1])
+    isolated = f.isolated
+    if isolated is not None:
+        isolated = (max(1, t(isolated[0], "size")), isolated[1])
     return replace(
         f,
         segments=tuple(segs),
@@ -857,4 +883,5 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         join_aligned=aligned,
         surround=surround,
         enclosed=enclosed,
+        isolated=isolated,
     )

@@ -61,6 +61,7 @@ from terrasift.workers.features import (
     filter_labels,
     grid_key,
     object_options,
+    rim_leak,
     rim_sectors,
     rim_sets,
     whole_label_rules,
@@ -101,6 +102,8 @@ class Cut:
     rim: Rim | None = None
     """``enclosed``: the part's ``Rim`` (the union of the parts' rims, less the tiles of
     the label itself, is the whole label's)."""
+    fall: Rim | None = None
+    """``isolated``: the part's ``Rim`` with every tile, joined as ``rim``."""
 
 
 @dataclass(frozen=True)
@@ -601,6 +604,11 @@ def _cut_pieces(
         if flt.enclosed is not None
         else {}
     )
+    falls = (
+        rim_sets(raw_mine, found.tolist(), cats, int(flt.isolated[0]), origin, every=True)
+        if flt.isolated is not None
+        else {}
+    )
     counts = np.bincount(mine.ravel(), minlength=n + 1)
     ids, first = np.unique(mine.ravel(), return_index=True)
     key = dict(zip(ids.tolist(), first.tolist(), strict=True))
@@ -626,6 +634,7 @@ def _cut_pieces(
             lines,
             rings.get(lab),
             rims.get(lab),
+            falls.get(lab),
         )
         fr, fc = divmod(key[lab], labels.shape[1])
         feat = Feature(flt.name, part.polygon, 0.0, 0.0, int(counts[lab]))
@@ -724,21 +733,21 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
             if len(busy) > flt.surround[1] * len(around):
                 continue
         rims = [x.rim for x in cuts if x.rim is not None]
-        if flt.enclosed is not None and rims and len(rims) == len(cuts):
-            inside = _without_holes(unary_union([x.polygon for x in cuts]))
-            around_t = sorted(frozenset[tuple[int, int, int]]().union(*(v[0] for v in rims)))
-            if around_t:  # less the label's own tiles (another core's part's ring holds them)
-                xy = np.array(around_t, dtype=float)
-                out_of = ~shapely.contains_xy(inside, xy[:, 1] + 0.5, xy[:, 0] + 0.5)
-                around_t = [v for v, o in zip(around_t, out_of.tolist(), strict=True) if o]
-            rim: Rim = (
-                frozenset(around_t),
-                math.fsum(v[1] for v in rims),
-                math.fsum(v[2] for v in rims),
-                sum(v[3] for v in rims),
-            )
-            if rim_sectors(rim) < flt.enclosed[1]:
-                continue
+        if (
+            flt.enclosed is not None
+            and rims
+            and len(rims) == len(cuts)
+            and rim_sectors(_joined_rim(cuts, rims)) < flt.enclosed[1]
+        ):
+            continue
+        falls = [x.fall for x in cuts if x.fall is not None]
+        if (
+            flt.isolated is not None
+            and falls
+            and len(falls) == len(cuts)
+            and rim_leak(_joined_rim(cuts, falls)) > flt.isolated[1]
+        ):
+            continue
         lines = [x.lines for x in cuts if x.lines is not None]
         if c is not None and lines and len(lines) == len(cuts):
             rows = frozenset[int]().union(*(v[0] for v in lines))
@@ -769,6 +778,23 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
             )
         )
     return out
+
+
+def _joined_rim(cuts: list[Cut], rims: list[Rim]) -> Rim:
+    """The whole label's ``Rim`` from its parts' (``rims``, one per part in ``cuts``): the
+    union of their tiles less the label's own (another core's part's ring holds them)."""
+    inside = _without_holes(unary_union([x.polygon for x in cuts]))
+    around_t = sorted(frozenset[tuple[int, int, int]]().union(*(v[0] for v in rims)))
+    if around_t:
+        xy = np.array(around_t, dtype=float)
+        out_of = ~shapely.contains_xy(inside, xy[:, 1] + 0.5, xy[:, 0] + 0.5)
+        around_t = [v for v, o in zip(around_t, out_of.tolist(), strict=True) if o]
+    return (
+        frozenset(around_t),
+        math.fsum(v[1] for v in rims),
+        math.fsum(v[2] for v in rims),
+        sum(v[3] for v in rims),
+    )
 
 
 def _ring_sets(
