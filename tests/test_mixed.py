@@ -357,6 +357,27 @@ def test_grid_marks_ground_blended_with_nothing_at_the_range_limit():
     assert near[last].mean() < 0.05 and near.mean() < 0.01
 
 
+def test_grid_marks_every_row_a_wide_footprint_blends_at_the_range_limit():
+    # A footprint of three steps over grazing ground ending at the range limit: every
+    # beam whose footprint straddles the limit answers from its nearer part, so the
+    # last three rows lie off the ground (3.6-7.7 cm above it), not only the last one.
+    s = make_scan(
+        step_deg=0.15,
+        footprint_steps=3.0,
+        n_boards=0,
+        n_poles=0,
+        azimuth_deg=(-10.0, 10.0),
+        elevation_deg=(-20.0, 0.0),
+        max_range=20.0,
+        range_noise=0.003,
+        seed=3,
+    )
+    marked = mark_mixed(s.xyz, MixedParams(footprint=0.45), s.origin, gps_time=s.gps_time).marked
+    assert s.is_mixed.sum() > 300
+    assert marked[s.is_mixed].mean() > 0.95
+    assert marked[~s.is_mixed].mean() < 0.005
+
+
 @pytest.fixture(scope="module")
 def near_scan():
     # 1 cm coordinates at a 0.06° step with every object within 8 m: the LAS scale blurs

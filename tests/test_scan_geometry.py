@@ -46,6 +46,35 @@ def test_stated_footprint_and_scale_are_kept():
     assert g.footprint_steps == pytest.approx(3.0, rel=0.02)
 
 
+def test_footprint_from_edges_away_from_the_middle_sector(monkeypatch):
+    # A position standing beside a scene (another position's) sees its objects at one
+    # side of a wide view; the middle sector of the sample holds ground only. The
+    # footprint is measured on sectors spread over the whole scan.
+    from terrasift.synthetic.scan import Board
+    from terrasift.workers import scan_geometry as sg
+
+    def facing(az_deg: float, dist: float, half: float, z1: float) -> Board:
+        a = np.radians(az_deg)
+        return Board(dist * np.cos(a), dist * np.sin(a), -np.cos(a), -np.sin(a), half, 0.0, z1)
+
+    boards = [facing(-33.0, 8.0, 0.4, 1.0), facing(-25.0, 7.0, 0.3, 1.2)]
+    walls = [facing(-30.0, 9.5, 1.6, 2.5)]
+    s = make_scan(
+        step_deg=0.3,
+        footprint_steps=2.0,
+        azimuth_deg=(-40.0, 40.0),
+        elevation_deg=(-20.0, 10.0),
+        max_range=20.0,
+        scene=(boards, [], walls),
+        seed=2,
+    )
+    monkeypatch.setattr(sg, "MAX_SAMPLE", 4_000)
+    assert len(s) > 4 * sg.MAX_SAMPLE
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None and not g.how["footprint"].startswith("no mixing"), g.how
+    assert 1.6 < g.footprint_steps < 2.4, g
+
+
 def test_coordinate_scale():
     rng = np.random.default_rng(0)
     xyz = rng.uniform(0, 50, (5000, 3)) + [500_000.0, 5_400_000.0, 100.0]
@@ -183,5 +212,7 @@ def test_geometry_does_not_depend_on_point_order_and_job_takes_the_stage_sector(
         sg.MAX_SAMPLE = old
         js.MAX_SAMPLE = old
     assert g.n_points == a.n_points == 16_000
+    # the footprint on the same sectors spread over the scan
+    assert g.footprint_steps == pytest.approx(a.footprint_steps, rel=1e-5)
     assert g.range_sigma == pytest.approx(a.range_sigma, rel=1e-4)
     assert g.step_az == pytest.approx(a.step_az, rel=1e-5)

@@ -8,8 +8,9 @@ few edges or nothing at all and falls back to assumed values, and neighbouring
 blocks measure slightly different steps. Here every scan position is measured
 once after sharding, on the same contiguous azimuth sector around its median
 azimuth that the stage alone would take from the whole scan (``MAX_SAMPLE``
-points), read from the core records of every shard; ``plan.json`` keeps the
-result and every block task passes it to the stage.
+points), and its footprint on the same sectors spread over all azimuths the stage
+takes (``ramp_sectors``), read from the core records of every shard; ``plan.json``
+keeps the result and every block task passes it to the stage.
 """
 
 from __future__ import annotations
@@ -24,7 +25,12 @@ from numpy.typing import NDArray
 
 from terrasift.tiling.blocks import shard_dtype
 from terrasift.workers.mixed import MixedParams
-from terrasift.workers.scan_geometry import MAX_SAMPLE, ScanGeometry, measure_scan_geometry
+from terrasift.workers.scan_geometry import (
+    MAX_SAMPLE,
+    ScanGeometry,
+    measure_scan_geometry,
+    ramp_sectors,
+)
 
 AZ_BINS = 1 << 16  # azimuth histogram bins over the circle (0.0055° each)
 
@@ -59,13 +65,25 @@ def measure_job_geometry(
         for s in np.unique(ids[ids < k]):
             sel = rec[ids == s]
             hist[s] += np.bincount(_az_bin(sel, o[s]), minlength=AZ_BINS)
-    lo = np.zeros(k, dtype=np.int64)
-    hi = np.full(k, AZ_BINS - 1, dtype=np.int64)
+    # rank ranges (by azimuth) of the points taken: the middle sector of MAX_SAMPLE (steps,
+    # noise) and the sectors the footprint is measured on, as the stage alone takes them
+    ranges: list[list[tuple[int, int]]] = []
+    bins: list[list[tuple[int, int]]] = []
     for s in range(k):
+        total = int(hist[s].sum())
+        mid = (total // 2 - MAX_SAMPLE // 2, total // 2 - MAX_SAMPLE // 2 + 2 * (MAX_SAMPLE // 2))
+        want = [(0, total) if total <= MAX_SAMPLE else mid, *ramp_sectors(total)]
         cum = np.cumsum(hist[s])
-        half = cum[-1] / 2.0
-        lo[s] = np.searchsorted(cum, half - MAX_SAMPLE / 2, side="left")
-        hi[s] = np.searchsorted(cum, half + MAX_SAMPLE / 2, side="left")
+        ranges.append(want)
+        bins.append(
+            [
+                (
+                    int(np.searchsorted(cum, a, side="right")),
+                    int(np.searchsorted(cum, max(b - 1, a), side="right")),
+                )
+                for a, b in want
+            ]
+        )
     # the field of view: azimuths counted from inside the widest empty arc of bins, so
     # its first and last return are those the stage alone finds on the whole scan
     outside = np.array([_empty_arc(hist[s]) for s in range(k)])
@@ -73,7 +91,7 @@ def measure_job_geometry(
     to_last = np.full(k, -np.inf)
     fov = np.zeros((k, 4))
     fov[:, 2], fov[:, 3] = np.inf, -np.inf
-    pts: list[list[NDArray[np.float64]]] = [[] for _ in range(k)]
+    pts: list[list[list[NDArray[np.float64]]]] = [[[] for _ in ranges[s]] for s in range(k)]
     for rec, ids in _scan_records(files, k):
         for s in np.unique(ids[ids < k]):
             sel = rec[ids == s]
@@ -90,20 +108,27 @@ def measure_job_geometry(
             fov[s, 2] = np.minimum(fov[s, 2], el.min())
             fov[s, 3] = np.maximum(fov[s, 3], el.max())
             b = _az_bin(sel, o[s])
-            sel = sel[(b >= lo[s]) & (b <= hi[s])]
-            pts[s].append(np.column_stack([sel["x"], sel["y"], sel["z"]]))
+            for q, (lo, hi) in enumerate(bins[s]):
+                part = sel[(b >= lo) & (b <= hi)]
+                pts[s][q].append(np.column_stack([part["x"], part["y"], part["z"]]))
     out: list[dict[str, Any] | None] = []
     for s in range(k):
-        xyz = np.concatenate(pts[s]) if pts[s] else np.zeros((0, 3))
-        total = int(hist[s].sum())
-        if total > MAX_SAMPLE:
-            # the very points the stage alone takes from the whole scan: the middle
-            # MAX_SAMPLE by azimuth rank (those before bin lo are counted in the histogram)
+        # each range's points: those in its bins sorted by azimuth, cut at its ranks
+        # (the points before its first bin are counted in the histogram)
+        cut = []
+        for q, (start, stop) in enumerate(ranges[s]):
+            xyz = np.concatenate(pts[s][q]) if pts[s][q] else np.zeros((0, 3))
             rel = xyz - o[s]
             order = np.argsort(np.arctan2(rel[:, 1], rel[:, 0]), kind="stable")
-            first = total // 2 - MAX_SAMPLE // 2 - int(hist[s][: lo[s]].sum())
-            xyz = xyz[order[max(first, 0) : max(first, 0) + 2 * (MAX_SAMPLE // 2)]]
-        geo = measure_scan_geometry(xyz - o[s], footprint=params.footprint, absolute=xyz)
+            first = start - int(hist[s][: bins[s][q][0]].sum())
+            cut.append(xyz[order[max(first, 0) : max(first, 0) + (stop - start)]])
+        xyz = cut[0]
+        geo = measure_scan_geometry(
+            xyz - o[s],
+            footprint=params.footprint,
+            absolute=xyz,
+            sectors=[c - o[s] for c in cut[1:]],
+        )
         if geo is None:
             out.append(None)
             continue

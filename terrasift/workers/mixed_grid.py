@@ -336,9 +336,11 @@ class _Line:
         self.R: dict[int, NDArray[np.float64]] = {0: r_pad[:n]}
         self.V: dict[int, NDArray[np.float64]] = {0: inv_pad[:n]}
         self.C: dict[int, NDArray[np.float64]] = {0: across}  # range change per beam across
+        self.J: dict[int, NDArray[np.int64]] = {}  # index of the return there (n: none)
         for k in range(1, reach + 1):
             for sd in (1, -1):
                 j = find(key + sd * k * stride)
+                self.J[sd * k] = j
                 self.R[sd * k] = r_pad[j]
                 self.V[sd * k] = inv_pad[j]
                 self.C[sd * k] = c_pad[j]
@@ -448,12 +450,22 @@ def _mixed_along(
     # the range limit), farther on an approaching one. A blend with nothing.
     # p must not lie on its inner neighbour's surface (a board's top row with the ground
     # below it is in front of the ground's continuation, yet on the board).
+    # With a footprint of more than a step the ramp into nothing spans several beams
+    # (grazing ground at the range limit: every beam whose footprint straddles the limit
+    # answers from its nearer part, and a beam answers while any of it meets the
+    # ground): a beam off the surface it ends whose next beam outwards is such a blend
+    # is one too, up to a footprint of beams.
+    chain = int(np.ceil(s.footprint))
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             inside = (pos + sd >= extent[0]) & (pos + sd <= extent[1])
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
-            between |= open_ & off_end[-sd] & ~own
+            off = off_end[-sd] & ~own
+            ends = open_ & off
+            for _ in range(1, chain):
+                ends |= off & np.append(ends, False)[line.J[sd]]
+            between |= ends
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
     between |= _bleeding(R, V, r, s, step, pos, extent)

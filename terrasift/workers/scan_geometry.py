@@ -21,12 +21,15 @@ beams on (locally) regular angular lines.
 - Footprint: the scan lines are binned on the measured azimuth grid; at each
   range edge between two surfaces closer than ``max_gap`` the number of beams
   whose range lies between the two (the ramp) is counted; the footprint is the
-  mean ramp length in steps over the edges that show a ramp (at least one step).
+  mean ramp length in steps over the edges that show a ramp (at least one step),
+  pooled over up to ``RAMP_SECTORS`` sectors of ``MAX_SAMPLE`` returns spread over
+  the whole scan (the other values come from the middle sector alone).
   Stated when the caller knows it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -35,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
+RAMP_SECTORS = 8  # most azimuth sectors of MAX_SAMPLE points the footprint is measured on
 QUERY = 12_000  # of those, points whose neighbours give the spacing and noise medians
 REGULAR = 0.5  # share of neighbour spacings within 25 % of the step for a scan grid
 
@@ -93,11 +97,14 @@ def measure_scan_geometry(
     las_scale: float | None = None,
     absolute: NDArray[np.float64] | None = None,
     max_gap: float = 2.5,
+    sectors: Sequence[NDArray[np.float64]] | None = None,
 ) -> ScanGeometry | None:
     """Measure the geometry of the points ``rel`` (relative to their sensor).
 
     ``absolute`` (the same points in file coordinates) is where the LAS scale is
     read; ``las_scale`` and ``footprint`` (degrees) override the measurements.
+    ``sectors`` (points relative to the sensor) are the azimuth sectors the footprint
+    is measured on (``ramp_sectors``); None cuts them from ``rel``, the whole scan.
     Returns None when there are too few points to measure anything.
     """
     rel = np.asarray(rel, dtype=np.float64)
@@ -116,6 +123,12 @@ def measure_scan_geometry(
 
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
+    if sectors is None:
+        # the footprint on sectors spread over the whole scan, not the sample's middle one:
+        # a position looking past a scene another position stands in front of may show
+        # no edge there (edges may lie anywhere)
+        o = np.argsort(az, kind="stable")
+        sectors = [rel[o[a:b]] for a, b in ramp_sectors(az.size)]
     az, el, r = _sector(az, el, r)
     # one order whatever order the points came in (a job reads them block by block):
     # the samples drawn below then depend on the points alone
@@ -126,20 +139,24 @@ def measure_scan_geometry(
     # step the nearer returns blur the spacings past any regular grid), then on every
     # point whose quantisation angle stays under a tenth of the step found.
     for share in (0.5, 0.25, 0.1):
-        far = r >= np.quantile(r, 1.0 - share)
+        r_far = float(np.quantile(r, 1.0 - share))
+        far = r >= r_far
         sa, se = _steps(az[far], el[far])
         if np.isfinite(sa) and np.isfinite(se):
             break
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
+    sharp = 0.0  # returns nearer than this blur past a tenth of a step
     if las_scale > 0:
         ok = las_scale / np.sqrt(12.0) / r < 0.1 * min(sa, se)
         if np.count_nonzero(ok) >= 50:
+            sharp = las_scale / np.sqrt(12.0) / (0.1 * min(sa, se))
             sa2, se2 = _steps(az[ok], el[ok])
             if np.isfinite(sa2) and np.isfinite(se2):
                 sa, se = sa2, se2
         else:
             ok = far
+            sharp = r_far
     else:
         ok = np.ones(r.size, dtype=bool)
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
@@ -165,16 +182,16 @@ def measure_scan_geometry(
         how["footprint"] = "stated"
     else:
         jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
-        steps = _ramp_steps(az[ok], el[ok], r[ok], sa, se, jump, max_gap)
+        lines = [_angles(v) for v in sectors]
+        steps = _ramp_steps([(a, e, d) for a, e, d in lines], sa, se, jump, max_gap, sharp)
         on = ""
         if not np.isfinite(steps) and las_scale > 0:
             # Coarse coordinates at a fine step: too few sharp returns show an edge (1 cm at
             # 0.05-0.08°), so returns blurred by up to 0.15, then 0.2 step take part (those
             # the blur put off their beam are left out of the lines).
-            q = blur / min(sa, se)
             for lim in (0.15, 0.2):
-                sel = q < lim
-                steps = _ramp_steps(az[sel], el[sel], r[sel], sa, se, jump, max_gap)
+                near = las_scale / np.sqrt(12.0) / (lim * min(sa, se))
+                steps = _ramp_steps(lines, sa, se, jump, max_gap, near)
                 if np.isfinite(steps):
                     on = f", on returns whose quantisation angle is under {lim:g} step"
                     break
@@ -329,17 +346,58 @@ def _range_sigma(az, el, r, sa, se) -> float:
     return float(1.4826 * np.median(np.abs(res - np.median(res))))
 
 
-def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
-    """Mean number of beams blended between two surfaces at azimuth edges (NaN if none)."""
-    if az.size < 3:
+def ramp_sectors(n: int) -> list[tuple[int, int]]:
+    """Ranks (by azimuth) of the returns in the sectors the footprint is measured on:
+    the scan cut into contiguous sectors of at most MAX_SAMPLE returns, up to
+    RAMP_SECTORS of them spread evenly over it (a job takes the same ranks)."""
+    m = max(1, int(np.ceil(n / MAX_SAMPLE)))
+    bounds = np.linspace(0, n, m + 1).astype(np.int64)
+    pick = np.unique(np.round(np.linspace(0, m - 1, min(m, RAMP_SECTORS))).astype(np.int64))
+    return [(int(bounds[i]), int(bounds[i + 1])) for i in pick]
+
+
+def _angles(rel: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+    """Azimuth, elevation and range of points relative to the sensor."""
+    r = np.linalg.norm(rel, axis=1)
+    keep = r > 1e-6
+    rel, r = rel[keep], r[keep]
+    return np.arctan2(rel[:, 1], rel[:, 0]), np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0)), r
+
+
+def _ramp_steps(
+    sectors: Sequence[tuple[NDArray, NDArray, NDArray]],
+    sa: float,
+    se: float,
+    jump: float,
+    max_gap: float,
+    nearest: float = 0.0,
+) -> float:
+    """Mean number of beams blended between two surfaces at azimuth edges (NaN if fewer
+    than 5 edges show one), pooled over azimuth sectors (each with its own grid phase,
+    so a step refined on one sector does not drift off the lines of a far one); returns
+    nearer than ``nearest`` (blurred by the LAS scale) are left out."""
+    found = []
+    for az, el, r in sectors:
+        sel = r >= nearest
+        found.append(_ramps(az[sel], el[sel], r[sel], sa, se, jump, max_gap))
+    ramps = np.concatenate(found) if found else np.zeros(0)
+    if ramps.size < 5:
         return float("nan")
+    return float(np.mean(ramps))
+
+
+def _ramps(az, el, r, sa, se, jump: float, max_gap: float) -> NDArray[np.float64]:
+    """Numbers of beams blended between two surfaces at the azimuth edges of one sector."""
+    none = np.zeros(0)
+    if az.size < 3:
+        return none
     phase_a = _phase(az, sa)
     phase_e = _phase(el, se)
     ca = np.round((az - phase_a) / sa).astype(np.int64)
     ce = np.round((el - phase_e) / se).astype(np.int64)
     on_grid = (np.abs((az - phase_a) / sa - ca) < 0.25) & (np.abs((el - phase_e) / se - ce) < 0.25)
     if np.count_nonzero(on_grid) < 0.8 * az.size:
-        return float("nan")  # not a regular grid: ramps cannot be followed along lines
+        return none  # not a regular grid: ramps cannot be followed along lines
     ca, ce, r = ca[on_grid], ce[on_grid], r[on_grid]
     o = np.lexsort((ca, ce))
     ca, ce, r = ca[o], ce[o], r[o]
@@ -352,7 +410,7 @@ def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     run_id = np.cumsum(start) - 1
     ids = run_id[big]
     if ids.size == 0:
-        return float("nan")
+        return none
     length = np.bincount(ids)
     total = np.abs(np.bincount(ids, weights=J[big]))
     first = np.flatnonzero(start)
@@ -367,9 +425,7 @@ def _ramp_steps(az, el, r, sa, se, jump: float, max_gap: float) -> float:
     # or nothing) shared the footprint and the nearest surface answered alone, which
     # says nothing about the footprint's width (counting them ran 10–55 % short).
     edges = ok_flank & (total > 0.2) & (total < max_gap) & (length >= 2) & (length <= 8)
-    if np.count_nonzero(edges) < 5:
-        return float("nan")
-    return float(np.mean(length[edges] - 1))
+    return (length[edges] - 1).astype(np.float64)
 
 
 def refine_step(
