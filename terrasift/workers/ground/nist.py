@@ -92,6 +92,7 @@ from terrasift.workers.bins import (
 )
 from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.growth import grow_ground
+from terrasift.workers.ground.halfdisc import half_disc_vegetation
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
 from terrasift.workers.ground.plateaus import walled_islands, walled_plateaus
 from terrasift.workers.ground.raised import raised_segments
@@ -349,6 +350,20 @@ class NistParams(StageParams):
     """…sectors of the isolated-shrub test."""
     rough_near: int = Field(3, ge=1, le=16)
     """…nearest neighbours per sector it looks at."""
+    rough_half: int = Field(0, ge=0, le=64)
+    """Half-disc test (``halfdisc.py``; 0: off): after the roughness test, a ground point
+    is also taken back when it stands above every well-fitting plane of its ``rough_half``
+    nearest sure ground points (all of them, and each half-disc of them) by more than
+    ``max(rough_half_floor, rough_half_factor`` × its deviation or the roughness around); near a slope
+    break one half lies on the point's own facet and fits it with the ground's noise. Off:
+    real ground that bends within a few metres stands as high (README *Measured*)."""
+    rough_half_rounds: int = Field(5, ge=1, le=20)
+    """…the sure ground: the ground left by the roughness test, cleaned this many times
+    less one by the same test held to half the factor and floor."""
+    rough_half_factor: float = Field(4.0, gt=0, le=20)
+    """…deviations of the plane above which a point is vegetation."""
+    rough_half_floor: float = Field(0.1, ge=0, le=5)
+    """…and never less than this many metres."""
     rough_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the roughness test runs (4: up to about 1.8
     points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
@@ -748,7 +763,7 @@ def _rough(
     (``roughness.py``), on sparse data only (``per_side``: final cell / point spacing)."""
     if params.rough_k == 0 or per_side**2 >= params.rough_points:
         return np.zeros(labels.shape[0], dtype=bool)
-    return rough_points(
+    high = rough_points(
         local,
         labels,
         params.rough_k,
@@ -760,6 +775,16 @@ def _rough(
         sectors=params.rough_sectors,
         nearest=params.rough_near,
     )
+    if params.rough_half > 0:
+        high |= half_disc_vegetation(
+            local,
+            labels & ~high,
+            params.rough_half,
+            params.rough_half_rounds,
+            params.rough_half_factor,
+            params.rough_half_floor,
+        )
+    return high
 
 
 def _final(

@@ -1,0 +1,129 @@
+"""Low vegetation near slope breaks: heights over half-disc planes of sure ground.
+
+The roughness test (``roughness.py``) holds a point to a threshold that scales
+with the deviation of its few tens of ground neighbours about their plane. Near
+an embankment's edge or a cutting those neighbours lie on two facets, their
+deviation grows with the break, and shrubs beside the break pass. Here a point
+is judged against a few (``k``) of its nearest *sure* ground points (the ground
+left after the roughness test) through several planes: the plane of all ``k``,
+and the plane of each half-disc (the neighbours on one side of a line through
+the point, ``halves`` directions). Near a break one half lies on the point's own
+facet, and its plane fits that facet with the ground's own deviation, not the
+break's. A plane is *good* when it holds at least ``least`` points and its
+deviation is within ``spread`` times the least deviation among the point's
+planes plus ``floor`` (planes across a break fit worse and are not used).
+
+A point is vegetation when it stands above every good plane by more than
+``max(floor, factor x d)``, d the larger of that plane's deviation and the
+ground's roughness around the point (the median of its sure neighbours' best
+deviations: a facet's, not a break's). A crest point lies on the
+plane of the half on the crest; a point on an embankment's side lies under the
+plane of the half on the top; both are kept. A shrub on a flat beside a break
+stands above the plane of the flat and is not under any good plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+
+def _planes(
+    d: NDArray[np.float64], w: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per plane and row: height of the origin above the weighted LS plane of offsets
+    ``d`` (m, k, 3) with weights ``w`` (p, m, k), the residual deviation (n − 3 degrees
+    of freedom) and the count of points; each (p, m). Sums of products, one pass."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    prod = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z, z * z], -1)
+    s = np.moveaxis(np.matmul(np.moveaxis(w, 0, 1), prod), 1, 0)
+    n, sx, sy, sxx, sxy, syy, sz, sxz, syz, szz = np.moveaxis(s, -1, 0)
+    ata = np.stack(
+        [np.stack([n, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)],
+        -2,
+    )
+    atz = np.stack([sz, sxz, syz], -1)
+    coef = np.linalg.solve(ata + 1e-9 * np.eye(3), atz[..., None])[..., 0]
+    ssr = np.maximum(szz - np.sum(coef * atz, axis=-1), 0.0)
+    return -coef[..., 0], np.sqrt(ssr / np.maximum(n - 3.0, 1.0)), n
+
+
+def half_disc_high(
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    sure: NDArray[np.bool_],
+    k: int = 12,
+    halves: int = 8,
+    least: int = 5,
+    factor: float = 4.0,
+    floor: float = 0.1,
+    spread: float = 2.0,
+    noise: float = 0.25,
+    chunk: int = 20_000,
+) -> NDArray[np.bool_]:
+    """The points of ``ground`` standing above every good plane of their ``k`` nearest
+    ``sure`` points (all ``k``, and each of ``halves`` half-discs) by more than
+    ``max(floor, factor x max(deviation, roughness around))`` (module doc)."""
+    ground = np.asarray(ground, dtype=bool)
+    sure = np.asarray(sure, dtype=bool) & ground
+    out = np.zeros(ground.shape[0], dtype=bool)
+    g, s = np.flatnonzero(ground), np.flatnonzero(sure)
+    if s.size <= k + 1:
+        return out
+    spts = np.take(xyz, s, axis=0)
+    tree = cKDTree(spts[:, :2])
+    pos = np.full(ground.shape[0], -1)
+    pos[s] = np.arange(s.size)
+    ang = 2 * np.pi * np.arange(halves) / halves
+    u = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # (halves, 2)
+    planes = halves + 1
+    hh = np.zeros((planes, g.size))
+    dd = np.zeros((planes, g.size))
+    good = np.zeros((planes, g.size), dtype=bool)
+    near = np.zeros((g.size, k), dtype=np.int64)
+    best = np.full(g.size, np.inf)
+    for a in range(0, g.size, chunk):
+        i = g[a : a + chunk]
+        b = a + i.size
+        _, nb = tree.query(xyz[i, :2], k=k + 1)
+        # Leave the point itself out when it is sure (then it is its own nearest).
+        own = nb[:, 0] == pos[i]
+        nb = np.where(own[:, None], nb[:, 1:], nb[:, :-1])
+        near[a:b] = nb
+        d = spts[nb] - xyz[i][:, None, :]
+        side = np.einsum("mkj,hj->hmk", d[..., :2], u)
+        w = np.concatenate([np.ones((1, i.size, k)), (side >= 0).astype(np.float64)])
+        hh[:, a:b], dd[:, a:b], nn = _planes(d, w)
+        enough = nn >= least
+        best[a:b] = np.min(np.where(enough, dd[:, a:b], np.inf), axis=0)
+        good[:, a:b] = enough & (dd[:, a:b] <= spread * np.maximum(best[a:b], noise * floor))
+    # The ground's own roughness around each point: the median of its sure neighbours'
+    # best-fitting deviations (a facet's, not a break's), so rough ground is held to it.
+    at = np.full(ground.shape[0], -1)
+    at[g] = np.arange(g.size)
+    around = np.median(np.where(np.isfinite(best), best, 0.0)[at[s[near]]], axis=1)
+    thr = np.maximum(floor, factor * np.maximum(dd, around))
+    above = hh > thr
+    judged = np.any(good, axis=0)
+    out[g] = judged & np.all(above | ~good, axis=0)
+    return out
+
+
+def half_disc_vegetation(
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    k: int,
+    rounds: int,
+    factor: float,
+    floor: float,
+) -> NDArray[np.bool_]:
+    """The points of ``ground`` that ``half_disc_high`` finds above the planes of the
+    sure ground: ``ground`` cleaned ``rounds`` − 1 times by the same test held to half
+    the ``factor`` and ``floor`` (a sure point may be lost, a shrub return among them
+    lifts the planes of its neighbours), then every point of ``ground`` judged."""
+    ground = np.asarray(ground, dtype=bool)
+    sure = ground.copy()
+    for _ in range(rounds - 1):
+        sure &= ~half_disc_high(xyz, ground, sure, k, factor=0.5 * factor, floor=0.5 * floor)
+    return half_disc_high(xyz, ground, sure, k, factor=factor, floor=floor)
