@@ -138,6 +138,11 @@ class Categories:
     """1 where the tile is not flat by more than the slope noise explains
     (``CategoryParams.clear_slope_noise``), else 0; the filters' ``clear``. None: every
     tile that is not flat."""
+    rise: NDArray[np.uint8] | None = None
+    """Direction (1 E … 8 SE, as ``inclination``) the tile's plane rises toward, flat or
+    not, where its gradient exceeds what the slope noise explains
+    (``CategoryParams.clear_slope_noise`` σ_g), else 0; the filters' ``rise`` (which way
+    a flat tile that is not level slopes). None: the filters take ``inclination``."""
 
     @property
     def step(self) -> int:
@@ -306,6 +311,8 @@ def category_grids(
         clear = (~flat & (relief >= clear_height)).astype(np.uint8)
         rise = np.hypot(gx, gy) * k * cell
         inclination = _direction_code(gx, gy)
+        rise_dir = inclination.copy()
+        rise_dir[np.hypot(gx, gy) <= params.clear_slope_noise * sigma_g] = 0
         # A one-plane tile that is not flat always has a direction; an edged tile only
         # when its mean plane rises enough (a symmetric V or Λ has none).
         inclination[two & (rise < params.incline_height)] = 0
@@ -340,7 +347,7 @@ def category_grids(
         orientation[flat] = 0
         state[flat] = 0
         height10, relief10 = dm(height), dm(relief)
-        for band in (inclination, orientation, state, height10, relief10, clear):
+        for band in (inclination, orientation, state, height10, relief10, clear, rise_dir):
             band[nodata] = NODATA
         shape = (rows, cols)
         out.append(
@@ -356,6 +363,7 @@ def category_grids(
                 None if s == k else s,
                 lying10.reshape(shape),
                 clear.reshape(shape),
+                rise_dir.reshape(shape),
             )
         )
     return out
@@ -382,6 +390,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         first.step_cells,
         None if first.lying10 is None else cat("lying10"),
         None if first.clear is None else cat("clear"),
+        None if first.rise is None else cat("rise"),
     )
 
 
