@@ -13,7 +13,9 @@ the tiles into arrays. The result per tile:
   counter-clockwise from east) the mean plane rises toward;
 - orientation: the edge ``ab`` (a < b), an extreme point ``aa`` or 0;
 - state: 0 one plane, 1 convex edge (ridge-like), 2 concave edge (ditch-like);
-- height10: (max − min) inside the tile in decimetres.
+- height10: (max − min) inside the tile in decimetres;
+- rise 0–8 (``Categories.rise``): the direction the plane rises toward, flat or not,
+  where its gradient exceeds twice the slope noise (which way a flat tile slopes).
 
 Noise. A DTM with a few centimetres of noise has tiles whose max − min is
 noise rather than relief (16 cells of 4 cm noise span ~14 cm), so flatness is
