@@ -25,6 +25,10 @@ Parts (``--part``):
     ground filter again (the job's DTM is the same; categories and filters are
     run on the whole DTM, as the job does on a scene narrower than a feature
     square).
+``rerun-sparse``, ``rerun-rough``
+    ``rerun`` on the DTMs kept by ``sparse`` / ``rough`` runs with ``--keep DIR``
+    (``--sparse-seeds`` / ``--rough-seeds``); every detection but a flat area on
+    naturally flat ground is false.
 ``sparse``
     The counter-case family (``make_sparse_scene``): plain fields of 0-12 %
     scanned at 0.15-0.6 pulses/m^2 with 3-10 cm of noise, no object, through
@@ -56,7 +60,8 @@ precision = correct detections / detections, per scene; the table gives the
 worst case, the 10th percentile and the median over scenes holding the kind
 (scenes with no detection of a kind have no precision for it).
 
-Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept rerun sparse rough dtm scene speed]
+Run: PYTHONPATH=. python benchmarks/features_accuracy.py [--part job kept rerun rerun-sparse rerun-rough
+     sparse rough dtm scene speed]
      [--seeds 32 .. 47] [--tune-seeds 100 .. 111] [--rough-seeds 0 .. 11] [--workers 1]
 """
 
@@ -270,16 +275,21 @@ def rerun_kept_scene(seed: int, keep: Path, make=make_family_scene) -> tuple[str
     return scene.describe(), score_scene(_shifted_truth(scene), dets, flat, tt)
 
 
-def part_rerun(seeds: list[int], keep: Path) -> None:
+def part_rerun(seeds: list[int], keep: Path, make=make_family_scene) -> None:
     rows = []
     for s in seeds:
-        label, sc = rerun_kept_scene(s, keep)
+        label, sc = rerun_kept_scene(s, keep, make)
         rows.append((label, sc))
         brief = ", ".join(
             f"{k} {v[1]}/{v[0]} ({v[3]}/{v[2]})" for k, v in sc.items() if v[0] or v[2]
         )
-        print(f"{label}: {brief}", flush=True)
+        print(f"{label}: {brief or 'none'}", flush=True)
     summarise(rows, f"this code's filters on the job DTMs kept in {keep}")
+    if make is not make_family_scene:  # a counter-case family: every detection is false
+        print("false detections per kind (total, scenes with any):")
+        for kind in KINDS:
+            false = [sc[kind][2] - sc[kind][3] for _, sc in rows]
+            print(f"  {kind:<10} {sum(false):4d} {sum(1 for f in false if f):4d} of {len(rows)}")
 
 
 def part_kept(seeds: list[int], keep: Path) -> None:
@@ -411,6 +421,14 @@ if __name__ == "__main__":
         if args.keep is None:
             ap.error("--part rerun needs --keep DIR")
         part_rerun(args.seeds, args.keep)
+    for fam, seeds, make in (
+        ("sparse", args.sparse_seeds, make_sparse_scene),
+        ("rough", args.rough_seeds, make_rough_scene),
+    ):
+        if f"rerun-{fam}" in args.part:  # the same on a counter-case family's kept DTMs
+            if args.keep is None:
+                ap.error(f"--part rerun-{fam} needs --keep DIR")
+            part_rerun(seeds, args.keep, make)
     if "sparse" in args.part:  # counter-case family: tune on 100-111, report on 0-11
         part_sparse(args.sparse_seeds, args.workers, args.keep)
     if "rough" in args.part:  # counter-case family: tune on 100-111, report on 0-11

@@ -24,6 +24,7 @@ from terrasift.workers.features import (
 from terrasift.workers.features import connect as C
 from terrasift.workers.features import search as search_mod
 from terrasift.workers.features.language import (
+    Filter,
     Metres,
     resolve_lengths,
     rotate_orientation,
@@ -669,6 +670,34 @@ def test_search_filter_in_bands_matches_one_pass_for_the_road_filter():
         assert (hb == h).all() and (vb == v).all() and vb.flags.c_contiguous
 
 
+def test_segments_beginning_alike_share_their_leading_matches():
+    """The road's segments begin with the same bounding tile and strip: those matches
+    are computed once per band and shared; the marks are those of each segment searched
+    alone, for a segment under 32 tiles (matches as 32 bits) and one over (64 bits)."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(4)
+    z = np.cumsum(rng.normal(0, 0.08, (120, 90)), axis=1)
+    flt = load_filter("road")
+    _, stepped = categories_for(z, 0.5, [flt])
+    cats = stepped[grid_key(flt)]
+    segs = resolve_lengths(flt, cats.spacing).segments
+    assert len(search_mod._shared_leads(list(segs))) >= 4
+    assert min(s.longest for s in segs) < 32
+    long = replace(segs[0], subsegments=(*segs[0].subsegments[:-1], segs[0].subsegments[1]))
+    long = replace(long, subsegments=(*long.subsegments, *segs[0].subsegments[-1:]))
+    long = replace(
+        long, subsegments=tuple(replace(s, max_len=s.max_len + 3) for s in long.subsegments)
+    )
+    assert long.longest >= 32
+    h, _ = search_filter(cats, replace(flt, segments=(*segs, long)))
+    arrays = search_mod._arrays(cats)
+    alone = np.zeros_like(h)
+    for seg in (*segs, long):
+        alone |= search_rows(arrays, seg)
+    assert h.any() and (h == alone).all()
+
+
 def test_job_parameters_check_filter_sizes_against_the_tile_size():
     from terrasift.jobs.params import validate_params
 
@@ -860,6 +889,107 @@ def test_a_bench_on_a_slope_at_the_flatness_threshold_may_read_inclined_up_away(
     assert flat_only != list(flt.segments)
     strict = replace(flt, segments=tuple(flat_only))
     assert not detect_features(cats, [strict], tt, cats.tile_size, stepped=stepped).objects
+
+
+def test_rise_key_parses_formats_turns_and_marks_which_way_a_tile_slopes():
+    """``rise`` in a category: the direction the tile's plane rises toward, flat or not,
+    where its gradient exceeds twice the slope noise; 0 on level ground."""
+    from terrasift.workers.categories import CategoryParams, compute_categories
+
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 0\nstate any\n"
+        "orientation any\nrise 8 1 2\nendcategory\nendsubsegment\nendsegment\n"
+    )
+    flt = parse_filter(text, "r")
+    spec = flt.segments[0].subsegments[0].categories[0]
+    assert spec.rise.values == frozenset({8, 1, 2})
+    assert parse_filter(format_filter(flt), "r") == flt
+    # searched along columns the east-rising tiles become south- or north-rising ones
+    turned = transform_segment(flt.segments[0], 1).subsegments[0].categories[0]
+    assert turned.rise.values != spec.rise.values and len(turned.rise.values) == 3
+    with pytest.raises(FilterSyntaxError, match="rise"):
+        parse_filter(text.replace("rise 8 1 2", "rise 9"), "r")
+    # a 5 % slope rising east (0.075 m across a tile's outer cells: flat) and level ground
+    cell = 0.5
+    x = np.tile((np.arange(80) + 0.5) * cell, (40, 1))
+    z = np.where(x < 20, 0.05 * x, 1.0) + np.random.default_rng(1).normal(0, 0.005, x.shape)
+    cats = compute_categories(z, cell, CategoryParams(slope_noise=0.005))
+    assert cats.rise is not None
+    assert (cats.inclination[:, :9] == 0).all()  # flat: no inclination ...
+    assert (cats.rise[:, :9] == 1).all()  # ... but it rises east
+    assert (cats.rise[:, 11:] == 0).all()  # level within the noise
+    m = search_mod.category_mask(cats, spec)
+    assert m[:, :9].all() and not m[:, 11:].any()
+    # categories without the band: a tile rises where it is inclined
+    bare = Categories(
+        cats.inclination, cats.orientation, cats.state, cats.height10, 4, 2.0, 0.0, cats.relief10
+    )
+    assert not search_mod.category_mask(bare, spec).any()
+
+
+def _no_rise(flt: Filter) -> Filter:
+    """The filter with every ``rise`` test dropped."""
+    text = "\n".join(
+        ln for ln in format_filter(flt).splitlines() if not ln.strip().startswith("rise")
+    )
+    return parse_filter(text, flt.name)
+
+
+def test_a_level_strip_at_the_foot_of_a_ridge_on_a_slope_is_not_a_road():
+    """On a 10 % slope falling east, the foot of a ridge along the contour is a level
+    strip between the hillside, rising away from it to the west (flat but not level
+    tiles), and the ridge's flank, rising away to the east: a trough. A road along the
+    contour has one side uphill and one downhill, so the road filter needs one of its
+    bounds not to rise away (``rise``). An embankment along the contour of the same
+    slope (uphill side rising away, shoulder falling away) is still a road."""
+    cell, size, s = 0.5, 200.0, 0.10
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 - s * x
+    dd = np.abs(x - 130)  # raised-cosine ridge 42 m wide, 7.8 m high, tapered ends
+    taper = np.clip((70 - np.abs(y - 100)) / 21, 0, 1)
+    z = z + np.where(dd < 21, 3.9 * (1 + np.cos(np.pi * dd / 21)), 0) * taper
+    off, half = 0.6, 3.0  # embankment along the contour at x = 40, 160 m long
+    d = np.abs(x - 40)
+    top = 100 - s * 40 + off
+    t = np.clip((d - half) / (1.5 * (off + s * half) + 0.5), 0, 1)
+    z = np.where((np.abs(y - 100) <= 80) & (t < 1), top + t * (z - top), z)
+    z += np.random.default_rng(3).normal(0, 0.015, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    roads = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert [abs(r.geometry.centroid.x - 40) < 4 for r in roads] == [True]
+    assert roads[0].length_m > 80
+    # without the rise tests the ridge's foot (x ~ 109) is taken for a road too
+    old = detect_features(cats, [_no_rise(flt)], tt, cats.tile_size, stepped=stepped).objects
+    assert any(abs(r.geometry.centroid.x - 109) < 4 for r in old)
+
+
+def test_a_level_strip_between_a_ridge_foot_and_a_ditch_is_not_a_road():
+    """On level ground, 12 m of level strip between the foot of a 6.5 m ridge and a shallow
+    flat-bottomed ditch: the ditch's near bank falls away (a clear bound, as an
+    embankment's shoulder) and the ridge's flank rises away (as the bench of a road
+    along the contour of a slope). The bench is a slope near the flatness threshold,
+    its inclined tiles rising at most 0.3 m across (``height 2 3``); the ridge's flank
+    soon rises more, so the strip is not a road."""
+    cell, size = 0.5, 200.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    dd = np.abs(x - 60)  # raised-cosine ridge 45 m wide, 6.5 m high; foot at x = 82.5
+    taper = np.clip((80 - np.abs(y - 100)) / 22, 0, 1)
+    z = 100 + np.where(dd < 22.5, 3.25 * (1 + np.cos(np.pi * dd / 22.5)), 0) * taper
+    dd = np.abs(x - 97.35)  # ditch 5.7 m across, 0.33 m deep, 12 m from the foot
+    z -= np.where(np.abs(y - 100) <= 80, np.clip((2.85 - dd) / 1.0, 0, 1) * 0.33, 0)
+    z += np.random.default_rng(3).normal(0, 0.03, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    roads = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert not any(abs(r.geometry.centroid.x - 88) < 4 for r in roads)
+    steep = parse_filter(format_filter(flt).replace("height 2 3", "height not 0 1"), "road")
+    old = detect_features(cats, [steep], tt, cats.tile_size, stepped=stepped).objects
+    assert any(abs(r.geometry.centroid.x - 88) < 4 for r in old)
 
 
 def test_h_and_v_share_keeps_a_bowl_and_drops_where_two_strips_cross():

@@ -13,7 +13,9 @@ the tiles into arrays. The result per tile:
   counter-clockwise from east) the mean plane rises toward;
 - orientation: the edge ``ab`` (a < b), an extreme point ``aa`` or 0;
 - state: 0 one plane, 1 convex edge (ridge-like), 2 concave edge (ditch-like);
-- height10: (max − min) inside the tile in decimetres.
+- height10: (max − min) inside the tile in decimetres;
+- rise 0–8 (``Categories.rise``): the direction the plane rises toward, flat or not,
+  where its gradient exceeds twice the slope noise (which way a flat tile slopes).
 
 Noise. A DTM with a few centimetres of noise has tiles whose max − min is
 noise rather than relief (16 cells of 4 cm noise span ~14 cm), so flatness is
@@ -138,6 +140,11 @@ class Categories:
     """1 where the tile is not flat by more than the slope noise explains
     (``CategoryParams.clear_slope_noise``), else 0; the filters' ``clear``. None: every
     tile that is not flat."""
+    rise: NDArray[np.uint8] | None = None
+    """Direction (1 E … 8 SE, as ``inclination``) the tile's plane rises toward, flat or
+    not, where its gradient exceeds what the slope noise explains
+    (``CategoryParams.clear_slope_noise`` σ_g), else 0; the filters' ``rise`` (which way
+    a flat tile that is not level slopes). None: the filters take ``inclination``."""
 
     @property
     def step(self) -> int:
@@ -306,6 +313,8 @@ def category_grids(
         clear = (~flat & (relief >= clear_height)).astype(np.uint8)
         rise = np.hypot(gx, gy) * k * cell
         inclination = _direction_code(gx, gy)
+        rise_dir = inclination.copy()
+        rise_dir[np.hypot(gx, gy) <= params.clear_slope_noise * sigma_g] = 0
         # A one-plane tile that is not flat always has a direction; an edged tile only
         # when its mean plane rises enough (a symmetric V or Λ has none).
         inclination[two & (rise < params.incline_height)] = 0
@@ -340,7 +349,7 @@ def category_grids(
         orientation[flat] = 0
         state[flat] = 0
         height10, relief10 = dm(height), dm(relief)
-        for band in (inclination, orientation, state, height10, relief10, clear):
+        for band in (inclination, orientation, state, height10, relief10, clear, rise_dir):
             band[nodata] = NODATA
         shape = (rows, cols)
         out.append(
@@ -356,6 +365,7 @@ def category_grids(
                 None if s == k else s,
                 lying10.reshape(shape),
                 clear.reshape(shape),
+                rise_dir.reshape(shape),
             )
         )
     return out
@@ -382,6 +392,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         first.step_cells,
         None if first.lying10 is None else cat("lying10"),
         None if first.clear is None else cat("clear"),
+        None if first.rise is None else cat("rise"),
     )
 
 

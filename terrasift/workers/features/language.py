@@ -124,6 +124,9 @@ class CategorySpec:
     clear: bool = False
     """The tile must be clearly not flat: higher than the flatness threshold by more
     than the noise of the DTM's tile slopes explains (``Categories.clear``)."""
+    rise: ValueSet = ValueSet()
+    """The direction (1-8, 0 none) the tile's plane rises toward, flat or not, where its
+    gradient exceeds what the DTM's slope noise explains (``Categories.rise``)."""
 
 
 @dataclass(frozen=True)
@@ -602,7 +605,7 @@ class _Parser:
                     raise self.error("clear takes no values and is given once", no)
                 clear = True
                 continue
-            if key not in ("inclination", "state", "orientation", "height", "lying-height"):
+            if key not in ("inclination", "state", "orientation", "height", "lying-height", "rise"):
                 raise self.error(f"unexpected {key!r} inside a category", no)
             name = key.replace("-", "_")
             if name in props:
@@ -619,10 +622,10 @@ class _Parser:
         if not words:
             raise self.error(f"{key} needs values, 'any' or 'not' and values", no)
         vals = self.ints(words, no, key, lo=0)
-        if key == "inclination":
+        if key in ("inclination", "rise"):
             bad = [v for v in vals if v > 8]
             if bad:
-                raise self.error(f"inclination must be 0–8, got {bad[0]}", no)
+                raise self.error(f"{key} must be 0–8, got {bad[0]}", no)
         elif key == "state":
             bad = [v for v in vals if v > 2]
             if bad:
@@ -701,6 +704,8 @@ def format_filter(f: Filter) -> str:
                     out.append(f"      height {cat.height.text()}")
                 if cat.lying_height.values is not None:
                     out.append(f"      lying-height {cat.lying_height.text()}")
+                if cat.rise.values is not None:
+                    out.append(f"      rise {cat.rise.text()}")
                 if cat.clear:
                     out.append("      clear")
                 out.append("    endcategory")
@@ -794,6 +799,7 @@ def transform_segment(seg: Segment, quarter_turns: int = 0) -> Segment:
                 replace(
                     c,
                     inclination=c.inclination.map(inc),
+                    rise=c.rise.map(inc),
                     state=c.state.map(state),
                     orientation=c.orientation.map(ori),
                 )

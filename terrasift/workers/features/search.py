@@ -5,9 +5,10 @@ run of ``min..max`` tiles of one class (any of its categories), with up to
 ``maxerrors`` tiles that do not match. Matching works on tile boundaries b and
 keeps, for every boundary and every prefix S1..Si of the pattern, the set of
 total lengths of matches of that prefix ending at b as bits of a uint64
-(segments are at most 63 tiles). Subsegment i extends prefix i-1 by every
-admissible run length L at once, so a pass costs O(Σ max_len) array operations
-whatever the row count. The chosen match at an end boundary is the longest
+(segments are at most 63 tiles; a uint32 for one under 32). Subsegment i extends
+prefix i-1 by every admissible run length L at once, so a pass costs O(Σ max_len)
+array operations whatever the row count; segments that begin with the same
+subsegments share those passes. The chosen match at an end boundary is the longest
 within the segment's total limits; it is then traced back from the pattern's
 end to place the subsegments (the seed's end-first matching), and the tiles of
 the subsegments not marked ``exclude`` are marked.
@@ -44,13 +45,16 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
 
 
 def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
-    """The bands a category tests: inclination, orientation, state, height, lying-height, clear."""
+    """The bands a category tests: inclination, orientation, state, height, lying-height, clear,
+    rise."""
     relief = cats.relief10 if cats.relief10 is not None else cats.height10
     lying = cats.lying10 if cats.lying10 is not None else relief
     clear = cats.clear
     if clear is None:  # without the band: every tile that is not flat
         clear = ((cats.inclination | cats.orientation | cats.state) != 0).astype(np.uint8)
-    return (cats.inclination, cats.orientation, cats.state, relief, lying, clear)
+    # without the rise band: the inclination (flat tiles rise nowhere)
+    rise = cats.rise if cats.rise is not None else cats.inclination
+    return (cats.inclination, cats.orientation, cats.state, relief, lying, clear, rise)
 
 
 def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
@@ -70,6 +74,10 @@ def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDA
         if len(cats) <= 5 or cats[5] is None:
             raise ValueError("a filter tests clear but the categories carry no clear band")
         m &= cats[5] == 1
+    if spec.rise.values is not None:
+        if len(cats) <= 6 or cats[6] is None:
+            raise ValueError("a filter tests rise but the categories carry no rise band")
+        m &= _lut(spec.rise)[cats[6]]
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)
@@ -89,6 +97,8 @@ def search_rows(
     band: int = 512,
     masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] | None = None,
     sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] | None = None,
+    prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] | None = None,
+    shared: set[tuple[SubSegment, ...]] | None = None,
 ) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
@@ -96,7 +106,9 @@ def search_rows(
     memory (the length sets take 8 bytes per tile and subsegment). ``masks``
     keeps the class masks of these ``cats`` by subsegment categories, and ``sums``
     their mismatch counts along each band's rows, so a class repeated across
-    segments (a road's level strip) is matched and counted once.
+    segments (a road's level strip) is matched and counted once. ``prefixes`` keeps
+    the matches of the leading subsegments in ``shared`` (runs of subsegments that
+    begin more than one segment), so segments that start alike match that start once.
     """
     masks = {} if masks is None else masks
     sums = {} if sums is None else sums
@@ -118,39 +130,59 @@ def search_rows(
                 np.cumsum(miss, axis=1, out=cm[:, 1:])
                 sums[(key, r)] = cm
             mism.append(sums[(key, r)])
-        out.append(_search_band(mism, seg))
+        out.append(_search_band(mism, seg, prefixes, shared, r))
     return out[0] if len(out) == 1 else np.concatenate(out)
 
 
-def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bool_]:
+def _search_band(
+    mism: list[NDArray[np.integer]],
+    seg: Segment,
+    prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] | None = None,
+    shared: set[tuple[SubSegment, ...]] | None = None,
+    band_row: int = 0,
+) -> NDArray[np.bool_]:
     """Marks of ``seg`` along rows, given each subsegment's mismatch prefix counts:
-    ``mism[i][:, b]`` is the number of tiles in [0, b) not matching subsegment i."""
+    ``mism[i][:, b]`` is the number of tiles in [0, b) not matching subsegment i.
+    The matches of a leading run of subsegments in ``shared`` are taken from and
+    kept in ``prefixes`` (by the run and ``band_row``)."""
     nrows, nb = mism[0].shape
     ncols = nb - 1
     subs = seg.subsegments
 
-    one = np.uint64(1)
-    prefix = [
-        np.ones((nrows, nb), dtype=np.uint64)
-    ]  # E_0: the empty match, length 0, at every boundary
-    for sub, cm in zip(subs, mism, strict=True):
+    # match lengths as bits: 32 of them hold a segment up to 31 tiles long, in half the memory
+    word = np.uint32 if seg.longest < 32 else np.uint64
+    one = word(1)
+    prefix = [np.ones((nrows, nb), dtype=word)]  # E_0: the empty match, length 0, at every boundary
+    for i, (sub, cm) in enumerate(zip(subs, mism, strict=True)):
+        lead = subs[: i + 1]
+        kept = None if prefixes is None else prefixes.get((lead, band_row))
+        if kept is not None and kept.dtype == word:
+            prefix.append(kept)
+            continue
         prev = prefix[-1]
         cur = np.zeros_like(prev)
+        every = int(cm[:, -1].max(initial=0)) <= sub.max_errors  # no run has too many misses
         for length in range(sub.min_len, sub.max_len + 1):
             if length == 0:
                 cur |= prev
                 continue
             if length >= nb:
                 break
-            ok = (cm[:, length:] - cm[:, : nb - length]) <= sub.max_errors
-            cur[:, length:] |= np.where(
-                ok, prev[:, : nb - length] << np.uint64(length), np.uint64(0)
-            )
+            run = np.left_shift(prev[:, : nb - length], word(length))
+            if not every:
+                if sub.max_errors == 0:
+                    ok = cm[:, length:] == cm[:, : nb - length]
+                else:
+                    ok = (cm[:, length:] - cm[:, : nb - length]) <= sub.max_errors
+                np.multiply(run, ok, out=run)
+            np.bitwise_or(cur[:, length:], run, out=cur[:, length:])
         prefix.append(cur)
+        if prefixes is not None and shared and lead in shared:
+            prefixes[(lead, band_row)] = cur
 
     lo = max(1, seg.min_total or 1)
     hi = seg.longest
-    allowed = np.uint64(((1 << (hi + 1)) - 1) ^ ((1 << lo) - 1))
+    allowed = word(((1 << (hi + 1)) - 1) ^ ((1 << lo) - 1))
     final = prefix[-1] & allowed
     rr, bb = np.nonzero(final)
     marks = np.zeros((nrows, ncols), dtype=bool)
@@ -159,7 +191,7 @@ def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bo
     fin = final[rr, bb]
     total = np.zeros(rr.size, dtype=np.int64)
     for t in range(hi, lo - 1, -1):  # longest admissible match
-        has = ((fin >> np.uint64(t)) & one).astype(bool) & (total == 0)
+        has = ((fin >> word(t)) & one).astype(bool) & (total == 0)
         total[has] = t
 
     # trace back from the pattern's end, placing each subsegment
@@ -181,7 +213,7 @@ def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bo
                 continue
             s, e, r, rm = start[idx], end[idx], rr[idx], rem[idx]
             good = (cm[r, e] - cm[r, s]) <= sub.max_errors
-            good &= ((prev[r, s] >> rm.astype(np.uint64)) & one).astype(bool)
+            good &= ((prev[r, s] >> rm.astype(word)) & one).astype(bool)
             chosen[idx[good]] = length
         start = end - chosen
         if not sub.exclude:
@@ -191,6 +223,17 @@ def _search_band(mism: list[NDArray[np.integer]], seg: Segment) -> NDArray[np.bo
         end = start
     marks = np.cumsum(diff, axis=1)[:, :ncols] > 0
     return marks
+
+
+def _shared_leads(segs: list[Segment]) -> set[tuple[SubSegment, ...]]:
+    """Leading runs of subsegments that begin more than one of ``segs`` (a road's
+    segments start with the same bounding tile and strip)."""
+    seen: dict[tuple[SubSegment, ...], int] = {}
+    for seg in segs:
+        for i in range(1, len(seg.subsegments)):
+            lead = seg.subsegments[:i]
+            seen[lead] = seen.get(lead, 0) + 1
+    return {lead for lead, n in seen.items() if n > 1}
 
 
 def search_filter(
@@ -210,10 +253,12 @@ def search_filter(
         (v, tuple(np.ascontiguousarray(a.T) for a in arrays), 1, "vertical"),
     ):
         segs = [transform_segment(g, turn) for g in flt.segments if g.direction in ("both", way)]
+        shared = _shared_leads(segs)
         for r in range(0, grid[0].shape[0], band):
             part = tuple(a[r : r + band] for a in grid)
             masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
             sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
+            prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] = {}
             for seg in segs:
-                marks[r : r + band] |= search_rows(part, seg, band, masks, sums)
+                marks[r : r + band] |= search_rows(part, seg, band, masks, sums, prefixes, shared)
     return h, np.ascontiguousarray(v.T)
