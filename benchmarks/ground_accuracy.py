@@ -248,6 +248,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_factor": 6.0},
         {"grow_reach": 6.0},
         {"mow_share": 0.25},
+        {"grow_share": 0.25},
         {"rough_envelope": True, "rough_factor": 6.0},
         {"rough_shrub": 0.2},
         {"rough_shrub": 0.2, "rough_near": 2},

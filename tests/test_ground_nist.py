@@ -1125,3 +1125,20 @@ def test_passes_one_and_two_vote_over_grid_phases_when_asked():
     any_, all_ = kept(0.25), kept(1.0)
     assert all_ < any_  # strictly: the phases' surfaces differ somewhere
     assert len(all_) > 0.5 * len(local)
+
+
+def test_grow_share_adds_what_growth_reached_in_that_share_of_phases_only():
+    # A sparse scene votes over 4 final phases. With ``grow_share`` a point that
+    # growth added in one phase (of four: share 0.25) is ground; everything the
+    # majority labels stays. Without growth there is nothing to add.
+    sparse = make_scene(size=120.0, density=1.0, seed=1).xyz
+    p = nist.NistParams(rough_k=0)
+    base = nist.classify_ground(sparse, p)
+    any_phase = nist.classify_ground(sparse, p.model_copy(update={"grow_share": 0.25}))
+    assert np.all(any_phase[base])
+    assert np.count_nonzero(any_phase & ~base) > 0
+    off = p.model_copy(update={"grow": False})
+    assert np.array_equal(
+        nist.classify_ground(sparse, off),
+        nist.classify_ground(sparse, off.model_copy(update={"grow_share": 0.25})),
+    )

@@ -144,6 +144,12 @@ class NistParams(StageParams):
     """Each phase's say in the vote: ``equal``, or ``centre``: by how central the point
     lies in that phase's final bin (a tent per axis; with two phases per axis the
     weights are those of bilinear interpolation between the phases)."""
+    grow_share: float = Field(0.0, ge=0, le=1)
+    """With the final vote over several phases, a point that growth (and the supported
+    points of the grown surface) adds to a phase's labels is ground when phases holding at
+    least this share of the vote add it (0: off, such points are voted like the rest).
+    Whether growth finds a path onto a crest is one event per phase, which the phases'
+    majority turns into luck of where the bins fall."""
     mow_share: float = Field(0.0, ge=0, le=1)
     """Passes 1 and 2 vote too when the final pass does (0: off, one grid each): each pass
     is run over the final vote's phases of its own grid, and a point survives its mowing
@@ -721,14 +727,18 @@ def _classify(
     # A point is ground when at least ``vote_share`` of the final phases label it so.
     finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
     reach = params.grow_reach * _cell_of(g1)
-    votes, weights = np.zeros(n), np.zeros(n)
+    votes, grown, weights = np.zeros(n), np.zeros(n), np.zeros(n)
     for g in finals:
         w = _vote_weights(local, g, params, len(finals))
-        votes += w * _final(
+        phase, added = _final(
             local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach
         )
+        votes += w * phase
+        grown += w * added
         weights += w
     labels = votes >= params.vote_share * weights
+    if params.grow_share > 0 and len(finals) > 1:
+        labels |= grown >= params.grow_share * weights
     labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
@@ -797,11 +807,12 @@ def _final(
     spacing: float,
     cut: tuple[float, float, float, float] | None = None,
     reach: float = 0.0,
-) -> NDArray[np.bool_]:
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
     final surface, raised segments, growth, band and supported points (``cut``: the
     block's window in local coordinates, see ``classify_ground``; ``reach``: growth's
-    path limit in metres, 0 none)."""
+    path limit in metres, 0 none); and the labelled points outside the band of the
+    surface before growth (what growth and the supported points added)."""
     none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
@@ -835,7 +846,10 @@ def _final(
             "ground_tol_below": widen * params.ground_tol_below,
         }
     )
+    before = None
     if params.grow:
+        if params.grow_share > 0:
+            before = _band(tin3, local, params)[0]
         tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised, reach)
     labels, above = _band(tin3, local, params)
     if params.support_k > 0:
@@ -849,7 +863,7 @@ def _final(
             tol=params.support_tol,
             rounds=params.support_rounds,
         )
-    return labels
+    return labels, np.zeros_like(labels) if before is None else labels & ~before
 
 
 def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:
