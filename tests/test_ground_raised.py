@@ -27,8 +27,10 @@ def _yard(noise: float, seed: int) -> tuple[NDArray[np.float64], NDArray[np.bool
     return np.column_stack([x, y, z]), top
 
 
-def _dropped(xyz: NDArray[np.float64], along: bool = True) -> NDArray[np.bool_]:
-    p = nist.NistParams(raised_along=along)
+def _dropped(
+    xyz: NDArray[np.float64], along: bool = True, graded: float = 0.0
+) -> NDArray[np.bool_]:
+    p = nist.NistParams(raised_along=along, raised_graded=graded)
     return raised_segments(
         xyz,
         Delaunay(xyz[:, :2]),
@@ -42,6 +44,7 @@ def _dropped(xyz: NDArray[np.float64], along: bool = True) -> NDArray[np.bool_]:
         rim=p.raised_rim,
         edge=p.raised_edge,
         along=p.raised_along,
+        graded=p.raised_graded,
     )
 
 
@@ -84,3 +87,31 @@ def test_platform_level_with_the_ground_across_a_hole_is_dropped():
     xyz = np.round(np.column_stack([x, y, z]), 2)
     assert np.array_equal(_dropped(xyz), top)
     assert not _dropped(xyz, along=False).any()
+
+
+def _cut_by_the_edge(sides: float, seed: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Level ground, vertices 1.4 m apart (0.5 pts/m²), and a raised strip 8 m wide
+    and 2 m high from the data's south edge (y = -40) to y = 40: an embankment whose
+    sides fall at 1:``sides`` (run ``2 * sides`` m, with vertices on them), or with
+    ``sides`` 0 a platform behind walls. Also the crest's vertices."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(-40.0, 100.0, 1.4)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    x = np.clip(x + rng.uniform(-0.4, 0.4, x.size), -40.0, None)
+    y = np.clip(y + rng.uniform(-0.4, 0.4, y.size), -40.0, None)
+    d = np.maximum(np.abs(x - 30.0) - 4.0, np.maximum(y - 40.0, 0.0))
+    z = 2.0 * (d <= 0) if sides == 0 else np.clip(2.0 - d / sides, 0.0, 2.0)
+    z = z + rng.normal(0.0, 0.02, x.size)
+    return np.round(np.column_stack([x, y, z]), 2), d <= 0
+
+
+def test_embankment_cut_by_the_data_edge_is_kept_and_a_platform_is_not():
+    # Railway seed 413: a 2 m road embankment reached the tile's edge along its 8 m
+    # crest, under ``raised_edge``, and went as a platform would. Its sides carry
+    # ground the TIN descends in low steps, falling on beyond each step's foot.
+    for seed in range(3):
+        xyz, crest = _cut_by_the_edge(1.5, seed)
+        assert _dropped(xyz)[crest].mean() > 0.9, seed  # the rule off
+        assert not _dropped(xyz, graded=0.5)[crest].any(), seed
+        xyz, top = _cut_by_the_edge(0.0, seed)
+        assert np.array_equal(_dropped(xyz, graded=0.5), top), seed

@@ -246,6 +246,12 @@ class NistParams(StageParams):
     the edge's own run (``raised.py``); off: by the size of the slope at its foot times the
     run, which a 1 cm rounding of the coordinates flips (railway seed 104: Type II 0.4 or
     22.9 %) and which cannot see a platform level with ground rising away from it (208)."""
+    raised_graded: float = Field(0.5, ge=0, le=1)
+    """A raised segment that reaches the edge of the data is kept when at least this share of
+    its steps down land on ground that goes on falling away beyond them (0: off; ``raised.py``):
+    a road embankment the edge cuts, whose sloped sides the TIN descends in low steps; a
+    platform's wall stands on level ground (railway seed 413: an embankment's crest reaching
+    the edge along 10–16 m, under ``raised_edge``, went as a platform)."""
     raised_rim: float = Field(4.0, ge=0, le=100)
     """Final-TIN edges longer than this many median edges with both ends within one median
     edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
@@ -903,6 +909,7 @@ def _without_raised(
         cut=None if cut is None else _shifted_box(cut, -tin.origin),
         along=params.raised_along,
         heights=lambda q: _inside(tin, q),
+        graded=params.raised_graded,
     )
     if params.raised_islands:
         drop |= walled_islands(

@@ -62,6 +62,7 @@ def raised_segments(
     cut: tuple[float, float, float, float] | None = None,
     along: bool = False,
     heights: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
+    graded: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -109,6 +110,9 @@ def raised_segments(
     1 cm rounding and the noise of the data as 1-2 % of grade, which over a 25-46 m
     run is the whole margin; its size alone also predicts a rise for an edge
     running downhill onto a platform.
+    ``graded`` > 0: a segment reaching the edge of the data is kept when at least this
+    share of its steps down land on ground falling on beyond them (``_graded_at_edge``):
+    an embankment cut by the edge, not a platform.
     ``heights``: the TIN's height at points (k, 2), nan outside it (``along``; None:
     interpolated on ``tri``, which must then be a scipy ``Delaunay``).
     """
@@ -176,6 +180,8 @@ def raised_segments(
     lo, hi = seg[lo_v], seg[hi_v]
     cross = lo != hi
     lo, hi, lo_v, hi_v = lo[cross], hi[cross], lo_v[cross], hi_v[cross]
+    if graded > 0:
+        fixed |= _graded_at_edge(xyz, tri, seg, n_seg, med, border, e, hi, lo_v, hi_v, step, graded)
     is_wall = wall[is_step][cross]
     is_big = big[is_step][cross]
     flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
@@ -269,6 +275,54 @@ def _along_edge(
     np.maximum.at(hi, s, p)
     span = np.hypot(*(hi - lo).T)
     return np.where(np.isfinite(span), span, 0.0)
+
+
+def _graded_at_edge(
+    xyz: NDArray[np.float64],
+    tri: Delaunay,
+    seg: NDArray[np.int64],
+    n_seg: int,
+    med: float,
+    border: NDArray[np.int64] | None,
+    e: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    lo_v: NDArray[np.int64],
+    hi_v: NDArray[np.int64],
+    step: float,
+    graded: float,
+) -> NDArray[np.bool_]:
+    """Per segment: it reaches the edge of the data and at least ``graded`` of the steps
+    down from it (upper segment ``hi``, ends ``lo_v`` → ``hi_v``) land on ground that goes
+    on falling away from it: a TIN edge from the step's foot, pointing away from the
+    step, dropping ``step`` or more at half the step's gradient or more. That is the
+    sloped side of an embankment the edge of the data cuts, which the TIN descends in
+    low steps; a platform's or a roof's wall stands on a level foot, or on a hillside
+    much gentler than the wall."""
+    n_step = np.bincount(hi, minlength=n_seg)
+    if hi.size == 0:
+        return np.zeros(n_seg, dtype=bool)
+    # The TIN's edges from each step's foot (each edge once in both directions).
+    a = np.concatenate([e[:, 0], e[:, 1]])
+    order = np.argsort(a, kind="stable")
+    a, b = a[order], np.concatenate([e[:, 1], e[:, 0]])[order]
+    start = np.searchsorted(a, lo_v)
+    count = np.searchsorted(a, lo_v, side="right") - start
+    k = np.repeat(np.arange(lo_v.size), count)
+    w = b[np.repeat(start, count) + np.arange(k.size) - np.repeat(np.cumsum(count) - count, count)]
+    out = xyz[lo_v, :2] - xyz[hi_v, :2]
+    grad_step = (xyz[hi_v, 2] - xyz[lo_v, 2]) / np.maximum(np.hypot(*out.T), 1e-9)
+    nxt = xyz[w, :2] - xyz[lo_v[k], :2]
+    fall = xyz[lo_v[k], 2] - xyz[w, 2]
+    falls = (
+        (np.einsum("ij,ij->i", out[k], nxt) > 0)
+        & (fall >= step)
+        & (fall >= 0.5 * grad_step[k] * np.hypot(*nxt.T))
+    )
+    on = np.zeros(lo_v.size)
+    on[k[falls]] = 1.0
+    share = np.bincount(hi, on, n_seg) / np.maximum(n_step, 1)
+    touches = _along_edge(xyz[:, :2], tri, seg, n_seg, med, border) > 0
+    return touches & (n_step > 0) & (share >= graded)
 
 
 def _flat(
