@@ -140,6 +140,18 @@ def test_flat_marks_across_the_dtm_do_not_grow_a_rectangle_filter_s_window(scene
     assert [_key(f) for f in tiled] == [_key(f) for f in whole]
 
 
+def _around(kind: str, size: float) -> NDArray[np.float64]:
+    """A ``size`` m square DTM of family scene 0 centred on its first object of
+    ``kind``, with 2 cm of noise."""
+    scene = make_family_scene(0)
+    n = int(size / CELL)
+    c = (np.arange(n) + 0.5) * CELL
+    at = next(t for t in scene.truth if t.kind == kind).polygon.centroid
+    x, y = np.meshgrid(at.x - size / 2 + c, at.y + size / 2 - c)
+    dtm = scene.surface(x.ravel(), y.ravel()).reshape(n, n)
+    return dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
+
+
 def _searched_in_nine(dtm: NDArray[np.float64], t: Affine, filters, cp, fp) -> list:
     """The pieces found by searching ``dtm`` as 3 × 3 cores with a capped window
     (16 tiles), so objects larger than a core are searched in parts."""
@@ -413,15 +425,7 @@ def test_enclosed_judges_a_pond_searched_in_parts_by_its_whole_rim() -> None:
     the whole DTM's, asking for 7 of the 8 sectors and for all 8."""
     from terrasift.workers.features import FeatureParams, format_filter, parse_filter
 
-    size = 160.0
-    scene = make_family_scene(0)
-    n = int(size / CELL)
-    c = (np.arange(n) + 0.5) * CELL
-    pond = next(t for t in scene.truth if t.kind == "pond").polygon.centroid
-    x0, y0 = pond.x - size / 2, pond.y - size / 2
-    x, y = np.meshgrid(x0 + c, y0 + size - c)
-    dtm = scene.surface(x.ravel(), y.ravel()).reshape(n, n)
-    dtm = dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
+    dtm = _around("pond", 160.0)
     t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     text = format_filter(resolve_filters("pond")[0])
     assert "enclosed 8m 7" in text
@@ -446,17 +450,8 @@ def test_isolated_judges_a_hill_searched_in_parts_by_its_whole_rim() -> None:
     the whole DTM's: the built-in filter's (kept) and one that reads 16 m around and
     allows none of it to run on (dropped: the far ring reaches the background's waves)."""
     from terrasift.workers.features import FeatureParams, format_filter, parse_filter
-    from terrasift.workers.features.tiled import search_core
 
-    size = 140.0
-    scene = make_family_scene(0)
-    n = int(size / CELL)
-    c = (np.arange(n) + 0.5) * CELL
-    hill = next(t for t in scene.truth if t.kind == "hill").polygon.centroid
-    x0, y0 = hill.x - size / 2, hill.y - size / 2
-    x, y = np.meshgrid(x0 + c, y0 + size - c)
-    dtm = scene.surface(x.ravel(), y.ravel()).reshape(n, n)
-    dtm = dtm + np.random.default_rng(1).normal(0, 0.02, dtm.shape)
+    dtm = _around("hill", 140.0)
     t = Affine(CELL, 0, 500_000.0, 0, -CELL, 5_400_000.0)
     text = format_filter(resolve_filters("hill")[0])
     assert "isolated 4m 0.1" in text
@@ -467,15 +462,7 @@ def test_isolated_judges_a_hill_searched_in_parts_by_its_whole_rim() -> None:
         cats, stepped = categories_for(dtm, CELL, filters, cp)
         whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
         assert len(whole) == kept
-        halo, cap = window_reach(filters, cp, CELL) + 8, 16
-        edges = np.linspace(0, dtm.shape[0], 4).astype(int).tolist()
-        pieces = []
-        for i in range(3):
-            for j in range(3):
-                core = (edges[i], edges[j], edges[i + 1], edges[j + 1])
-                pieces += search_core(
-                    lambda a, b, c, d: dtm[a:b, c:d], dtm.shape, t, core, filters, cp, fp, halo, cap
-                )[0]
+        pieces = _searched_in_nine(dtm, t, filters, cp, fp)
         cut = [p for p in pieces if p.cut is not None]
         assert cut and all(p.cut.fall is not None for p in cut)
         tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
