@@ -260,30 +260,6 @@ def test_grid_marks_a_thin_object_before_the_end_of_its_background():
     assert res.marked[~thin & (col != -1)].mean() < 0.002
 
 
-def _oblique_wall(incidence_deg: float, step: float = 0.15):
-    """Columns up to 0 on a plane 10 m away along column 0 seen at ``incidence_deg``
-    (receding with the column), a background 20 m behind from column 1 on."""
-    d = 10.0 * np.cos(np.radians(incidence_deg))
-
-    def r(c: int) -> float:
-        if c > 0:
-            return 30.0
-        return d / np.cos(np.radians(c * step + incidence_deg))
-
-    return _wall_grid(r, step=step)
-
-
-def test_grid_bleeding_past_an_oblique_edge_follows_the_surface():
-    # A footprint of 1.3 steps: the last column lies up to 0.65 step past the edge,
-    # 1.7 cm sideways at 10 m; on a wall seen at 76° incidence that is 7 cm along the
-    # wall, past min_offset (3 cm) with probability 0.37: marked. Face-on it is kept.
-    for inc, want in ((76.0, True), (0.0, False)):
-        xyz, col = _oblique_wall(inc)
-        marked = mark_mixed(xyz, MixedParams(footprint=0.195), np.zeros(3)).marked
-        assert marked[col == 0].mean() > 0.95 if want else not marked[col == 0].any()
-        assert marked[col < 0].mean() < 0.01
-
-
 def test_grid_marks_a_surface_bleeding_past_its_edge_by_half_a_footprint():
     # A wall at 20 m ending at column 0, a background 10 m behind (too far to blend):
     # a beam whose footprint still touches the wall returns its range on its own ray. With a footprint of

@@ -39,11 +39,10 @@ mean range (nearer than where the central ray meets grazing ground towards the
 range limit). Otherwise a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
 when displaced by more than ``min_offset`` with a probability above ``bleed_prob``
-(``_bleeding``; the shift is sideways, so range noise does not blur it, and measured
-along the surface: a step covers step × range / cos(incidence) on it). An edge
+(``_bleeding``; the shift is sideways, so range noise does not blur it). An edge
 counts only where the surface, continued to the next beam, would have answered
-within ``max_gap`` and no farther than the farthest return: grazing ground ending at
-the range limit goes on unseen and does not end there.
+within ``max_gap``: grazing ground ending at the range limit recedes out of reach
+and does not end there.
 
 When the returns carry GPS time, each is placed on the grid by its firing
 order instead (``time_index``): the pulse number from its time, the column
@@ -493,26 +492,12 @@ def _bleeding(
     half = s.footprint / 2.0
     # a shift sideways, which range noise does not blur: min_offset (the margin if 0)
     least = s.min_offset if s.min_offset > 0 else s.margin
-    # the range limit: the farthest return, plus the scatter of a surface continued
-    # one beam on (a face-on wall at the farthest range still ends at its edge)
-    limit = float(np.max(r)) + s.sigmas * s.sigma * np.sqrt(6) if r.size else np.inf
     with np.errstate(invalid="ignore", divide="ignore"):
         for sd in (1, -1):
             # on a surface seen from the inner side
             # (or nearer than it: on a receding surface, e.g. grazing ground, the part of
             # the footprint still on it lies nearer than where the central ray would meet it)
             inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= s.sigmas * s.sigma * np.sqrt(6)
-            # one step sideways moves along the surface by step × r / cos(incidence along
-            # the axis), tan(incidence) = r × |Δ(1/r) per beam| / step: past the edge of
-            # a surface seen obliquely a beam lies farther from it than its angle says.
-            # Only where the three inner beams lie on one plane (in inverse range) within
-            # the scatter of a continuation: a narrow board's far-side ramp among them
-            # is no incidence.
-            dv = np.abs(V[-sd] - V[-2 * sd])
-            flat = np.abs(
-                1.0 / (2 * V[-2 * sd] - V[-3 * sd]) - R[-sd]
-            ) <= s.sigmas * s.sigma * np.sqrt(6)
-            along = step * r * np.sqrt(1.0 + np.where(flat, r * dv / step, 0.0) ** 2)
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
                 beyond = R[sd * k]
@@ -521,11 +506,10 @@ def _bleeding(
                 # the inner surface, continued to that beam, would have answered within
                 # max_gap of p: a receding surface (grazing ground towards the range
                 # limit) continues out of reach there, which is no edge
-                # (nor where it would lie beyond the range limit: a surface goes on unseen)
                 v = V[-sd] + (V[-sd] - V[-2 * sd]) * (k + 1)
-                edge &= (v > 0) & (1.0 / v <= np.minimum(r + s.max_gap, limit))
+                edge &= (v > 0) & (1.0 / v <= r + s.max_gap)
                 # past the edge by x steps, x even in [half - k, half - k + 1)
-                prob = np.clip(half - k + 1 - least / along, 0.0, 1.0)
+                prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
                 out |= inner & same & edge & (prob > s.bleed_prob)
                 same &= np.abs(beyond - r) <= s.margin
     return out
