@@ -253,7 +253,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_shrub": 0.2},
         {"rough_shrub": 0.2, "rough_near": 2},
         {"rough_shrub": 0.2, "rough_sectors": 8, "rough_near": 2},
-        {"rough_half": 12},
+        {"rough_half": 0},
+        {"rough_half_curve": 0},
     ],
 }
 

@@ -7,7 +7,8 @@ the samples they were tuned on, each drawn from ranges by a seed, with exact tru
   a road embankment (ground, sloping sides) runs through some scenes;
 - ``rural_slope``: mostly ground (70–95 % of the pulses), gentle (2–5 %) or
   steep (15–40 %) slopes, with low vegetation (shrubs 0.3–2.5 m, hedges along
-  contour lines, scrub patches) and embankments, at 0.2–1 pulses per m².
+  contour lines, scrub patches) and embankments, at 0.2–1 pulses per m², on
+  ground with micro-relief (mounds, hollows, field banks: ``Relief``).
 
 Objects are oriented rectangles with flat tops (truth class 6); vegetation
 returns are class 3/4/5 by height above ground; embankments and cuttings
@@ -99,13 +100,77 @@ class Embankment:
         return self.height * np.clip((self.top / 2 + run - d) / run, 0.0, 1.0)
 
 
+@dataclass(frozen=True)
+class Relief:
+    """Micro-relief over a slope, as real rural ground has it between its breaks:
+    mounds and hollows (rows: x, y, height (m, signed), sigma (m)), field banks
+    along the contour (rows: x, y of a point on the bank, angle, height, run (m);
+    a smooth step, convex at its shoulder and concave at its toe) and short waves
+    (rows: amplitude, wavelength (m), angle, phase)."""
+
+    mounds: NDArray[np.float64]
+    banks: NDArray[np.float64]
+    waves: NDArray[np.float64]
+
+    @classmethod
+    def draw(cls, seed: int, size: float, fall: float) -> Relief:
+        """From a generator of its own (seeded by the scene's seed), so the pulses,
+        vegetation and echoes of a scene are those drawn without relief: 4–12 mounds
+        or hollows per hectare 0.2–0.8 m high (a third hollows), sigma 1.5–5 m; 0–3
+        field banks 0.3–1 m high over a 1.5–5 m run, within 0.3 rad of the contour;
+        two waves 0.05–0.25 m high, 8–30 m long."""
+        rng = np.random.default_rng([seed, 31])
+        n = int(rng.poisson(rng.uniform(4, 12) * size * size / 1e4))
+        sign = np.where(rng.random(n) < 1 / 3, -1.0, 1.0)
+        mounds = np.column_stack(
+            [
+                rng.uniform(0, size, (n, 2)),
+                sign * rng.uniform(0.2, 0.8, n),
+                rng.uniform(1.5, 5.0, n),
+            ]
+        )
+        m = int(rng.integers(0, 4))
+        banks = np.column_stack(
+            [
+                rng.uniform(0.1, 0.9, (m, 2)) * size,
+                fall + np.pi / 2 + rng.uniform(-0.3, 0.3, m),
+                rng.uniform(0.3, 1.0, m),
+                rng.uniform(1.5, 5.0, m),
+            ]
+        )
+        waves = np.column_stack(
+            [
+                rng.uniform(0.05, 0.25, 2),
+                rng.uniform(8, 30, 2),
+                rng.uniform(0, np.pi, 2),
+                rng.uniform(0, 2 * np.pi, 2),
+            ]
+        )
+        return cls(mounds, banks, waves)
+
+    def lift(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
+        x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        out = np.zeros(np.broadcast(x, y).shape)
+        for cx, cy, h, s in self.mounds:
+            out = out + h * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s * s))
+        for bx, by, a, h, run in self.banks:
+            # Signed distance across the bank; smoothstep from 0 (below) to h (above).
+            t = np.clip(0.5 - (-(x - bx) * np.sin(a) + (y - by) * np.cos(a)) / run, 0.0, 1.0)
+            out = out + h * t * t * (3 - 2 * t)
+        for amp, length, a, phase in self.waves:
+            out = out + amp * np.sin(2 * np.pi * (x * np.cos(a) + y * np.sin(a)) / length + phase)
+        return out
+
+
 def _ground_fn(
-    surface: Surface, embankments: list[Embankment]
+    surface: Surface, embankments: list[Embankment], relief: Relief | None = None
 ) -> Callable[[NDArray, NDArray], NDArray]:
     def z(x: NDArray, y: NDArray) -> NDArray[np.float64]:
         out = surface(x, y)
         for e in embankments:
             out = out + e.lift(x, y)
+        if relief is not None:
+            out = out + relief.lift(x, y)
         return out
 
     return z
@@ -311,12 +376,15 @@ def _crosses(b: Box, e: Embankment) -> bool:
     return bool(np.any(e.lift(x, y) != 0))
 
 
-def rural_slope(seed: int, size: float = 200.0, echoes: bool = True) -> Scene:
+def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: bool = True) -> Scene:
     """Mostly ground: a slope of grade 2–5 % (gentle) or 15–40 % (steep, half the seeds)
     with low vegetation — 40–400 shrubs (radius 0.7–3 m, 0.3–2.5 m high, 10–50 % of
     pulses through to the ground), 1–4 hedges along the contour (2–4 m wide, 1–2.5 m
     high) and scrub patches — and 0–2 embankments or cuttings 0.5–3 m high with
-    sides at 1:1–1:2. 0.2–1 pulses/m². ``echoes`` false: one return per pulse."""
+    sides at 1:1–1:2. 0.2–1 pulses/m². ``echoes`` false: one return per pulse.
+    ``relief`` (``Relief``): mounds, hollows, field banks and short waves on the
+    ground, as real ground bends within metres; false: planar facets between the
+    breaks (the scene as drawn before relief was added, same pulses)."""
     rng = np.random.default_rng(seed)
     density = float(np.exp(rng.uniform(np.log(0.2), np.log(1.0))))
     steep = seed % 2 == 1
@@ -387,7 +455,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True) -> Scene:
         rng,
         size,
         density,
-        _ground_fn(surf, embankments),
+        _ground_fn(surf, embankments, Relief.draw(seed, size, fall) if relief else None),
         [],
         np.concatenate(shrubs),
         rng.uniform(0.01, 0.05),

@@ -362,13 +362,14 @@ class NistParams(StageParams):
     """…sectors of the isolated-shrub test."""
     rough_near: int = Field(3, ge=1, le=16)
     """…nearest neighbours per sector it looks at."""
-    rough_half: int = Field(0, ge=0, le=64)
+    rough_half: int = Field(12, ge=0, le=64)
     """Half-disc test (``halfdisc.py``; 0: off): after the roughness test, a ground point
     is also taken back when it stands above every well-fitting plane of its ``rough_half``
     nearest sure ground points (all of them, and each half-disc of them) by more than
     ``max(rough_half_floor, rough_half_factor`` × its deviation or the roughness around); near a slope
-    break one half lies on the point's own facet and fits it with the ground's noise. Off:
-    real ground that bends within a few metres stands as high (README *Measured*)."""
+    break one half lies on the point's own facet and fits it with the ground's noise. Real
+    ground that bends within a few metres stands as high: held to a quadratic too
+    (``rough_half_curve``; without it ISPRS kappa falls 2–22 points, README *Measured*)."""
     rough_half_rounds: int = Field(5, ge=1, le=20)
     """…the sure ground: the ground left by the roughness test, cleaned this many times
     less one by the same test held to half the factor and floor."""
@@ -376,6 +377,13 @@ class NistParams(StageParams):
     """…deviations of the plane above which a point is vegetation."""
     rough_half_floor: float = Field(0.1, ge=0, le=5)
     """…and never less than this many metres."""
+    rough_half_curve: int = Field(30, ge=0, le=64)
+    """…and (when > 6; 0: off) also above the quadratic surface of its this many nearest
+    sure ground points (refitted once without those high above it) by more than
+    ``rough_half_curve_factor`` × that surface's deviation: mounds, rounded crests and
+    field banks stand above planes, not above a quadratic; in the cleaning too, at half."""
+    rough_half_curve_factor: float = Field(5.0, gt=0, le=20)
+    """…deviations of the quadratic above which a point is vegetation."""
     rough_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the roughness test runs (4: up to about 1.8
     points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
@@ -799,6 +807,8 @@ def _rough(
             params.rough_half_rounds,
             params.rough_half_factor,
             params.rough_half_floor,
+            params.rough_half_curve,
+            params.rough_half_curve_factor,
         )
     return high
 
