@@ -8,6 +8,7 @@ from scipy.spatial import Delaunay
 
 from terrasift.workers.ground import nist
 from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.tin import Tin
 
 
 def _yard(noise: float, seed: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
@@ -28,12 +29,19 @@ def _yard(noise: float, seed: int) -> tuple[NDArray[np.float64], NDArray[np.bool
 
 
 def _dropped(
-    xyz: NDArray[np.float64], along: bool = True, graded: float = 0.0
+    xyz: NDArray[np.float64],
+    along: bool = True,
+    graded: float = 0.0,
+    walled: float = 0.0,
+    stage_tin: bool = False,
 ) -> NDArray[np.bool_]:
-    p = nist.NistParams(raised_along=along, raised_graded=graded)
+    """``raised_segments`` with the stage's parameters on ``xyz``'s triangulation
+    (``stage_tin``: the stage's own TIN and height lookup, much faster across holes)."""
+    p = nist.NistParams(raised_along=along, raised_graded=graded, raised_walled=walled)
+    tin = Tin(xyz, origin=np.zeros(2)) if stage_tin else None
     return raised_segments(
         xyz,
-        Delaunay(xyz[:, :2]),
+        Delaunay(xyz[:, :2]) if tin is None else tin.tri,
         p.raised_step,
         p.raised_slope,
         up_share=p.raised_share,
@@ -45,6 +53,8 @@ def _dropped(
         edge=p.raised_edge,
         along=p.raised_along,
         graded=p.raised_graded,
+        walled=p.raised_walled,
+        heights=None if tin is None else (lambda q: nist._inside(tin, q)),
     )
 
 
@@ -115,3 +125,36 @@ def test_embankment_cut_by_the_data_edge_is_kept_and_a_platform_is_not():
         assert not _dropped(xyz, graded=0.5)[crest].any(), seed
         xyz, top = _cut_by_the_edge(0.0, seed)
         assert np.array_equal(_dropped(xyz, graded=0.5), top), seed
+
+
+def _walled_platform(seed: int, high: float) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A platform ``high`` m above level ground (80 x 8 m, vertices 2 m apart, 1 cm
+    coordinates) with a 36 m hole along its south side (its neighbours, wagons, left
+    it), and beyond the hole ground rising 4 % toward it: the terrain there bends
+    from that grade to level under the hole (railway seed 618)."""
+    rng = np.random.default_rng(seed)
+    x, y = (
+        a.ravel() for a in np.meshgrid(np.arange(-40.0, 140.0, 2.0), np.arange(-80.0, 90.0, 2.0))
+    )
+    x, y = x + rng.uniform(-0.5, 0.5, x.size), y + rng.uniform(-0.5, 0.5, y.size)
+    top = (x > 10) & (x < 90) & (y > 36) & (y < 44)
+    keep = ~((x > 10) & (x < 90) & (y >= 0) & (y <= 36))
+    x, y, top = x[keep], y[keep], top[keep]
+    z = 0.04 * np.minimum(y, 0.0) + np.where(top, high, 0.0) + rng.normal(0.0, 0.02, x.size)
+    return np.round(np.column_stack([x, y, z]), 2), top
+
+
+def test_walled_platform_met_across_a_hole_at_a_gentle_grade_is_dropped():
+    # Railway seed 618: the terrain behind the hole's far side, extrapolated over the
+    # 36 m edges, predicts the platform's height, so no edge across the hole is a step
+    # and they join it to the terrain; its walls on the other sides say it stands 1 m
+    # above the ground, and the edges across the hole fall as far.
+    for seed in range(3):
+        for high in (0.8, 1.0, 1.3):
+            xyz, top = _walled_platform(seed, high)
+            assert not _dropped(xyz, stage_tin=True).any(), (seed, high)  # the rule off: kept
+            on = _dropped(xyz, graded=0.5, walled=0.5, stage_tin=True)
+            assert np.array_equal(on, top), (seed, high)
+        # No platform, the same ground and hole: nothing is raised.
+        xyz, top = _walled_platform(seed, 0.0)
+        assert not _dropped(xyz, graded=0.5, walled=0.5, stage_tin=True).any(), seed

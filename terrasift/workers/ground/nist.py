@@ -252,6 +252,16 @@ class NistParams(StageParams):
     a road embankment the edge cuts, whose sloped sides the TIN descends in low steps; a
     platform's wall stands on level ground (railway seed 413: an embankment's crest reaching
     the edge along 10–16 m, under ``raised_edge``, went as a platform)."""
+    raised_walled: float = Field(0.5, ge=0, le=10)
+    """An edge of the final TIN across a hole that falls from a walled flat patch (cut off
+    from the rest by steps and holes, level within ``raised_step`` RMS on a plane gentler
+    than ``raised_slope``, the upper side of every step on its border, ``raised_walls`` of
+    them walls, fewer than ``raised_graded`` of them on ground falling on beyond) by at
+    least this share of the median height of the patch's walls is a step and a wall (0:
+    off; ``raised.py``): a platform whose neighbours left holes around it meets the ground
+    beyond them at a gentle grade that the terrain behind may predict (railway seed 618:
+    37 m edges, ground bending from 3.4 to 1.5 % of grade), but its own walls say how high
+    it stands."""
     raised_rim: float = Field(4.0, ge=0, le=100)
     """Final-TIN edges longer than this many median edges with both ends within one median
     edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
@@ -920,6 +930,7 @@ def _without_raised(
         along=params.raised_along,
         heights=lambda q: _inside(tin, q),
         graded=params.raised_graded,
+        walled=params.raised_walled,
     )
     if params.raised_islands:
         drop |= walled_islands(

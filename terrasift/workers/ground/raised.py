@@ -19,6 +19,12 @@ on average ``min_lift`` or more above the least-squares plane through the feet
 of its steps (the vertices beyond them). A terrace tread between a wall above
 and a wall below, or a bench of a cut slope, sits near that plane and is the
 lower side about as often as the upper.
+
+A platform whose neighbours (wagons) were dropped meets the ground across the
+holes they left by long gentle edges; where the terrain behind their far end
+does not tell (it bends over that run), the platform's own walls do: cut off
+from the rest by its walls and the holes, it is a level walled patch, and an
+edge across a hole falling from it about as far as its walls drop is a step.
 """
 
 from __future__ import annotations
@@ -63,6 +69,7 @@ def raised_segments(
     along: bool = False,
     heights: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
     graded: float = 0.0,
+    walled: float = 0.0,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -113,6 +120,15 @@ def raised_segments(
     ``graded`` > 0: a segment reaching the edge of the data is kept when at least this
     share of its steps down land on ground falling on beyond them (``_graded_at_edge``):
     an embankment cut by the edge, not a platform.
+    ``walled`` > 0: an edge across a hole (at least ``_ALONG_RUNS`` median edges long,
+    not a step) that falls from a walled flat patch by at least this share of the median
+    height of the patch's walls is a step and a wall (``_walled_falls``). The patches are
+    the segments joined by short edges only; a walled one is flat (``step`` RMS, on a
+    plane gentler than ``step_slope_deg``), not the largest, the upper side of every
+    short step on its border, walled on ``walls`` of them and graded (``graded``) on
+    fewer than that share of them: a platform whose neighbours left holes around it meets the ground beyond them
+    at a gentle grade, which the terrain behind the far end may predict (a slope bending
+    over 70 m), but its own walls say how high it stands.
     ``heights``: the TIN's height at points (k, 2), nan outside it (``along``; None:
     interpolated on ``tri``, which must then be a scipy ``Delaunay``).
     """
@@ -161,6 +177,14 @@ def raised_segments(
             near = np.zeros(n, dtype=bool)
             near[ends] = _hull_distance(xyz[:, :2], tri, ends) <= med
             joins[long[near[e[long, 0]] & near[e[long, 1]]]] = False
+    across = np.zeros(e.shape[0], dtype=bool)  # steps found across holes by ``walled``
+    if walled > 0:
+        falls, fall_up = _walled_falls(
+            xyz, e, dz, run, med, joins, is_step, wall, step, tan_step, walls, walled, graded
+        )
+        if falls.size:
+            is_step[falls], joins[falls], wall[falls] = True, False, True
+            rising[falls], across[falls] = fall_up, True
     gentle = e[joins]
     graph = coo_matrix((np.ones(gentle.shape[0]), (gentle[:, 0], gentle[:, 1])), shape=(n, n))
     n_seg, seg = connected_components(graph, directed=False)
@@ -181,7 +205,11 @@ def raised_segments(
     cross = lo != hi
     lo, hi, lo_v, hi_v = lo[cross], hi[cross], lo_v[cross], hi_v[cross]
     if graded > 0:
-        fixed |= _graded_at_edge(xyz, tri, seg, n_seg, med, border, e, hi, lo_v, hi_v, step, graded)
+        # Only the steps of the border itself: one across a hole says nothing of its sides.
+        own = ~across[is_step][cross]
+        fixed |= _graded_at_edge(
+            xyz, tri, seg, n_seg, med, border, e, hi[own], lo_v[own], hi_v[own], step, graded
+        )
     is_wall = wall[is_step][cross]
     is_big = big[is_step][cross]
     flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
@@ -301,6 +329,22 @@ def _graded_at_edge(
     n_step = np.bincount(hi, minlength=n_seg)
     if hi.size == 0:
         return np.zeros(n_seg, dtype=bool)
+    on = _falls_on(xyz, e, lo_v, hi_v, step)
+    share = np.bincount(hi, on, n_seg) / np.maximum(n_step, 1)
+    touches = _along_edge(xyz[:, :2], tri, seg, n_seg, med, border) > 0
+    return touches & (n_step > 0) & (share >= graded)
+
+
+def _falls_on(
+    xyz: NDArray[np.float64],
+    e: NDArray[np.int64],
+    lo_v: NDArray[np.int64],
+    hi_v: NDArray[np.int64],
+    step: float,
+) -> NDArray[np.bool_]:
+    """Per step (ends ``lo_v`` → ``hi_v``): a TIN edge (of ``e``) from its foot, pointing
+    away from the step, drops ``step`` or more at half the step's gradient or more: the
+    ground goes on falling beyond it (a graded side, not a wall on a level foot)."""
     # The TIN's edges from each step's foot (each edge once in both directions).
     a = np.concatenate([e[:, 0], e[:, 1]])
     order = np.argsort(a, kind="stable")
@@ -318,18 +362,84 @@ def _graded_at_edge(
         & (fall >= step)
         & (fall >= 0.5 * grad_step[k] * np.hypot(*nxt.T))
     )
-    on = np.zeros(lo_v.size)
-    on[k[falls]] = 1.0
-    share = np.bincount(hi, on, n_seg) / np.maximum(n_step, 1)
-    touches = _along_edge(xyz[:, :2], tri, seg, n_seg, med, border) > 0
-    return touches & (n_step > 0) & (share >= graded)
+    on = np.zeros(lo_v.size, dtype=bool)
+    on[k[falls]] = True
+    return on
+
+
+def _walled_falls(
+    xyz: NDArray[np.float64],
+    e: NDArray[np.int64],
+    dz: NDArray[np.float64],
+    run: NDArray[np.float64],
+    med: float,
+    joins: NDArray[np.bool_],
+    is_step: NDArray[np.bool_],
+    wall: NDArray[np.bool_],
+    step: float,
+    steep: float,
+    walls: float,
+    share: float,
+    graded: float,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Joining edges across holes (indices into ``e``) that fall from a walled flat patch
+    by at least ``share`` of the median height of its walls, and per such edge whether
+    its upper end is ``e[:, 1]``; see ``raised_segments``' ``walled``.
+
+    Patches: the TIN cut along steps and along every edge at least ``_ALONG_RUNS``
+    median edges long. A patch is walled when it is not the largest, its vertices lie
+    within ``step`` RMS of their plane and that plane is gentler than a wall (``steep``,
+    rise/run: a piece of an embankment's side is not a platform's top), it is the upper
+    side of every short step on its border, at least ``walls`` of those are walls
+    (``wall``) and, with ``graded`` > 0, fewer than ``graded`` of them land on ground
+    that falls on beyond them (``_falls_on``: an embankment's crest above its graded
+    side, not a platform's top)."""
+    n = xyz.shape[0]
+    short = run < _ALONG_RUNS * med
+    far = np.flatnonzero(joins & ~short)
+    none = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)
+    if far.size == 0:
+        return none
+    near = e[joins & short]
+    graph = coo_matrix((np.ones(near.shape[0]), (near[:, 0], near[:, 1])), shape=(n, n))
+    n_seg, seg = connected_components(graph, directed=False)
+    st = np.flatnonzero(is_step & short)
+    st = st[seg[e[st, 0]] != seg[e[st, 1]]]
+    up = dz[st] > 0
+    hi = seg[np.where(up, e[st, 1], e[st, 0])]
+    lo = seg[np.where(up, e[st, 0], e[st, 1])]
+    n_up = np.bincount(hi, minlength=n_seg)
+    n_wall = np.bincount(hi[wall[st]], minlength=n_seg)
+    n_down = np.bincount(lo, minlength=n_seg)
+    ok = (n_up > 0) & (n_down == 0) & (n_wall >= walls * n_up)
+    ok[np.argmax(np.bincount(seg, minlength=n_seg))] = False
+    if graded > 0 and ok.any():
+        mine = ok[hi]
+        lo_v = np.where(up, e[st, 0], e[st, 1])[mine]
+        hi_v = np.where(up, e[st, 1], e[st, 0])[mine]
+        on = _falls_on(xyz, e, lo_v, hi_v, step)
+        ok &= np.bincount(hi[mine], on, n_seg) < graded * np.maximum(n_up, 1)
+    if not ok.any():
+        return none
+    ok &= _flat(xyz, seg, n_seg, step, steep)
+    # The walls' height per patch: the median drop of the steps down from it.
+    height = _median_per_vertex(hi, np.abs(dz[st]), n_seg)
+    s0, s1 = seg[e[far, 0]], seg[e[far, 1]]
+    drop1 = ok[s1] & (s0 != s1) & (dz[far] >= share * height[s1])
+    drop0 = ok[s0] & (s0 != s1) & (-dz[far] >= share * height[s0])
+    pick = drop1 | drop0
+    return far[pick], drop1[pick]
 
 
 def _flat(
-    xyz: NDArray[np.float64], seg: NDArray[np.int64], n_seg: int, tol: float
+    xyz: NDArray[np.float64],
+    seg: NDArray[np.int64],
+    n_seg: int,
+    tol: float,
+    steep: float = np.inf,
 ) -> NDArray[np.bool_]:
-    """Per segment: its vertices lie within ``tol`` RMS of their least-squares plane
-    (segments of fewer than four vertices count as flat)."""
+    """Per segment: its vertices lie within ``tol`` RMS of their least-squares plane,
+    gentler than ``steep`` (rise/run; segments of fewer than four vertices count as flat)."""
     size = np.maximum(np.bincount(seg, minlength=n_seg), 1)
     cx = np.bincount(seg, xyz[:, 0], n_seg) / size
     cy = np.bincount(seg, xyz[:, 1], n_seg) / size
@@ -337,7 +447,7 @@ def _flat(
     coef, cnt = _plane_per_group(seg, u, v, z, n_seg, 4)
     res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
     rms = np.sqrt(np.bincount(seg, res**2, n_seg) / size)
-    return (cnt < 4) | (rms <= tol)
+    return (cnt < 4) | ((rms <= tol) & (np.hypot(coef[:, 1], coef[:, 2]) < steep))
 
 
 def _plane_per_group(
