@@ -254,6 +254,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_shrub": 0.2, "rough_near": 2},
         {"rough_shrub": 0.2, "rough_sectors": 8, "rough_near": 2},
         {"rough_half": 12},
+        {"final_nodes": "square"},
     ],
 }
 
