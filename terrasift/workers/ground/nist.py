@@ -94,6 +94,7 @@ from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.halfdisc import half_disc_vegetation
 from terrasift.workers.ground.masking import extremes_per_cell, mask_points
+from terrasift.workers.ground.nodes import square_lowest
 from terrasift.workers.ground.plateaus import walled_islands, walled_plateaus
 from terrasift.workers.ground.raised import raised_segments
 from terrasift.workers.ground.roughness import rough_points
@@ -150,6 +151,13 @@ class NistParams(StageParams):
     least this share of the vote add it (0: off, such points are voted like the rest).
     Whether growth finds a path onto a crest is one event per phase, which the phases'
     majority turns into luck of where the bins fall."""
+    final_nodes: Literal["bins", "square"] = "bins"
+    """Nodes of every pass and of growth: the lowest point of each bin (``bins``), or on
+    sparse data (where the final vote would run) every point lowest in the pass's cell-sized
+    square centred on it (``square``, ``nodes.py``): chosen by the data, not by where the
+    bins fall, so labels do not move with the tile's origin and one run replaces the vote.
+    Off: it loses kappa on three ISPRS samples (samp52 a hillside as a raised segment;
+    README *Measured*)."""
     mow_share: float = Field(0.0, ge=0, le=1)
     """Passes 1 and 2 vote too when the final pass does (0: off, one grid each): each pass
     is run over the final vote's phases of its own grid, and a point survives its mowing
@@ -714,6 +722,63 @@ def _classify(
 
     # Pass 1: mask, bin, mesh/screen; mow the original points.
     mask1 = _mask(local, params, spacing) if params.mask else none
+    square = (
+        params.final_nodes == "square" and isinstance(g3, Grid) and votes_k > 1 and not params.mask
+    )
+    if square:
+        mowed = _mow(
+            _square_surface(local, _cell_of(g1), params, centre, scales[0]),
+            local,
+            params.mow_tol_1,
+            _cell_of(g1),
+            params,
+        )
+        mowed_pts = np.take(local, mowed, axis=0)
+        mowed = _mow(
+            _square_surface(mowed_pts, _cell_of(g2), params, centre, scales[1]),
+            local,
+            params.mow_tol_2,
+            _cell_of(g2),
+            params,
+        )
+    else:
+        mowed = _passes_1_2(local, params, spacing, g1, g2, k, mow_k, centre, scales, mask1)
+
+    # A point is ground when at least ``vote_share`` of the final phases label it so.
+    finals = [g3] if square or not isinstance(g3, Grid) else _phased(g3, votes_k)
+    reach = params.grow_reach * _cell_of(g1)
+    votes, grown, weights = np.zeros(n), np.zeros(n), np.zeros(n)
+    for g in finals:
+        w = _vote_weights(local, g, params, len(finals))
+        phase, added = _final(
+            local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach, square
+        )
+        votes += w * phase
+        grown += w * added
+        weights += w
+    labels = votes >= params.vote_share * weights
+    if params.grow_share > 0 and len(finals) > 1:
+        labels |= grown >= params.grow_share * weights
+    labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
+    ground = np.empty(n, dtype=bool)
+    ground[order] = labels
+    return ground
+
+
+def _passes_1_2(
+    local: NDArray[np.float64],
+    params: NistParams,
+    spacing: float,
+    g1: Grid | ConcentricGrid,
+    g2: Grid | ConcentricGrid,
+    k: int,
+    mow_k: int,
+    centre: NDArray,
+    scales: list[float],
+    mask1: NDArray[np.float64],
+) -> NDArray[np.int64]:
+    """Indices of ``local`` that survive passes 1 and 2 over the bins of ``g1`` and ``g2``
+    (``k`` bin phases; ``mow_k`` voting phases of each pass)."""
     mowed = _voted_mow(
         local,
         local,
@@ -730,7 +795,7 @@ def _classify(
 
     # Pass 2: screen the mowed points, mask them, bin, mesh/screen; mow the originals again.
     mowed_pts = np.take(local, mowed, axis=0)
-    mask2 = none
+    mask2 = np.zeros((0, 2))
     if params.mask:
         mowed_pts = mowed_pts[_screen_points(mowed_pts, params, spacing)]
         mask2 = _mask(mowed_pts, params, spacing)
@@ -748,25 +813,7 @@ def _classify(
         _cell_of(g2),
     )
 
-    # A point is ground when at least ``vote_share`` of the final phases label it so.
-    finals = _phased(g3, votes_k) if isinstance(g3, Grid) else [g3]
-    reach = params.grow_reach * _cell_of(g1)
-    votes, grown, weights = np.zeros(n), np.zeros(n), np.zeros(n)
-    for g in finals:
-        w = _vote_weights(local, g, params, len(finals))
-        phase, added = _final(
-            local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach
-        )
-        votes += w * phase
-        grown += w * added
-        weights += w
-    labels = votes >= params.vote_share * weights
-    if params.grow_share > 0 and len(finals) > 1:
-        labels |= grown >= params.grow_share * weights
-    labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
-    ground = np.empty(n, dtype=bool)
-    ground[order] = labels
-    return ground
+    return mowed
 
 
 def _voted_mow(
@@ -833,33 +880,23 @@ def _final(
     spacing: float,
     cut: tuple[float, float, float, float] | None = None,
     reach: float = 0.0,
+    square: bool = False,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
     final surface, raised segments, growth, band and supported points (``cut``: the
     block's window in local coordinates, see ``classify_ground``; ``reach``: growth's
     path limit in metres, 0 none); and the labelled points outside the band of the
     surface before growth (what growth and the supported points added)."""
-    none = np.zeros((0, 2))
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
-    tin3 = _surface(
-        mowed_pts,
-        [select_reject(mowed_pts, params, g, mask_xy=none) for g in _phased(g3, k)],
-        params,
-        centre,
-    )
+    tin3 = _final_surface(mowed_pts, g3, k, params, centre, square)
     # Repeats of mow → bin → mesh/screen at the final cell size let the
     # surface climb back onto convex breaks that the coarser passes cut.
     for _ in range(params.repeats):
         mowed_pts = np.take(
             local, _mow(tin3, local, params.mow_tol_2, _cell_of(g3), params), axis=0
         )
-        tin3 = _surface(
-            mowed_pts,
-            [select_reject(mowed_pts, params, g, mask_xy=none) for g in _phased(g3, k)],
-            params,
-            centre,
-        )
+        tin3 = _final_surface(mowed_pts, g3, k, params, centre, square)
     raised = None
     if params.raised_step > 0:
         tin3, raised = _without_raised(tin3, params, cut)
@@ -876,7 +913,7 @@ def _final(
     if params.grow:
         if params.grow_share > 0:
             before = _band(tin3, local, params)[0]
-        tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised, reach)
+        tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised, reach, square)
     labels, above = _band(tin3, local, params)
     if params.support_k > 0:
         # Only points above the band may join: those below it are low outliers.
@@ -890,6 +927,46 @@ def _final(
             rounds=params.support_rounds,
         )
     return labels, np.zeros_like(labels) if before is None else labels & ~before
+
+
+def _final_surface(
+    pts: NDArray[np.float64],
+    g3: Grid | ConcentricGrid,
+    k: int,
+    params: NistParams,
+    centre: NDArray,
+    square: bool,
+) -> Tin:
+    """Pass 3's mesh/screen of ``pts``: over the bins of ``g3`` (``k`` phases), or with
+    ``square`` over the points lowest in the final-cell square around them."""
+    if not square:
+        srs = [select_reject(pts, params, g, mask_xy=np.zeros((0, 2))) for g in _phased(g3, k)]
+        return _surface(pts, srs, params, centre)
+    return _square_surface(pts, _cell_of(g3), params, centre)
+
+
+def _square_surface(
+    pts: NDArray[np.float64], cell: float, params: NistParams, centre: NDArray, scale: float = 1.0
+) -> Tin:
+    """Mesh/screen of the points of ``pts`` lowest in the ``cell`` square around them
+    (``nodes.py``), screening tolerances × ``scale``."""
+    idx, grads = square_lowest(pts, cell, params.z_tol)
+    if idx.size < 3:
+        raise _TooSparse
+    slopes = _vote_slopes(grads, params.screen_slope_cap) if params.bin_fit == "plane" else None
+    keep, tin = screen(
+        pts[idx],
+        params.screen_tol * scale,
+        params.screen_low_tol * scale,
+        slopes=slopes,
+        rim_len=params.screen_rim * cell,
+        rim_band=cell,
+    )
+    if tin is not None:
+        return tin
+    if keep.size < 3:
+        keep = np.arange(idx.size)
+    return Tin(pts[idx[keep]], origin=centre)
 
 
 def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:
@@ -1010,6 +1087,7 @@ def _grown(
     centre: NDArray,
     raised: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None,
     reach: float = 0.0,
+    square: bool = False,
 ) -> Tin:
     """The surface through the lowest point of every final bin that ``tin``
     labels ground or that growth reaches from there (``growth.py``).
@@ -1019,11 +1097,17 @@ def _grown(
     raised roof where it meets the terrain at grade (a roof cut into a slope).
     """
     grid = grids[0]
-    lows = [lowest_per_bin(g.index(local[:, 0], local[:, 1]), local[:, 2], g.size) for g in grids]
-    low = np.unique(np.concatenate(lows))
-    low = low[low >= 0]
-    # Nodes per final bin: more than one when several grid phases are pooled.
-    per_bin = low.size / max(int(np.count_nonzero(lows[0] >= 0)), 1)
+    if square:
+        low = square_lowest(local, _cell_of(grid), params.z_tol)[0]
+        per_bin = 1.0
+    else:
+        lows = [
+            lowest_per_bin(g.index(local[:, 0], local[:, 1]), local[:, 2], g.size) for g in grids
+        ]
+        low = np.unique(np.concatenate(lows))
+        low = low[low >= 0]
+        # Nodes per final bin: more than one when several grid phases are pooled.
+        per_bin = low.size / max(int(np.count_nonzero(lows[0] >= 0)), 1)
     nodes = local[low]
     seed = _label(tin, nodes, params)
     barred = None
