@@ -57,19 +57,34 @@ def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
     return (cats.inclination, cats.orientation, cats.state, relief, lying, clear, rise)
 
 
-def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDArray[np.bool_]:
-    """Tiles matching one category spec; nodata tiles match nothing, even under ``not``."""
+def category_mask(
+    cats: Categories | tuple[Any, ...],
+    spec: CategorySpec,
+    looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] | None = None,
+) -> NDArray[np.bool_]:
+    """Tiles matching one category spec; nodata tiles match nothing, even under ``not``.
+    ``looks`` keeps each band's look-up by value set for these ``cats``: a filter's
+    categories test the same value sets again and again (a road's level strip and
+    its bounding tiles), and each look-up reads the whole band."""
     if isinstance(cats, Categories):
         cats = _arrays(cats)
-    inc, ori, st = cats[0], cats[1], cats[2]
-    m = _lut(spec.inclination)[inc] & _lut(spec.state)[st] & _lut(spec.orientation)[ori]
+    looks = {} if looks is None else looks
+
+    def look(i: int, vs: ValueSet) -> NDArray[np.bool_]:
+        key = (i, vs)
+        if key not in looks:
+            looks[key] = _lut(vs)[cats[i]]
+        return looks[key]
+
+    inc = cats[0]
+    m = look(0, spec.inclination) & look(2, spec.state) & look(1, spec.orientation)
     for i, (name, test) in enumerate(
         (("height", spec.height), ("lying-height", spec.lying_height)), start=3
     ):
         if test.values is not None:
             if len(cats) <= i or cats[i] is None:
                 raise ValueError(f"a filter tests {name} but the categories carry no heights")
-            m &= _lut(test)[cats[i]]
+            m &= look(i, test)
     if spec.clear:
         if len(cats) <= 5 or cats[5] is None:
             raise ValueError("a filter tests clear but the categories carry no clear band")
@@ -77,17 +92,19 @@ def category_mask(cats: Categories | tuple[Any, ...], spec: CategorySpec) -> NDA
     if spec.rise.values is not None:
         if len(cats) <= 6 or cats[6] is None:
             raise ValueError("a filter tests rise but the categories carry no rise band")
-        m &= _lut(spec.rise)[cats[6]]
+        m &= look(6, spec.rise)
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)
 
 
-def class_mask(cats, sub: SubSegment) -> NDArray[np.bool_]:
-    """Tiles matching any category of a subsegment."""
+def class_mask(
+    cats, sub: SubSegment, looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] | None = None
+) -> NDArray[np.bool_]:
+    """Tiles matching any category of a subsegment (``looks`` as ``category_mask``)."""
     out = np.zeros(cats[0].shape, dtype=bool)
     for spec in sub.categories:
-        out |= category_mask(cats, spec)
+        out |= category_mask(cats, spec, looks)
     return out
 
 
@@ -99,6 +116,7 @@ def search_rows(
     sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] | None = None,
     prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] | None = None,
     shared: set[tuple[SubSegment, ...]] | None = None,
+    looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] | None = None,
 ) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
@@ -108,14 +126,15 @@ def search_rows(
     their mismatch counts along each band's rows, so a class repeated across
     segments (a road's level strip) is matched and counted once. ``prefixes`` keeps
     the matches of the leading subsegments in ``shared`` (runs of subsegments that
-    begin more than one segment), so segments that start alike match that start once.
+    begin more than one segment), so segments that start alike match that start once;
+    ``looks`` the bands' look-ups by value set (``category_mask``), kept with ``masks``.
     """
     masks = {} if masks is None else masks
     sums = {} if sums is None else sums
     keys = []
     for sub in seg.subsegments:
         if sub.categories not in masks:
-            masks[sub.categories] = ~class_mask(cats, sub)
+            masks[sub.categories] = ~class_mask(cats, sub, looks)
         keys.append(sub.categories)
     nrows = cats[0].shape[0]
     out = []
@@ -259,6 +278,9 @@ def search_filter(
             masks: dict[tuple[CategorySpec, ...], NDArray[np.bool_]] = {}
             sums: dict[tuple[tuple[CategorySpec, ...], int], NDArray[np.integer]] = {}
             prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] = {}
+            looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] = {}
             for seg in segs:
-                marks[r : r + band] |= search_rows(part, seg, band, masks, sums, prefixes, shared)
+                marks[r : r + band] |= search_rows(
+                    part, seg, band, masks, sums, prefixes, shared, looks
+                )
     return h, np.ascontiguousarray(v.T)
