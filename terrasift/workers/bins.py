@@ -255,6 +255,33 @@ class PlaneStats:
     lowest: NDArray[np.int64]  # index of the point with the most negative residual
 
 
+def planes_from_sums(
+    nf: NDArray[np.float64],
+    sums: NDArray[np.float64],
+    cell: float | NDArray[np.float64],
+    min_n: int,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Least-squares planes z = c + sx u + sy v from their point counts ``nf`` and the
+    sums (u, v, z, uu, vv, uv, uz, vz) stacked in ``sums``: whether each is solved (at
+    least ``min_n`` points, the system not singular at the scale of ``cell``) and c, sx,
+    sy (NaN where not). Closed form (the symmetric adjugate), vectorised over planes."""
+    su, sv, sz, suu, svv, suv, suz, svz = sums
+    a00 = suu * svv - suv * suv
+    a01 = sv * suv - su * svv
+    a02 = su * suv - suu * sv
+    a11 = nf * svv - sv * sv
+    a12 = su * sv - nf * suv
+    a22 = nf * suu - su * su
+    det = nf * a00 + su * a01 + sv * a02
+    ok = (nf >= min_n) & (np.abs(det) > 1e-9 * np.maximum(1.0, nf) * cell**4)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.where(ok, 1.0 / det, np.nan)
+    c = (a00 * sz + a01 * suz + a02 * svz) * inv
+    sx = (a01 * sz + a11 * suz + a12 * svz) * inv
+    sy = (a02 * sz + a12 * suz + a22 * svz) * inv
+    return ok, c, sx, sy
+
+
 def plane_fit_statistics(
     xyz: NDArray[np.float64], grid: BinGrid, flat: NDArray[np.int64] | None = None
 ) -> PlaneStats:
@@ -271,23 +298,7 @@ def plane_fit_statistics(
     x, y, z = (np.asarray(xyz[:, k], dtype=np.float64) for k in range(3))
     cx, cy = grid.centers()
     n, sums = _plane_sums(flat, x, y, z, cx, cy)
-    nf = n.astype(np.float64)
-    su, sv, sz, suu, svv, suv, suz, svz = sums.T
-    # Solve [[n, su, sv], [su, suu, suv], [sv, suv, svv]] @ [c, sx, sy] = [sz, suz, svz]
-    # with the (symmetric) adjugate.
-    a00 = suu * svv - suv * suv
-    a01 = sv * suv - su * svv
-    a02 = su * suv - suu * sv
-    a11 = nf * svv - sv * sv
-    a12 = su * sv - nf * suv
-    a22 = nf * suu - su * su
-    det = nf * a00 + su * a01 + sv * a02
-    ok = (n >= 3) & (np.abs(det) > 1e-9 * np.maximum(1.0, nf) * grid.cell**4)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        inv = np.where(ok, 1.0 / det, np.nan)
-    c = (a00 * sz + a01 * suz + a02 * svz) * inv
-    sx = (a01 * sz + a11 * suz + a12 * svz) * inv
-    sy = (a02 * sz + a12 * suz + a22 * svz) * inv
+    ok, c, sx, sy = planes_from_sums(n.astype(np.float64), sums.T, grid.cell, min_n=3)
     # Residuals about zero planes in bins without a fit keep every residual
     # finite; those bins get NaN / -1 below.
     c0, sx0, sy0 = (np.where(ok, a, 0.0) for a in (c, sx, sy))

@@ -600,7 +600,19 @@ def _surface(
             b = sr.grid.index(c[:, 0], c[:, 1])
             grads.append(np.column_stack([sr.plane.sx[b], sr.plane.sy[b]]))
         slopes = _vote_slopes(np.concatenate(grads)[first], params.screen_slope_cap)
-    cell = _cell_of(srs[0].grid)
+    return _screened(cand, slopes, params, scale, _cell_of(srs[0].grid), origin_xy)
+
+
+def _screened(
+    cand: NDArray[np.float64],
+    slopes: NDArray[np.float64] | None,
+    params: NistParams,
+    scale: float,
+    cell: float,
+    origin_xy: NDArray,
+) -> Tin:
+    """Screen the mesh of ``cand`` until stable (tolerances × ``scale``, rims in
+    ``cell`` units); every candidate when fewer than three would stay."""
     keep, tin = screen(
         cand,
         params.screen_tol * scale,
@@ -954,19 +966,7 @@ def _square_surface(
     if idx.size < 3:
         raise _TooSparse
     slopes = _vote_slopes(grads, params.screen_slope_cap) if params.bin_fit == "plane" else None
-    keep, tin = screen(
-        pts[idx],
-        params.screen_tol * scale,
-        params.screen_low_tol * scale,
-        slopes=slopes,
-        rim_len=params.screen_rim * cell,
-        rim_band=cell,
-    )
-    if tin is not None:
-        return tin
-    if keep.size < 3:
-        keep = np.arange(idx.size)
-    return Tin(pts[idx[keep]], origin=centre)
+    return _screened(pts[idx], slopes, params, scale, cell, centre)
 
 
 def _label(tin: Tin, xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.bool_]:

@@ -17,6 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from terrasift.workers.bins import planes_from_sums
+
 
 def square_lowest(
     xyz: NDArray[np.float64], cell: float, z_tol: float = np.inf
@@ -40,23 +42,11 @@ def square_lowest(
 
     # Normal equations of w = c + sx u + sy v over the square (the point itself at 0, 0, 0).
     nf = 1.0 + np.bincount(own, minlength=n).astype(np.float64)
-    su, sv, sz, suu, svv, suv, suz, svz = (
-        s(a) for a in (u, v, w, u * u, v * v, u * v, u * w, v * w)
-    )
-    a00 = suu * svv - suv * suv
-    a01 = sv * suv - su * svv
-    a02 = su * suv - suu * sv
-    a11 = nf * svv - sv * sv
-    a12 = su * sv - nf * suv
-    a22 = nf * suu - su * su
-    det = nf * a00 + su * a01 + sv * a02
+    sums = np.stack([s(a) for a in (u, v, w, u * u, v * v, u * v, u * w, v * w)])
     # Four points at least: a plane through three fits them all exactly, and which is
     # lowest would be rounding.
-    ok = (nf >= 4) & (np.abs(det) > 1e-9 * nf * cell**4)
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    c = (a00 * sz + a01 * suz + a02 * svz) * inv
-    sx = (a01 * sz + a11 * suz + a12 * svz) * inv
-    sy = (a02 * sz + a12 * suz + a22 * svz) * inv
+    ok, c, sx, sy = planes_from_sums(nf, sums, cell, min_n=4)
+    c, sx, sy = (np.where(ok, a, 0.0) for a in (c, sx, sy))
     # Residuals about the square's plane (about the point's own height where none).
     res_nbr = w - c[own] - sx[own] * u - sy[own] * v
     res_self = -c
