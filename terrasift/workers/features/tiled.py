@@ -732,21 +732,11 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
             busy = frozenset[tuple[int, int]]().union(*(v[1] for v in rings))
             if len(busy) > flt.surround[1] * len(around):
                 continue
-        rims = [x.rim for x in cuts if x.rim is not None]
-        if (
-            flt.enclosed is not None
-            and rims
-            and len(rims) == len(cuts)
-            and rim_sectors(_joined_rim(cuts, rims)) < flt.enclosed[1]
-        ):
+        rim = _joined_rim(cuts, [x.rim for x in cuts]) if flt.enclosed is not None else None
+        if flt.enclosed is not None and rim is not None and rim_sectors(rim) < flt.enclosed[1]:
             continue
-        falls = [x.fall for x in cuts if x.fall is not None]
-        if (
-            flt.isolated is not None
-            and falls
-            and len(falls) == len(cuts)
-            and rim_leak(_joined_rim(cuts, falls)) > flt.isolated[1]
-        ):
+        fall = _joined_rim(cuts, [x.fall for x in cuts]) if flt.isolated is not None else None
+        if flt.isolated is not None and fall is not None and rim_leak(fall) > flt.isolated[1]:
             continue
         lines = [x.lines for x in cuts if x.lines is not None]
         if c is not None and lines and len(lines) == len(cuts):
@@ -780,9 +770,13 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
     return out
 
 
-def _joined_rim(cuts: list[Cut], rims: list[Rim]) -> Rim:
-    """The whole label's ``Rim`` from its parts' (``rims``, one per part in ``cuts``): the
-    union of their tiles less the label's own (another core's part's ring holds them)."""
+def _joined_rim(cuts: list[Cut], parts: list[Rim | None]) -> Rim | None:
+    """The whole label's ``Rim`` from its parts' (``parts``, one per part in ``cuts``): the
+    union of their tiles less the label's own (another core's part's ring holds them);
+    None when some part has none."""
+    rims = [v for v in parts if v is not None]
+    if not rims or len(rims) < len(cuts):
+        return None
     inside = _without_holes(unary_union([x.polygon for x in cuts]))
     around_t = sorted(frozenset[tuple[int, int, int]]().union(*(v[0] for v in rims)))
     if around_t:
