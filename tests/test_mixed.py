@@ -516,3 +516,28 @@ def test_a_block_sees_the_scans_field_of_view_not_its_own():
     own = mark_mixed(xyz[block], p, np.zeros(3), geometry=[geo]).marked
     assert np.array_equal(seen[core], whole[block][core])
     assert not own[top[block]].any()
+
+
+def test_grid_marks_the_beams_an_oblique_surface_pulls_back_at_its_edge():
+    # A wall receding towards its end (range +6.7 cm per 0.28° column at 25 m, 29° off
+    # face on), nothing within the mixing gap behind it (a far wall at 35 m), a beam
+    # footprint of 2.8 steps. The wall ends 0.2 steps past column 0: columns 0 and 1
+    # still touch it and answer at the mean range of the part on the wall, 0.6 and 1.1
+    # columns back. Column 1 lies 0.8 steps (10 cm) past the end; column 0 has its centre
+    # on the wall but answers 4 cm nearer, 3.5 cm off it across: marked. Face on the same
+    # pull changes no range, and column 0 is a wall return: kept.
+    step = 0.28
+    ang = np.radians(step)
+    pull = {0: 0.6, 1: 1.1}  # columns back to the part still on the wall
+    for tan, col0 in ((0.55, True), (0.0, False)):
+        g = tan * ang / 25.0  # inverse range per column: tan(incidence) = r |d(1/r)| / step
+        for seed in (0, 1):
+            xyz, col = _wall_grid(
+                lambda c, g=g: 35.0 if c > 1 else 1.0 / (1.0 / 25.0 - g * (c - pull.get(c, 0.0))),
+                step=step,
+                seed=seed,
+            )
+            res = mark_mixed(xyz, MixedParams(footprint=2.8 * step), np.zeros(3)).marked
+            assert res[col == 0].mean() > 0.9 if col0 else res[col == 0].mean() < 0.1
+            assert res[col == 1].mean() > 0.9
+            assert res[col < 0].mean() < 0.002

@@ -39,7 +39,10 @@ mean range (nearer than where the central ray meets grazing ground towards the
 range limit). Otherwise a beam whose footprint still touches the surface returns its range
 on its own ray, up to half a footprint past the edge: those beams are marked
 when displaced by more than ``min_offset`` with a probability above ``bleed_prob``
-(``_bleeding``; the shift is sideways, so range noise does not blur it). An edge
+(``_bleeding``; face on the shift is sideways, so range noise does not blur it; along
+an oblique surface, seen along azimuth, the part still on the surface answers at its
+mean range, so a beam's range says where the edge fell and how far off the surface it
+lies). An edge
 counts only where the surface, continued to the next beam, would have answered
 within ``max_gap``: grazing ground ending at the range limit recedes out of reach
 and does not end there.
@@ -468,26 +471,33 @@ def _mixed_along(
             between |= ends
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
-    between |= _bleeding(R, V, r, s, step, pos, extent)
+    between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
 
 
 def _bleeding(
     R: dict[int, NDArray[np.float64]],
     V: dict[int, NDArray[np.float64]],
+    C: dict[int, NDArray[np.float64]],
     r: NDArray[np.float64],
     s: GridSettings,
     step: float,
+    step_x: float,
     pos: NDArray[np.int64],
     extent: tuple[int, int],
+    oblique: bool = True,
 ) -> NDArray[np.bool_]:
     """Returns of a surface beyond its edge: where nothing answers behind an edge (no
     return, or a background beyond ``max_gap``), a beam whose footprint still touches the
-    surface returns its range on its own central ray, up to half a footprint past the edge.
-    The k-th beam before such an edge lies (footprint/2 - k + 1) steps or less past it,
-    evenly; it is marked when past by more than ``min_offset`` with a probability above
-    ``bleed_prob``. Beams outside the field of view (``extent``) are not
-    edges, nor beams the surface, continued, would reach only beyond ``max_gap``."""
+    surface answers on its own central ray, up to half a footprint past the edge.
+    The k-th beam before such an edge has its centre x steps past it, x even in
+    [footprint/2 - k, footprint/2 - k + 1); it is marked when the probability of lying
+    more than ``min_offset`` off the surface exceeds ``bleed_prob`` (``_bleed_prob``:
+    on an oblique surface its range says where the edge fell; ``oblique`` only along
+    azimuth: along elevation an open edge of a receding surface can be grazing ground at
+    the range limit, which does not end there). Beams outside the field of view
+    (``extent``) are not edges, nor beams the surface, continued, would reach only
+    beyond ``max_gap``."""
     out = np.zeros(r.size, dtype=bool)
     half = s.footprint / 2.0
     # a shift sideways, which range noise does not blur: min_offset (the margin if 0)
@@ -497,7 +507,12 @@ def _bleeding(
             # on a surface seen from the inner side
             # (or nearer than it: on a receding surface, e.g. grazing ground, the part of
             # the footprint still on it lies nearer than where the central ray would meet it)
-            inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= s.sigmas * s.sigma * np.sqrt(6)
+            tol = s.sigmas * s.sigma * np.sqrt(6)
+            # along an oblique surface the part of the footprint still on it answers
+            # up to half a footprint of beams back: farther than its continuation on an
+            # approaching surface, and the beams before the edge differ in range
+            slope = np.nan_to_num(np.abs(R[-sd] - R[-2 * sd])) if oblique else np.zeros(r.size)
+            inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= tol + slope * half
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
                 beyond = R[sd * k]
@@ -508,11 +523,102 @@ def _bleeding(
                 # limit) continues out of reach there, which is no edge
                 v = V[-sd] + (V[-sd] - V[-2 * sd]) * (k + 1)
                 edge &= (v > 0) & (1.0 / v <= r + s.max_gap)
-                # past the edge by x steps, x even in [half - k, half - k + 1)
-                prob = np.clip(half - k + 1 - least / (step * r), 0.0, 1.0)
-                out |= inner & same & edge & (prob > s.bleed_prob)
-                same &= np.abs(beyond - r) <= s.margin
+                c = np.flatnonzero(inner & same & edge & (half - k + 1 > 0))
+                if c.size:
+                    # the surface from two beams inside, clear of the footprint's reach
+                    # from the edge (2 half-footprints from it)
+                    j = int(np.clip(np.ceil(2 * half - k + 1), 1, s.reach))
+                    prob = _bleed_prob(
+                        r[c],
+                        V[-sd * j][c],
+                        V[-sd * (j + 1)][c],
+                        V[-sd * (j + 2)][c],
+                        C[-sd * j][c],
+                        R[-sd * j][c],
+                        (R[-sd] - R[-2 * sd])[c],
+                        j,
+                        s,
+                        step,
+                        step_x,
+                        half - k,
+                        least,
+                        oblique,
+                    )
+                    out[c[prob > s.bleed_prob]] = True
+                same &= np.abs(beyond - r) <= s.margin + k * slope
     return out
+
+
+def _bleed_prob(
+    r: NDArray[np.float64],
+    v1: NDArray[np.float64],
+    v2: NDArray[np.float64],
+    v3: NDArray[np.float64],
+    c1: NDArray[np.float64],
+    r1: NDArray[np.float64],
+    d_near: NDArray[np.float64],
+    j: int,
+    s: GridSettings,
+    step: float,
+    step_x: float,
+    x0: float,
+    least: float,
+    oblique: bool = True,
+    n: int = 32,
+) -> NDArray[np.float64]:
+    """Probability that a beam whose centre lies x steps past a surface's edge, x even in
+    [x0, x0 + 1), lies more than ``least`` off the surface, given its range.
+
+    The part of the footprint (half-width h = footprint/2 steps) still on the surface,
+    [x - h, edge], answers at its mean range: (x + h)/2 beams back from the beam's own,
+    so along a surface whose inverse range changes by g per beam (``v2`` → ``v1``, two
+    beams ``j`` and ``j`` + 1 inside, on one surface with ``v3`` at ``j`` + 2) the
+    return lies g (x + h)/2 off the surface continued to its beam, and is pulled back
+    over the surface by that offset times sin(incidence).
+    Its distance off the surface is then the offset across it (cos(incidence)) and
+    what remains past the edge. Face on (g = 0) the range says nothing and this is the
+    share of x past the edge by more than ``least``; on an oblique surface the range,
+    with its scatter, weighs each x. Where the beams inside are on no one surface (a
+    narrow board's other end), or their change in range per beam is within the scatter
+    of a difference of two returns (the incidence is not resolved), or the two beams next
+    to the beam (``d_near``: their change in range per beam) do not keep at least half
+    that change with its sign (pulled back by half a beam per beam at most, they do on
+    one surface; not on a blend's ramp), the face-on share stands.
+    """
+    half = s.footprint / 2.0
+    x = x0 + (np.arange(n) + 0.5) / n  # (n,)
+    face_on = np.clip(x0 + 1.0 - least / (step * r), 0.0, 1.0)  # x even in [x0, x0 + 1)
+    if not oblique:
+        return face_on
+    g = v1 - v2
+    v_p = v1 + g * j  # the surface continued to the beam
+    tan_a = r * np.abs(g) / step
+    tan_x = r * c1 / r1**2 / step_x
+    cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
+    shift = np.clip(x + half, 0.0, 2 * half) / 2.0  # beams from the centre to the part's mean
+    v_ret = v_p[:, None] - g[:, None] * shift[None, :]
+    dr = np.abs(1.0 / v_ret - 1.0 / v_p[:, None])
+    across = dr * cos_inc[:, None]
+    along = np.maximum(x, 0.0)[None, :] * (step * r)[:, None] * np.sqrt(1.0 + tan_a**2)[:, None]
+    along = np.maximum(along - dr * (tan_a * cos_inc)[:, None], 0.0)
+    off = np.hypot(across, along) > least
+    # the beam's range against each x: its inverse range scatters by sigma / r^2 about
+    # the continuation (two beams continued j on)
+    sd_v = s.sigma * np.sqrt((1 + j) ** 2 + j**2 + 1) / r**2
+    z = (1.0 / r[:, None] - v_ret) / sd_v[:, None]
+    w = np.exp(-0.5 * np.minimum(z * z, 700.0))
+    tot = w.sum(axis=1)
+    p = (w * off).sum(axis=1) / np.where(tot > 0, tot, 1.0)
+    p = np.where(tot > 1e-12, p, off.mean(axis=1))
+    # the three beams inside lie on one surface: the line through the outer two
+    # continues through the inner one within its scatter (in range); and the surface's
+    # change in range per beam is resolved
+    with np.errstate(divide="ignore", invalid="ignore"):
+        on_one = np.abs(1.0 / (2 * v2 - v3) - 1.0 / v1) <= s.sigmas * s.sigma * np.sqrt(6.0)
+        d_far = 1.0 / v1 - 1.0 / v2
+        resolved = np.abs(d_far) > s.sigmas * s.sigma * np.sqrt(2.0)
+        kept = d_near * np.sign(d_far) >= np.abs(d_far) / 2 - s.sigmas * s.sigma * np.sqrt(2.0)
+    return np.where(np.isfinite(v_p) & (v_p > 0) & on_one & resolved & kept, p, face_on)
 
 
 def _thin_runs(
