@@ -511,7 +511,8 @@ def _bleeding(
             # along an oblique surface the part of the footprint still on it answers
             # up to half a footprint of beams back: farther than its continuation on an
             # approaching surface, and the beams before the edge differ in range
-            slope = np.nan_to_num(np.abs(R[-sd] - R[-2 * sd])) if oblique else np.zeros(r.size)
+            # (NaN where a beam is missing: no candidate there, as without the pull)
+            slope = np.abs(R[-sd] - R[-2 * sd]) if oblique else 0.0
             inner = r - 1.0 / (2 * V[-sd] - V[-2 * sd]) <= tol + slope * half
             same = np.ones(r.size, dtype=bool)
             for k in range(1, min(int(np.ceil(half + 1)), s.reach + 2)):
@@ -586,10 +587,23 @@ def _bleed_prob(
     one surface; not on a blend's ramp), the face-on share stands.
     """
     half = s.footprint / 2.0
-    x = x0 + (np.arange(n) + 0.5) / n  # (n,)
     face_on = np.clip(x0 + 1.0 - least / (step * r), 0.0, 1.0)  # x even in [x0, x0 + 1)
     if not oblique:
         return face_on
+    # the three beams inside lie on one surface (the line through the outer two continues
+    # through the inner one within its scatter, in range), its change in range per beam
+    # is resolved, and the two beams next to the beam keep at least half of it
+    tol = s.sigmas * s.sigma * np.sqrt(2.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        on_one = np.abs(1.0 / (2 * v2 - v3) - 1.0 / v1) <= s.sigmas * s.sigma * np.sqrt(6.0)
+        d_far = 1.0 / v1 - 1.0 / v2
+        use = on_one & (np.abs(d_far) > tol) & (d_near * np.sign(d_far) >= np.abs(d_far) / 2 - tol)
+        use &= v1 + (v1 - v2) * j > 0
+    u = np.flatnonzero(use)
+    if u.size == 0:
+        return face_on
+    r, v1, v2, c1, r1 = r[u], v1[u], v2[u], c1[u], r1[u]
+    x = x0 + (np.arange(n) + 0.5) / n  # (n,)
     g = v1 - v2
     v_p = v1 + g * j  # the surface continued to the beam
     tan_a = r * np.abs(g) / step
@@ -609,16 +623,9 @@ def _bleed_prob(
     w = np.exp(-0.5 * np.minimum(z * z, 700.0))
     tot = w.sum(axis=1)
     p = (w * off).sum(axis=1) / np.where(tot > 0, tot, 1.0)
-    p = np.where(tot > 1e-12, p, off.mean(axis=1))
-    # the three beams inside lie on one surface: the line through the outer two
-    # continues through the inner one within its scatter (in range); and the surface's
-    # change in range per beam is resolved
-    with np.errstate(divide="ignore", invalid="ignore"):
-        on_one = np.abs(1.0 / (2 * v2 - v3) - 1.0 / v1) <= s.sigmas * s.sigma * np.sqrt(6.0)
-        d_far = 1.0 / v1 - 1.0 / v2
-        resolved = np.abs(d_far) > s.sigmas * s.sigma * np.sqrt(2.0)
-        kept = d_near * np.sign(d_far) >= np.abs(d_far) / 2 - s.sigmas * s.sigma * np.sqrt(2.0)
-    return np.where(np.isfinite(v_p) & (v_p > 0) & on_one & resolved & kept, p, face_on)
+    out = face_on.copy()
+    out[u] = np.where(tot > 1e-12, p, off.mean(axis=1))
+    return out
 
 
 def _thin_runs(
