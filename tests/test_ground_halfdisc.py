@@ -146,3 +146,25 @@ def test_the_close_quadratic_takes_low_shrubs_on_waved_ground() -> None:
         assert close[shrub].mean() > curved[shrub].mean() + 0.2
         assert close[shrub].mean() > 0.5
         assert close[~shrub].mean() < 0.005
+
+
+def test_half_planes_are_least_squares_planes() -> None:
+    # The compiled kernel against numpy's least squares, for all neighbours and each half.
+    from terrasift.workers.ground._plane_kernels import half_planes
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(0, 3, (40, 12, 3))
+    d[..., 2] = 0.3 * d[..., 0] - 0.1 * d[..., 1] + rng.normal(0, 0.05, (40, 12))
+    ang = 2 * np.pi * np.arange(8) / 8
+    u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    hh, dd, nn = half_planes(d, u)
+    for i in range(40):
+        for p in range(9):
+            m = np.ones(12, bool) if p == 0 else d[i, :, :2] @ u[p - 1] >= 0
+            assert nn[p, i] == m.sum()
+            if m.sum() < 5:
+                continue
+            a = np.column_stack([np.ones(m.sum()), d[i, m, 0], d[i, m, 1]])
+            coef, ssr, *_ = np.linalg.lstsq(a, d[i, m, 2], rcond=None)
+            assert abs(hh[p, i] + coef[0]) < 1e-6
+            assert abs(dd[p, i] - np.sqrt(ssr[0] / (m.sum() - 3))) < 1e-6

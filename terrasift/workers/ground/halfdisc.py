@@ -41,27 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from terrasift.workers.ground._plane_kernels import half_planes
+
 CLIP = 2.0  # deviations above the quadratic beyond which a neighbour is left out of the refit
-
-
-def _planes(
-    d: NDArray[np.float64], w: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Per plane and row: height of the origin above the weighted LS plane of offsets
-    ``d`` (m, k, 3) with weights ``w`` (p, m, k), the residual deviation (n − 3 degrees
-    of freedom) and the count of points; each (p, m). Sums of products, one pass."""
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    prod = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z, z * z], -1)
-    s = np.moveaxis(np.matmul(np.moveaxis(w, 0, 1), prod), 1, 0)
-    n, sx, sy, sxx, sxy, syy, sz, sxz, syz, szz = np.moveaxis(s, -1, 0)
-    ata = np.stack(
-        [np.stack([n, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)],
-        -2,
-    )
-    atz = np.stack([sz, sxz, syz], -1)
-    coef = np.linalg.solve(ata + 1e-9 * np.eye(3), atz[..., None])[..., 0]
-    ssr = np.maximum(szz - np.sum(coef * atz, axis=-1), 0.0)
-    return -coef[..., 0], np.sqrt(ssr / np.maximum(n - 3.0, 1.0)), n
 
 
 def half_disc_high(
@@ -115,9 +97,7 @@ def half_disc_high(
         nb = np.where(own[:, None], nb[:, 1:], nb[:, :-1])
         near[a:b] = nb
         d = spts[nb] - xyz[i][:, None, :]
-        side = np.einsum("mkj,hj->hmk", d[..., :2], u)
-        w = np.concatenate([np.ones((1, i.size, k)), (side >= 0).astype(np.float64)])
-        hh[:, a:b], dd[:, a:b], nn = _planes(d, w)
+        hh[:, a:b], dd[:, a:b], nn = half_planes(d, u)
         enough = nn >= least
         best[a:b] = np.min(np.where(enough, dd[:, a:b], np.inf), axis=0)
         good[:, a:b] = enough & (dd[:, a:b] <= spread * np.maximum(best[a:b], noise * floor))
