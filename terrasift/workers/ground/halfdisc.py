@@ -27,6 +27,12 @@ above every plane. With ``curve`` a point must also stand above the quadratic
 surface of its ``curve`` nearest sure points, beyond that surface's own deviation:
 a quadratic follows a mound or a rounded crest and not a shrub on a flat or beside a
 break (it fits across the break badly, its deviation grows and the point is kept).
+Over some tens of points (several metres at 0.2–1 pts/m²) the quadratic cannot follow
+mounds and waves a few metres across: its deviation grows with them and a low shrub
+(0.25–0.6 m) passes under ``curve_factor`` times it. With ``close`` a point the quadratic
+kept still goes when it stands above the quadratic of its ``close`` nearest sure points
+(a few metres) by more than ``close_factor`` times that surface's deviation: that surface
+follows the relief, and the wide factor keeps real bends that fit it badly.
 """
 
 from __future__ import annotations
@@ -35,27 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from terrasift.workers.ground._plane_kernels import half_planes
+
 CLIP = 2.0  # deviations above the quadratic beyond which a neighbour is left out of the refit
-
-
-def _planes(
-    d: NDArray[np.float64], w: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Per plane and row: height of the origin above the weighted LS plane of offsets
-    ``d`` (m, k, 3) with weights ``w`` (p, m, k), the residual deviation (n − 3 degrees
-    of freedom) and the count of points; each (p, m). Sums of products, one pass."""
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    prod = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y, z, x * z, y * z, z * z], -1)
-    s = np.moveaxis(np.matmul(np.moveaxis(w, 0, 1), prod), 1, 0)
-    n, sx, sy, sxx, sxy, syy, sz, sxz, syz, szz = np.moveaxis(s, -1, 0)
-    ata = np.stack(
-        [np.stack([n, sx, sy], -1), np.stack([sx, sxx, sxy], -1), np.stack([sy, sxy, syy], -1)],
-        -2,
-    )
-    atz = np.stack([sz, sxz, syz], -1)
-    coef = np.linalg.solve(ata + 1e-9 * np.eye(3), atz[..., None])[..., 0]
-    ssr = np.maximum(szz - np.sum(coef * atz, axis=-1), 0.0)
-    return -coef[..., 0], np.sqrt(ssr / np.maximum(n - 3.0, 1.0)), n
 
 
 def half_disc_high(
@@ -72,12 +60,16 @@ def half_disc_high(
     chunk: int = 20_000,
     curve: int = 0,
     curve_factor: float = 5.0,
+    close: int = 0,
+    close_factor: float = 10.0,
 ) -> NDArray[np.bool_]:
     """The points of ``ground`` standing above every good plane of their ``k`` nearest
     ``sure`` points (all ``k``, and each of ``halves`` half-discs) by more than
     ``max(floor, factor x max(deviation, roughness around))`` (module doc); with
     ``curve`` > 6, only those also above the quadratic of their ``curve`` nearest sure
-    points by more than ``max(floor, curve_factor x its deviation)``."""
+    points by more than ``max(floor, curve_factor x its deviation)``; with ``close`` > 6,
+    those also within ``max(floor, close_factor x deviation)`` of the quadratic of their
+    ``close`` nearest sure points go too (module doc)."""
     ground = np.asarray(ground, dtype=bool)
     sure = np.asarray(sure, dtype=bool) & ground
     out = np.zeros(ground.shape[0], dtype=bool)
@@ -105,9 +97,7 @@ def half_disc_high(
         nb = np.where(own[:, None], nb[:, 1:], nb[:, :-1])
         near[a:b] = nb
         d = spts[nb] - xyz[i][:, None, :]
-        side = np.einsum("mkj,hj->hmk", d[..., :2], u)
-        w = np.concatenate([np.ones((1, i.size, k)), (side >= 0).astype(np.float64)])
-        hh[:, a:b], dd[:, a:b], nn = _planes(d, w)
+        hh[:, a:b], dd[:, a:b], nn = half_planes(d, u)
         enough = nn >= least
         best[a:b] = np.min(np.where(enough, dd[:, a:b], np.inf), axis=0)
         good[:, a:b] = enough & (dd[:, a:b] <= spread * np.maximum(best[a:b], noise * floor))
@@ -121,7 +111,14 @@ def half_disc_high(
     judged = np.any(good, axis=0)
     out[g] = judged & np.all(above | ~good, axis=0)
     if curve > 6 and s.size > curve + 1:
+        flagged = out.copy()
         out &= ~_under_curve(xyz, np.flatnonzero(out), tree, spts, pos, curve, curve_factor, floor)
+        if close > 6 and s.size > close + 1:
+            held = flagged & ~out
+            under = _under_curve(
+                xyz, np.flatnonzero(held), tree, spts, pos, close, close_factor, floor
+            )
+            out |= held & ~under
     return out
 
 
@@ -168,12 +165,15 @@ def half_disc_vegetation(
     floor: float,
     curve: int = 0,
     curve_factor: float = 5.0,
+    close: int = 0,
+    close_factor: float = 10.0,
 ) -> NDArray[np.bool_]:
     """The points of ``ground`` that ``half_disc_high`` finds above the planes of the
     sure ground: ``ground`` cleaned ``rounds`` − 1 times by the same test held to half
     the ``factor`` and ``floor`` (a sure point may be lost, a shrub return among them
     lifts the planes of its neighbours), then every point of ``ground`` judged; ``curve``
-    and ``curve_factor`` as in ``half_disc_high`` (halved for the cleaning too)."""
+    and ``curve_factor`` as in ``half_disc_high`` (halved for the cleaning too); ``close``
+    and ``close_factor`` in the final judgement only."""
     ground = np.asarray(ground, dtype=bool)
     sure = ground.copy()
     for _ in range(rounds - 1):
@@ -188,5 +188,14 @@ def half_disc_vegetation(
             curve_factor=0.5 * curve_factor,
         )
     return half_disc_high(
-        xyz, ground, sure, k, factor=factor, floor=floor, curve=curve, curve_factor=curve_factor
+        xyz,
+        ground,
+        sure,
+        k,
+        factor=factor,
+        floor=floor,
+        curve=curve,
+        curve_factor=curve_factor,
+        close=close,
+        close_factor=close_factor,
     )

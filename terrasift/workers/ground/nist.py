@@ -402,6 +402,13 @@ class NistParams(StageParams):
     field banks stand above planes, not above a quadratic; in the cleaning too, at half."""
     rough_half_curve_factor: float = Field(5.0, gt=0, le=20)
     """…deviations of the quadratic above which a point is vegetation."""
+    rough_half_curve_near: int = Field(12, ge=0, le=64)
+    """…and (when > 6 with ``rough_half_curve``; 0: off) a point that quadratic kept still
+    goes when it stands above the quadratic of its this many nearest sure ground points by
+    more than ``rough_half_curve_near_factor`` × that surface's deviation: the wider
+    quadratic cannot follow mounds and waves a few metres across (final judgement only)."""
+    rough_half_curve_near_factor: float = Field(10.0, gt=0, le=40)
+    """…deviations of that nearer quadratic above which a point is vegetation."""
     rough_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the roughness test runs (4: up to about 1.8
     points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
@@ -878,6 +885,8 @@ def _rough(
             params.rough_half_floor,
             params.rough_half_curve,
             params.rough_half_curve_factor,
+            params.rough_half_curve_near,
+            params.rough_half_curve_near_factor,
         )
     return high
 
