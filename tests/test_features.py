@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -1485,22 +1483,26 @@ def test_a_shallow_winding_ditch_whose_banks_read_flat_is_one_ditch():
     the flatness threshold, so the concave-edge segments find nothing; its banks are
     flat tiles rising away from it by far more than the DTM's slope noise (``rise``,
     ``grade``), and flat tiles that rise join along their contour, so the winding
-    ditch is one object of about its length."""
+    ditch is one object of about its length (the optional ``ditch-shallow`` filter)."""
     z, length = _winding_ditch(0.15)
-    flt = load_filter("ditch")
+    flt = load_filter("ditch-shallow")
     cats, stepped = categories_for(z, 0.5, [flt])
     tt = Affine(0.5, 0, 0, 0, -0.5, 80.0)
     found = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
     assert len(found) == 1 and abs(found[0].length_m - length) < 0.25 * length
-    # the concave-edge segments alone find nothing
-    old = replace(flt, segments=flt.segments[:2])
-    assert not detect_features(cats, [old], tt, 2.0, stepped=stepped).objects
+    # the concave-edge segments alone, the default ditch filter, find nothing
+    default = load_filter("ditch")
+    assert flt.segments[:2] == default.segments
+    assert not detect_features(cats, [default], tt, 2.0, stepped=stepped).objects
+    # the filter is shipped but runs only when named
+    assert [f.name for f in resolve_filters("ditch-shallow")] == ["ditch-shallow"]
+    assert "ditch-shallow" not in [f.name for f in resolve_filters("all")]
 
 
 def test_a_sparse_interpolated_field_has_no_shallow_ditch():
     """A field of 0.3 points/m² with 8 cm of noise, linearly interpolated: its flat tiles
     tilt at random, some past twice the slope noise, and pairs falling toward each other
-    chain into shallow-ditch cross-sections. The flat-bank segment asks its banks to rise
+    chain into shallow-ditch cross-sections. ``ditch-shallow``'s flat-bank segment asks its banks to rise
     at least eight times the slope noise (``grade``); with ``rise`` alone (twice the
     noise) it finds a ditch there."""
     from scipy.interpolate import griddata
@@ -1512,7 +1514,7 @@ def test_a_sparse_interpolated_field_has_no_shallow_ditch():
     c = (np.arange(int(size / cell)) + 0.5) * cell
     x, y = np.meshgrid(c, size - c)
     z = griddata((px, py), pz, (x, y), method="linear")
-    flt = load_filter("ditch")
+    flt = load_filter("ditch-shallow")
     cats, stepped = categories_for(z, cell, [flt])
     tt = Affine(cell, 0, 0, 0, -cell, size)
     assert not detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
