@@ -275,3 +275,22 @@ def test_compiled_tile_fit_matches_least_squares_on_every_tile():
         assert np.isclose(height[0, t], np.ptp(z - tilt))
         assert np.isclose(relief[0, t], np.ptp(fits[e][2] - tilt))
         assert np.isclose(lying[t], np.ptp(fits[e][2]))
+
+
+def test_grade_counts_a_tile_slope_in_whole_multiples_of_the_slope_noise():
+    """``grade``: the plane's gradient over the DTM's slope noise σ_g, rounded down; every
+    gradient is 254 when the noise tests are off (σ_g 0); nodata tiles 255."""
+    from terrasift.workers.categories import CategoryParams, compute_categories
+
+    cell = 0.5
+    x = np.tile((np.arange(80) + 0.5) * cell, (40, 1))
+    z = np.where(x < 20, 0.05 * x, 1.0)  # 5 % rising east, then level
+    z[0, -1] = np.nan
+    cats = compute_categories(z, cell, CategoryParams(noise=0.001, slope_noise=0.006))
+    assert cats.grade is not None
+    assert (cats.grade[:, :9] == 8).all()  # 0.05 / 0.006 = 8.3
+    assert (cats.grade[1:, 11:] == 0).all()
+    assert cats.grade[0, -1] == 255
+    off = compute_categories(z, cell, CategoryParams(noise=0, slope_noise=0))
+    assert off.grade is not None
+    assert (off.grade[:, :9] == 254).all() and (off.grade[1:, 11:] == 0).all()

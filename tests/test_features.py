@@ -1434,3 +1434,92 @@ def test_a_gentle_noisy_slope_without_a_road_has_none():
     slope holds no road."""
     for s in (0.03, 0.05):
         assert _roads_on(_road_on_slope(s, 0.0, 0.0, 0.04, 8)) == []
+
+
+def test_grade_key_parses_formats_keeps_its_values_when_turned_and_marks():
+    """``grade`` in a category: the tile's gradient in multiples of the slope noise
+    (``grade not 0 1 2 3`` at least four times it); turning a segment leaves it as it is;
+    categories without the band give 254 to inclined tiles and 0 to the others."""
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination any\nstate any\n"
+        "orientation any\ngrade not 0 1 2 3\nendcategory\nendsubsegment\nendsegment\n"
+    )
+    flt = parse_filter(text, "g")
+    spec = flt.segments[0].subsegments[0].categories[0]
+    assert spec.grade.allows(4) and not spec.grade.allows(3)
+    assert parse_filter(format_filter(flt), "g") == flt
+    assert transform_segment(flt.segments[0], 1).subsegments[0].categories[0].grade == spec.grade
+    with pytest.raises(FilterSyntaxError, match="grade"):
+        parse_filter(text.replace("grade not 0 1 2 3", "grade 255"), "g")
+    cats = cats_from([[0, 1, 0, 5]])
+    assert search_mod.category_mask(cats, spec).tolist() == [[False, True, False, True]]
+    graded = Categories(
+        cats.inclination, cats.orientation, cats.state, cats.height10, 4, 2.0,
+        grade=np.array([[9, 2, 4, 0]], dtype=np.uint8),
+    )  # fmt: skip
+    assert search_mod.category_mask(graded, spec).tolist() == [[True, False, True, False]]
+
+
+def _winding_ditch(depth: float) -> tuple[NDArray, float]:
+    """A 3 % slope with a winding ditch 1.5 m across and ``depth`` deep (cosine-free
+    V), 1 cm of noise; the DTM (0.5 m) and the ditch's length."""
+    from shapely import distance, points
+    from shapely.geometry import LineString
+
+    cell, w, h = 0.5, 160.0, 80.0
+    x, y = np.meshgrid(
+        (np.arange(int(w / cell)) + 0.5) * cell, h - (np.arange(int(h / cell)) + 0.5) * cell
+    )
+    t = np.linspace(15, 145, 300)
+    line = LineString(np.column_stack([t, 40 + 10 * np.sin(2 * np.pi * t / 70)]))
+    d = distance(points(x.ravel(), y.ravel()), line).reshape(x.shape)
+    z = 100 + 0.03 * x - depth * np.clip((0.75 - d) / 0.75, 0, 1)
+    return z + np.random.default_rng(2).normal(0, 0.01, z.shape), line.length
+
+
+def test_a_shallow_winding_ditch_whose_banks_read_flat_is_one_ditch():
+    """A ditch 1.5 m across and 0.15 m deep in the DTM (feature family seed 85: a 1 m
+    ditch 0.36 m deep, 0.12 m below its banks in the job DTM): its 2 m tiles stay under
+    the flatness threshold, so the concave-edge segments find nothing; its banks are
+    flat tiles rising away from it by far more than the DTM's slope noise (``rise``,
+    ``grade``), and flat tiles that rise join along their contour, so the winding
+    ditch is one object of about its length (the optional ``ditch-shallow`` filter)."""
+    z, length = _winding_ditch(0.15)
+    flt = load_filter("ditch-shallow")
+    cats, stepped = categories_for(z, 0.5, [flt])
+    tt = Affine(0.5, 0, 0, 0, -0.5, 80.0)
+    found = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
+    assert len(found) == 1 and abs(found[0].length_m - length) < 0.25 * length
+    # the concave-edge segments alone, the default ditch filter, find nothing
+    default = load_filter("ditch")
+    assert flt.segments[:2] == default.segments
+    assert not detect_features(cats, [default], tt, 2.0, stepped=stepped).objects
+    # the filter is shipped but runs only when named
+    assert [f.name for f in resolve_filters("ditch-shallow")] == ["ditch-shallow"]
+    assert "ditch-shallow" not in [f.name for f in resolve_filters("all")]
+
+
+def test_a_sparse_interpolated_field_has_no_shallow_ditch():
+    """A field of 0.3 points/m² with 8 cm of noise, linearly interpolated: its flat tiles
+    tilt at random, some past twice the slope noise, and pairs falling toward each other
+    chain into shallow-ditch cross-sections. ``ditch-shallow``'s flat-bank segment asks its banks to rise
+    at least eight times the slope noise (``grade``); with ``rise`` alone (twice the
+    noise) it finds a ditch there."""
+    from scipy.interpolate import griddata
+
+    rng = np.random.default_rng(4)
+    cell, size = 0.5, 150.0
+    px, py = rng.uniform(-10, size + 10, (2, int(0.3 * (size + 20) ** 2)))
+    pz = 100 + 0.04 * px + rng.normal(0, 0.08, px.size)
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = griddata((px, py), pz, (x, y), method="linear")
+    flt = load_filter("ditch-shallow")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    assert not detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
+    # banks rising by twice the slope noise (``rise`` alone) do not say the DTM shows a bank
+    ungraded = parse_filter(
+        format_filter(flt).replace("grade not 0 1 2 3 4 5 6 7", "grade any"), "ditch"
+    )
+    assert detect_features(cats, [ungraded], tt, 2.0, stepped=stepped).objects

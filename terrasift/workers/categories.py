@@ -15,7 +15,9 @@ the tiles into arrays. The result per tile:
 - state: 0 one plane, 1 convex edge (ridge-like), 2 concave edge (ditch-like);
 - height10: (max − min) inside the tile in decimetres;
 - rise 0–8 (``Categories.rise``): the direction the plane rises toward, flat or not,
-  where its gradient exceeds twice the slope noise (which way a flat tile slopes).
+  where its gradient exceeds twice the slope noise (which way a flat tile slopes);
+- grade (``Categories.grade``): the plane's gradient in whole multiples of the slope
+  noise (how far the DTM supports that direction).
 
 Noise. A DTM with a few centimetres of noise has tiles whose max − min is
 noise rather than relief (16 cells of 4 cm noise span ~14 cm), so flatness is
@@ -145,6 +147,11 @@ class Categories:
     not, where its gradient exceeds what the slope noise explains
     (``CategoryParams.clear_slope_noise`` σ_g), else 0; the filters' ``rise`` (which way
     a flat tile that is not level slopes). None: the filters take ``inclination``."""
+    grade: NDArray[np.uint8] | None = None
+    """The tile plane's gradient in whole multiples of the DTM's slope noise σ_g (0–254;
+    254 for any gradient when σ_g is 0); the filters' ``grade`` (``grade not 0 1 2 3 4``:
+    a slope the DTM's noise does not explain by five times over). None: the filters
+    take 254 for tiles with an inclination, else 0."""
 
     @property
     def step(self) -> int:
@@ -315,6 +322,7 @@ def category_grids(
         inclination = _direction_code(gx, gy)
         rise_dir = inclination.copy()
         rise_dir[np.hypot(gx, gy) <= params.clear_slope_noise * sigma_g] = 0
+        grade = _grade(np.hypot(gx, gy), sigma_g)
         # A one-plane tile that is not flat always has a direction; an edged tile only
         # when its mean plane rises enough (a symmetric V or Λ has none).
         inclination[two & (rise < params.incline_height)] = 0
@@ -349,7 +357,7 @@ def category_grids(
         orientation[flat] = 0
         state[flat] = 0
         height10, relief10 = dm(height), dm(relief)
-        for band in (inclination, orientation, state, height10, relief10, clear, rise_dir):
+        for band in (inclination, orientation, state, height10, relief10, clear, rise_dir, grade):
             band[nodata] = NODATA
         shape = (rows, cols)
         out.append(
@@ -366,9 +374,18 @@ def category_grids(
                 lying10.reshape(shape),
                 clear.reshape(shape),
                 rise_dir.reshape(shape),
+                grade.reshape(shape),
             )
         )
     return out
+
+
+def _grade(gradient: NDArray, sigma_g: float) -> NDArray[np.uint8]:
+    """Gradients in whole multiples of the slope noise ``sigma_g``, 0–254 (any gradient
+    is 254 when ``sigma_g`` is 0)."""
+    if sigma_g <= 0:
+        return np.where(gradient > 0, 254, 0).astype(np.uint8)
+    return np.clip(np.floor(gradient / sigma_g), 0, 254).astype(np.uint8)
 
 
 def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
@@ -393,6 +410,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         None if first.lying10 is None else cat("lying10"),
         None if first.clear is None else cat("clear"),
         None if first.rise is None else cat("rise"),
+        None if first.grade is None else cat("grade"),
     )
 
 

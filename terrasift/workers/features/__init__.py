@@ -74,6 +74,8 @@ __all__ = [
 GridKey = tuple[float | None, float | None]
 
 _BUILTIN = ("ditch", "ridge", "hill", "pond", "flat", "flat-area", "road")
+#: shipped filters a job names to run (``features=ditch-shallow,...``); not in ``all``
+_OPTIONAL = ("ditch-shallow",)
 
 
 class FeatureParams(StageParams):
@@ -97,9 +99,11 @@ def builtin_filter_names() -> list[str]:
 
 
 def load_filter(name: str) -> Filter:
-    """A built-in filter by name; unknown names raise ParameterError."""
-    if name not in _BUILTIN:
-        raise ParameterError(f"unknown filter {name!r} (built-in: {', '.join(_BUILTIN)})")
+    """A built-in or optional shipped filter by name; unknown names raise ParameterError."""
+    if name not in _BUILTIN + _OPTIONAL:
+        raise ParameterError(
+            f"unknown filter {name!r} (built-in: {', '.join(_BUILTIN + _OPTIONAL)})"
+        )
     text = (
         resources.files(__package__).joinpath("filters", f"{name}.flt").read_text(encoding="utf-8")
     )

@@ -83,9 +83,13 @@ def segments(h: NDArray[np.bool_], v: NDArray[np.bool_], gap: int) -> NDArray[np
 
 
 def _axis(cats: Categories) -> NDArray[np.float64]:
-    """Undirected line (angle mod π) each tile's edge or inclination runs along; NaN where none."""
+    """Undirected line (angle mod π) each tile's edge or inclination runs along; NaN where none.
+    A flat tile that is not level (``Categories.rise``) runs along the contour of its plane:
+    the bank of a ditch too shallow for its tiles to be past the flatness threshold."""
     ang = np.full(cats.shape, np.nan)
     inc = cats.inclination
+    if cats.rise is not None:
+        inc = np.where(inc == 0, cats.rise, inc)
     has_inc = (inc > 0) & (inc != NODATA)
     ang[has_inc] = ((inc[has_inc].astype(float) - 1) * _QUARTER + np.pi / 2) % np.pi
     lut = np.full(256, np.nan)

@@ -127,6 +127,9 @@ class CategorySpec:
     rise: ValueSet = ValueSet()
     """The direction (1-8, 0 none) the tile's plane rises toward, flat or not, where its
     gradient exceeds what the DTM's slope noise explains (``Categories.rise``)."""
+    grade: ValueSet = ValueSet()
+    """The tile plane's gradient in whole multiples of the DTM's slope noise
+    (``Categories.grade``): ``grade not 0 1 2 3 4`` is at least five times the noise."""
 
 
 @dataclass(frozen=True)
@@ -605,7 +608,15 @@ class _Parser:
                     raise self.error("clear takes no values and is given once", no)
                 clear = True
                 continue
-            if key not in ("inclination", "state", "orientation", "height", "lying-height", "rise"):
+            if key not in (
+                "inclination",
+                "state",
+                "orientation",
+                "height",
+                "lying-height",
+                "rise",
+                "grade",
+            ):
                 raise self.error(f"unexpected {key!r} inside a category", no)
             name = key.replace("-", "_")
             if name in props:
@@ -630,10 +641,10 @@ class _Parser:
             bad = [v for v in vals if v > 2]
             if bad:
                 raise self.error(f"state must be 0, 1 or 2, got {bad[0]}", no)
-        elif key in ("height", "lying-height"):
+        elif key in ("height", "lying-height", "grade"):
             bad = [v for v in vals if v > 254]
             if bad:
-                raise self.error(f"height is in decimetres, 0–254, got {bad[0]}", no)
+                raise self.error(f"{key} takes 0–254, got {bad[0]}", no)
         else:
             norm = []
             for v in vals:
@@ -706,6 +717,8 @@ def format_filter(f: Filter) -> str:
                     out.append(f"      lying-height {cat.lying_height.text()}")
                 if cat.rise.values is not None:
                     out.append(f"      rise {cat.rise.text()}")
+                if cat.grade.values is not None:
+                    out.append(f"      grade {cat.grade.text()}")
                 if cat.clear:
                     out.append("      clear")
                 out.append("    endcategory")

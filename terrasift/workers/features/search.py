@@ -46,7 +46,7 @@ def _lut(vs: ValueSet) -> NDArray[np.bool_]:
 
 def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
     """The bands a category tests: inclination, orientation, state, height, lying-height, clear,
-    rise."""
+    rise, grade."""
     relief = cats.relief10 if cats.relief10 is not None else cats.height10
     lying = cats.lying10 if cats.lying10 is not None else relief
     clear = cats.clear
@@ -54,7 +54,11 @@ def _arrays(cats: Categories) -> tuple[NDArray[np.uint8], ...]:
         clear = ((cats.inclination | cats.orientation | cats.state) != 0).astype(np.uint8)
     # without the rise band: the inclination (flat tiles rise nowhere)
     rise = cats.rise if cats.rise is not None else cats.inclination
-    return (cats.inclination, cats.orientation, cats.state, relief, lying, clear, rise)
+    # without the grade band: any tile with an inclination is past every noise margin
+    grade = cats.grade
+    if grade is None:
+        grade = np.where(cats.inclination == 0, 0, 254).astype(np.uint8)
+    return (cats.inclination, cats.orientation, cats.state, relief, lying, clear, rise, grade)
 
 
 def category_mask(
@@ -93,6 +97,8 @@ def category_mask(
         if len(cats) <= 6 or cats[6] is None:
             raise ValueError("a filter tests rise but the categories carry no rise band")
         m &= look(6, spec.rise)
+    if spec.grade.values is not None:
+        m &= look(7, spec.grade)
     if spec.negate:
         m = ~m
     return m & (inc != NODATA)

@@ -195,7 +195,17 @@ def window_reach(filters: list[Filter], cparams: CategoryParams, cell: float) ->
 #: never its DTM or the float arrays its categories are computed from
 BLOCK_CELLS = 1024
 
-_BANDS = ("inclination", "orientation", "state", "height10", "relief10", "lying10", "clear", "rise")
+_BANDS = (
+    "inclination",
+    "orientation",
+    "state",
+    "height10",
+    "relief10",
+    "lying10",
+    "clear",
+    "rise",
+    "grade",
+)
 
 
 def blocked_categories(
