@@ -270,6 +270,13 @@ class NistParams(StageParams):
     beyond them at a gentle grade that the terrain behind may predict (railway seed 618:
     37 m edges, ground bending from 3.4 to 1.5 % of grade), but its own walls say how high
     it stands."""
+    raised_even: bool = True
+    """A segment above a ``raised_rise`` edge counts as flat (so it may go) also when its own
+    walls, ``raised_walls`` of its steps up, stand at one height: their median absolute
+    deviation as a standard deviation at most ``raised_step`` (``raised.py``). Off: only
+    within ``raised_step`` RMS of its plane, which a platform 110–140 m long following
+    ground that bends under it leaves (railway seed 721: 0.31–0.36 m RMS, walls 1.13 m
+    ± 0.08); a hillside cut off by long edges has walls metres apart in height."""
     raised_rim: float = Field(4.0, ge=0, le=100)
     """Final-TIN edges longer than this many median edges with both ends within one median
     edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
@@ -1017,6 +1024,7 @@ def _without_raised(
         heights=lambda q: _inside(tin, q),
         graded=params.raised_graded,
         walled=params.raised_walled,
+        even=params.raised_even,
     )
     if params.raised_islands:
         drop |= walled_islands(

@@ -70,6 +70,7 @@ def raised_segments(
     heights: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None,
     graded: float = 0.0,
     walled: float = 0.0,
+    even: bool = False,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -129,6 +130,14 @@ def raised_segments(
     fewer than that share of them: a platform whose neighbours left holes around it meets the ground beyond them
     at a gentle grade, which the terrain behind the far end may predict (a slope bending
     over 70 m), but its own walls say how high it stands.
+    ``even``: a segment above a ``rise`` edge counts as flat also when its own walls
+    (steps up onto it, not ``rise`` edges nor steps found by ``walled``) are at least
+    ``walls`` of its steps up and stand at one height: their median absolute deviation,
+    as a standard deviation (x 1.4826), at most ``step`` (``_even_walls``). A platform
+    following the ground along 100-150 m is level across but bends with the terrain
+    under it, so it leaves its least-squares plane by more than ``step``; it still
+    stands the same height above its foot all round, which a hillside cut off by
+    long edges does not (its walls are the slope's edges, metres apart in height).
     ``heights``: the TIN's height at points (k, 2), nan outside it (``along``; None:
     interpolated on ``tri``, which must then be a scipy ``Delaunay``).
     """
@@ -213,6 +222,10 @@ def raised_segments(
     is_wall = wall[is_step][cross]
     is_big = big[is_step][cross]
     flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
+    if even and is_big.any():
+        own = is_wall & ~is_big & ~across[is_step][cross]
+        height = np.abs(xyz[hi_v, 2] - xyz[lo_v, 2])
+        flat |= _even_walls(hi, own, height, n_seg, step, walls)
     gone = np.zeros(n_seg, dtype=bool)
     for _ in range(rounds):
         live = ~gone[lo] & ~gone[hi]
@@ -448,6 +461,26 @@ def _flat(
     res = z - coef[seg, 0] - coef[seg, 1] * u - coef[seg, 2] * v
     rms = np.sqrt(np.bincount(seg, res**2, n_seg) / size)
     return (cnt < 4) | ((rms <= tol) & (np.hypot(coef[:, 1], coef[:, 2]) < steep))
+
+
+def _even_walls(
+    hi: NDArray[np.int64],
+    own: NDArray[np.bool_],
+    height: NDArray[np.float64],
+    n_seg: int,
+    tol: float,
+    share: float,
+) -> NDArray[np.bool_]:
+    """Per segment: of the steps up onto it (upper segment ``hi``, heights ``height``), at
+    least ``share`` are its own walls (``own``) and their heights' median absolute deviation,
+    scaled to a standard deviation (x 1.4826), is at most ``tol``: it stands at one height
+    above its foot all round."""
+    n_up = np.bincount(hi, minlength=n_seg)
+    s, h = hi[own], height[own]
+    n_own = np.bincount(s, minlength=n_seg)
+    mid = _median_per_vertex(s, h, n_seg)
+    mad = _median_per_vertex(s, np.abs(h - mid[s]), n_seg)
+    return (n_own > 0) & (n_own >= share * n_up) & (1.4826 * mad <= tol)
 
 
 def _plane_per_group(
