@@ -234,6 +234,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"grow_agree": 0.67},
         {"mask": True},
         {"vote_phases": 1},
+        {"vote_phases": 4},
+        {"vote_phases": 4, "grow_share": 0.3},
         {"bin_phases": 2},
         {"plateau_step": 0.0},
         {"plateau_step": 1.0},
