@@ -1302,64 +1302,63 @@ def test_isolated_keeps_a_hill_and_drops_an_outline_running_on_into_a_ridge():
         parse_filter(format_filter(flt).replace("isolated 4m 0.1", "isolated 4m 2"), "hill")
 
 
+def _family_dtm(seed: int):
+    """A feature-family scene, its 0.5 m DTM with the scene's noise, and the DTM's transform."""
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(seed)
+    exact = surface_raster(scene, 0.5)
+    dtm = exact + np.random.default_rng([7, seed]).normal(0, scene.noise, exact.shape)
+    return scene, dtm, Affine(0.5, 0, 0, 0, -0.5, scene.size)
+
+
+def _on(g, truth) -> bool:
+    """Half of ``g`` lies within 2 m of ``truth``."""
+    return g.intersection(truth.buffer(2)).area >= 0.5 * g.area
+
+
 def test_ridge_filter_yields_two_round_hills_it_joined_to_the_hill_filter():
     """Feature family seed 243 as a DTM: a cosine 32 m and a triangle 24 m hill lined up a
     few metres apart give the ridge filter a cross-section each, which ``join width``
     joins into one 73 × 15 m ridge; both are hills to the hill filter, and the ridge
     (``yield hill 1 0.5``) yields to them. The scene's real ridge stays."""
-    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
-
-    scene = make_family_scene(243)
-    exact = surface_raster(scene, 0.5)
-    dtm = exact + np.random.default_rng([7, 243]).normal(0, scene.noise, exact.shape)
-    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    scene, dtm, tt = _family_dtm(243)
     hill, ridge = load_filter("hill"), load_filter("ridge")
     assert ("hill", 1, 0.5) in ridge.yields
     cats, stepped = categories_for(dtm, 0.5, [hill, ridge])
     hills = [t.polygon for t in scene.truth if t.kind == "hill"]
     real = next(t.polygon for t in scene.truth if t.kind == "ridge")
 
-    def on(g, truth) -> bool:
-        return g.intersection(truth.buffer(2)).area >= 0.5 * g.area
-
     alone = detect_features(cats, [ridge], tt, 2.0, stepped=stepped).objects
-    assert sum(on(o.geometry, real) for o in alone) == 1
-    over_hills = [o for o in alone if not on(o.geometry, real)]
+    assert sum(_on(o.geometry, real) for o in alone) == 1
+    over_hills = [o for o in alone if not _on(o.geometry, real)]
     assert len(over_hills) == 1
     assert all(over_hills[0].geometry.intersects(h) for h in hills)
     both = detect_features(cats, [hill, ridge], tt, 2.0, stepped=stepped).objects
     assert [o.kind for o in both].count("hill") == 2
     kept = [o for o in both if o.kind == "ridge"]
-    assert len(kept) == 1 and on(kept[0].geometry, real)
+    assert len(kept) == 1 and _on(kept[0].geometry, real)
 
 
 def test_ridge_filter_yields_a_road_embankment_across_a_slope_to_the_road_filter():
     """Feature family seed 86 as a DTM: a 5.9 m road on a 1.5 m embankment across a 10 %
     slope gives the ridge filter one long object over the road, which the road filter
     finds too; the ridge (``yield road 1 0.5``) yields to it. The real ridge stays."""
-    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
-
-    scene = make_family_scene(86)
-    exact = surface_raster(scene, 0.5)
-    dtm = exact + np.random.default_rng([7, 86]).normal(0, scene.noise, exact.shape)
-    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    scene, dtm, tt = _family_dtm(86)
     hill, ridge, road = load_filter("hill"), load_filter("ridge"), load_filter("road")
     assert ridge.yields == (("hill", 1, 0.5), ("road", 1, 0.5))
     cats, stepped = categories_for(dtm, 0.5, [hill, ridge, road])
     roads = [t.polygon for t in scene.truth if t.kind == "road"]
     real = next(t.polygon for t in scene.truth if t.kind == "ridge")
 
-    def on(g, truth) -> bool:
-        return g.intersection(truth.buffer(2)).area >= 0.5 * g.area
-
     alone = detect_features(cats, [ridge], tt, 2.0, stepped=stepped).objects
-    assert sum(on(o.geometry, real) for o in alone) == 1
-    over_road = [o for o in alone if not on(o.geometry, real)]
-    assert len(over_road) == 1 and any(on(over_road[0].geometry, r) for r in roads)
+    assert sum(_on(o.geometry, real) for o in alone) == 1
+    over_road = [o for o in alone if not _on(o.geometry, real)]
+    assert len(over_road) == 1 and any(_on(over_road[0].geometry, r) for r in roads)
     both = detect_features(cats, [hill, ridge, road], tt, 2.0, stepped=stepped).objects
-    assert any(o.kind == "road" and on(o.geometry, r) for o in both for r in roads)
+    assert any(o.kind == "road" and _on(o.geometry, r) for o in both for r in roads)
     kept = [o for o in both if o.kind == "ridge"]
-    assert len(kept) == 1 and on(kept[0].geometry, real)
+    assert len(kept) == 1 and _on(kept[0].geometry, real)
 
 
 def test_category_look_ups_are_shared_within_a_band_and_give_the_same_masks():

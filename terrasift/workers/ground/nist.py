@@ -752,21 +752,17 @@ def _classify(
         params.final_nodes == "square" and isinstance(g3, Grid) and votes_k > 1 and not params.mask
     )
     if square:
-        mowed = _mow(
-            _square_surface(local, _cell_of(g1), params, centre, scales[0]),
-            local,
-            params.mow_tol_1,
-            _cell_of(g1),
-            params,
-        )
-        mowed_pts = np.take(local, mowed, axis=0)
-        mowed = _mow(
-            _square_surface(mowed_pts, _cell_of(g2), params, centre, scales[1]),
-            local,
-            params.mow_tol_2,
-            _cell_of(g2),
-            params,
-        )
+        # Pass 2's surface is meshed on what pass 1 left; both mow the original points.
+        kept = local
+        for grid, tol, scale in (
+            (g1, params.mow_tol_1, scales[0]),
+            (g2, params.mow_tol_2, scales[1]),
+        ):
+            cell = _cell_of(grid)
+            mowed = _mow(
+                _square_surface(kept, cell, params, centre, scale), local, tol, cell, params
+            )
+            kept = np.take(local, mowed, axis=0)
     else:
         mowed = _passes_1_2(local, params, spacing, g1, g2, k, mow_k, centre, scales, mask1)
 
