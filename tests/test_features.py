@@ -1427,6 +1427,25 @@ def test_a_low_road_along_the_contour_of_a_gentle_slope_is_found(s, off, width):
     assert roads[0].length_m > 140
 
 
+@pytest.mark.parametrize(
+    ("s", "off", "width", "noise", "seed"),
+    [
+        (0.0, -0.22, 5.0, 0.03, 5),  # level ground, 3 cm noise
+        (0.02, -0.25, 5.2, 0.03, 5),  # a 2 % slope
+        (0.02, -0.29, 6.4, 0.015, 7),
+    ],
+)
+def test_a_shallow_cut_with_one_wall_under_the_clear_margin_is_found(s, off, width, noise, seed):
+    """A cut 0.2-0.3 m deep on level or gentle ground: one wall reads clearly not flat,
+    the other rises 0.2-0.3 m within a tile, not clearly past the flatness threshold, and
+    the ground beyond it is level. The segment for a wall that rises away by five times
+    the slope noise and then ends finds the road whole (the filter before it found none
+    of these)."""
+    roads = _roads_on(_road_on_slope(s, off, width, noise, seed))
+    assert [abs(r.geometry.centroid.x - 100) < 4 for r in roads] == [True]
+    assert roads[0].length_m > 140
+
+
 def test_a_gentle_noisy_slope_without_a_road_has_none():
     """The segments for low roads on gentle slopes take tiles just past the level
     threshold as a road's edge; plain ground with 4 cm of white noise on a 3 % and a 5 %
