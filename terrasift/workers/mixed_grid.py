@@ -434,20 +434,23 @@ def _mixed_along(
                 tan_a = r * np.abs(V[a] - V[a1]) / step
                 tan_x = r * line.C[a] / ra**2 / step_x
                 cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
-                off = (dev > spread(i, slope)) & (dev * cos_inc > across)
+                sp = spread(i, slope)
+                off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off
                 # within max_gap of p: the anchor, or its surface continued to p's beam
                 # (grazing ground a beam before a far wall's foot lies metres nearer
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
                 near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
-                off_end[sd] |= ok & (ra < r + s.max_gap)
+                end = ok & (ra < r + s.max_gap)
+                off_end[sd] |= end
                 # the surface continued to p's beam, taken back half a footprint of beams
                 # towards the anchor: the farthest a return of that surface alone is pulled
-                g = V[a] - V[a1]
-                v_c = V[a] + g * i
+                c = np.flatnonzero(end)
+                g = V[a][c] - V[a1][c]
+                v_c = V[a][c] + g * i
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
-                off_blend[sd] |= ok & (ra < r + s.max_gap) & (dev > spread(i, slope) + pulled)
+                off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
                 far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
