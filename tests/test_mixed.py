@@ -266,8 +266,8 @@ def test_grid_marks_a_surface_bleeding_past_its_edge_by_half_a_footprint():
     # three steps the last column lies up to 1.5 steps (8 cm) past the edge and is
     # marked; with one step it lies at most half a step past and is kept.
     xyz, col = _wall_grid(lambda c: 20.0 if c <= 0 else 30.0)
-    wide = mark_mixed(xyz, MixedParams(footprint=0.45), np.zeros(3)).marked
-    narrow = mark_mixed(xyz, MixedParams(footprint=0.15), np.zeros(3)).marked
+    wide = mark_mixed(xyz, MixedParams(footprint=0.45, open_edges=True), np.zeros(3)).marked
+    narrow = mark_mixed(xyz, MixedParams(footprint=0.15, open_edges=True), np.zeros(3)).marked
     assert wide[col == 0].mean() > 0.95 and not wide[col < 0].any()
     assert not narrow.any()
 
@@ -362,7 +362,7 @@ def test_grid_marks_ground_blended_with_nothing_at_the_range_limit():
     # continued to its beam it lies 5 cm above the ground (in front of the surface it
     # ends): marked. Pulled 20 cm it lies 1.3 cm above, within min_offset: kept. With
     # a one-step footprint the bleeding rule (a sideways shift) marks nothing here.
-    stated = MixedParams(footprint=0.2)
+    stated = MixedParams(footprint=0.2, open_edges=True)
     xyz, last = _ground_to_range_limit(0.8)
     far = mark_mixed(xyz, stated, np.zeros(3)).marked
     assert far[last].mean() > 0.9 and far[~last].mean() < 0.01
@@ -386,10 +386,13 @@ def test_grid_marks_every_row_a_wide_footprint_blends_at_the_range_limit():
         range_noise=0.003,
         seed=3,
     )
-    marked = mark_mixed(s.xyz, MixedParams(footprint=0.45), s.origin, gps_time=s.gps_time).marked
-    assert s.is_mixed.sum() > 300
-    assert marked[s.is_mixed].mean() > 0.95
-    assert marked[~s.is_mixed].mean() < 0.005
+    # one surface answers each of them: off the ground, not a blend (``is_off_surface``)
+    p = MixedParams(footprint=0.45, open_edges=True)
+    marked = mark_mixed(s.xyz, p, s.origin, gps_time=s.gps_time).marked
+    off = s.is_off_surface
+    assert off.sum() > 300 and not s.is_mixed.any()
+    assert marked[off].mean() > 0.95
+    assert marked[~off].mean() < 0.005
 
 
 @pytest.fixture(scope="module")
@@ -477,7 +480,8 @@ def test_grid_bleeding_needs_a_surface_that_would_have_answered():
     t = np.minimum(np.minimum(t_ground, t_wall), far)
     r = t + np.random.default_rng(0).normal(0.0, 0.004, az.size)
     keep = np.isfinite(r)
-    res = mark_mixed(d[keep] * r[keep, None], MixedParams(footprint=1.29), np.zeros(3)).marked
+    p = MixedParams(footprint=1.29, open_edges=True)
+    res = mark_mixed(d[keep] * r[keep, None], p, np.zeros(3)).marked
     az, el, t = az[keep], el[keep], t[keep]
     past = (t == t_wall[keep]) & (el > top)
     ground = t == t_ground[keep]
@@ -502,7 +506,7 @@ def test_a_block_sees_the_scans_field_of_view_not_its_own():
     keep = np.isfinite(r)
     d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     xyz, c, w, az, el = d[keep] * r[keep, None], c[keep], w[keep], az[keep], el[keep]
-    p = MixedParams(footprint=0.45)
+    p = MixedParams(footprint=0.45, open_edges=True)
     whole = mark_mixed(xyz, p, np.zeros(3)).marked
     top = (c < 0) & (w == w[c < 0].max())
     assert whole[top].mean() > 0.9
@@ -537,7 +541,84 @@ def test_grid_marks_the_beams_an_oblique_surface_pulls_back_at_its_edge():
                 step=step,
                 seed=seed,
             )
-            res = mark_mixed(xyz, MixedParams(footprint=2.8 * step), np.zeros(3)).marked
+            p = MixedParams(footprint=2.8 * step, open_edges=True)
+            res = mark_mixed(xyz, p, np.zeros(3)).marked
             assert res[col == 0].mean() > 0.9 if col0 else res[col == 0].mean() < 0.1
             assert res[col == 1].mean() > 0.9
             assert res[col < 0].mean() < 0.002
+
+
+def _open_edge_scan(seed: int = 0):
+    """Two boards 10 m out, face on, 0.2° steps, a 3-step footprint: board A (left)
+    with nothing behind it within the range limit (11 m), board B (right) with a wall
+    1.5 m behind it."""
+    from terrasift.synthetic.scan import Board
+
+    a = Board(10.0, -0.6, -1.0, 0.0, 0.4, 0.6, 1.4)
+    b = Board(10.0, 0.6, -1.0, 0.0, 0.4, 0.6, 1.4)
+    wall = Board(11.5, 1.0, -1.0, 0.0, 0.9, 0.0, 3.0)
+    return make_scan(
+        step_deg=0.2,
+        footprint_steps=3.0,
+        azimuth_deg=(-8.0, 10.0),
+        elevation_deg=(-7.0, 3.0),
+        max_range=11.8,
+        range_noise=0.003,
+        seed=seed,
+        scene=([a, b], [], [wall]),
+    )
+
+
+def test_scan_truth_a_footprint_past_an_open_edge_is_no_blend():
+    # A beam whose footprint is partly on board A and partly on nothing answers from
+    # the board alone, on its central ray: up to 5 cm (half the footprint) past the
+    # board's edge, off every surface, but no second surface answered (the seed: no
+    # mixed measurement without a background within 2.5 m). Such returns are EDGE, not
+    # mixed; the blends of board B with its wall are MIXED.
+    from terrasift.synthetic.scan import EDGE, MIXED
+
+    s = _open_edge_scan()
+    y = (s.xyz - s.origin)[:, 1]
+    edge = s.truth == EDGE
+    assert (edge & (y < 0.0)).sum() >= 40  # around board A (and the wall's left end)
+    assert not s.is_mixed[edge].any() and s.is_off_surface[edge].all()
+    assert ((s.truth == MIXED) & (y > 0.0)).sum() >= 40
+    assert not ((s.truth == MIXED) & (y < -0.1)).any()
+
+
+def test_default_marks_blends_not_returns_past_an_open_edge():
+    # The default marks board B's blends with its wall and leaves board A's returns past
+    # its edges (no blend: their range is the board's, face on it cannot tell how far past
+    # the edge they lie); open_edges marks those by their probability of lying past it.
+    from terrasift.synthetic.scan import EDGE
+
+    s = _open_edge_scan()
+    edge = s.truth == EDGE
+    base = mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time).marked
+    tpr, fpr = _rates(s.is_mixed, base)
+    assert tpr > 0.85 and fpr < 0.01
+    assert base[edge].mean() < 0.05
+    opened = mark_mixed(s.xyz, MixedParams(open_edges=True), s.origin, gps_time=s.gps_time)
+    assert opened.marked[edge].mean() > 0.5
+
+
+def test_grid_marks_a_blend_into_nothing_not_a_surface_pulled_at_its_end():
+    # A board at 10 m ends at column 0; column 1 blends it with a wall 1.5 m behind whose
+    # end lies within that beam (10.6 m); beyond, nothing within the mixing gap (a far
+    # face at 20 m). A board alone could pull a return back by half a footprint of beams
+    # along itself, which face on changes no range: 0.6 m off it needs a second surface,
+    # so column 1 is marked by default.
+    xyz, col = _wall_grid(lambda c: 10.0 if c <= 0 else (10.6 if c == 1 else 20.0))
+    res = mark_mixed(xyz, MixedParams(footprint=0.3), np.zeros(3)).marked
+    assert res[col == 1].mean() > 0.95 and res[col <= 0].mean() < 0.002
+    # A wall receding at 29° (6.7 cm per 0.28° column at 25 m) whose last two columns
+    # answer from the part of their 2.8-step footprint still on it, 0.6 and 1.1 columns
+    # back, with nothing within the mixing gap behind: one surface answers, so by default
+    # neither is marked (open_edges marks both: test above).
+    step, ang = 0.28, np.radians(0.28)
+    g, pull = 0.55 * ang / 25.0, {0: 0.6, 1: 1.1}
+    xyz, col = _wall_grid(
+        lambda c: 35.0 if c > 1 else 1.0 / (1.0 / 25.0 - g * (c - pull.get(c, 0.0))), step=step
+    )
+    res = mark_mixed(xyz, MixedParams(footprint=2.8 * step), np.zeros(3)).marked
+    assert res[(col == 0) | (col == 1)].mean() < 0.05 and res[col < 0].mean() < 0.002

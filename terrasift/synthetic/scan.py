@@ -6,16 +6,24 @@ al. §III-B). Beams are cast on an azimuth/elevation grid. Every beam has a
 footprint sampled by sub-rays; its intensity has two high lobes at the sides
 and a weaker centre, like the SICK beam of the seed (§III-A.2). Per beam:
 
-- one surface in the footprint: a return on it;
+- one surface in the footprint: a return on the central ray at the mean range of
+  the part on it;
 - several surfaces closer than ``max_mix_gap`` to each other: one return on the
   central ray at the range weighted by the intercepted shares (share × lobe
   intensity) — a mixed measurement when that lands off every surface;
 - surfaces farther apart: the nearest one with enough energy answers alone.
 
 Truth per point is exact: a return farther than ``tol`` from every surface of
-the scene is MIXED, or GHOST when it comes from a thin pole that sat in the
-weak centre of the beam (no lobe touched it), so the return lies in the pole's
-range shadow (§III-C.3). Everything else is CORRECT.
+the scene whose beam blended several surfaces is MIXED, or GHOST when it comes
+from a thin pole that sat in the weak centre of the beam (no lobe touched it),
+so the return lies in the pole's range shadow (§III-C.3). A return off every
+surface whose beam met one surface only (the rest of its footprint past an open
+edge: nothing, or a background beyond ``max_mix_gap``) is EDGE: its range is the
+part of the footprint on that surface, only its direction is the central ray's,
+so it lies up to half a footprint past the edge. No second surface answered, so
+it is no mixed measurement (the seed: a blend needs a foreground and a background
+within 2.5 m); earlier versions counted it as MIXED (``is_off_surface``).
+Everything else is CORRECT.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-CORRECT, MIXED, GHOST = 0, 1, 2
+CORRECT, MIXED, GHOST, EDGE = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,12 @@ class Scan:
     @property
     def is_mixed(self) -> NDArray[np.bool_]:
         """Mixed or ghost: the returns a mixed-measurement filter should remove."""
+        return (self.truth == MIXED) | (self.truth == GHOST)
+
+    @property
+    def is_off_surface(self) -> NDArray[np.bool_]:
+        """Every return farther than ``tol`` from the scene: mixed, ghost and the edge
+        returns of a footprint partly past an open edge (the earlier truth)."""
         return self.truth != CORRECT
 
     def __len__(self) -> int:
@@ -146,9 +160,10 @@ def make_scan(
     # Chunks of beams keep the (beams, sub-rays, 3) arrays small.
     ranges = np.full(A.size, np.inf)
     ghost = np.zeros(A.size, dtype=bool)
+    blend = np.zeros(A.size, dtype=bool)
     for c0 in range(0, A.size, chunk):
         sl = slice(c0, min(c0 + chunk, A.size))
-        ranges[sl], ghost[sl] = _cast(
+        ranges[sl], ghost[sl], blend[sl] = _cast(
             A[sl],
             E[sl],
             ga,
@@ -170,11 +185,13 @@ def make_scan(
     clean = sensor + centre * ranges[ok][:, None]
     pts = sensor + centre * (ranges[ok] + rng.normal(0.0, range_noise, ok.sum()))[:, None]
     ghost = ghost[ok]
+    blend = blend[ok]
 
     dist = _distance_to_scene(clean, planes, poles)
     truth = np.full(pts.shape[0], CORRECT, dtype=np.uint8)
     off = dist > tol
-    truth[off] = MIXED
+    truth[off] = EDGE
+    truth[off & blend] = MIXED
     truth[off & ghost] = GHOST
     shift = np.asarray(origin, dtype=np.float64)
     xyz = pts + shift
@@ -211,7 +228,7 @@ def _cast(
     max_mix_gap,
     min_share,
 ):
-    """Range and ghost flag of each beam (azimuth A, elevation E)."""
+    """Range, ghost flag and blend flag of each beam (azimuth A, elevation E)."""
     centre = _direction(A, E)
     e_az = np.stack([-np.sin(A), np.cos(A), np.zeros_like(A)], axis=1)
     e_el = np.stack([-np.sin(E) * np.cos(A), -np.sin(E) * np.sin(A), np.cos(E)], axis=1)
@@ -257,6 +274,10 @@ class ScanTile:
 
     @property
     def is_mixed(self) -> NDArray[np.bool_]:
+        return (self.truth == MIXED) | (self.truth == GHOST)
+
+    @property
+    def is_off_surface(self) -> NDArray[np.bool_]:
         return self.truth != CORRECT
 
     def __len__(self) -> int:
@@ -431,7 +452,9 @@ def _hit_pole(s: NDArray, d: NDArray, p: Pole) -> NDArray[np.float64]:
 
 
 def _combine(rng_hit, hit_id, intensity, lobe, pole_ids, max_mix_gap, min_share):
-    """One range per beam from its sub-ray hits; also whether it is a ghost-type beam."""
+    """One range per beam from its sub-ray hits; also whether it is a ghost-type beam and
+    whether it blended several surfaces (at least two with ``min_share`` within
+    ``max_mix_gap``)."""
     n_rays = rng_hit.shape[0]
     hit = hit_id >= 0
     energy = np.where(hit, intensity[None, :], 0.0)
@@ -439,7 +462,7 @@ def _combine(rng_hit, hit_id, intensity, lobe, pole_ids, max_mix_gap, min_share)
     ranges = np.full(n_rays, np.inf)
     ids = np.unique(hit_id[hit])
     if ids.size == 0:
-        return ranges, np.zeros(n_rays, dtype=bool)
+        return ranges, np.zeros(n_rays, dtype=bool), np.zeros(n_rays, dtype=bool)
     # Per beam and surface id: energy share and energy-weighted mean range.
     share = np.zeros((n_rays, ids.size))
     mean_r = np.full((n_rays, ids.size), np.inf)
@@ -466,7 +489,8 @@ def _combine(rng_hit, hit_id, intensity, lobe, pole_ids, max_mix_gap, min_share)
     # Ghost-type beams: a thin pole hit only by the weak centre of the beam.
     on_pole = np.isin(hit_id, pole_ids)
     ghost = on_pole.any(axis=1) & ~(on_pole & lobe[None, :]).any(axis=1)
-    return ranges, ghost
+    blend = mixing & (strong.sum(axis=1) >= 2)
+    return ranges, ghost, blend
 
 
 def _distance_to_scene(pts: NDArray, planes: list[Board], poles: list[Pole]) -> NDArray[np.float64]:

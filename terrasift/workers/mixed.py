@@ -58,13 +58,14 @@ GRID_REST = 0.02  # share of returns off the grid above which the boxes judge th
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
 GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
 GRID_FOOTPRINT = 3.0  # footprint (steps) the grid searches over when none was measured
-# A beam past an open edge is marked when the geometry (footprint, step, range) gives it
+# With open_edges, a beam past an open edge is marked when the geometry (footprint, step, range) gives it
 # a probability above this of lying more than min_offset past the edge. Below one half on
 # purpose: such beams are few beside the returns kept, so a false mark costs the false
 # positive rate less than a miss costs the true positive rate. Chosen on the tune
 # families (stage alone, 41 scans): 0.5 → 0.3 raised the worst tpr 0.620 → 0.736 and the
 # scans meeting tpr ≥ 0.85 with fpr ≤ 0.02 from 22 to 29; 0.2 gave 0.800 and 29 but a
-# worst fpr of 0.040 (0.035 at 0.3, 0.031 at 0.5).
+# worst fpr of 0.040 (0.035 at 0.3, 0.031 at 0.5); those figures count such beams as mixed
+# when they lie more than 3 cm past the edge (the benchmark's earlier truth, ``--truth off``).
 GRID_BLEED = 0.3
 
 Variant = Literal[
@@ -163,6 +164,18 @@ class MixedParams(StageParams):
     """Share of the box content that must have a surface behind it (within box_depth,
     in its own or the next cell across the box). A mixed return blends a foreground
     with a background; random clutter has none (seed §V-D)."""
+    open_edges: bool = False
+    """grid: also mark returns at an edge with nothing behind it (no return, or a
+    background beyond box_depth) that lie off the surface they end: a footprint partly
+    past the edge answers from that one surface, on its own central ray, up to half a
+    footprint past the edge (``mixed_grid._bleeding``), or from the mean range of the part
+    still on a sloped surface. No second surface answers, so such a return is no
+    mixed measurement (seed §III-C.1: no blend without a background within 2.5 m); it
+    is a return displaced by the beam's width. Off by default: face on, its range does not
+    tell whether it lies past the edge, so it is marked by probability and whole edges
+    come out wrong together (false positive rates of 0.02-0.04 at 0.3-0.5° steps). Off,
+    a return at such an edge is still marked when it lies off the surface it ends by more
+    than that surface alone could pull it: a blend with a background ending in the beam."""
     cross_positions: bool = False
     """grid: take off the marks of returns that another scan position of the tile sees
     on a surface (``mixed_cross``); needs several positions seeing the same place."""
@@ -402,6 +415,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         resolve=GRID_RESOLVE,
         min_offset=p.min_offset,
         bleed_prob=GRID_BLEED,
+        open_edges=p.open_edges,
     )
 
 

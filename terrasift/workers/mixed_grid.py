@@ -32,7 +32,11 @@ a line they are a run of at most ``thin`` beams (about two footprints) in front
 of one background surface that continues behind them. Such runs are marked too.
 
 Where nothing answers behind an edge (no return, or a background farther than
-``max_gap``), a return off the surface it ends (that surface continued to its beam
+``max_gap``), a return that lies off the surface it ends by more than that surface
+alone could pull it (its continuation taken back half a footprint of beams) blends
+it with a background that ends within the beam: marked. Only with ``open_edges``
+(off by default: such a return answers from one surface, so it is no blend, only
+displaced by the beam's width): a return off the surface it ends (that surface continued to its beam
 misses it by more than its scatter and ``min_offset`` across it) is a blend with
 nothing: the part of a footprint still on a sloped surface answers at that part's
 mean range (nearer than where the central ray meets grazing ground towards the
@@ -83,6 +87,7 @@ class GridSettings:
     min_offset: float = 0.0  # returns nearer a surface than this (across it) count as on it
     bleed_prob: float = 0.5  # least probability of a bleeding beam being past by min_offset
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
+    open_edges: bool = False  # judge returns at edges with nothing behind them
 
 
 def grid_index(
@@ -406,6 +411,9 @@ def _mixed_along(
     # off_end[sd]: an anchor on side sd whose surface, continued to p's beam, misses p
     # by more than its scatter and min_offset across it
     off_end = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # off_blend[sd]: off by more than the surface itself could pull it (a footprint partly
+    # on one surface answers at most half a footprint of beams back along it)
+    off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -426,14 +434,23 @@ def _mixed_along(
                 tan_a = r * np.abs(V[a] - V[a1]) / step
                 tan_x = r * line.C[a] / ra**2 / step_x
                 cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
-                off = (dev > spread(i, slope)) & (dev * cos_inc > across)
+                sp = spread(i, slope)
+                off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off
                 # within max_gap of p: the anchor, or its surface continued to p's beam
                 # (grazing ground a beam before a far wall's foot lies metres nearer
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
                 near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
-                off_end[sd] |= ok & (ra < r + s.max_gap)
+                end = ok & (ra < r + s.max_gap)
+                off_end[sd] |= end
+                # the surface continued to p's beam, taken back half a footprint of beams
+                # towards the anchor: the farthest a return of that surface alone is pulled
+                c = np.flatnonzero(end)
+                g = V[a][c] - V[a1][c]
+                v_c = V[a][c] + g * i
+                pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
+                off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
                 far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
@@ -464,14 +481,15 @@ def _mixed_along(
             inside = (pos + sd >= extent[0]) & (pos + sd <= extent[1])
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
-            off = off_end[-sd] & ~own
+            off = (off_end[-sd] if s.open_edges else off_blend[-sd]) & ~own
             ends = open_ & off
             for _ in range(1, chain):
                 ends |= off & np.append(ends, False)[line.J[sd]]
             between |= ends
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
-    between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
+    if s.open_edges:
+        between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
 
 
