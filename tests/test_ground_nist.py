@@ -398,6 +398,23 @@ def test_compiled_medians_and_hull_band_match_numpy():
     assert 0 < near.sum() < 0.3 * xy.shape[0]
 
 
+def test_walk_hash_reads_the_bits_of_a_float():
+    # A walk cycling on round-off picks its exit edge by a hash of the query's bits.
+    import numba
+
+    from terrasift.workers.ground._kernels import _bits
+
+    @numba.njit
+    def bits(x):
+        out = np.empty(x.size, dtype=np.uint64)
+        for i in range(x.size):
+            out[i] = _bits(x[i])
+        return out
+
+    x = np.array([0.0, -0.0, 1.5, -3.25e8, np.nan, np.inf, -np.inf, 5e-324, 1e300, 512345.67])
+    assert np.array_equal(bits(x), x.view(np.uint64))
+
+
 def test_cell_order_is_the_stable_sort_of_cell_keys():
     rng = np.random.default_rng(9)
     for span in (50.0, 900.0, 3000.0):  # one and two radix passes
