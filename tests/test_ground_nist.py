@@ -348,6 +348,73 @@ def test_growth_keeps_off_barred_nodes():
     assert np.array_equal(ground, ~barred)
 
 
+def test_compiled_growth_rounds_match_the_numpy_rounds():
+    # Without agree and reach growth runs compiled, trying again only the edges whose
+    # slopes changed; any agree > 0 runs the numpy rounds, and one tiny lets a node join
+    # on a single prediction as agree = 0 does: the nodes must be the same, round by round.
+    rng = np.random.default_rng(21)
+    n = 4000
+    xy = rng.uniform(0, 90, (n, 2))
+    objects = rng.random(n) < 0.1
+    z = 1.5 * np.sin(xy[:, 0] / 9.0) + 0.05 * xy[:, 1] + rng.normal(0, 0.04, n) + 2.0 * objects
+    xyz = np.column_stack([xy, z])
+    seed = (rng.random(n) < 0.03) & ~objects
+    barred = rng.random(n) < 0.02
+    kw = dict(tol=0.12, bend_deg=5.0, max_rise=3.0, tol_below=0.24, bend_below_deg=15.0)
+    sizes = []
+    for rounds in (1, 3, 200):
+        a = grow_ground(xyz, seed, barred=barred, max_rounds=rounds, **kw)
+        b = grow_ground(xyz, seed, barred=barred, max_rounds=rounds, agree=1e-12, **kw)
+        assert np.array_equal(a, b)
+        sizes.append(int(a.sum()))
+    assert seed.sum() < sizes[0] < sizes[1] < sizes[2] < n - objects.sum()
+
+
+def test_compiled_medians_and_hull_band_match_numpy():
+    from terrasift.workers.ground.raised import _median_per_vertex
+    from terrasift.workers.ground.tin import _within_of_hull
+
+    rng = np.random.default_rng(23)
+    for t in range(40):
+        m, n = int(rng.integers(1, 400)), int(rng.integers(1, 60))
+        v = rng.integers(0, n, m)
+        # Ties, signed zeros and NaN: the lower middle of np.lexsort's order, bit for bit.
+        pool = np.array([0.0, -0.0, 1.0, -1.0, 2.5, np.nan, np.inf])
+        value = rng.choice(pool, m) if t % 2 else rng.normal(size=m)
+        order = np.lexsort((value, v))
+        count = np.bincount(v, minlength=n)
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        want = np.zeros(n)
+        want[count > 0] = value[order][(start + (count - 1) // 2)[count > 0]]
+        assert np.array_equal(_median_per_vertex(v, value, n).view(np.uint64), want.view(np.uint64))
+    xy = rng.uniform(0, 100, (3000, 2))
+    hull = Delaunay(xy).convex_hull
+    a, b = xy[hull[:, 0]], xy[hull[:, 1]]
+    d = b - a
+    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
+    off = np.abs((xy[:, None, 0] - a[:, 0]) * d[:, 1] - (xy[:, None, 1] - a[:, 1]) * d[:, 0])
+    near = _within_of_hull(xy, hull, 4.0)
+    assert np.array_equal(near, (off / length).min(axis=1) <= 4.0)
+    assert 0 < near.sum() < 0.3 * xy.shape[0]
+
+
+def test_walk_hash_reads_the_bits_of_a_float():
+    # A walk cycling on round-off picks its exit edge by a hash of the query's bits.
+    import numba
+
+    from terrasift.workers.ground._kernels import _bits
+
+    @numba.njit
+    def bits(x):
+        out = np.empty(x.size, dtype=np.uint64)
+        for i in range(x.size):
+            out[i] = _bits(x[i])
+        return out
+
+    x = np.array([0.0, -0.0, 1.5, -3.25e8, np.nan, np.inf, -np.inf, 5e-324, 1e300, 512345.67])
+    assert np.array_equal(bits(x), x.view(np.uint64))
+
+
 def test_cell_order_is_the_stable_sort_of_cell_keys():
     rng = np.random.default_rng(9)
     for span in (50.0, 900.0, 3000.0):  # one and two radix passes

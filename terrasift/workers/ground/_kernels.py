@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 from numpy.typing import NDArray
 
 _MAX_WALK = 128
@@ -22,11 +24,15 @@ _SORT_WIDTH = 64  # widest neighbour list sorted by insertion (wider: numpy's so
 # ------------------------------------------------------------ TIN (tin.py)
 
 
-@numba.njit(cache=True, inline="always")
-def _bits(v: float) -> np.uint64:
-    b = np.empty(1)
-    b[0] = v
-    return b.view(np.uint64)[0]
+@intrinsic
+def _bits(typingctx, v):
+    """The IEEE bits of the float64 ``v`` as a uint64 (a bit cast: no array, so the
+    kernels calling it need no reference counting)."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], context.get_value_type(types.uint64))
+
+    return types.uint64(types.float64), codegen
 
 
 @numba.njit(cache=True, inline="always")
@@ -119,7 +125,14 @@ def _height(
     return c0 * zt[ti, 0] + (1.0 - c0 - c1) * zt[ti, 2] + c1 * zt[ti, 1]
 
 
-@numba.njit(cache=True, nogil=True)
+# The per-point kernels below pass arrays to inlined helpers (``_walk_one``,
+# ``_start``, ``_height``); with numba's reference counting on, every such call
+# counts references of each array, which doubled the cost of a pass over
+# millions of points. They allocate nothing, so they are compiled without it.
+_NO_RC = {"cache": True, "nogil": True, "_nrt": False}
+
+
+@numba.njit(**_NO_RC)
 def _walk_kernel(
     q: NDArray[np.float64],
     t: NDArray[np.int64],
@@ -133,7 +146,7 @@ def _walk_kernel(
         t[i], b0[i], b1[i] = _walk_one(q[i, 0], q[i, 1], t[i], trans, nbr)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_NO_RC)
 def _surface_kernel(
     pts: NDArray[np.float64],
     ox: float,
@@ -182,7 +195,7 @@ def _surface_kernel(
         z[i] = _height(tt, c0, c1, qx, qy, zt, xy, simplices, mode == _NEAREST)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_NO_RC)
 def _band_kernel(
     pts: NDArray[np.float64],
     ox: float,
@@ -523,3 +536,163 @@ def _judge_kernel(
         second = ps[min(1, deg - 1)]
         zv = z[v]
         bad[v] = zv - med > screen_tol or (low_tol > 0 and second - zv > low_tol)
+
+
+# ------------------------------------------------------------ growth (growth.py)
+
+
+@numba.njit(cache=True)
+def _node_slope(
+    o: int,
+    start: NDArray[np.int64],
+    nbr: NDArray[np.int64],
+    du: NDArray[np.float64],
+    dv: NDArray[np.float64],
+    dz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+) -> tuple[float, float]:
+    """``growth._ground_slopes`` of node ``o`` (its edges ``start[o]:start[o + 1]``),
+    summed in edge order as ``np.bincount`` sums them."""
+    suu = svv = suv = suz = svz = 0.0
+    for e in range(start[o], start[o + 1]):
+        if ground[nbr[e]]:
+            u, v, w = du[e], dv[e], dz[e]
+            suu += u * u
+            svv += v * v
+            suv += u * v
+            suz += u * w
+            svz += v * w
+    det = suu * svv - suv * suv
+    t = suu + svv
+    if det > 1e-6 * (t * t):
+        return (suz * svv - svz * suv) / det, (svz * suu - suz * suv) / det
+    return 0.0, 0.0
+
+
+@numba.njit(cache=True)
+def _grow_rounds(
+    ground: NDArray[np.bool_],
+    own: NDArray[np.int64],
+    nbr: NDArray[np.int64],
+    du: NDArray[np.float64],
+    dv: NDArray[np.float64],
+    dz: NDArray[np.float64],
+    limit: NDArray[np.float64],
+    limit_below: NDArray[np.float64],
+    indptr: NDArray[np.int64],
+    adjacent: NDArray[np.int64],
+    max_rounds: int,
+) -> None:
+    """``growth.grow_ground``'s rounds (without ``agree`` and ``reach``) in place on
+    ``ground``: the same nodes join in the same round. Only nodes whose ground
+    neighbours changed (the new ones and those around them, found through the full
+    adjacency ``indptr``, ``adjacent``) get new slopes and try their edges again: the
+    others' edges failed last round with the same slopes."""
+    n = ground.size
+    start = np.zeros(n + 1, dtype=np.int64)
+    for e in range(own.size):
+        start[own[e] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    gx = np.zeros(n)
+    gy = np.zeros(n)
+    active = np.flatnonzero(ground)
+    mark = np.zeros(n, dtype=np.bool_)
+    new = np.empty(n, dtype=np.int64)
+    buf = np.empty(n, dtype=np.int64)
+    for _ in range(max_rounds):
+        for o in active:
+            gx[o], gy[o] = _node_slope(o, start, nbr, du, dv, dz, ground)
+        m = 0
+        for o in active:
+            for e in range(start[o], start[o + 1]):
+                j = nbr[e]
+                if ground[j] or mark[j]:
+                    continue
+                err = dz[e] - gx[o] * du[e] - gy[o] * dv[e]
+                if err <= limit[e] and err >= -limit_below[e]:
+                    mark[j] = True
+                    new[m] = j
+                    m += 1
+        if m == 0:
+            break
+        for i in range(m):
+            ground[new[i]] = True
+            mark[new[i]] = False
+        # Every node whose ground neighbours changed, each once: the new ones and
+        # the ground around them.
+        count = 0
+        for i in range(m):
+            v = new[i]
+            if not mark[v]:
+                mark[v] = True
+                buf[count] = v
+                count += 1
+            for a in range(indptr[v], indptr[v + 1]):
+                u = adjacent[a]
+                if ground[u] and not mark[u]:
+                    mark[u] = True
+                    buf[count] = u
+                    count += 1
+        active = buf[:count].copy()
+        for i in range(count):
+            mark[active[i]] = False
+
+
+# ------------------------------------------------------------ raised segments (raised.py)
+
+
+@numba.njit(cache=True)
+def _lower_medians(v: NDArray[np.int64], value: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Per id of ``v`` (0 … n − 1) the lower middle of its ``value`` in ascending
+    order (NaN last, equal values in input order: the order of ``np.lexsort((value,
+    v))``), 0 where an id has none. A counting sort by id, then an insertion sort of
+    each id's few values."""
+    start = np.zeros(n + 1, dtype=np.int64)
+    for i in range(v.size):
+        start[v[i] + 1] += 1
+    for k in range(n):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    s = np.empty(v.size)
+    for i in range(v.size):
+        s[fill[v[i]]] = value[i]
+        fill[v[i]] += 1
+    out = np.zeros(n)
+    for k in range(n):
+        a, b = start[k], start[k + 1]
+        if a == b:
+            continue
+        for i in range(a + 1, b):
+            x = s[i]
+            j = i - 1
+            # Moves only past strictly greater values (NaN above every number): stable.
+            while j >= a and (s[j] > x or (np.isnan(s[j]) and not np.isnan(x))):
+                s[j + 1] = s[j]
+                j -= 1
+            s[j + 1] = x
+        out[k] = s[a + (b - a - 1) // 2]
+    return out
+
+
+@numba.njit(cache=True)
+def _near_outline(
+    q: NDArray[np.float64],
+    a: NDArray[np.float64],
+    d: NDArray[np.float64],
+    length: NDArray[np.float64],
+    band: float,
+) -> NDArray[np.bool_]:
+    """Whether the least distance of each point of ``q`` to the lines through ``a`` along
+    ``d`` (offsets over ``length``) is at most ``band`` (NaN propagating, as numpy's min)."""
+    out = np.empty(q.shape[0], dtype=np.bool_)
+    for i in range(q.shape[0]):
+        best = np.inf
+        for e in range(a.shape[0]):
+            off = abs((q[i, 0] - a[e, 0]) * d[e, 1] - (q[i, 1] - a[e, 1]) * d[e, 0]) / length[e]
+            if off < best or np.isnan(off):
+                best = off
+                if np.isnan(off):
+                    break
+        out[i] = best <= band
+    return out

@@ -48,6 +48,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
+from terrasift.workers.ground._kernels import _grow_rounds
+
 
 def grow_ground(
     xyz: NDArray[np.float64],
@@ -115,27 +117,35 @@ def grow_ground(
     limit, limit_below, dist = limit[usable], limit_below[usable], dist[usable]
     # Path length from a seed along the edges growth took (first arrival, shortest then).
     path = np.where(seed, 0.0, np.inf) if reach > 0 else np.zeros(0)
-    for _ in range(max_rounds):
-        gx, gy = _ground_slopes(ground, own, nbr, du, dv, dz, n)
-        cand = ground[own] & ~ground[nbr]
-        err = dz[cand] - gx[own[cand]] * du[cand] - gy[own[cand]] * dv[cand]
-        ok = (err <= limit[cand]) & (err >= -limit_below[cand])
-        if reach > 0:
-            arrive = path[own[cand]] + dist[cand]
-            ok &= arrive <= reach
-            first = np.full(n, np.inf)
-            np.minimum.at(first, nbr[cand][ok], arrive[ok])
-        if agree > 0:
-            votes = np.bincount(nbr[cand][ok], minlength=n)
-            voters = np.bincount(nbr[cand], minlength=n)
-            new = np.flatnonzero((votes > 0) & (votes >= agree * voters))
-        else:
-            new = nbr[cand][ok]
-        if new.size == 0:
-            break
-        ground[new] = True
-        if reach > 0:
-            path[new] = first[new]
+    if agree <= 0 and reach <= 0:
+        # The same rounds compiled, each trying only the edges whose slopes changed.
+        _grow_rounds(
+            ground, own, nbr.astype(np.int64), du, dv, dz, limit, limit_below,
+            np.asarray(indptr, dtype=np.int64), np.asarray(adjacency[1], dtype=np.int64),
+            max_rounds,
+        )  # fmt: skip
+    else:
+        for _ in range(max_rounds):
+            gx, gy = _ground_slopes(ground, own, nbr, du, dv, dz, n)
+            cand = ground[own] & ~ground[nbr]
+            err = dz[cand] - gx[own[cand]] * du[cand] - gy[own[cand]] * dv[cand]
+            ok = (err <= limit[cand]) & (err >= -limit_below[cand])
+            if reach > 0:
+                arrive = path[own[cand]] + dist[cand]
+                ok &= arrive <= reach
+                first = np.full(n, np.inf)
+                np.minimum.at(first, nbr[cand][ok], arrive[ok])
+            if agree > 0:
+                votes = np.bincount(nbr[cand][ok], minlength=n)
+                voters = np.bincount(nbr[cand], minlength=n)
+                new = np.flatnonzero((votes > 0) & (votes >= agree * voters))
+            else:
+                new = nbr[cand][ok]
+            if new.size == 0:
+                break
+            ground[new] = True
+            if reach > 0:
+                path[new] = first[new]
     if peak is not None:
         ground = _without_peaks(ground, seed, *all_edges, margin=peak, max_nodes=peak_nodes)
     return ground

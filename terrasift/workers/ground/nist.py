@@ -775,10 +775,12 @@ def _classify(
         phase, added = _final(
             local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach, square
         )
+        if len(finals) == 1:
+            break  # one grid: its labels are the vote (any vote_share > 0 keeps them)
         votes += w * phase
         grown += w * added
         weights += w
-    labels = votes >= params.vote_share * weights
+    labels = votes >= params.vote_share * weights if len(finals) > 1 else phase
     if params.grow_share > 0 and len(finals) > 1:
         labels |= grown >= params.grow_share * weights
     labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)

@@ -37,6 +37,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay
 
+from terrasift.workers.ground._kernels import _lower_medians
+
 #: ``along``: edges at least this many median edges long are judged by the terrain behind them
 _ALONG_RUNS = 2.0
 #: ...sampled this many runs behind the end (the median of the slopes they give)
@@ -574,13 +576,9 @@ def _median_per_vertex(
     v: NDArray[np.int64], value: NDArray[np.float64], n: int
 ) -> NDArray[np.float64]:
     """Median (lower middle) of ``value`` per vertex id ``v`` (0 where a vertex has none)."""
-    order = np.lexsort((value, v))
-    count = np.bincount(v, minlength=n)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    out = np.zeros(n)
-    has = count > 0
-    out[has] = value[order][start[has] + (count[has] - 1) // 2]
-    return out
+    return _lower_medians(
+        np.asarray(v, dtype=np.int64), np.asarray(value, dtype=np.float64), int(n)
+    )
 
 
 def _lift(

@@ -35,6 +35,7 @@ from terrasift.workers.ground._kernels import (
     _band_kernel,
     _edge_neighbours,
     _judge_kernel,
+    _near_outline,
     _surface_kernel,
     _walk_kernel,
 )
@@ -688,11 +689,5 @@ def _within_of_hull(
     a, b = xy[hull_edges[:, 0]], xy[hull_edges[:, 1]]
     d = b - a
     length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)
-    out = np.zeros(xy.shape[0], dtype=bool)
-    for lo in range(0, xy.shape[0], 4096):
-        q = xy[lo : lo + 4096]
-        # Distance to each edge's line; inside a convex hull the nearest line
-        # is the nearest edge.
-        off = np.abs((q[:, None, 0] - a[:, 0]) * d[:, 1] - (q[:, None, 1] - a[:, 1]) * d[:, 0])
-        out[lo : lo + 4096] = (off / length).min(axis=1) <= band
-    return out
+    # Distance to each edge's line; inside a convex hull the nearest line is the nearest edge.
+    return _near_outline(np.ascontiguousarray(xy), a, d, length, band)
