@@ -257,6 +257,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_shrub": 0.2, "rough_sectors": 8, "rough_near": 2},
         {"rough_half": 0},
         {"rough_half_curve": 0},
+        {"rough_fit": 0},
         {"final_nodes": "square"},
     ],
 }

@@ -60,3 +60,22 @@ def test_a_ditch_and_sparse_slopes_are_terrain():
     sparser = _ground(0.1, seed=4)
     sparser[::20, 2] -= 3.0
     assert not isolated_low_points(sparser, np.ones(len(sparser), bool), LowPointParams()).any()
+
+
+def test_lone_returns_in_a_gap_of_dense_data_are_judged_across_it():
+    pts = _ground(2.0, size=80.0, seed=5)
+    # a strip 20 m wide without data (no overlap between flight lines)
+    pts = pts[np.abs(pts[:, 1] - 5.4e6 - 40.0) > 10.0]
+    n = len(pts)
+    surface = lambda xy: 0.3 * (xy[:, 0] - 5e5) + 0.5 * np.sin((xy[:, 1] - 5.4e6) / 4.0) + 200.0  # noqa: E731
+    xy = np.array([[5e5 + x, 5.4e6 + 40.0 + dy] for x, dy in ((15, -3), (35, 2), (55, 0), (70, 4))])
+    sunk = np.column_stack([xy, surface(xy) - np.array([1.5, 2.5, 4.0, 6.0])])
+    level = np.column_stack([xy + [5.0, 0.0], surface(xy + [5.0, 0.0]) + 0.2])
+    xyz = np.vstack([pts, sunk, level])
+    ground = np.ones(len(xyz), dtype=bool)
+    low = isolated_low_points(xyz, ground, LowPointParams())
+    assert low[n : n + 4].all()  # under the terrain across the gap
+    assert not low[n + 4 :].any()  # at the terrain's height: kept
+    assert not low[:n].any()
+    # without the rule they are too alone to be judged
+    assert not isolated_low_points(xyz, ground, LowPointParams(lone=0))[n:].any()

@@ -15,6 +15,13 @@ Vectorised on a grid of ``radius`` cells: the ground points are sorted once by
 a height band with two binary searches per cell. Only the lowest ground point
 of each ``candidate_cell`` is a candidate (the others stand on it), repeated
 on the cells that lost their lowest point.
+
+A return alone in a gap of the data (a strip without overlap, a void) has no
+neighbourhood to judge it by, yet where the data is dense enough elsewhere
+(``min_points`` expected around a point at the ground's mean density) it is
+judged against the plane of its ``lone_k`` nearest ground points that are not
+alone themselves (across the gap, from both sides): a low point when it lies
+more than ``depth``, and more than 3 deviations of that plane, below it.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
+from scipy.spatial import cKDTree
 
 from terrasift.workers.bins import Grid, lowest_per_bin
 from terrasift.workers.registry import StageParams, register
@@ -46,6 +54,12 @@ class LowPointParams(StageParams):
     """Metres: only the lowest ground point per cell of this size is tested per round."""
     rounds: int = Field(3, ge=1, le=20)
     """Rounds: a cell whose lowest point was dropped tests its next-lowest."""
+    lone: int = Field(3, ge=0, le=1000)
+    """A ground point with fewer other ground points than this in its neighbourhood,
+    where the ground's mean density puts ``min_points`` there, is judged against the
+    plane of its ``lone_k`` nearest ground points that are not alone (module doc). 0: off."""
+    lone_k: int = Field(16, ge=3, le=256)
+    """Ground points in the plane a lone point is judged by."""
 
 
 @register("ground.lowpoints", LowPointParams, "isolated low points among the ground (class 7)")
@@ -92,8 +106,50 @@ def isolated_low_points(
         alive[hit] = False
         todo[:] = False
         todo[ccell[hit]] = True
+    if params.lone > 0:
+        alive &= ~_lone_low(local, alive, cell, grid, sorted_key, cell_start, span, params)
     out[g[~alive]] = True
     return out
+
+
+def _lone_low(
+    local: NDArray[np.float64],
+    alive: NDArray[np.bool_],
+    cell: NDArray[np.int64],
+    grid: Grid,
+    sorted_key: NDArray,
+    cell_start: NDArray[np.int64],
+    span: float,
+    params: LowPointParams,
+) -> NDArray[np.bool_]:
+    """Mask over ``local`` (ground points): the points alone in a gap of data dense
+    enough elsewhere that lie under the plane of their ``lone_k`` nearest ground points
+    not alone by more than ``max(depth, 3 x its deviation)`` (module doc)."""
+    low = np.zeros(local.shape[0], dtype=bool)
+    area = max(float(np.prod(np.ptp(local[:, :2], axis=0))), 1.0)
+    if local.shape[0] / area * (3 * params.radius) ** 2 < params.min_points:
+        return low  # sparse data: too few neighbours anywhere to tell a gap
+    below, level, above = _neighbourhood_counts(
+        local, cell, grid, sorted_key, cell_start, span, params.depth
+    )
+    alone = alive & (below + level + above - 1 < params.lone)
+    support = np.flatnonzero(alive & ~alone)
+    idx = np.flatnonzero(alone)
+    if idx.size == 0 or support.size < params.lone_k:
+        return low
+    _, nb = cKDTree(local[support, :2]).query(local[idx, :2], k=params.lone_k)
+    d = local[support[nb]] - local[idx][:, None, :]
+    a = np.stack([np.ones(d.shape[:2]), d[..., 0], d[..., 1]], axis=-1)
+    w = np.ones(d.shape[:2])
+    for _ in range(2):  # fitted, then refitted without the neighbours far off it
+        at = np.swapaxes(a * w[..., None], 1, 2)
+        coef = np.linalg.solve(at @ a + 1e-9 * np.eye(3), at @ d[..., 2:3])[..., 0]
+        res = d[..., 2] - np.einsum("mkp,mp->mk", a, coef)
+        dev = np.sqrt(np.sum(w * res * res, axis=1) / np.maximum(np.sum(w, axis=1) - 3, 1))
+        w = (np.abs(res) <= 2.5 * np.maximum(dev, 0.05 * params.depth)[:, None]).astype(float)
+    # The point sits at the origin: the plane passes coef[0] above it.
+    low[idx] = coef[:, 0] > np.maximum(params.depth, 3.0 * dev)
+    return low
 
 
 def _neighbourhood_counts(

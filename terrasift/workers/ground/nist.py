@@ -90,6 +90,7 @@ from terrasift.workers.bins import (
     plane_fit_statistics,
     snap_cell,
 )
+from terrasift.workers.ground.closefit import close_fit_high
 from terrasift.workers.ground.concentric import ConcentricGrid
 from terrasift.workers.ground.growth import grow_ground
 from terrasift.workers.ground.halfdisc import half_disc_vegetation
@@ -416,6 +417,17 @@ class NistParams(StageParams):
     quadratic cannot follow mounds and waves a few metres across (final judgement only)."""
     rough_half_curve_near_factor: float = Field(10.0, gt=0, le=40)
     """…deviations of that nearer quadratic above which a point is vegetation."""
+    rough_fit: int = Field(12, ge=0, le=64)
+    """After the half-disc test (sparse data only; 0: off): a point goes when it stands
+    above the quadratic of its ``rough_fit`` nearest sure ground points by more than
+    max(``rough_fit_floor``, 3 × the tile's ground noise, the robust deviation of the sure
+    points' heights), the sure ground re-estimated over 3 rounds, and at most
+    ``rough_fit_ceiling`` (``closefit.py``: also held to the deviation around it, to its
+    three nearest sure points and to the wider quadratic)."""
+    rough_fit_floor: float = Field(0.15, ge=0, le=5)
+    """Metres: the least height above the close surface that takes a point."""
+    rough_fit_ceiling: float = Field(0.8, ge=0, le=100)
+    """Metres: the most; above it the close surface overshoots (steep breaks)."""
     rough_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the roughness test runs (4: up to about 1.8
     points per m² with 1.5 m bins; dense data keep a narrow band and are left alone)."""
@@ -892,6 +904,14 @@ def _rough(
             params.rough_half_curve_factor,
             params.rough_half_curve_near,
             params.rough_half_curve_near_factor,
+        )
+    if params.rough_fit > 0:
+        high |= close_fit_high(
+            local,
+            labels & ~high,
+            params.rough_fit,
+            floor=params.rough_fit_floor,
+            ceiling=params.rough_fit_ceiling,
         )
     return high
 

@@ -1,0 +1,125 @@
+"""Low single returns over the ground surface fitted close around each point.
+
+What the roughness and half-disc tests leave on sparse rural tiles (0.2–1 points
+per m²) is single returns 0.25–0.6 m above the ground: no echo marks them, and their
+neighbours' planes and wider quadratics deviate by as much as they stand. Only the
+ground known to a few centimetres from about a dozen neighbours parts them. Here the
+ground is estimated from the *sure* ground (what the tests before left) in
+``rounds``: each ground point's height above the quadratic of its ``k`` nearest sure
+points (itself left out; refitted without the neighbours high above the first fit),
+and the tile's ground noise, the robust deviation (1.4826 x the median absolute
+deviation) of the sure points' heights. A point within ``max(floor, factor x noise)``
+(after the first round, fitted on ground still holding vegetation: twice that) is sure
+in the next round, so each round's surface is fitted on cleaner ground.
+
+A point goes when, in the last round, it stands above that surface by more than
+``max(floor, factor x noise)`` and all of:
+
+- more than ``local`` x the robust deviation of the heights of its ``around``
+  nearest sure points: where real ground bends within metres (its own neighbours
+  stand off their surfaces too) it is held to that;
+- at most ``ceiling`` above it: where a dozen points' quadratic overshoots (steep
+  breaks, one-sided neighbours) it stands metres off, and vegetation that high was
+  taken by the tests before;
+- more than ``step`` above the highest of its three nearest sure points: a return
+  over the ground between them, where ground on a bump stands level with its nearest;
+- above the quadratic of its ``wide`` nearest sure points by more than
+  ``wide_factor`` x that surface's deviation (the half-disc test's wider surface).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+CLIP = 2.0  # deviations above the first fit beyond which a neighbour is left out of the refit
+MAD_SIGMA = 1.4826  # median absolute deviation to a normal standard deviation
+
+
+def close_fit_high(
+    xyz: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    k: int = 12,
+    rounds: int = 3,
+    floor: float = 0.15,
+    factor: float = 3.0,
+    ceiling: float = 0.8,
+    local: float = 6.0,
+    around: int = 24,
+    step: float = 0.1,
+    wide: int = 30,
+    wide_factor: float = 2.5,
+) -> NDArray[np.bool_]:
+    """The points of ``ground`` standing above the quadratic of their ``k`` nearest
+    sure ground points beyond the tile's ground noise and the tests of the module doc."""
+    ground = np.asarray(ground, dtype=bool)
+    out = np.zeros(ground.shape[0], dtype=bool)
+    g = np.flatnonzero(ground)
+    if g.size <= max(k, around, wide) + 1:
+        return out
+    sure = ground.copy()
+    for r in range(rounds):
+        s = np.flatnonzero(sure)
+        if s.size <= max(k, around, wide) + 1:
+            return out
+        tree = cKDTree(xyz[s, :2])
+        pos = np.full(ground.shape[0], -1)
+        pos[s] = np.arange(s.size)
+        h, _ = _quad_heights(xyz, g, s, tree, pos, k, floor)
+        hs = h[sure[g]]
+        noise = MAD_SIGMA * float(np.median(np.abs(hs - np.median(hs))))
+        thr = max(floor, factor * noise)
+        if r < rounds - 1:
+            # The first surface is fitted on ground still holding vegetation: it keeps twice as much.
+            sure = ground.copy()
+            sure[g] = h <= (max(floor, 2.0 * factor * noise) if r == 0 else thr)
+    flag = (h > thr) & (h <= ceiling)
+    i = np.flatnonzero(flag)
+    if i.size == 0:
+        return out
+    at = np.zeros(ground.shape[0])
+    at[g] = h
+    nb = _neighbours(xyz, g[i], tree, pos, max(around, 3))
+    spread = MAD_SIGMA * np.median(np.abs(at[s[nb[:, :around]]]), axis=1)
+    keep = h[i] > local * spread
+    keep &= xyz[g[i], 2] - np.max(xyz[s[nb[:, :3]], 2], axis=1) > step
+    hw, dw = _quad_heights(xyz, g[i], s, tree, pos, wide, floor)
+    keep &= hw > wide_factor * dw
+    out[g[i[keep]]] = True
+    return out
+
+
+def _neighbours(
+    xyz: NDArray[np.float64], idx: NDArray[np.int64], tree: cKDTree, pos: NDArray, k: int
+) -> NDArray[np.int64]:
+    """Positions in the tree of the ``k`` nearest sure points of ``idx`` (itself left out)."""
+    _, nb = tree.query(xyz[idx, :2], k=k + 1)
+    own = nb[:, 0] == pos[idx]
+    return np.where(own[:, None], nb[:, 1:], nb[:, :-1])
+
+
+def _quad_heights(
+    xyz: NDArray[np.float64],
+    idx: NDArray[np.int64],
+    s: NDArray[np.int64],
+    tree: cKDTree,
+    pos: NDArray,
+    k: int,
+    floor: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Height of each point of ``idx`` above the quadratic of its ``k`` nearest sure
+    points ``s``, refitted once without those more than ``CLIP`` deviations above the
+    first fit, and that fit's deviation."""
+    nb = _neighbours(xyz, idx, tree, pos, k)
+    d = xyz[s[nb]] - xyz[idx][:, None, :]
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    a = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], -1)
+    w = np.ones(z.shape)
+    for _ in range(2):
+        at = np.swapaxes(a * w[..., None], 1, 2)
+        coef = np.linalg.solve(at @ a + 1e-6 * np.eye(6), at @ z[..., None])[..., 0]
+        res = z - np.einsum("mkp,mp->mk", a, coef)
+        dev = np.sqrt(np.sum(w * res * res, axis=1) / np.maximum(np.sum(w, axis=1) - 6, 1))
+        w = (res <= CLIP * np.maximum(dev, 0.25 * floor)[:, None]).astype(np.float64)
+    return np.asarray(-coef[:, 0], dtype=np.float64), np.asarray(dev, dtype=np.float64)
