@@ -104,9 +104,10 @@ def test_auto_buffer_widens_for_nist_on_sparse_data_only():
     nist = validate_params({"ground": "nist"})
     assert nist["buffer"] == "auto"
     dense, sparse = resolve_buffer(nist, 8.0), resolve_buffer(nist, 0.16)
-    assert dense == (DEFAULT_BUFFER, None)
-    # 0.16 pts/m²: 2.5 m spacing, 25 m first-pass bins snapped to 24 m (a divisor of 240 m), 2.5 of them
-    assert sparse[0] == pytest.approx(60.0, abs=0.5) and sparse[1] is None
+    # 8 pts/m²: first-pass bins at their 6 m floor, 4 of them
+    assert dense == (24.0, None)
+    # 0.16 pts/m²: 2.5 m spacing, 25 m first-pass bins snapped to 24 m (a divisor of 240 m), 4 of them
+    assert sparse[0] == pytest.approx(96.0, abs=0.5) and sparse[1] is None
     assert resolve_buffer(validate_params({"ground": "ptd"}), 0.16) == (DEFAULT_BUFFER, None)
     # cut below half the block size, with a warning that says so
     cut, warning = resolve_buffer(validate_params({"ground": "nist", "block_size": 60}), 0.16)
@@ -143,7 +144,7 @@ def test_auto_buffer_is_the_largest_halo_a_block_step_asks_for():
     halos = {s.id: s.halo(models, 8.0) for s in block_steps()}
     assert halos["vegetation"] == 28.0  # 7 bins of 4 m beyond the core
     assert resolve_buffer(p, 8.0) == (28.0, None)
-    assert resolve_buffer(validate_params({}), 8.0) == (DEFAULT_BUFFER, None)
+    assert resolve_buffer(validate_params({}), 8.0) == (24.0, None)  # ground.nist: 4 × 6 m
 
 
 def test_feature_names_are_deduplicated_and_bounded() -> None:

@@ -9,6 +9,10 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+#: An offset less than this share of a bin below a bin edge counts as on it: coordinates
+#: and grid origins are rounded to about 1e-10 m, real points lie 1e-3 m apart or more.
+_ON_EDGE = 1e-7
+
 
 @numba.njit(cache=True)
 def _cell_counting_sort(
@@ -92,11 +96,15 @@ def _index_kernel(
     """``out[i]`` = row-major bin of point i, -1 outside (and for NaN).
 
     Truncation equals the floor on the non-negative offsets that can be
-    inside, and ``trunc(f) < n`` is ``f < n`` for ``f >= 0``.
+    inside, and ``trunc(f) < n`` is ``f < n`` for ``f >= 0``. Bins are
+    [lower, upper) edges: a point on a lower edge (centimetre coordinates
+    on a cell that divides the anchor, 1.6 m in 240 m) belongs to that bin
+    whatever the rounding of ``(x - x0) / cell``, which otherwise differs
+    with the block's anchored origin (``_ON_EDGE`` of a bin).
     """
     for i in range(x.size):
-        fx = (x[i] - x0) / cell
-        fy = (y[i] - y0) / cell
+        fx = (x[i] - x0) / cell + _ON_EDGE
+        fy = (y[i] - y0) / cell + _ON_EDGE
         if fx >= 0 and fy >= 0 and fx < nx and fy < ny:
             out[i] = np.int64(fy) * nx + np.int64(fx)
         else:

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from terrasift.errors import ParameterError, ProcessingError
 from terrasift.workers._kernels import (
+    _ON_EDGE,
     _bounds_kernel,
     _cell_counting_sort,
     _index_kernel,
@@ -128,8 +129,9 @@ class Grid:
                 f"points needs more than {MAX_CELLS_PER_AXIS} cells a side; a cell size or "
                 "spacing parameter of the job is too small"
             )
-        nx = int(np.floor(span[0])) + 1
-        ny = int(np.floor(span[1])) + 1
+        # A point on the last edge opens a bin of its own, as ``index`` puts it there.
+        nx = int(np.floor(span[0] + _ON_EDGE)) + 1
+        ny = int(np.floor(span[1] + _ON_EDGE)) + 1
         return cls(float(x0), float(y0), float(cell), nx, ny)
 
     @property

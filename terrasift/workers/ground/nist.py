@@ -334,8 +334,13 @@ class NistParams(StageParams):
     """…switch for those rules."""
     grow_reach: float = Field(0.0, ge=0, le=100)
     """Growth reaches a node only along a path of at most this many first-pass cells from the
-    final surface's ground (0: no limit). The halo is 2.5 of those cells, so with a reach
-    inside it a block grows its core as a run over the whole tile does."""
+    final surface's ground (0: no limit). The halo is ``halo_cells`` of those cells, so with
+    a reach inside it a block grows its core as a run over the whole tile does."""
+    halo_cells: float = Field(4.0, ge=1, le=20)
+    """A block's halo in first-pass cells (``halo``). A core point's coarse bin and the bins
+    whose candidates screen it and mesh over it lie within 2.5; growth reaches further (ISPRS
+    samp61: a dike crest along a path leaving a 2.5-cell halo; with 4 cells 2 × 2 blocks
+    agree with one run on 99.99 % of its labels, README *Measured*)."""
     plateau_step: float = Field(0.5, ge=0, le=100)
     """After growth, a level group of grown nodes that stands above all its ground neighbours
     and drops this many metres or more straight onto the passes' own ground along most of its
@@ -450,11 +455,11 @@ class NistParams(StageParams):
     }
 
     def halo(self, density: float) -> float:
-        """Two and a half first-pass cells: a core point's coarse bin and the
-        bins whose candidates screen it and mesh over it lie within that."""
+        """``halo_cells`` first-pass cells: the bins that screen and mesh over a core
+        point, and growth's paths onto it, lie within that."""
         spacing = 1.0 / np.sqrt(max(density, 1e-9))
         factor, floor = _AUTO_CELLS[0]
-        return 2.5 * (self.cell_1 or _auto(self, max(factor * spacing, floor)))
+        return self.halo_cells * (self.cell_1 or _auto(self, max(factor * spacing, floor)))
 
 
 @dataclass(frozen=True)
