@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from terrasift.synthetic.scan import make_scan
-from terrasift.workers.scan_geometry import coordinate_scale, measure_scan_geometry
+from terrasift.workers.scan_geometry import (
+    ScanGeometry,
+    coordinate_scale,
+    measure_scan_geometry,
+    pool_footprints,
+)
 
 
 @pytest.mark.parametrize(
@@ -216,3 +221,68 @@ def test_geometry_does_not_depend_on_point_order_and_job_takes_the_stage_sector(
     assert g.footprint_steps == pytest.approx(a.footprint_steps, rel=1e-5)
     assert g.range_sigma == pytest.approx(a.range_sigma, rel=1e-4)
     assert g.step_az == pytest.approx(a.step_az, rel=1e-5)
+
+
+def _geo(step: float, steps: float, edges: int, how: str = "mean ramp") -> ScanGeometry:
+    return ScanGeometry(
+        step_az=step,
+        step_el=step,
+        range_noise=0.003,
+        range_sigma=0.003,
+        las_scale=0.001,
+        footprint=steps * step,
+        footprint_steps=steps,
+        n_points=1000,
+        how={"footprint": how},
+        footprint_edges=edges,
+    )
+
+
+def test_footprints_pooled_over_positions_of_one_scanner():
+    # a position beside the scene measured its footprint on 10 edges, the one facing it
+    # on 200: both get the mean over all 210; another step (another scanner setting), a
+    # stated footprint and a position without ramps keep their own
+    geos = [
+        _geo(0.1, 2.0, 200),
+        _geo(0.1005, 1.0, 10),
+        _geo(0.2, 3.0, 50),
+        _geo(0.1, 1.5, 0, "stated"),
+        _geo(0.1, 1.0, 0, "no mixing edge measured: one step assumed"),
+        None,
+    ]
+    out = pool_footprints(geos)
+    want = (2.0 * 200 + 1.0 * 10) / 210
+    assert out[0].footprint_steps == pytest.approx(want)
+    assert out[1].footprint_steps == pytest.approx(want)
+    assert out[1].footprint == pytest.approx(want * 0.1005)
+    assert "pooled over the positions [0, 1]" in out[1].how["footprint"]
+    assert out[2:] == geos[2:]
+    assert pool_footprints(geos[2:]) == geos[2:]
+
+
+def test_stage_and_job_pool_the_footprint_of_positions_with_one_step(tmp_path):
+    from terrasift.jobs.scan import job_geometry, measure_job_geometry
+    from terrasift.tiling.blocks import SHARD_DTYPE
+    from terrasift.workers.mixed import MixedParams, mark_mixed
+
+    kw = dict(step_deg=0.3, footprint_steps=2.5, azimuth_deg=(-30.0, 30.0), n_poles=2)
+    scans = [make_scan(n_boards=6, seed=1, **kw), make_scan(n_boards=2, seed=2, **kw)]
+    own = [measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz) for s in scans]
+    assert own[0].footprint_steps != pytest.approx(own[1].footprint_steps, abs=0.01)
+    n = own[0].footprint_edges + own[1].footprint_edges
+    want = sum(g.footprint_steps * g.footprint_edges for g in own) / n
+    shift = np.array([[0.0, 0.0, 0.0], [60.0, 5.0, 0.0]])
+    xyz = np.vstack([s.xyz + shift[k] for k, s in enumerate(scans)])
+    ids = np.repeat([0, 1], [len(s) for s in scans])
+    origins = np.vstack([s.origin + shift[k] for k, s in enumerate(scans)])
+    res = mark_mixed(xyz, MixedParams(), origins, ids)
+    for g in res.geometry:
+        assert g["measured"]["footprint_steps"] == pytest.approx(want, rel=1e-4)
+    (tmp_path / "p").mkdir()
+    rec = np.zeros(len(xyz), SHARD_DTYPE)
+    rec["x"], rec["y"], rec["z"] = xyz.T
+    rec["scan_id"], rec["core"] = ids, 1
+    rec.tofile(tmp_path / "p" / "0_0.bin")
+    geo = job_geometry(measure_job_geometry([tmp_path / "p"], origins, MixedParams()))
+    assert geo is not None
+    assert [g.footprint_steps for g in geo] == pytest.approx([want, want], rel=1e-3)

@@ -29,6 +29,7 @@ from terrasift.workers.scan_geometry import (
     MAX_SAMPLE,
     ScanGeometry,
     measure_scan_geometry,
+    pool_footprints,
     ramp_sectors,
 )
 
@@ -111,7 +112,7 @@ def measure_job_geometry(
             for q, (lo, hi) in enumerate(bins[s]):
                 part = sel[(b >= lo) & (b <= hi)]
                 pts[s][q].append(np.column_stack([part["x"], part["y"], part["z"]]))
-    out: list[dict[str, Any] | None] = []
+    geos: list[ScanGeometry | None] = []
     for s in range(k):
         # each range's points: those in its bins sorted by azimuth, cut at its ranks
         # (the points before its first bin are counted in the histogram)
@@ -129,11 +130,14 @@ def measure_job_geometry(
             absolute=xyz,
             sectors=[c - o[s] for c in cut[1:]],
         )
+        a0, a1, e0, e1 = (float(v) for v in fov[s])
+        geos.append(None if geo is None else replace(geo, field_of_view=(a0, a1, e0, e1)))
+    out: list[dict[str, Any] | None] = []
+    for s, geo in enumerate(pool_footprints(geos)):
         if geo is None:
             out.append(None)
             continue
-        a0, a1, e0, e1 = (float(v) for v in fov[s])
-        d = replace(geo, field_of_view=(a0, a1, e0, e1)).to_dict()
+        d = geo.to_dict()
         d["how"] = {
             **geo.how,
             "scope": f"once per job and scan position, from {int(hist[s].sum())} points of all "

@@ -52,7 +52,12 @@ from terrasift.workers.mixed_box import box_frames, window_extent, window_pairs
 from terrasift.workers.mixed_cross import PositionGrid, cross_check
 from terrasift.workers.mixed_grid import GridSettings, mark_grid
 from terrasift.workers.registry import StageParams, register
-from terrasift.workers.scan_geometry import ScanGeometry, field_of_view, measure_scan_geometry
+from terrasift.workers.scan_geometry import (
+    ScanGeometry,
+    field_of_view,
+    measure_scan_geometry,
+    pool_footprints,
+)
 
 GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
 GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
@@ -257,12 +262,13 @@ def mark_mixed(
     n_regions = n_triggered = 0
     found: list[dict[str, Any]] = []
     grids: list[PositionGrid | None] = [None] * origins.shape[0]
+    geos = _position_geometry(xyz, params, origins, ids, geometry)
     for k in range(origins.shape[0]):
         idx = np.flatnonzero(ids == k) if ids is not None else slice(None)
         rel = xyz[idx] - origins[k]
         if rel.shape[0] == 0:
             continue
-        known = geometry[k] if geometry is not None and k < len(geometry) else None
+        known = geos[k]
         derived = derive_params(rel, params, absolute=xyz[idx], geometry=known)
         extra: dict[str, Any] = {"method": "box"}
         if params.method == "grid" and derived.geometry is not None:
@@ -322,6 +328,35 @@ def mark_mixed(
         n_triggered=n_triggered,
         geometry=found,
     )
+
+
+def _position_geometry(
+    xyz: NDArray[np.float64],
+    params: MixedParams,
+    origins: NDArray[np.float64],
+    ids: NDArray[np.intp] | None,
+    geometry: Sequence[ScanGeometry | None] | None,
+) -> list[ScanGeometry | None]:
+    """Each position's geometry: the one given, else measured on its points; the
+    footprints of positions of one scanner pooled (``pool_footprints``) when any was
+    measured here (a job passes every position's, pooled once on all its blocks)."""
+    k = origins.shape[0]
+    geos: list[ScanGeometry | None] = [
+        geometry[i] if geometry is not None and i < len(geometry) else None for i in range(k)
+    ]
+    fixed = params.cell_angle is not None and params.support_tol is not None
+    if k < 2 or (fixed and params.box_width is not None and params.method == "box"):
+        return geos
+    if all(g is not None for g in geos):
+        return geos
+    for i in range(k):
+        if geos[i] is None:
+            idx = np.flatnonzero(ids == i) if ids is not None else slice(None)
+            if xyz[idx].shape[0] > 0:
+                geos[i] = measure_scan_geometry(
+                    xyz[idx] - origins[i], footprint=params.footprint, absolute=xyz[idx]
+                )
+    return pool_footprints(geos)
 
 
 @dataclass(frozen=True)

@@ -24,13 +24,16 @@ beams on (locally) regular angular lines.
   mean ramp length in steps over the edges that show a ramp (at least one step),
   pooled over up to ``RAMP_SECTORS`` sectors of ``MAX_SAMPLE`` returns spread over
   the whole scan (the other values come from the middle sector alone).
-  Stated when the caller knows it.
+  Stated when the caller knows it. Positions of one scanner (the same angular
+  steps) share its beam: ``pool_footprints`` gives them the mean over all their
+  ramps, since a position beside a scene sees few edges (its own mean then rests on
+  the phases of a handful of edges against its beams).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -60,6 +63,7 @@ class ScanGeometry:
     # radians at full precision (beams beyond lie outside the field of view; a block of a
     # job holds only part of it); None: the returns at hand bound it
     field_of_view: tuple[float, float, float, float] | None = None
+    footprint_edges: int = 0  # ramps the footprint was measured on (0: stated or none)
 
     @property
     def step(self) -> float:
@@ -176,6 +180,7 @@ def measure_scan_geometry(
         "LAS quantisation (scale²/12) removed"
     )
 
+    edges = 0
     if footprint is not None:
         fp = float(footprint)
         steps = fp / np.degrees(sa)
@@ -183,7 +188,7 @@ def measure_scan_geometry(
     else:
         jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
         lines = [_angles(v) for v in sectors]
-        steps = _ramp_steps([(a, e, d) for a, e, d in lines], sa, se, jump, max_gap, sharp)
+        steps, edges = _ramp_steps(lines, sa, se, jump, max_gap, sharp)
         on = ""
         if not np.isfinite(steps) and las_scale > 0:
             # Coarse coordinates at a fine step: too few sharp returns show an edge (1 cm at
@@ -191,7 +196,7 @@ def measure_scan_geometry(
             # the blur put off their beam are left out of the lines).
             for lim in (0.15, 0.2):
                 near = las_scale / np.sqrt(12.0) / (lim * min(sa, se))
-                steps = _ramp_steps(lines, sa, se, jump, max_gap, near)
+                steps, edges = _ramp_steps(lines, sa, se, jump, max_gap, near)
                 if np.isfinite(steps):
                     on = f", on returns whose quantisation angle is under {lim:g} step"
                     break
@@ -201,7 +206,7 @@ def measure_scan_geometry(
                 f"in steps{on}"
             )
         else:
-            steps = 1.0
+            steps, edges = 1.0, 0
             how["footprint"] = "no mixing edge measured: one step assumed"
         steps = max(steps, 1.0)
         fp = steps * np.degrees(sa)
@@ -215,7 +220,55 @@ def measure_scan_geometry(
         footprint_steps=float(steps),
         n_points=int(r.size),
         how=how,
+        footprint_edges=int(edges),
     )
+
+
+SAME_STEP = 0.02  # relative difference of two positions' steps still taken as one scanner
+
+
+def pool_footprints(geos: Sequence[ScanGeometry | None]) -> list[ScanGeometry | None]:
+    """The positions' footprints pooled over positions of one scanner.
+
+    Positions whose steps (azimuth and elevation) agree within ``SAME_STEP`` are taken
+    as one scanner with one beam; each measured footprint (not stated, at least one
+    ramp) becomes the mean ramp over all of their edges. A position looking past a
+    scene another stands in front of sees few edges: its own mean rests on where a
+    handful of edges fell between its beams, and runs short by up to a step where the
+    position facing the scene, on hundreds of edges, does not. Positions with another
+    step, or a stated footprint, are left as they are.
+    """
+    out = list(geos)
+    measured = {
+        k: g
+        for k, g in enumerate(geos)
+        if g is not None and g.footprint_edges > 0 and g.how.get("footprint", "").startswith("mean")
+    }
+    left = sorted(measured, key=lambda k: -measured[k].footprint_edges)
+    while left:
+        g = measured[left[0]]
+        group = [
+            j
+            for j in left
+            if abs(measured[j].step_az / g.step_az - 1.0) < SAME_STEP
+            and abs(measured[j].step_el / g.step_el - 1.0) < SAME_STEP
+        ]
+        left = [j for j in left if j not in group]
+        if len(group) < 2:
+            continue
+        n = sum(measured[j].footprint_edges for j in group)
+        mean = sum(measured[j].footprint_steps * measured[j].footprint_edges for j in group) / n
+        steps = max(mean, 1.0)
+        for j in group:
+            m = measured[j]
+            how = {
+                **m.how,
+                "footprint": f"{m.how['footprint']}; pooled over the positions "
+                f"{sorted(group)} of the same angular steps (one beam) on {n} ramps "
+                f"(this position alone: {m.footprint_steps:.3g} steps on {m.footprint_edges})",
+            }
+            out[j] = replace(m, footprint_steps=steps, footprint=steps * m.step_az, how=how)
+    return out
 
 
 def outside_azimuth(az: NDArray[np.float64]) -> float:
@@ -371,9 +424,9 @@ def _ramp_steps(
     jump: float,
     max_gap: float,
     nearest: float = 0.0,
-) -> float:
+) -> tuple[float, int]:
     """Mean number of beams blended between two surfaces at azimuth edges (NaN if fewer
-    than 5 edges show one), pooled over azimuth sectors (each with its own grid phase,
+    than 5 edges show one) and the number of edges, pooled over azimuth sectors (each with its own grid phase,
     so a step refined on one sector does not drift off the lines of a far one); returns
     nearer than ``nearest`` (blurred by the LAS scale) are left out."""
     found = []
@@ -382,8 +435,8 @@ def _ramp_steps(
         found.append(_ramps(az[sel], el[sel], r[sel], sa, se, jump, max_gap))
     ramps = np.concatenate(found) if found else np.zeros(0)
     if ramps.size < 5:
-        return float("nan")
-    return float(np.mean(ramps))
+        return float("nan"), 0
+    return float(np.mean(ramps)), int(ramps.size)
 
 
 def _ramps(az, el, r, sa, se, jump: float, max_gap: float) -> NDArray[np.float64]:
