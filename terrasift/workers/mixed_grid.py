@@ -17,6 +17,12 @@ farther, both within ``max_gap`` of p in range (the anchor or its surface contin
 to p's beam), p is off a and b by more than the
 margin, the surface of each anchor, extrapolated to p's beam, misses p, and at
 most ``span`` beams lie between the anchors (a blend spans about a footprint).
+Along azimuth the anchors may lie farther apart when every beam out to each of
+them moves one way (farther towards the farther, nearer towards the nearer) by
+more than the margin, each off that anchor's surface, and not all on one line
+with their neighbours: a surface narrower than the footprint between two others
+(a board seen between a nearer board and the wall) shows no anchored return of
+its own, so the ramps of its two edges join into one run of blends (``_cascade``).
 Surfaces are continued in inverse range, which is linear in the angle along a
 plane seen from the sensor (exactly for the ground along elevation, however
 grazing), so far grazing ground passes as a surface, not as a ramp. "Misses p"
@@ -463,6 +469,10 @@ def _mixed_along(
             nearer.append(upto)
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+    if axis == 0:
+        # along elevation the ground recedes monotonically from the sensor up to a
+        # wall's foot: runs there are left to the rules above
+        between |= _cascade(R, V, r, near, far, reach, s, blur, step, across)
     # Open edges: nothing answers beyond p (no return, or a background farther than
     # max_gap), yet p lies off the surface it ends, continued to its beam. The part of
     # a footprint still on a sloped surface answers at that part's mean range, not
@@ -491,6 +501,83 @@ def _mixed_along(
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
+
+
+def _cascade(
+    R: dict[int, NDArray[np.float64]],
+    V: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    near: dict[int, dict[int, NDArray[np.bool_]]],
+    far: dict[int, dict[int, NDArray[np.bool_]]],
+    reach: int,
+    s: GridSettings,
+    blur: NDArray[np.float64],
+    step: float,
+    across: float,
+) -> NDArray[np.bool_]:
+    """Returns between a nearer and a farther surface whose beams, out to each anchor,
+    move one way (farther towards the farther anchor, nearer towards the nearer) by more
+    than the margin at every beam, each of them off the anchor's surface: a surface
+    narrower than the footprint between two others (a board seen between a nearer one
+    and the wall) shows no anchored return of its own, so the ramps of its two edges
+    join into one run of blends longer than ``span``. A run whose beams lie on the
+    anchor's surface is that surface (an oblique one ending at p), not a blend."""
+    n = r.size
+    out = np.zeros(n, dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for sd in (1, -1):
+            # candidates: monotone runs out to an anchor on both sides
+            got = {}
+            for side, sign, anchors in ((sd, 1.0, far[sd]), (-sd, -1.0, near[-sd])):
+                run = np.ones(n, dtype=bool)
+                hit = np.zeros(n, dtype=bool)
+                prev = r
+                for i in range(1, reach + 1):
+                    cur = R[side * i]
+                    run &= sign * (cur - prev) > s.margin
+                    hit |= run & anchors[i]
+                    prev = cur
+                got[side] = hit
+            c = np.flatnonzero(got[sd] & got[-sd])
+            if c.size == 0:
+                continue
+            ok = np.ones(c.size, dtype=bool)
+            for side, sign, anchors in ((sd, 1.0, far[sd]), (-sd, -1.0, near[-sd])):
+                run = np.ones(c.size, dtype=bool)
+                hit = np.zeros(c.size, dtype=bool)
+                prev = r[c]
+                for i in range(1, reach + 1):
+                    cur = R[side * i][c]
+                    run &= sign * (cur - prev) > s.margin
+                    prev = cur
+                    cand = run & anchors[i][c]
+                    if i > 1 and cand.any():
+                        # every beam between p and the anchor off the anchor's surface
+                        va, vb = V[side * i][c], V[side * (i + 1)][c]
+                        slope = np.abs(R[side * i][c] - R[side * (i + 1)][c])
+                        # beams that each lie on the line of their two neighbours form a
+                        # surface (an oblique board, however it curves in inverse range)
+                        flat = np.ones(c.size, dtype=bool) if i > 2 else np.zeros(c.size, bool)
+                        for t in range(1, i):
+                            v = va + (va - vb) * (i - t)
+                            sd_t = np.sqrt(s.sigma**2 + (slope * blur[c]) ** 2)
+                            k = i - t
+                            tol = s.sigmas * sd_t * np.sqrt((1 + k) ** 2 + k**2 + 1)
+                            rt = R[side * t][c]
+                            dev = np.abs(np.where(v > 0, 1.0 / v, np.inf) - rt)
+                            # across the surface too (its incidence from the change in
+                            # inverse range per beam), as p itself is judged
+                            cos_inc = 1.0 / np.sqrt(1.0 + (rt * np.abs(va - vb) / step) ** 2)
+                            cand &= (dev > tol) & (dev * cos_inc > across)
+                            v_in = V[side * (t - 1)][c] if t > 1 else 1.0 / r[c]
+                            mid = 2.0 / (v_in + V[side * (t + 1)][c])
+                            tol1 = s.sigmas * sd_t * np.sqrt(6.0)
+                            flat &= np.abs(mid - rt) <= tol1
+                        cand &= ~flat
+                    hit |= cand
+                ok &= hit
+            out[c[ok]] = True
+    return out
 
 
 def _bleeding(
