@@ -280,6 +280,30 @@ def test_raised_segments_drop_a_roof_and_keep_a_steep_hill():
     assert np.array_equal(drop, roof)
 
 
+def test_raised_segments_keep_an_embankment_whose_sides_carry_returns():
+    # A crest 8 x 32 m, 2.5 m high, on level ground; the TIN's vertices (a 4 m grid)
+    # fall on the crest and the foot only, so its sides are steps, as on sparse data.
+    # The returns (0.1-1 per m²) lie on the sloped sides of the embankment and
+    # nowhere between the foot and the top of a platform's walls.
+    def surface(x, y, walled):
+        d = np.maximum(np.abs(x - 40.0) - 4.0, np.abs(y - 40.0) - 16.0)
+        return np.where(d <= 0, 2.5, 0.0) if walled else 2.5 * np.clip(1 - d / 4, 0, 1)
+
+    g = np.arange(0.0, 80.1, 4.0)
+    vx, vy = (a.ravel() for a in np.meshgrid(g, g))
+    rng = np.random.default_rng(3)
+    for n in (640, 6400):
+        pxy = rng.uniform(0, 80, (n, 2))
+        for walled in (False, True):
+            xyz = np.column_stack([vx, vy, surface(vx, vy, walled)])
+            pts = np.column_stack([pxy, surface(pxy[:, 0], pxy[:, 1], walled)])
+            tri = Delaunay(xyz[:, :2])
+            crest = xyz[:, 2] > 2.4
+            assert np.array_equal(raised_segments(xyz, tri, 0.3, 10.0, walls=0.5), crest)
+            drop = raised_segments(xyz, tri, 0.3, 10.0, walls=0.5, sides=0.5, points=pts)
+            assert np.array_equal(drop, crest if walled else np.zeros_like(crest))
+
+
 def test_raised_segments_drop_a_roof_cut_into_a_slope_but_not_a_bench():
     # A 45° hillside (z = y) on a 2 m grid of odd coordinates, so every node
     # misses an integer level by 1 m or more; two diamonds (squares turned 45°

@@ -278,6 +278,10 @@ class NistParams(StageParams):
     within ``raised_step`` RMS of its plane, which a platform 110–140 m long following
     ground that bends under it leaves (railway seed 721: 0.31–0.36 m RMS, walls 1.13 m
     ± 0.08); a hillside cut off by long edges has walls metres apart in height."""
+    raised_sides: float = Field(0.5, ge=0, le=1)
+    """A raised segment is kept when at least this share of its steps up onto it carry a
+    return of the block on the ramp between their ends (0: off; ``raised.py``): an embankment's
+    1:1–1:2 sides hold returns at intermediate heights, a wall of a roof or platform does not."""
     raised_rim: float = Field(4.0, ge=0, le=100)
     """Final-TIN edges longer than this many median edges with both ends within one median
     edge of the hull's border (slivers along the edge of the data) join no segments (0: off;
@@ -950,7 +954,7 @@ def _final(
         tin3 = _final_surface(mowed_pts, g3, k, params, centre, square)
     raised = None
     if params.raised_step > 0:
-        tin3, raised = _without_raised(tin3, params, cut)
+        tin3, raised = _without_raised(tin3, params, cut, local)
     # The final TIN departs further from rough terrain between vertices that
     # are further apart: on sparse data the label tolerances grow with the cell.
     widen = max(1.0, params.ground_tol_cell * _cell_of(g3) / params.ground_tol)
@@ -1024,12 +1028,19 @@ def _band(
 
 
 def _without_raised(
-    tin: Tin, params: NistParams, cut: tuple[float, float, float, float] | None = None
+    tin: Tin,
+    params: NistParams,
+    cut: tuple[float, float, float, float] | None = None,
+    local: NDArray[np.float64] | None = None,
 ) -> tuple[Tin, tuple[NDArray[np.float64], NDArray[np.bool_]] | None]:
     """``tin`` without its raised segments (roofs that filled the bins of every pass),
     and, when some were dropped, the local (x, y) of all of ``tin``'s vertices with
-    the dropped ones flagged (their nearest-vertex regions are the raised ground plans)."""
+    the dropped ones flagged (their nearest-vertex regions are the raised ground plans).
+    ``local``: the block's points (for ``raised_sides``)."""
     xyz = np.column_stack([tin.xy, tin.z])
+    points = None
+    if params.raised_sides > 0 and local is not None:
+        points = np.column_stack([local[:, :2] - tin.origin, local[:, 2]])
     drop = raised_segments(
         xyz,
         tin.tri,
@@ -1048,6 +1059,8 @@ def _without_raised(
         graded=params.raised_graded,
         walled=params.raised_walled,
         even=params.raised_even,
+        sides=params.raised_sides,
+        points=points,
     )
     if params.raised_islands:
         drop |= walled_islands(

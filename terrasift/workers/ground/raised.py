@@ -35,10 +35,21 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, cKDTree
 
 from terrasift.workers.ground._kernels import _lower_medians
 
+#: ``sides``: share of the returns over the middle of a segment's steps that lie on their ramps
+#: (an embankment of the rural family 0.35-0.37 with low vegetation on it; walls of roofs and
+#: platforms 0.06-0.11 at 0.5-20 pts/m²)
+_RAMP_SHARE = 0.25
+#: ...over its steps no longer than this many median edges (the rural family's embankment
+#: sides 0.8-2.8, slivers along the hull of steep data 10-140)
+_RAMP_RUNS = 4.0
+#: ...for a segment of at least this many vertices: a crest more than a bin or two across. The
+#: steps of a lone vertex or a pair (a shrub's top) radiate from one spot, and their ramps
+#: cross its canopy's returns as readily as a bank's (rural seed 202 kept such a shrub)
+_RAMP_VERTICES = 3
 #: ``along``: edges at least this many median edges long are judged by the terrain behind them
 _ALONG_RUNS = 2.0
 #: ...sampled this many runs behind the end (the median of the slopes they give)
@@ -73,6 +84,8 @@ def raised_segments(
     graded: float = 0.0,
     walled: float = 0.0,
     even: bool = False,
+    sides: float = 0.0,
+    points: NDArray[np.float64] | None = None,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -142,6 +155,12 @@ def raised_segments(
     long edges does not (its walls are the slope's edges, metres apart in height).
     ``heights``: the TIN's height at points (k, 2), nan outside it (``along``; None:
     interpolated on ``tri``, which must then be a scipy ``Delaunay``).
+    ``sides`` > 0 with ``points`` (the data, (m, 3), in the coordinates of ``xyz``): a segment
+    is kept when at least this share of its steps up onto it carry a point of the data on
+    the ramp between their ends, and at least ``_RAMP_SHARE`` of all the points over the
+    middle of those steps lie on their ramps (``_on_ramp``): the sloped side of an embankment
+    holds returns at intermediate heights between its foot and crest, the wall of a roof or
+    platform has its foot and top level up to it (a facade or a shrub is a point or two).
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -221,6 +240,17 @@ def raised_segments(
         fixed |= _graded_at_edge(
             xyz, tri, seg, n_seg, med, border, e, hi[own], lo_v[own], hi_v[own], step, graded
         )
+    if sides > 0 and points is not None and hi.size:
+        # Steps of the border only, no longer than a few median edges: the slivers along
+        # the hull and the edges across holes span tens of metres of any terrain.
+        short = np.hypot(*(xyz[hi_v, :2] - xyz[lo_v, :2]).T) <= _RAMP_RUNS * med
+        on, mid = _on_ramp(points, xyz[lo_v[short]], xyz[hi_v[short]])
+        h = hi[short]
+        n_up = np.bincount(h, minlength=n_seg)
+        carried = np.bincount(h, on > 0, n_seg) / np.maximum(n_up, 1)
+        pooled = np.bincount(h, on, n_seg) / np.maximum(np.bincount(h, mid, n_seg), 1)
+        wide = size >= _RAMP_VERTICES
+        fixed |= wide & (n_up > 0) & (carried >= sides) & (pooled >= _RAMP_SHARE)
     is_wall = wall[is_step][cross]
     is_big = big[is_step][cross]
     flat = _flat(xyz, seg, n_seg, step) if is_big.any() else np.ones(n_seg, dtype=bool)
@@ -253,6 +283,37 @@ def raised_segments(
             break
         gone |= raised
     return gone[seg]
+
+
+def _on_ramp(
+    points: NDArray[np.float64], foot: NDArray[np.float64], top: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per step (ends ``foot`` → ``top``, (k, 3)): the points of ``points`` over the middle of
+    its run (in plan 20–80 % along it, within half the run of its line), and how many of them
+    lie on the straight ramp between its ends (within 25 % of the rise of the ramp's height
+    there). Fractions of the step's own run and rise: a graded side carries returns at
+    intermediate heights, a wall's foot and top are level up to it."""
+    on = np.zeros(foot.shape[0])
+    mid = np.zeros(foot.shape[0])
+    if foot.shape[0] == 0 or points.shape[0] == 0:
+        return on, mid
+    d = top[:, :2] - foot[:, :2]
+    run = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    rise = top[:, 2] - foot[:, 2]
+    near = cKDTree(points[:, :2]).query_ball_point(0.5 * (foot[:, :2] + top[:, :2]), 0.5 * run)
+    count = np.fromiter((len(i) for i in near), dtype=np.int64, count=foot.shape[0])
+    if count.sum() == 0:
+        return on, mid
+    k = np.repeat(np.arange(foot.shape[0]), count)
+    q = points[np.concatenate([np.asarray(i, dtype=np.int64) for i in near])]
+    u, v = q[:, 0] - foot[k, 0], q[:, 1] - foot[k, 1]
+    t = (u * d[k, 0] + v * d[k, 1]) / run[k] ** 2
+    across = np.abs(u * d[k, 1] - v * d[k, 0]) / run[k]
+    f = (q[:, 2] - foot[k, 2]) / np.where(rise[k] != 0, rise[k], 1e-9)
+    inside = (t > 0.2) & (t < 0.8) & (across < 0.5 * run[k])
+    mid = np.bincount(k, inside, foot.shape[0]).astype(np.float64)
+    on = np.bincount(k, inside & (np.abs(f - t) < 0.25), foot.shape[0]).astype(np.float64)
+    return on, mid
 
 
 def data_border(
