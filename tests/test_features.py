@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from numpy.typing import NDArray
@@ -1444,6 +1446,64 @@ def test_a_shallow_cut_with_one_wall_under_the_clear_margin_is_found(s, off, wid
     roads = _roads_on(_road_on_slope(s, off, width, noise, seed))
     assert [abs(r.geometry.centroid.x - 100) < 4 for r in roads] == [True]
     assert roads[0].length_m > 140
+
+
+@pytest.mark.parametrize(
+    ("noise", "seed"),
+    [(0.01, 1), (0.03, 2)],
+)
+def test_a_cut_into_a_slope_with_no_downhill_lip_is_found(noise, seed):
+    """A cut 0.43 m deep and 7.9 m wide along the contour of an 8 % slope: the uphill wall
+    reads clearly not flat, the downhill side has no lip (the floor meets the hillside
+    0.1 m above it), so the floor has one bound only. The segment for a floor level
+    across beside a hillside falling away from it finds the road whole (the filter
+    before it found 65 m of it with 1 cm of noise and none with 3 cm)."""
+    roads = _roads_on(_road_on_slope(0.08, -0.43, 7.9, noise, seed))
+    assert [abs(r.geometry.centroid.x - 100) < 4 for r in roads] == [True]
+    assert roads[0].length_m > 140
+
+
+def _strip_between_hollows(s: float, noise: float, seed: int) -> NDArray:
+    """A 200 m DTM (0.5 m cells) rising north by ``s``: a ditch 3 m across and 0.72 m
+    deep at x = 80, 12 m of plain ground, then a road cut 0.42 m deep and 7.2 m wide
+    (shoulders as the feature family builds them), 160 m long; white noise."""
+    cell, size = 0.5, 200.0
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    z = 100 + s * y
+    inside = np.abs(y - 100) <= 80
+    z -= np.where(inside, np.clip((1.5 - np.abs(x - 80)) / 1.2, 0, 1) * 0.72, 0)
+    off, half = -0.42, 3.6
+    shoulder = 1.5 * abs(off) + 0.5
+    t = np.clip((np.abs(x - (80 + 1.5 + 12 + shoulder + half)) - half) / shoulder, 0, 1)
+    z = np.where(inside, z + off * (1 - t), z)
+    return z + np.random.default_rng(seed).normal(0, noise, z.shape)
+
+
+def test_the_low_embankment_segments_take_no_level_ground_between_two_hollows():
+    """The segments for a low embankment whose shoulders are under the clear margin (a
+    shoulder of one or two tiles on each side) saw the plain ground between a ditch and
+    a cut road as an embankment: each hollow's near side falls away from it. Past the
+    near bank the far bank rises again; past an embankment's shoulder the ground is
+    plain. With the tiles beyond a shoulder kept from rising away clearly, those
+    segments alone find the 0.25 m embankment on level ground and not the strip (before,
+    they found both)."""
+    flt = load_filter("road")
+    two = [
+        g for g in flt.segments if sum((s.min_len, s.max_len) == (1, 2) for s in g.subsegments) == 2
+    ]
+    assert len(two) == 2
+    alone = dataclasses.replace(flt, segments=two)
+
+    def roads(z: NDArray) -> list[float]:
+        cats, stepped = categories_for(z, 0.5, [alone])
+        tt = Affine(0.5, 0, 0, 0, -0.5, 200.0)
+        res = detect_features(cats, [alone], tt, cats.tile_size, stepped=stepped)
+        return [r.geometry.centroid.x for r in res.objects]
+
+    assert [abs(x - 100) < 4 for x in roads(_road_on_slope(0.0, 0.25, 6.0, 0.02, 6))] == [True]
+    for s, noise, seed in ((0.04, 0.013, 1), (0.0, 0.02, 2)):
+        assert not any(abs(x - 88) < 5 for x in roads(_strip_between_hollows(s, noise, seed)))
 
 
 def test_a_gentle_noisy_slope_without_a_road_has_none():
