@@ -251,6 +251,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"grow_reach": 6.0},
         {"mow_share": 0.25},
         {"grow_share": 0.25},
+        {"grow_phases": 2},
         {"rough_envelope": True, "rough_factor": 6.0},
         {"rough_shrub": 0.2},
         {"rough_shrub": 0.2, "rough_near": 2},

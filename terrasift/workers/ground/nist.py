@@ -340,6 +340,12 @@ class NistParams(StageParams):
     """Growth reaches a node only along a path of at most this many first-pass cells from the
     final surface's ground (0: no limit). The halo is ``halo_cells`` of those cells, so with
     a reach inside it a block grows its core as a run over the whole tile does."""
+    grow_phases: int = Field(1, ge=1, le=4)
+    """Growth runs over this many phases per axis of the final bins within each voted final
+    phase (offsets of 1/(this × vote phases) of a bin; sparse data only, where the final
+    passes vote), and a point's vote from that phase is the share of them that label it.
+    Whether growth climbs a crest or a hillside segment hinges on which lowest points its
+    nodes are; more phases average that over where the bin edges fall (1: one growth)."""
     halo_cells: float = Field(4.0, ge=1, le=20)
     """A block's halo in first-pass cells (``halo``). A core point's coarse bin and the bins
     whose candidates screen it and mesh over it lie within 2.5; growth reaches further (ISPRS
@@ -794,14 +800,25 @@ def _classify(
     for g in finals:
         w = _vote_weights(local, g, params, len(finals))
         phase, added = _final(
-            local, mowed, g, k, params, centre, spacing, _local_cut(window, shift), reach, square
+            local,
+            mowed,
+            g,
+            k,
+            params,
+            centre,
+            spacing,
+            _local_cut(window, shift),
+            reach,
+            square,
+            grow_sub=params.grow_phases if len(finals) > 1 else 1,
+            grow_step=params.grow_phases * votes_k,
         )
         if len(finals) == 1:
             break  # one grid: its labels are the vote (any vote_share > 0 keeps them)
         votes += w * phase
         grown += w * added
         weights += w
-    labels = votes >= params.vote_share * weights if len(finals) > 1 else phase
+    labels = votes >= params.vote_share * weights if len(finals) > 1 else phase >= 0.5
     if params.grow_share > 0 and len(finals) > 1:
         labels |= grown >= params.grow_share * weights
     labels &= ~_rough(local, labels, params, _cell_of(g3) / spacing)
@@ -936,12 +953,17 @@ def _final(
     cut: tuple[float, float, float, float] | None = None,
     reach: float = 0.0,
     square: bool = False,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    grow_sub: int = 1,
+    grow_step: int = 1,
+) -> tuple[NDArray[np.bool_] | NDArray[np.float64], NDArray[np.bool_] | NDArray[np.float64]]:
     """Labels of ``local`` from pass 3 over ``g3`` on the twice-mowed points ``mowed``:
     final surface, raised segments, growth, band and supported points (``cut``: the
     block's window in local coordinates, see ``classify_ground``; ``reach``: growth's
     path limit in metres, 0 none); and the labelled points outside the band of the
-    surface before growth (what growth and the supported points added)."""
+    surface before growth (what growth and the supported points added). With
+    ``grow_sub`` > 1 growth runs over ``grow_sub``² phases of ``g3`` (offsets of
+    1/``grow_step`` of a bin) and the labels are the share of them labelling a point
+    (and what growth added, the share of them adding it)."""
     # Pass 3: bin the twice-mowed points, mesh/screen: the final surface.
     mowed_pts = np.take(local, mowed, axis=0)
     tin3 = _final_surface(mowed_pts, g3, k, params, centre, square)
@@ -968,8 +990,26 @@ def _final(
     if params.grow:
         if params.grow_share > 0:
             before = _band(tin3, local, params)[0]
+        if grow_sub > 1 and isinstance(g3, Grid) and not square:
+            c = g3.cell / grow_step
+            share = np.zeros(local.shape[0])
+            for j in range(grow_sub):
+                for i in range(grow_sub):
+                    g = Grid(g3.x0 - i * c, g3.y0 - j * c, g3.cell, g3.nx + 1, g3.ny + 1)
+                    tin = _grown(local, tin3, _phased(g, k), params, centre, raised, reach)
+                    share += _supported(tin, local, params, spacing)
+            share /= grow_sub**2
+            return share, share if before is None else share * ~before
         tin3 = _grown(local, tin3, _phased(g3, k), params, centre, raised, reach, square)
-    labels, above = _band(tin3, local, params)
+    labels = _supported(tin3, local, params, spacing)
+    return labels, np.zeros_like(labels) if before is None else labels & ~before
+
+
+def _supported(
+    tin: Tin, local: NDArray[np.float64], params: NistParams, spacing: float
+) -> NDArray[np.bool_]:
+    """Points in the ground band of ``tin``, and points above it that ground supports."""
+    labels, above = _band(tin, local, params)
     if params.support_k > 0:
         # Only points above the band may join: those below it are low outliers.
         labels = supported_points(
@@ -981,7 +1021,7 @@ def _final(
             tol=params.support_tol,
             rounds=params.support_rounds,
         )
-    return labels, np.zeros_like(labels) if before is None else labels & ~before
+    return labels
 
 
 def _final_surface(
