@@ -34,12 +34,12 @@ class HoledTin:
     def __init__(self, tin: Tin, uses: NDArray[np.int64]):
         mesh = tin.tri
         m, n = mesh.simplices.shape[0], tin.n_vertices
-        cap = 2 * m + 64
-        self.simp = np.zeros((cap, 3), dtype=np.int32)
+        cap = m + m // 8 + 64  # slots past ``slots`` are never read; more on demand
+        self.simp = np.empty((cap, 3), dtype=np.int32)
         self.simp[:m] = mesh.simplices
-        self.nbr = np.full((cap, 3), -1, dtype=np.int32)
+        self.nbr = np.empty((cap, 3), dtype=np.int32)
         self.nbr[:m] = mesh.neighbors
-        self.trans = np.zeros((cap, 6))
+        self.trans = np.empty((cap, 6))
         self.trans[:m] = tin._transform()
         self.live = np.zeros(cap, dtype=bool)
         self.live[:m] = True
@@ -202,7 +202,7 @@ class HoledTin:
         for name in ("simp", "nbr", "trans", "live", "_in_hole"):
             old = getattr(self, name)
             new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
-            new[: old.shape[0]] = old
+            new[: old.shape[0]] = old  # zeros: the live and hole flags of new slots
             setattr(self, name, new)
 
     def ids(self) -> NDArray[np.int64]:
