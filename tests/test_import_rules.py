@@ -23,6 +23,7 @@ ROOMS = {
     "cli": "cli",
     "__main__": "cli",
     "survey": "cli",
+    "warmup": "cli",
     "synthetic": "synthetic",  # scenes with exact truth, for tests and benchmarks
 }
 

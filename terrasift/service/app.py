@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from functools import partial
@@ -20,6 +21,7 @@ from fastapi.openapi.utils import get_openapi
 
 from terrasift import __version__
 from terrasift.jobs.plan import header_reader, use_header_reader
+from terrasift.jobs.warm import cache_dir_for
 from terrasift.service import problems
 from terrasift.service.auth import Auth, load_tokens
 from terrasift.service.callbacks import Notifier
@@ -200,6 +202,9 @@ def serve(
     logging.basicConfig(
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
+    cache = cache_dir_for(settings.data_dir)
+    if cache is not None:  # read-only install: workers (spawned later) cache here
+        os.environ["NUMBA_CACHE_DIR"] = str(cache)
     uvicorn.run(
         create_app(settings, freeze_heap=True),
         host=settings.host,

@@ -335,6 +335,86 @@ def _insertion_sort(a: NDArray) -> None:
 # forms gather and combine several full-length temporaries per round.
 
 
+@numba.njit(cache=True, inline="always")
+def _doubled(a: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``a`` copied into an array twice as long (the rest unset)."""
+    b = np.empty(2 * a.size, dtype=a.dtype)
+    b[: a.size] = a
+    return b
+
+
+@numba.njit(cache=True, nogil=True)
+def _fans(
+    verts: NDArray[np.int64],
+    vt: NDArray[np.int64],
+    simplices: NDArray,
+    neighbors: NDArray,
+    used: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], bool]:
+    """The triangles around each vertex of ``verts`` (CSR ``tptr``, ``tris``) and
+    its neighbour vertices (``nptr``, ``nidx``, rows ascending as ``_adjacency``'s),
+    gathered from one triangle holding it (``vt``) across the edges through it.
+    False when a vertex's fan does not hold its ``used`` triangles (two fans
+    meeting at one vertex): the caller then reads the whole mesh instead."""
+    nv = verts.size
+    tptr = np.zeros(nv + 1, dtype=np.int64)
+    nptr = np.zeros(nv + 1, dtype=np.int64)
+    tris = np.empty(8 * nv + 8, dtype=np.int64)
+    nidx = np.empty(8 * nv + 8, dtype=np.int64)
+    nt = 0
+    nn = 0
+    ok = True
+    for i in range(nv):
+        v = verts[i]
+        if nt >= tris.size:
+            tris = _doubled(tris)
+        tris[nt] = vt[v]
+        end = nt + 1
+        k = nt
+        while k < end:
+            t = tris[k]
+            for j in range(3):
+                u = neighbors[t, j]
+                if u < 0 or (
+                    simplices[u, 0] != v and simplices[u, 1] != v and simplices[u, 2] != v
+                ):
+                    continue
+                seen = False
+                for q in range(nt, end):
+                    if tris[q] == u:
+                        seen = True
+                        break
+                if not seen:
+                    if end >= tris.size:
+                        tris = _doubled(tris)
+                    tris[end] = u
+                    end += 1
+            k += 1
+        if end - nt != used[v]:
+            ok = False
+        first = nn
+        for q in range(nt, end):
+            for j in range(3):
+                w = simplices[tris[q], j]
+                if w == v:
+                    continue
+                dup = False
+                for p in range(first, nn):
+                    if nidx[p] == w:
+                        dup = True
+                        break
+                if not dup:
+                    if nn >= nidx.size:
+                        nidx = _doubled(nidx)
+                    nidx[nn] = w
+                    nn += 1
+        _insertion_sort(nidx[first:nn])
+        nt = end
+        tptr[i + 1] = nt
+        nptr[i + 1] = nn
+    return tptr, tris[:nt], nptr, nidx[:nn], ok
+
+
 @numba.njit(cache=True)
 def _top_of_ground(
     cell: NDArray[np.int64], z: NDArray[np.float64], ground: NDArray[np.bool_], size: int
@@ -474,6 +554,7 @@ def _judge_kernel(
     indptr: NDArray,
     indices: NDArray,
     test: NDArray[np.int64],
+    rows: NDArray[np.int64],
     z: NDArray[np.float64],
     xy: NDArray[np.float64],
     sl: NDArray[np.float64],
@@ -483,7 +564,8 @@ def _judge_kernel(
     rim_len2: float,
     bad: NDArray[np.bool_],
 ) -> None:
-    """``bad[v]`` for each ``test`` vertex v: more than ``screen_tol`` above the
+    """``bad[v]`` for each ``test`` vertex v (its neighbours: row ``rows[i]`` of
+    the CSR ``indptr``, ``indices`` for ``test[i]``): more than ``screen_tol`` above the
     median of its neighbours' votes, or more than ``low_tol`` (if > 0) below
     the second lowest of their pit votes (see ``screen``). A neighbour u does
     not vote when both ``rim[v]`` and ``rim[u]`` hold and their squared
@@ -497,13 +579,14 @@ def _judge_kernel(
     """
     with_slopes = sl.shape[0] > 0
     width = 0
-    for v in test:
-        width = max(width, indptr[v + 1] - indptr[v])
+    for r in rows:
+        width = max(width, indptr[r + 1] - indptr[r])
     votes = np.empty(width)
     pits = np.empty(width)
-    for v in test:
-        a = indptr[v]
-        deg = indptr[v + 1] - a
+    for i in range(test.size):
+        v = test[i]
+        a = indptr[rows[i]]
+        deg = indptr[rows[i] + 1] - a
         if deg == 0:
             continue
         m = 0

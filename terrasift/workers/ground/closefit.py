@@ -59,6 +59,7 @@ def close_fit_high(
     if g.size <= max(k, around, wide) + 1:
         return out
     sure = ground.copy()
+    last: tuple[NDArray, NDArray, NDArray] | None = None
     for r in range(rounds):
         s = np.flatnonzero(sure)
         if s.size <= max(k, around, wide) + 1:
@@ -66,7 +67,9 @@ def close_fit_high(
         tree = cKDTree(xyz[s, :2])
         pos = np.full(ground.shape[0], -1)
         pos[s] = np.arange(s.size)
-        h, _ = _quad_heights(xyz, g, s, tree, pos, k, floor)
+        # A point whose neighbours are last round's, in the same order, keeps its fit.
+        h, dev, rows = _quad_heights(xyz, g, s, tree, pos, k, floor, last)
+        last = (h, dev, rows)
         hs = h[sure[g]]
         noise = MAD_SIGMA * float(np.median(np.abs(hs - np.median(hs))))
         thr = max(floor, factor * noise)
@@ -84,7 +87,7 @@ def close_fit_high(
     spread = MAD_SIGMA * np.median(np.abs(at[s[nb[:, :around]]]), axis=1)
     keep = h[i] > local * spread
     keep &= xyz[g[i], 2] - np.max(xyz[s[nb[:, :3]], 2], axis=1) > step
-    hw, dw = _quad_heights(xyz, g[i], s, tree, pos, wide, floor)
+    hw, dw, _ = _quad_heights(xyz, g[i], s, tree, pos, wide, floor)
     keep &= hw > wide_factor * dw
     out[g[i[keep]]] = True
     return out
@@ -107,12 +110,30 @@ def _quad_heights(
     pos: NDArray,
     k: int,
     floor: float,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    last: tuple[NDArray, NDArray, NDArray] | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
     """Height of each point of ``idx`` above the quadratic of its ``k`` nearest sure
     points ``s``, refitted once without those more than ``CLIP`` deviations above the
-    first fit, and that fit's deviation."""
-    nb = _neighbours(xyz, idx, tree, pos, k)
-    d = xyz[s[nb]] - xyz[idx][:, None, :]
+    first fit, that fit's deviation, and the neighbours (point ids, nearest first).
+    ``last``: an earlier call's answers for the same ``idx`` and ``k``; rows with the
+    same neighbours in the same order take its fits (each row's fit is computed
+    alone, so it is the same number)."""
+    rows = s[_neighbours(xyz, idx, tree, pos, k)]
+    if last is None:
+        h, dev = _fit(xyz, idx, rows, floor)
+        return h, dev, rows
+    new = ~np.all(rows == last[2], axis=1)
+    h, dev = last[0].copy(), last[1].copy()
+    if new.any():
+        h[new], dev[new] = _fit(xyz, idx[new], rows[new], floor)
+    return h, dev, rows
+
+
+def _fit(
+    xyz: NDArray[np.float64], idx: NDArray[np.int64], rows: NDArray[np.int64], floor: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``_quad_heights``' fit of each point of ``idx`` on its neighbours ``rows``."""
+    d = xyz[rows] - xyz[idx][:, None, :]
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     a = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], -1)
     w = np.ones(z.shape)

@@ -43,6 +43,7 @@ from terrasift.workers.ground._kernels import (
 IN_BAND, ABOVE, BELOW = _kernels.IN_BAND, _kernels.ABOVE, _kernels.BELOW  # codes of Tin.band
 _GUESS_K = 0.5
 _SNAP = 1e-9  # startinpy merges points closer than this (local metres); Qhull takes those
+REBUILD_SHARE = 0.3  # Tin.without rebuilds the whole TIN when the holes' rims hold more
 
 
 def delaunay(
@@ -231,7 +232,7 @@ class Tin:
         hole = drop[s].any(axis=1)
         rim_s = s[hole]
         rim = np.unique(rim_s[keepv[rim_s]])
-        if rim.size < 3 or rim.size > 0.3 * nk:
+        if rim.size < 3 or rim.size > REBUILD_SHARE * nk:
             return self._rebuilt(keepv)
         try:
             sub = delaunay(self.xy[rim])
@@ -614,8 +615,8 @@ def screen(
     down by terrain tens of metres away along the edge, vertex after vertex.
 
     Rounds after the first only re-triangulate the holes the deletions
-    leave (``Tin.without``) and judge again only the vertices around them,
-    the only ones whose neighbours changed.
+    leave (``HoledTin.patch``, as ``Tin.without``) and judge again only the
+    vertices around them, the only ones whose neighbours changed.
     """
     n = xyz.shape[0]
     if n < 4:
@@ -630,9 +631,15 @@ def screen(
     rim = np.zeros(n, dtype=bool)
     if rim_len > 0:
         rim = _within_of_hull(tin.xy, tin.tri.convex_hull, rim_band)
-    ids = np.arange(n)  # global id of each vertex of the current TIN
-    test = np.arange(n)  # vertices of the current TIN to judge
-    for _ in range(max_rounds):
+    # ids: global id of each vertex of the current TIN; test: its vertices to judge
+    done, ids, test, out = _holed_rounds(
+        tin, xyz, hull, rim, screen_tol, low_tol, slopes, max_rounds, rim_len
+    )
+    if test.size == 0 or done == max_rounds:
+        return ids, out
+    if out is not None:  # handed over at round ``done`` (Tin.without rebuilds): same state
+        tin = out
+    for _ in range(done, max_rounds):
         ptr, idx = tin.neighbours()
         bad = _judge(tin, ptr, idx, ids, test, xyz, screen_tol, low_tol, slopes, rim[ids], rim_len)
         if slopes is None:
@@ -652,6 +659,61 @@ def screen(
         ids = ids[keep]
         test = np.flatnonzero(near[keep])
     return ids, tin
+
+
+def _holed_rounds(
+    tin: Tin,
+    xyz: NDArray[np.float64],
+    hull: NDArray[np.bool_],
+    rim: NDArray[np.bool_],
+    screen_tol: float,
+    low_tol: float,
+    slopes: NDArray[np.float64] | None,
+    max_rounds: int,
+    rim_len: float,
+) -> tuple[int, NDArray[np.int64], NDArray[np.int64], Tin | None]:
+    """``screen``'s rounds on a ``HoledTin`` (same verdicts, same TIN), until done
+    (the rounds made, the ids kept, an empty ``test`` and the TIN or None, as
+    ``screen`` returns them) or until a round where ``Tin.without`` would rebuild
+    the TIN: then that round, the ids, the (local) vertices to judge and the TIN
+    at its start, for ``screen``'s own rounds to go on from."""
+    from terrasift.workers.ground.holes import HoledTin
+
+    n = xyz.shape[0]
+    none = np.zeros(0, dtype=np.int64)
+    holed = HoledTin.of(tin)
+    if holed is None:
+        return 0, np.arange(n), np.arange(n), None
+    sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes, dtype=np.float64)
+    on_rim = np.ascontiguousarray(rim)
+    test = np.arange(n)
+    ptr, idx = tin.neighbours()
+    rows = test
+    for r in range(max_rounds):
+        bad = np.zeros(n, dtype=bool)
+        _judge_kernel(
+            ptr, idx, test, rows, holed.z, holed.xy, sl, screen_tol, low_tol, on_rim, rim_len**2, bad
+        )  # fmt: skip
+        if slopes is None:
+            bad &= ~hull
+        drop = test[bad[test]]
+        if drop.size == 0:
+            return r, holed.ids(), none, holed.tin()
+        if holed.n_alive - drop.size < 4:
+            return r, np.flatnonzero(holed.alive & ~bad), none, None
+        drop.sort()
+        nxt = holed.patch(drop)
+        if nxt is None:
+            ids = holed.ids()
+            return r, ids, np.searchsorted(ids, test), holed.tin()
+        test = nxt.astype(np.int64)
+        got = holed.rows(test)
+        if got is None:
+            ids = holed.ids()
+            return r + 1, ids, np.searchsorted(ids, test), holed.tin()
+        ptr, idx = got
+        rows = np.arange(test.size)
+    return max_rounds, holed.ids(), none, holed.tin()
 
 
 def _judge(
@@ -676,7 +738,7 @@ def _judge(
     sl = np.zeros((0, 2)) if slopes is None else np.ascontiguousarray(slopes[ids], dtype=np.float64)
     on_rim = np.zeros(ids.size, dtype=bool) if rim is None else np.ascontiguousarray(rim)
     _judge_kernel(
-        indptr, indices, test, tin.z, tin.xy, sl, screen_tol, low_tol, on_rim, rim_len**2, bad
+        indptr, indices, test, test, tin.z, tin.xy, sl, screen_tol, low_tol, on_rim, rim_len**2, bad
     )
     return bad
 
