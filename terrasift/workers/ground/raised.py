@@ -243,7 +243,10 @@ def raised_segments(
     if sides > 0 and points is not None and hi.size:
         # Steps of the border only, no longer than a few median edges: the slivers along
         # the hull and the edges across holes span tens of metres of any terrain.
+        # Only the steps of segments this can still keep (wide, not kept yet): the data near
+        # them is a small part of a dense block's.
         short = np.hypot(*(xyz[hi_v, :2] - xyz[lo_v, :2]).T) <= _RAMP_RUNS * med
+        short &= ~fixed[hi] & (size[hi] >= _RAMP_VERTICES)
         on, mid = _on_ramp(points, xyz[lo_v[short]], xyz[hi_v[short]])
         h = hi[short]
         n_up = np.bincount(h, minlength=n_seg)
@@ -300,7 +303,9 @@ def _on_ramp(
     d = top[:, :2] - foot[:, :2]
     run = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
     rise = top[:, 2] - foot[:, 2]
-    near = cKDTree(points[:, :2]).query_ball_point(0.5 * (foot[:, :2] + top[:, :2]), 0.5 * run)
+    centre = 0.5 * (foot[:, :2] + top[:, :2])
+    points = points[_near_discs(points[:, :2], centre, 0.5 * run)]
+    near = cKDTree(points[:, :2]).query_ball_point(centre, 0.5 * run)
     count = np.fromiter((len(i) for i in near), dtype=np.int64, count=foot.shape[0])
     if count.sum() == 0:
         return on, mid
@@ -314,6 +319,31 @@ def _on_ramp(
     mid = np.bincount(k, inside, foot.shape[0]).astype(np.float64)
     on = np.bincount(k, inside & (np.abs(f - t) < 0.25), foot.shape[0]).astype(np.float64)
     return on, mid
+
+
+def _near_discs(
+    xy: NDArray[np.float64], centre: NDArray[np.float64], radius: NDArray[np.float64]
+) -> NDArray[np.bool_]:
+    """Points of ``xy`` in the 3 × 3 cells (side: the largest diameter) around each disc's
+    centre, a superset of the points within the discs: a cheap cut of a dense block's
+    data before a tree is built on it."""
+    cell = 2.0 * float(radius.max()) + 1e-9
+    lo = centre.min(axis=0) - cell
+    shape = np.floor((centre.max(axis=0) + cell - lo) / cell).astype(np.int64) + 1
+    if shape[0] * shape[1] > 4_000_000:  # discs far apart on a fine grid: keep every point
+        return np.ones(xy.shape[0], dtype=bool)
+    mark = np.zeros((shape[0] + 2, shape[1] + 2), dtype=bool)
+    c = np.floor((centre - lo) / cell).astype(np.int64) + 1
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            mark[c[:, 0] + dx, c[:, 1] + dy] = True
+    ij = np.floor((xy - lo) / cell).astype(np.int64) + 1
+    inside = (
+        (ij[:, 0] >= 0) & (ij[:, 0] < mark.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < mark.shape[1])
+    )
+    keep = np.zeros(xy.shape[0], dtype=bool)
+    keep[inside] = mark[ij[inside, 0], ij[inside, 1]]
+    return keep
 
 
 def data_border(
