@@ -69,9 +69,12 @@ loops run over the few beam offsets within reach.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from ._mixed_kernels import continued, incidence_cos, line_gather, spread_of
 
 
 @dataclass(frozen=True)
@@ -295,10 +298,13 @@ def mark_grid(
         stride = n_e if axis == 1 else 1  # neighbours along the other axis
         both = np.fmin(np.abs(r_pad[find(key + stride)] - r), np.abs(r_pad[find(key - stride)] - r))
         across[axis] = np.where(np.isfinite(both), both, 0.0)
+    line_done = None
     bounds = _fov_bounds(fov, az[idx][order], el[idx][order], key // n_e, key % n_e, s)
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
-        line = _Line(key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis])
+        line = _Line(
+            key, r_pad, find, n_e if axis == 0 else 1, s.reach + 2, across[axis], line_done
+        )
         lo, hi = int(pos.min()), int(pos.max())
         if bounds is not None:
             lo, hi = min(lo, bounds[axis][0]), max(hi, bounds[axis][1])
@@ -308,6 +314,7 @@ def mark_grid(
             # top under an empty sky) were fired too
             hi = max(hi, lo + fired_rows - 1)
         out |= _mixed_along(line, r, s, pos, axis, (lo, hi))
+        line_done = line  # its arrays are free for the next axis
     marked[idx[order]] = out
     return marked, judged, timed is not None
 
@@ -341,39 +348,74 @@ def _fov_bounds(
 
 class _Line:
     """Neighbours of every return along one axis of the grid: range and inverse range
-    at each beam offset (NaN where no return)."""
+    at each beam offset (NaN where no return). ``reuse``: a line of the same returns
+    whose arrays are done with; its memory is taken over (fresh pages cost more than
+    filling them)."""
 
-    def __init__(self, key, r_pad, find, stride: int, reach: int, across) -> None:
+    def __init__(self, key, r_pad, find, stride: int, reach: int, across, reuse=None) -> None:
         inv_pad = 1.0 / r_pad
         c_pad = np.append(across, 0.0)
         n = key.size
         self.R: dict[int, NDArray[np.float64]] = {0: r_pad[:n]}
         self.V: dict[int, NDArray[np.float64]] = {0: inv_pad[:n]}
         self.C: dict[int, NDArray[np.float64]] = {0: across}  # range change per beam across
-        self.J: dict[int, NDArray[np.int64]] = {}  # index of the return there (n: none)
-        for k in range(1, reach + 1):
-            for sd in (1, -1):
-                j = find(key + sd * k * stride)
-                self.J[sd * k] = j
-                self.R[sd * k] = r_pad[j]
-                self.V[sd * k] = inv_pad[j]
-                self.C[sd * k] = c_pad[j]
+        # index of the return there (n: none); the nearest beams kept, others on demand
+        self.J = _Lookups(find, key, stride)
+        offs = [sd * k for k in range(1, reach + 1) for sd in (1, -1)]
+        shape = (len(offs), n)
+        bufs = reuse.buffers if reuse is not None else None
+        if bufs is None or bufs[1].shape != shape:
+            bufs = (np.empty((2, n), dtype=np.int64), *(np.empty(shape) for _ in range(3)))
+        self.buffers = bufs
+        J, R, V, C = bufs
+        # every offset's lookups and gathers in one compiled pass
+        line_gather(
+            key, find.lut, np.array(offs, dtype=np.int64) * stride, r_pad, inv_pad, c_pad, *bufs
+        )
+        for row, o in enumerate(offs):
+            self.R[o], self.V[o], self.C[o] = R[row], V[row], C[row]
+            if row < 2:
+                self.J[o] = J[row]
 
 
-def _finder(key: NDArray[np.int64], n_cells: int):
+class _Lookups(dict):
+    """Index of the return at each beam offset along a line (``key.size``: none),
+    looked up when first asked for."""
+
+    def __init__(self, find, key: NDArray[np.int64], stride: int) -> None:
+        super().__init__()
+        self.find, self.key, self.stride = find, key, stride
+
+    def __missing__(self, o: int) -> NDArray[np.int64]:
+        j = self[o] = np.asarray(self.find(self.key + o * self.stride), dtype=np.int64)
+        return j
+
+
+class _Finder:
     """Index of the return at each wanted grid key (``key.size`` where none): a dense
-    lookup table when the grid is at most 16 cells per return, binary search otherwise."""
-    n = key.size
-    if n_cells <= 16 * n:
-        lut = np.full(n_cells, n, dtype=np.int64)
-        lut[key] = np.arange(n)
-        return lambda want: lut[want]
+    lookup table (``lut``, the last of equal keys) when the grid is at most 16 cells
+    per return, binary search otherwise (``lut`` empty; the first of equal keys)."""
 
-    def search(want: NDArray[np.int64]) -> NDArray[np.int64]:
-        j = np.minimum(np.searchsorted(key, want), n - 1)
-        return np.where(key[j] == want, j, n)
+    def __init__(self, key: NDArray[np.int64], n_cells: int) -> None:
+        n = key.size
+        self.key = key
+        small = np.int32 if n < 2**31 - 1 else np.int64  # half the table's memory traffic
+        self.lut = np.zeros(0, dtype=small)
+        if n_cells <= 16 * n:
+            self.lut = np.full(n_cells, n, dtype=small)
+            self.lut[key] = np.arange(n)
 
-    return search
+    def __call__(self, want: NDArray[np.int64]) -> NDArray[Any]:
+        if self.lut.size:
+            return self.lut[want]
+        n = self.key.size
+        j = np.minimum(np.searchsorted(self.key, want), n - 1)
+        return np.where(self.key[j] == want, j, n)
+
+
+def _finder(key: NDArray[np.int64], n_cells: int) -> _Finder:
+    """Index of the return at each wanted grid key (``_Finder``)."""
+    return _Finder(key, n_cells)
 
 
 def _mixed_along(
@@ -398,18 +440,20 @@ def _mixed_along(
     # The LAS scale blurs each return's angle (sd scale/√12/range); on a surface whose
     # range changes by d per beam that adds d × the blur in steps to its range scatter.
     blur = s.las_scale / np.sqrt(12.0) / r / step
+    spread_flat = s.sigmas * float(np.sqrt(s.sigma**2 + 0.0))
 
     def spread(i: int, slope: NDArray[np.float64] | float = 0.0) -> NDArray[np.float64]:
         """Scatter of a return about the surface through two beams continued i beams on
         (``slope``: the surface's range change per beam)."""
-        sd = np.sqrt(s.sigma**2 + (np.nan_to_num(slope) * blur) ** 2)
-        return s.sigmas * sd * np.sqrt((1 + i) ** 2 + i**2 + 1)
+        factor = np.sqrt((1 + i) ** 2 + i**2 + 1)
+        if np.isscalar(slope) and slope == 0.0:
+            return spread_flat * factor  # no slope: the same scatter everywhere
+        sl = np.broadcast_to(np.asarray(slope, dtype=np.float64), blur.shape)
+        return spread_of(np.ascontiguousarray(sl), blur, s.sigma**2, s.sigmas, factor)
 
     def extrapolated(a: int, b: int, steps: float) -> NDArray[np.float64]:
         """Range of the surface through beams a and b (a nearer p) continued ``steps`` beyond a."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            v = V[a] + (V[a] - V[b]) * steps
-            return np.where(v > 0, 1.0 / v, np.inf)
+        return continued(V[a], V[b], float(steps))
 
     # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
     near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
@@ -437,9 +481,7 @@ def _mixed_along(
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
                 # incidence at p's beam: along a plane the inverse range changes evenly,
                 # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
-                tan_a = r * np.abs(V[a] - V[a1]) / step
-                tan_x = r * line.C[a] / ra**2 / step_x
-                cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
+                cos_inc = incidence_cos(r, V[a], V[a1], line.C[a], ra, step, step_x)
                 sp = spread(i, slope)
                 off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off

@@ -127,13 +127,14 @@ def measure_scan_geometry(
 
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
+    by_az = None  # the points' order by azimuth, when sorted already
     if sectors is None:
         # the footprint on sectors spread over the whole scan, not the sample's middle one:
         # a position looking past a scene another position stands in front of may show
         # no edge there (edges may lie anywhere)
-        o = np.argsort(az, kind="stable")
+        o = by_az = np.argsort(az, kind="stable")
         sectors = [rel[o[a:b]] for a, b in ramp_sectors(az.size)]
-    az, el, r = _sector(az, el, r)
+    az, el, r = _sector(az, el, r, by_az)
     # one order whatever order the points came in (a job reads them block by block):
     # the samples drawn below then depend on the points alone
     o = np.lexsort((r, el, az))
@@ -307,7 +308,8 @@ def coordinate_scale(xyz: NDArray[np.float64], sample: int = 200_000) -> float:
     """LAS-like quantisation step of the coordinates (largest over the axes), 0 if none."""
     best = 0.0
     for col in range(3):
-        v = np.unique(xyz[:sample, col])
+        # sorted values with their repeats: a repeat's zero difference is dropped below
+        v = np.sort(xyz[:sample, col])
         d = np.diff(v)
         d = d[d > 1e-9]
         if d.size < 10:
@@ -326,14 +328,30 @@ def coordinate_scale(xyz: NDArray[np.float64], sample: int = 200_000) -> float:
     return best
 
 
-def _sector(az, el, r):
-    """At most MAX_SAMPLE points from one contiguous azimuth sector (neighbours stay intact)."""
+def _sector(az, el, r, by_az=None):
+    """At most MAX_SAMPLE points from one contiguous azimuth sector (neighbours stay intact);
+    ``by_az``: the stable order of ``az``, when known."""
     if az.size <= MAX_SAMPLE:
         return az, el, r
-    o = np.argsort(az, kind="stable")
+    o = np.argsort(az, kind="stable") if by_az is None else by_az
     mid = az.size // 2
     sl = o[mid - MAX_SAMPLE // 2 : mid + MAX_SAMPLE // 2]
     return az[sl], el[sl], r[sl]
+
+
+_LAST_TREE: list[tuple[NDArray[np.float64], cKDTree]] = []
+
+
+def _tree(pts: NDArray[np.float64]) -> cKDTree:
+    """The tree of ``pts``; the last one built is used again when the points are the
+    same (the step and the range noise are measured on the same points one after the
+    other, and a tree is as much time as its queries)."""
+    last = _LAST_TREE[0] if _LAST_TREE else None
+    if last is not None and last[0].shape == pts.shape and np.array_equal(last[0], pts):
+        return last[1]
+    tree = cKDTree(pts)
+    _LAST_TREE[:] = [(pts, tree)]
+    return tree
 
 
 def _neighbours(az, el, k: int = 12, sample: int = QUERY):
@@ -343,7 +361,7 @@ def _neighbours(az, el, k: int = 12, sample: int = QUERY):
     their neighbours' indices and the angle differences to them."""
     u = az * np.cos(el)
     pts = np.column_stack([u, el])
-    tree = cKDTree(pts)
+    tree = _tree(pts)
     qi = np.arange(az.size)
     if az.size > sample:
         qi = np.sort(np.random.default_rng(0).choice(az.size, sample, replace=False))
