@@ -94,6 +94,7 @@ class GridSettings:
     bleed_prob: float = 0.5  # least probability of a bleeding beam being past by min_offset
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
     open_edges: bool = False  # judge returns at edges with nothing behind them
+    fit_beams: int = 2  # beams of a face-on anchor's surface continued to a return (2 or 3)
 
 
 def grid_index(
@@ -420,6 +421,8 @@ def _mixed_along(
     # off_blend[sd]: off by more than the surface itself could pull it (a footprint partly
     # on one surface answers at most half a footprint of beams back along it)
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # an anchor within max_gap already met nearer p on that side: the surface p ends
+    met = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -427,20 +430,35 @@ def _mixed_along(
                 ra = R[a]
                 # on a surface: the line through its outer neighbours continues through
                 # it, or (a surface only two beams wide) its outer neighbour agrees
-                anchored = (
-                    np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
-                ) | (np.abs(R[a1] - ra) <= spread(0))
+                three = np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
+                anchored = three | (np.abs(R[a1] - ra) <= spread(0))
                 # off its surface: in range beyond the continuation's scatter, and across
                 # the surface by more than min_offset (at grazing incidence a range offset
                 # is mostly along the surface)
                 slope = np.abs(ra - R[a1])
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
+                sp = spread(i, slope)
+                if s.fit_beams >= 3:
+                    # a face-on surface (three beams on one line, their range within the
+                    # scatter of a difference): the least-squares line through the three,
+                    # whose continuation i beams on scatters by sqrt(1/3 + (i+1)²/2)
+                    # returns' sd against sqrt(i² + (i+1)²) through two. Not on sloped
+                    # surfaces: a bleeding end bends their third beam, which the fit
+                    # would carry to p
+                    flat = three & (np.abs(ra - R[a2]) <= spread(0))
+                    c3 = np.flatnonzero(flat)
+                    if c3.size:
+                        v3 = (V[a][c3] + V[a1][c3] + V[a2][c3]) / 3.0 - (
+                            V[a2][c3] - V[a][c3]
+                        ) / 2.0 * (i + 1)
+                        dev[c3] = np.abs(np.where(v3 > 0, 1.0 / v3, np.inf) - r[c3])
+                        sd3 = np.sqrt(s.sigma**2 + (slope[c3] * blur[c3]) ** 2)
+                        sp[c3] = s.sigmas * sd3 * np.sqrt(4.0 / 3.0 + (i + 1) ** 2 / 2.0)
                 # incidence at p's beam: along a plane the inverse range changes evenly,
                 # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
                 tan_a = r * np.abs(V[a] - V[a1]) / step
                 tan_x = r * line.C[a] / ra**2 / step_x
                 cos_inc = 1.0 / np.sqrt(1.0 + tan_a**2 + tan_x**2)
-                sp = spread(i, slope)
                 off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off
                 # within max_gap of p: the anchor, or its surface continued to p's beam
@@ -451,8 +469,11 @@ def _mixed_along(
                 end = ok & (ra < r + s.max_gap)
                 off_end[sd] |= end
                 # the surface continued to p's beam, taken back half a footprint of beams
-                # towards the anchor: the farthest a return of that surface alone is pulled
-                c = np.flatnonzero(end)
+                # towards the anchor: the farthest a return of that surface alone is pulled.
+                # Judged against the nearest anchor on that side only (the surface p ends):
+                # a farther one may be the bleeding returns of that surface's other end
+                c = np.flatnonzero(end & ~met[sd])
+                met[sd] |= anchored & (ra < r + s.max_gap)
                 g = V[a][c] - V[a1][c]
                 v_c = V[a][c] + g * i
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
@@ -491,8 +512,17 @@ def _mixed_along(
             inside = (pos + sd >= extent[0]) & (pos + sd <= extent[1])
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
+            if not s.open_edges:
+                # within min_offset of the inner neighbour in range: on its surface
+                own |= np.abs(R[-sd] - r) <= s.min_offset
             off = (off_end[-sd] if s.open_edges else off_blend[-sd]) & ~own
             ends = open_ & off
+            if not s.open_edges:
+                # the inner surface, continued past p, would answer beyond max_gap: it
+                # recedes out of reach (grazing ground towards the range limit) and
+                # does not end at p, so no background ends within p's beam
+                v_on = V[-sd] + (V[-sd] - V[-2 * sd]) * 2.0
+                ends &= ~((v_on <= 0) | (1.0 / v_on > r + s.max_gap))
             for _ in range(1, chain):
                 ends |= off & np.append(ends, False)[line.J[sd]]
             between |= ends
