@@ -423,6 +423,7 @@ def _mixed_along(
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     # an anchor within max_gap already met nearer p on that side: the surface p ends
     met = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    flat_tol = s.sigmas * s.sigma * np.sqrt(2.0)  # a difference of two returns, face on
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -439,21 +440,23 @@ def _mixed_along(
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
                 sp = spread(i, slope)
                 if s.fit_beams >= 3:
-                    # a face-on surface (three beams on one line, their range within the
-                    # scatter of a difference): the least-squares line through the three,
-                    # whose continuation i beams on scatters by sqrt(1/3 + (i+1)²/2)
-                    # returns' sd against sqrt(i² + (i+1)²) through two. Not on sloped
-                    # surfaces: a bleeding end bends their third beam, which the fit
-                    # would carry to p
-                    flat = three & (np.abs(ra - R[a2]) <= spread(0))
-                    c3 = np.flatnonzero(flat)
+                    # an anchor nearer or farther than p by more than the margin (the
+                    # anchors of a blend) on a face-on surface (three beams on one line,
+                    # their range within the scatter of a difference): the least-squares
+                    # line through the three, whose continuation i beams on scatters by
+                    # sqrt(1/3 + (i+1)²/2) returns' sd against sqrt(i² + (i+1)²) through
+                    # two. Not on sloped surfaces: a bleeding end bends their third beam,
+                    # which the fit would carry to p
+                    c3 = np.flatnonzero(np.abs(ra - r) > s.margin)
+                    c3 = c3[three[c3] & (np.abs(ra[c3] - R[a2][c3]) <= flat_tol)]
                     if c3.size:
                         v3 = (V[a][c3] + V[a1][c3] + V[a2][c3]) / 3.0 - (
                             V[a2][c3] - V[a][c3]
                         ) / 2.0 * (i + 1)
                         dev[c3] = np.abs(np.where(v3 > 0, 1.0 / v3, np.inf) - r[c3])
-                        sd3 = np.sqrt(s.sigma**2 + (slope[c3] * blur[c3]) ** 2)
-                        sp[c3] = s.sigmas * sd3 * np.sqrt(4.0 / 3.0 + (i + 1) ** 2 / 2.0)
+                        sp[c3] *= np.sqrt(
+                            (4.0 / 3.0 + (i + 1) ** 2 / 2.0) / ((1 + i) ** 2 + i**2 + 1)
+                        )
                 # incidence at p's beam: along a plane the inverse range changes evenly,
                 # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
                 tan_a = r * np.abs(V[a] - V[a1]) / step
