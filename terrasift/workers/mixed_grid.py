@@ -447,8 +447,9 @@ def _mixed_along(
                     # sqrt(1/3 + (i+1)²/2) returns' sd against sqrt(i² + (i+1)²) through
                     # two. Not on sloped surfaces: a bleeding end bends their third beam,
                     # which the fit would carry to p
-                    c3 = np.flatnonzero(np.abs(ra - r) > s.margin)
-                    c3 = c3[three[c3] & (np.abs(ra[c3] - R[a2][c3]) <= flat_tol)]
+                    c3 = np.flatnonzero(
+                        three & (np.abs(ra - R[a2]) <= flat_tol) & (np.abs(ra - r) > s.margin)
+                    )
                     if c3.size:
                         v3 = (V[a][c3] + V[a1][c3] + V[a2][c3]) / 3.0 - (
                             V[a2][c3] - V[a][c3]
