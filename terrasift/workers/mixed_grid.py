@@ -423,6 +423,9 @@ def _mixed_along(
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     # an anchor within max_gap already met nearer p on that side: the surface p ends
     met = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # along elevation: per side and beam offset, the returns whose nearer anchor's surface,
+    # continued to their beam, passes beyond max_gap behind them, with that continuation
+    hidden: dict[int, dict[int, tuple[NDArray[np.intp], NDArray[np.float64]]]] = {1: {}, -1: {}}
     flat_tol = s.sigmas * s.sigma * np.sqrt(2.0)  # a difference of two returns, face on
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
@@ -470,6 +473,14 @@ def _mixed_along(
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
                 near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
+                if axis == 1:
+                    # a nearer surface (grazing ground) whose continuation to p's beam
+                    # passes more than max_gap behind p: where a farther anchor lies in
+                    # front of that continuation, it hides the ground running on under it
+                    # (a wall's foot), and p blends the two (paired below)
+                    cc = np.flatnonzero(ok & (ra < r - s.margin) & ~(gap < s.max_gap))
+                    v = V[a][cc] + (V[a][cc] - V[a1][cc]) * i
+                    hidden[sd][i] = (cc, np.where(v > 0, 1.0 / v, np.inf))
                 end = ok & (ra < r + s.max_gap)
                 off_end[sd] |= end
                 # the surface continued to p's beam, taken back half a footprint of beams
@@ -494,6 +505,9 @@ def _mixed_along(
             nearer.append(upto)
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+            for k in range(1, min(s.span + 1 - j, reach) + 1) if hidden[-sd] else ():
+                cc, cont = hidden[-sd][k]
+                between[cc] |= far[sd][j][cc] & (cont > R[sd * j][cc])
     if axis == 0:
         # along elevation the ground recedes monotonically from the sensor up to a
         # wall's foot: runs there are left to the rules above
