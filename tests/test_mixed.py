@@ -219,7 +219,7 @@ def test_empty_and_degenerate_input():
     assert res.unclassified.all() and not res.marked.any()
 
 
-def _wall_grid(r_of_col, step=0.15, seed=0):
+def _wall_grid(r_of_col, step=0.15, seed=0, noise=0.004):
     """A range image on a 0.15° grid: column c (azimuth c × step) at range r_of_col(c)
     (NaN: no return), rows over ±6° elevation, 4 mm range noise."""
     rng = np.random.default_rng(seed)
@@ -230,7 +230,7 @@ def _wall_grid(r_of_col, step=0.15, seed=0):
     col = np.broadcast_to(cols[:, None], az.shape).ravel()
     az, el = az.ravel(), el.ravel()
     d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    r = np.array([r_of_col(c) for c in col]) + rng.normal(0.0, 0.004, col.size)
+    r = np.array([r_of_col(c) for c in col]) + rng.normal(0.0, noise, col.size)
     keep = np.isfinite(r)
     return d[keep] * r[keep, None], col[keep]
 
@@ -333,7 +333,7 @@ def test_grid_lookup_table_and_binary_search_agree():
     assert not np.isin(want[~found], key).any()
 
 
-def _ground_to_range_limit(pull: float, seed: int = 0):
+def _ground_to_range_limit(pull: float, seed: int = 0, step_deg: float = 0.2):
     """Ground 2 m below the sensor seen on a 0.2° grid up to 30 m, nothing beyond (the
     range limit), 4 mm noise, with a post 15 m away at the left reaching 1 m above the
     sensor (the field of view extends above the limit). The last ground row is pulled
@@ -341,7 +341,7 @@ def _ground_to_range_limit(pull: float, seed: int = 0):
     from its nearer part): at 28 m that moves it pull × 2/28 off the ground. Returns
     points and that row's mask."""
     rng = np.random.default_rng(seed)
-    step = np.radians(0.2)
+    step = np.radians(step_deg)
     az, el = np.meshgrid(np.arange(-30, 30) * step, np.arange(-45, 20) * step, indexing="ij")
     az, el = az.ravel(), el.ravel()
     d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
@@ -655,3 +655,81 @@ def test_grid_marks_the_joined_ramps_of_a_surface_narrower_than_the_footprint():
     m = mark_mixed(s.xyz, MixedParams(footprint=1.0), s.origin, gps_time=s.gps_time).marked
     assert np.sum(m & t) > 0.7 * t.sum()
     assert np.sum(m & ~t) == 0
+
+
+def test_grid_marks_a_blend_between_close_face_on_surfaces_at_high_noise():
+    # A board at 17.05 m ends at column 0, a wall 21 cm behind it; column 1 blends the
+    # two, 10.5 cm off each, at 9 mm range noise. The line through two beams of a
+    # surface continued one beam on scatters by 2.45 returns' sd (9 sd at 4 sd tolerance
+    # reaches 8.8 cm): 41 % of the column was kept. The least-squares line through
+    # three face-on beams scatters by 1.83 sd: nearly all of it is marked.
+    def rng_of(c):
+        return 17.05 if c <= 0 else (17.155 if c == 1 else 17.26)
+
+    xyz, col = _wall_grid(rng_of, seed=1, noise=0.009)
+    res = mark_mixed(xyz, MixedParams(footprint=0.15), np.zeros(3)).marked
+    assert res[col == 1].mean() > 0.9 and res[col != 1].mean() < 0.002
+    two = mark_mixed(xyz, MixedParams(footprint=0.15, anchor_beams=2), np.zeros(3)).marked
+    assert two[col == 1].mean() < 0.8
+
+
+def test_grid_judges_a_return_at_an_open_edge_against_the_surface_it_ends():
+    # An oblique board (17.9 m down to 17.2 m, 17.5 cm per 0.42° column) whose two ends
+    # answer from the part of a 2.6-step footprint still on it (each end's last beams
+    # lie off its line), a wall 5 m behind (too far to blend); a row of a coarse scan
+    # position (shared-report 4700). The beams at each end lie within what the board
+    # alone pulls back: kept. Judged against any surface within reach, the bent other
+    # end (continued five beams on, 40 cm off) marked 38-62 % of them.
+    prof = {-2: 18.125, -1: 18.002, 0: 17.926, 1: 17.762, 2: 17.585, 3: 17.409, 4: 17.235}
+    prof.update({5: 17.118, 6: 17.041, 7: 16.930})
+    xyz, col = _wall_grid(lambda c: prof.get(c, 23.2), step=0.42, seed=2, noise=0.0075)
+    res = mark_mixed(xyz, MixedParams(footprint=1.1), np.zeros(3)).marked
+    assert res[np.isin(col, [-2, -1, 0, 5, 6, 7])].mean() < 0.05
+
+
+def test_grid_keeps_ground_receding_to_the_range_limit_by_default():
+    # The last ground row before the range limit pulled 1.5 m nearer (the part of its
+    # footprint short of the limit answers; at 0.42° rows the ground recedes 3.7 m per
+    # row there, so half a row is 1.8 m): one surface answers, so it is no blend. The
+    # ground continued one row on lies beyond the mixing gap: no background ends within
+    # that beam, and by default the row is kept (it was marked as a blend with a
+    # background ending in the beam; open_edges marks it as a blend with nothing).
+    xyz, last = _ground_to_range_limit(1.5, step_deg=0.42)
+    res = mark_mixed(xyz, MixedParams(footprint=0.42), np.zeros(3)).marked
+    assert res[last].mean() < 0.05 and res.mean() < 0.002
+    opened = mark_mixed(xyz, MixedParams(footprint=0.42, open_edges=True), np.zeros(3)).marked
+    assert opened[last].mean() > 0.9
+
+
+def _ground_to_far_wall(pull: float, seed: int = 0):
+    """Ground 1 m below the sensor up to a wall 30 m away, 0.43° steps, 4 mm noise: the
+    last ground row lies at 26.7 m, 3.5 m before the wall, and the ground continued to
+    the wall's lowest row passes metres behind the wall. That row is pulled ``pull``
+    metres nearer (a blend of the wall with the ground before its foot). Returns points
+    and that row's mask."""
+    rng = np.random.default_rng(seed)
+    step, az, el, d = _beams()
+    with np.errstate(divide="ignore"):
+        t_ground = np.where(d[:, 2] < 0, -1.0 / d[:, 2], np.inf)
+    t_wall = 30.0 / d[:, 0]
+    t_wall = np.where(d[:, 2] * t_wall < 1.0, t_wall, np.inf)
+    r = np.minimum(t_ground, t_wall)
+    on_wall = t_wall < t_ground
+    foot = on_wall & ~np.roll(on_wall.reshape(60, 54), 1, axis=1).ravel()
+    r = r - pull * foot + rng.normal(0.0, 0.004, r.size)
+    keep = np.isfinite(r)
+    return d[keep] * r[keep, None], foot[keep]
+
+
+def test_grid_marks_a_blend_of_a_far_wall_with_the_ground_before_its_foot():
+    # The wall's lowest row pulled 20 or 50 cm nearer lies between the ground and the
+    # wall, yet the last ground row is 3.5 m nearer and the ground continued to that row
+    # passes more than the 2.5 m mixing gap behind it: the ground runs on under the wall,
+    # which hides it. Its continuation lies behind the wall's beam, so the row is a blend
+    # of the two (it was kept). Unpulled, the row is the wall: kept.
+    for pull in (0.2, 0.5):
+        xyz, foot = _ground_to_far_wall(pull)
+        m = mark_mixed(xyz, MixedParams(footprint=0.43), np.zeros(3)).marked
+        assert m[foot].mean() > 0.95 and m[~foot].mean() < 0.002
+    xyz, foot = _ground_to_far_wall(0.0)
+    assert not mark_mixed(xyz, MixedParams(footprint=0.43), np.zeros(3)).marked.any()

@@ -100,6 +100,14 @@ class MixedParams(StageParams):
     grazing incidence a large range offset is a small distance off the surface: a blend
     of ground and a wall's foot). 3 cm is the distance from every surface beyond which
     the benchmark family counts a return as mixed."""
+    anchor_beams: int = Field(3, ge=2, le=3)
+    """grid: beams of an anchor's surface continued to a return to judge whether the
+    return lies off it. 3: on a face-on surface (the anchor and its two outer beams on
+    one line, their range within the scatter of a difference of two returns), the
+    least-squares line through the three, whose continuation one beam on scatters by
+    1.83 returns' sd against 2.45 through two (a blend 10 cm off two surfaces 20 cm
+    apart at 9 mm noise is then found); sloped surfaces keep two beams (a bleeding end
+    bends the third). 2: the line through the anchor and its outer beam everywhere."""
     variant: Variant = "exclusive_blind_window"
     """Marking: naive (the interest point), aggressive (the whole box), accumulator
     (points reported by at least ``votes`` boxes), exclusive (box but the interest
@@ -451,6 +459,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         min_offset=p.min_offset,
         bleed_prob=GRID_BLEED,
         open_edges=p.open_edges,
+        fit_beams=p.anchor_beams,
     )
 
 

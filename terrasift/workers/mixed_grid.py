@@ -97,6 +97,7 @@ class GridSettings:
     bleed_prob: float = 0.5  # least probability of a bleeding beam being past by min_offset
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
     open_edges: bool = False  # judge returns at edges with nothing behind them
+    fit_beams: int = 2  # beams of a face-on anchor's surface continued to a return (2 or 3)
 
 
 def grid_index(
@@ -464,6 +465,12 @@ def _mixed_along(
     # off_blend[sd]: off by more than the surface itself could pull it (a footprint partly
     # on one surface answers at most half a footprint of beams back along it)
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # an anchor within max_gap already met nearer p on that side: the surface p ends
+    met = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # along elevation: per side and beam offset, the returns whose nearer anchor's surface,
+    # continued to their beam, passes beyond max_gap behind them, with that continuation
+    hidden: dict[int, dict[int, tuple[NDArray[np.intp], NDArray[np.float64]]]] = {1: {}, -1: {}}
+    flat_tol = s.sigmas * s.sigma * np.sqrt(2.0)  # a difference of two returns, face on
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             for i in range(1, reach + 1):
@@ -471,18 +478,36 @@ def _mixed_along(
                 ra = R[a]
                 # on a surface: the line through its outer neighbours continues through
                 # it, or (a surface only two beams wide) its outer neighbour agrees
-                anchored = (
-                    np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
-                ) | (np.abs(R[a1] - ra) <= spread(0))
+                three = np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
+                anchored = three | (np.abs(R[a1] - ra) <= spread(0))
                 # off its surface: in range beyond the continuation's scatter, and across
                 # the surface by more than min_offset (at grazing incidence a range offset
                 # is mostly along the surface)
                 slope = np.abs(ra - R[a1])
                 dev = np.abs(extrapolated(a, a1, float(i)) - r)
+                sp = spread(i, slope)
+                if s.fit_beams >= 3:
+                    # an anchor nearer or farther than p by more than the margin (the
+                    # anchors of a blend) on a face-on surface (three beams on one line,
+                    # their range within the scatter of a difference): the least-squares
+                    # line through the three, whose continuation i beams on scatters by
+                    # sqrt(1/3 + (i+1)²/2) returns' sd against sqrt(i² + (i+1)²) through
+                    # two. Not on sloped surfaces: a bleeding end bends their third beam,
+                    # which the fit would carry to p
+                    c3 = np.flatnonzero(
+                        three & (np.abs(ra - R[a2]) <= flat_tol) & (np.abs(ra - r) > s.margin)
+                    )
+                    if c3.size:
+                        v3 = (V[a][c3] + V[a1][c3] + V[a2][c3]) / 3.0 - (
+                            V[a2][c3] - V[a][c3]
+                        ) / 2.0 * (i + 1)
+                        dev[c3] = np.abs(np.where(v3 > 0, 1.0 / v3, np.inf) - r[c3])
+                        sp[c3] *= np.sqrt(
+                            (4.0 / 3.0 + (i + 1) ** 2 / 2.0) / ((1 + i) ** 2 + i**2 + 1)
+                        )
                 # incidence at p's beam: along a plane the inverse range changes evenly,
                 # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
                 cos_inc = incidence_cos(r, V[a], V[a1], line.C[a], ra, step, step_x)
-                sp = spread(i, slope)
                 off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off
                 # within max_gap of p: the anchor, or its surface continued to p's beam
@@ -490,11 +515,22 @@ def _mixed_along(
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
                 near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
+                if axis == 1:
+                    # a nearer surface (grazing ground) whose continuation to p's beam
+                    # passes more than max_gap behind p: where a farther anchor lies in
+                    # front of that continuation, it hides the ground running on under it
+                    # (a wall's foot), and p blends the two (paired below)
+                    cc = np.flatnonzero(ok & (ra < r - s.margin) & ~(gap < s.max_gap))
+                    v = V[a][cc] + (V[a][cc] - V[a1][cc]) * i
+                    hidden[sd][i] = (cc, np.where(v > 0, 1.0 / v, np.inf))
                 end = ok & (ra < r + s.max_gap)
                 off_end[sd] |= end
                 # the surface continued to p's beam, taken back half a footprint of beams
-                # towards the anchor: the farthest a return of that surface alone is pulled
-                c = np.flatnonzero(end)
+                # towards the anchor: the farthest a return of that surface alone is pulled.
+                # Judged against the nearest anchor on that side only (the surface p ends):
+                # a farther one may be the bleeding returns of that surface's other end
+                c = np.flatnonzero(end & ~met[sd])
+                met[sd] |= anchored & (ra < r + s.max_gap)
                 g = V[a][c] - V[a1][c]
                 v_c = V[a][c] + g * i
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
@@ -511,6 +547,9 @@ def _mixed_along(
             nearer.append(upto)
         for j in range(1, min(reach, s.span) + 1):
             between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+            for k in range(1, min(s.span + 1 - j, reach) + 1) if hidden[-sd] else ():
+                cc, cont = hidden[-sd][k]
+                between[cc] |= far[sd][j][cc] & (cont > R[sd * j][cc])
     if axis == 0:
         # along elevation the ground recedes monotonically from the sensor up to a
         # wall's foot: runs there are left to the rules above
@@ -533,8 +572,17 @@ def _mixed_along(
             inside = (pos + sd >= extent[0]) & (pos + sd <= extent[1])
             open_ = inside & ~(R[sd] <= r + s.max_gap)
             own = np.abs(R[-sd] - r) <= spread(0, np.abs(R[-sd] - R[-2 * sd]))
+            if not s.open_edges:
+                # within min_offset of the inner neighbour in range: on its surface
+                own |= np.abs(R[-sd] - r) <= s.min_offset
             off = (off_end[-sd] if s.open_edges else off_blend[-sd]) & ~own
             ends = open_ & off
+            if not s.open_edges:
+                # the inner surface, continued past p, would answer beyond max_gap: it
+                # recedes out of reach (grazing ground towards the range limit) and
+                # does not end at p, so no background ends within p's beam
+                v_on = V[-sd] + (V[-sd] - V[-2 * sd]) * 2.0
+                ends &= ~((v_on <= 0) | (1.0 / v_on > r + s.max_gap))
             for _ in range(1, chain):
                 ends |= off & np.append(ends, False)[line.J[sd]]
             between |= ends
