@@ -157,6 +157,18 @@ def path_length(poly: Polygon | MultiPolygon, res: float) -> float:
     return float(far.max() * res)
 
 
+def closed_across(poly: Polygon | MultiPolygon, width: float) -> Polygon | MultiPolygon:
+    """``poly`` closed (grown and shrunk) by half of ``width`` metres: gaps narrower than
+    the object between its parts, or between a part and a strip running beside it,
+    filled, so measuring along it does not walk out and back along the strip. Bends of
+    a radius over half the width and the ends are kept."""
+    r = 0.5 * width
+    if r <= 0:
+        return poly
+    closed = poly.buffer(r, quad_segs=3).buffer(-r, quad_segs=3)
+    return poly if closed.is_empty else closed
+
+
 def _smoothed(poly: Polygon | MultiPolygon, tile_size: float) -> Polygon | MultiPolygon:
     """The outline closed and opened by 0.75 tile, for measuring.
 
@@ -378,8 +390,11 @@ def finish_pieces(
         if measure != "rectangle" and length >= 3 * width:
             # an elongated object is no longer than the way through it; its width
             # stays the strip's (a ragged zigzag of 3 m strips is 3 m wide). Measured
-            # last: it only shortens, and costs a path search
-            length = min(length, path_length(f.geometry, tile_size / 2))
+            # last: it only shortens, and costs a path search. The way runs through
+            # the outline closed across gaps narrower than the object (``closed_across``):
+            # a strip beside it, one gap away and touching it at one end, is part of it
+            # side by side, not a hairpin to walk out and back along
+            length = min(length, path_length(closed_across(f.geometry, width), tile_size / 2))
             lt = length / tile_size
             if min_l is not None and lt < min_l:
                 continue
