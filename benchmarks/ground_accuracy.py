@@ -259,6 +259,16 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_half": 0},
         {"rough_half_curve": 0},
         {"rough_fit": 0},
+        # The close fit as it was before its guards followed the rural family's scrub.
+        {
+            "rough_fit_local": 6.0,
+            "rough_fit_step_plane": False,
+            "rough_fit_clip_noise": 0.0,
+            "rough_fit_ceiling": 0.8,
+        },
+        {"rough_fit_local": 6.0},
+        {"rough_fit_clip_noise": 0.0},
+        {"rough_fit_step_plane": True},
         {"final_nodes": "square"},
     ],
 }
