@@ -51,8 +51,6 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import os
-import subprocess
 import sys
 import time
 import typing
@@ -62,6 +60,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from two_trees import run_code  # noqa: E402
 
 from terrasift.metrics import ground_score  # noqa: E402
 from terrasift.synthetic import rural, slopes  # noqa: E402
@@ -526,19 +527,6 @@ SPEED_CODE = (
 )
 
 
-def _speed_of(code_dir: Path, stage_id: str) -> float:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(code_dir))
-    out = subprocess.run(
-        [sys.executable, "-c", SPEED_CODE, str(code_dir), stage_id],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=code_dir,
-    )
-    return float(out.stdout.strip().splitlines()[-1])
-
-
 def speed(stage, baseline: str = "", runs: int = 3) -> None:
     sc = make_scene(size=790, density=8)
     g, sec = _run(stage, sc.xyz)
@@ -552,8 +540,8 @@ def speed(stage, baseline: str = "", runs: int = 3) -> None:
     # Alternated runs in fresh processes (same compile cache state): this tree vs the baseline.
     ours, base = [], []
     for _ in range(runs):
-        ours.append(_speed_of(ROOT, stage.id))
-        base.append(_speed_of(Path(baseline).resolve(), stage.id))
+        ours.append(run_code(ROOT, SPEED_CODE, stage.id))
+        base.append(run_code(Path(baseline).resolve(), SPEED_CODE, stage.id))
     print(
         f"  this tree {np.median(ours) / 1e3:.0f} k points/s, baseline {np.median(base) / 1e3:.0f} k "
         f"(medians of {runs}, alternated): ratio {np.median(ours) / np.median(base):.3f}"

@@ -18,8 +18,6 @@ samples are read from ``../shared/data/isprs``; missing ones are skipped.
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -28,6 +26,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from two_trees import alternate  # noqa: E402
 
 DATA = ROOT / ".." / "shared" / "data"
 DEFAULT_CASES = (
@@ -36,16 +37,16 @@ DEFAULT_CASES = (
     "rural_slope:0,rural_slope:2,rural_slope:4,rural_slope:6,rural_slope:523"
 )
 
-# One run in a fresh process: the code of argv[1], points and density from argv[2],
-# labels written to argv[3], CPU seconds of the run printed.
+# One run in a fresh process: the code of argv[1], labels written to argv[2], points
+# and density from argv[3], stage argv[4]; CPU seconds of the run printed.
 WORKER = (
     "import sys, time; sys.path.insert(0, sys.argv[1]); import numpy as np;"
     "from terrasift.workers import registry;"
-    "st = registry.get_stage(sys.argv[4]); d = np.load(sys.argv[2]); xyz = d['xyz'];"
+    "st = registry.get_stage(sys.argv[4]); d = np.load(sys.argv[3]); xyz = d['xyz'];"
     "over = {'density': float(d['density'])} if float(d['density']) > 0 else {};"
     "p = st.params.preset('default', **over); st.run(xyz[:20000], p);"
     "c = time.process_time(); g = st.run(xyz, p); t = time.process_time() - c;"
-    "np.save(sys.argv[3], np.asarray(g, dtype=bool)); print(t)"
+    "np.save(sys.argv[2], np.asarray(g, dtype=bool)); print(t)"
 )
 
 
@@ -75,19 +76,6 @@ def _points(case: str) -> tuple[np.ndarray, float] | None:
     return rural.FAMILIES[family](int(seed)).xyz, 0.0
 
 
-def _run(code: Path, scene: Path, out: Path, stage: str) -> float:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(code))
-    res = subprocess.run(
-        [sys.executable, "-c", WORKER, str(code), str(scene), str(out), stage],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=code,
-    )
-    return float(res.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--baseline", required=True, help="checkout of another commit")
@@ -108,18 +96,12 @@ def main() -> None:
                 continue
             scene = Path(tmp) / "scene.npz"
             np.savez(scene, xyz=pts[0], density=pts[1])
-            ours, theirs = [], []
-            for r in range(a.runs):
-                ours.append(_run(ROOT, scene, Path(tmp) / "ours.npy", a.stage))
-                theirs.append(_run(base, scene, Path(tmp) / "base.npy", a.stage))
-                if r == 0:
-                    g, h = np.load(Path(tmp) / "ours.npy"), np.load(Path(tmp) / "base.npy")
-                    same = bool(np.array_equal(g, h))
-            same_all &= same
-            t, u = float(np.median(ours)), float(np.median(theirs))
-            verdict = "identical" if same else f"{np.count_nonzero(g != h)} differ"
+            pair = alternate(WORKER, ROOT, base, Path(tmp), a.runs, str(scene), a.stage)
+            same_all &= pair.same
+            g = pair.ours
             print(
-                f"{case:<20} {len(g):>9} {verdict:>10} {g.mean():>9.4f} {t:>9.2f} {u:>9.2f} {u / t:>6.3f}",
+                f"{case:<20} {len(g):>9} {pair.verdict:>10} {g.mean():>9.4f} "
+                f"{pair.cpu_ours:>9.2f} {pair.cpu_theirs:>9.2f} {pair.ratio:>6.3f}",
                 flush=True,
             )
     print("all labels identical" if same_all else "LABELS DIFFER")

@@ -159,6 +159,21 @@ FAMILIES: dict[str, dict] = {
 }
 
 
+def speed_scan() -> Scan:
+    """The dense case of the speed figure: one position, a 0.05° step, a 2-step footprint."""
+    return make_scan(
+        step_deg=0.05,
+        footprint_steps=2.0,
+        azimuth_deg=(-12.0, 12.0),
+        elevation_deg=(-20.0, 8.0),
+        n_boards=3,
+        n_poles=3,
+        object_range=(6.0, 20.0),
+        las_scale=0.001,
+        seed=7,
+    )
+
+
 def draw_scene(seed: int, family: str) -> tuple[dict, ScanTile]:
     """One scene of the family: its drawn parameters and its tile."""
     rng = np.random.default_rng(seed)
@@ -510,17 +525,7 @@ def main() -> None:
         shard_cost(*scenes[0])
 
     if not args.no_speed:
-        big = make_scan(
-            step_deg=0.05,
-            footprint_steps=2.0,
-            azimuth_deg=(-12.0, 12.0),
-            elevation_deg=(-20.0, 8.0),
-            n_boards=3,
-            n_poles=3,
-            object_range=(6.0, 20.0),
-            las_scale=0.001,
-            seed=7,
-        )
+        big = speed_scan()
         runs = {
             "default": (MixedParams(**overrides), False),
             "default, GPS time": (MixedParams(**overrides), True),

@@ -18,8 +18,6 @@ coarse, ...; several scan positions where the family has them).
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -30,43 +28,33 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from two_trees import alternate  # noqa: E402
+
 DEFAULT_CASES = (
     "speed,report:0,report:1,report:2,report:7000,shared-report:4100,shared-report:4300,"
     "shared-report:4301,coarse:2000,coarse:2001,coarse:2002"
 )
 
-# One run in a fresh process: the code of argv[1], the scan from argv[2], marks written
-# to argv[3], GPS time used when argv[4] is 1, method argv[5]; CPU seconds printed.
+# One run in a fresh process: the code of argv[1], marks written to argv[2], the scan
+# from argv[3], GPS time used when argv[4] is 1, method argv[5]; CPU seconds printed.
 WORKER = (
     "import sys, time; sys.path.insert(0, sys.argv[1]); import numpy as np;"
     "from terrasift.workers.mixed import MixedParams, mark_mixed;"
-    "d = np.load(sys.argv[2]); xyz = d['xyz']; o = d['origins'];"
+    "d = np.load(sys.argv[3]); xyz = d['xyz']; o = d['origins'];"
     "ids = d['scan_id'] if o.shape[0] > 1 else None; o = o if o.shape[0] > 1 else o[0];"
     "t = d['gps_time'] if sys.argv[4] == '1' else None; p = MixedParams(method=sys.argv[5]);"
     "mark_mixed(xyz[:2000], p, o if ids is None else o[0]);"
     "c = time.process_time(); m = mark_mixed(xyz, p, o, ids, gps_time=t).marked;"
-    "u = time.process_time() - c; np.save(sys.argv[3], m); print(u)"
+    "u = time.process_time() - c; np.save(sys.argv[2], m); print(u)"
 )
 
 
 def _scan(case: str) -> dict[str, np.ndarray]:
     """Points, scan positions, each point's position and GPS time of ``case``."""
-    from mixed_accuracy import draw_scene
-
-    from terrasift.synthetic.scan import make_scan
+    from mixed_accuracy import draw_scene, speed_scan
 
     if case == "speed":
-        big = make_scan(
-            step_deg=0.05,
-            footprint_steps=2.0,
-            azimuth_deg=(-12.0, 12.0),
-            elevation_deg=(-20.0, 8.0),
-            n_boards=3,
-            n_poles=3,
-            object_range=(6.0, 20.0),
-            las_scale=0.001,
-            seed=7,
-        )
+        big = speed_scan()
         n = len(big.xyz)
         return dict(
             xyz=big.xyz,
@@ -82,20 +70,6 @@ def _scan(case: str) -> dict[str, np.ndarray]:
         scan_id=np.asarray(tile.scan_id, dtype=np.int64),
         gps_time=tile.gps_time,
     )
-
-
-def _run(code: Path, scene: Path, out: Path, gps: bool, method: str) -> float:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(code))
-    args = [str(code), str(scene), str(out), "1" if gps else "0", method]
-    res = subprocess.run(
-        [sys.executable, "-c", WORKER, *args],
-        env=env,
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=code,
-    )
-    return float(res.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -118,19 +92,14 @@ def main() -> None:
             scene = Path(tmp) / "scene.npz"
             np.savez(scene, **_scan(case))
             for gps in gps_runs:
-                ours, theirs = [], []
-                for r in range(a.runs):
-                    ours.append(_run(ROOT, scene, Path(tmp) / "ours.npy", gps, a.method))
-                    theirs.append(_run(base, scene, Path(tmp) / "base.npy", gps, a.method))
-                    if r == 0:
-                        g, h = np.load(Path(tmp) / "ours.npy"), np.load(Path(tmp) / "base.npy")
-                        same = bool(np.array_equal(g, h))
-                same_all &= same
-                t, u = float(np.median(ours)), float(np.median(theirs))
-                verdict = "identical" if same else f"{np.count_nonzero(g != h)} differ"
+                flag = "1" if gps else "0"
+                pair = alternate(WORKER, ROOT, base, Path(tmp), a.runs, str(scene), flag, a.method)
+                same_all &= pair.same
+                g = pair.ours
                 print(
-                    f"{case:<20} {'yes' if gps else 'no':>4} {len(g):>8} {verdict:>10} "
-                    f"{int(g.sum()):>7} {t:>9.2f} {u:>9.2f} {u / t:>6.3f}",
+                    f"{case:<20} {'yes' if gps else 'no':>4} {len(g):>8} {pair.verdict:>10} "
+                    f"{int(g.sum()):>7} {pair.cpu_ours:>9.2f} {pair.cpu_theirs:>9.2f} "
+                    f"{pair.ratio:>6.3f}",
                     flush=True,
                 )
     print("all marks identical" if same_all else "MARKS DIFFER")
