@@ -37,7 +37,7 @@ Along elevation a blend of grazing ground with the foot of an object above it (a
 board standing clear of the ground, the ground running on under it) lies nearer than
 the ground's last beams, like the object: the ground continued to its beam passes
 behind it, so the ground counts as the farther surface there (not for a return level
-with its azimuth neighbours: a wall's foot row). The front of a thin object one beam
+with its azimuth neighbours one and two beams away: a wall's foot row). The front of a thin object one beam
 wide is an anchor of its own when both its neighbours lie behind it by more than a
 convex surface recedes in one beam (step × range) and neither lies on a surface.
 
@@ -325,10 +325,14 @@ def mark_grid(
         level = None
         if axis == 1:
             # on a surface along azimuth: within the scatter of r - (r₋ + r₊)/2 (sd
-            # sigma·sqrt(1.5)) of its two azimuth neighbours' mean
-            r_m, r_p = r_pad[find(key - n_e)], r_pad[find(key + n_e)]
+            # sigma·sqrt(1.5)) of the mean of its azimuth neighbours one and two beams
+            # away on either side
+            tol = s.sigmas * s.sigma * np.sqrt(1.5)
+            level = np.ones(r.size, dtype=bool)
             with np.errstate(invalid="ignore"):
-                level = np.abs(0.5 * (r_m + r_p) - r) <= s.sigmas * s.sigma * np.sqrt(1.5)
+                for k in (1, 2):
+                    r_m, r_p = r_pad[find(key - k * n_e)], r_pad[find(key + k * n_e)]
+                    level &= np.abs(0.5 * (r_m + r_p) - r) <= tol
         out |= _mixed_along(line, r, s, pos, axis, (lo, hi), level)
         line_done = line  # its arrays are free for the next axis
     marked[idx[order]] = out
@@ -445,7 +449,7 @@ def _mixed_along(
 ) -> NDArray[np.bool_]:
     """Mixed returns along one axis of the grid (``pos`` each return's index along it,
     ``extent`` the first and last index of the field of view; ``level``, along
-    elevation: the returns on a surface along azimuth)."""
+    elevation: the returns level with their azimuth neighbours)."""
     n = r.size
     reach = s.reach
     R, V = line.R, line.V
