@@ -541,15 +541,18 @@ def _mixed_along(
                 # more than a convex surface through it recedes in one beam (step × range)
                 # and, seen from beyond, on no surface of their own (blends of the object
                 # with what lies behind; a wall running up to the object is no blend)
+                behind_c = None
+                if axis == 1 and level is not None:
+                    behind_c = np.flatnonzero(near[sd][i] & ~level)  # used below
                 if i + 3 <= reach + 2:
-                    lim = s.margin + step * ra
-                    inner = R[sd * (i - 1)] if i > 1 else r
-                    cp = np.flatnonzero(
-                        (R[a1] - ra > lim)
-                        & (inner - ra > lim)
-                        & (r - ra > lim)
-                        & (r - ra < s.max_gap)
-                    )
+                    # p behind the anchor by more than margin + step × range, picked first
+                    cp = np.flatnonzero(r - ra * (1.0 + step) > s.margin)
+                    ra_c = ra[cp]
+                    lim = s.margin + step * ra_c
+                    inner = (R[sd * (i - 1)] if i > 1 else r)[cp]
+                    cp = cp[
+                        (R[a1][cp] - ra_c > lim) & (inner - ra_c > lim) & (r[cp] - ra_c < s.max_gap)
+                    ]
                     if cp.size:
                         keep = ~_on_line(R, cp, a1, sd, s, step) & ~_on_line(
                             R, cp, sd * (i - 1), -sd, s, step
@@ -583,8 +586,8 @@ def _mixed_along(
                     # ground counts as the farther surface there, paired below with a
                     # nearer one above. Not when p lies on a surface along azimuth (a
                     # wall's foot row, the ground continued passing behind the wall)
-                    cb = np.flatnonzero(ok & (ra < r - s.margin) & (gap < s.max_gap) & ~level)
-                    if cb.size:
+                    cb = behind_c
+                    if cb is not None and cb.size:
                         v = V[a][cb] + (V[a][cb] - V[a1][cb]) * i
                         behind = np.where(v > 0, 1.0 / v, np.inf) > r[cb] + s.margin
                         far[sd][i][cb[behind]] = True
