@@ -33,6 +33,14 @@ foot lies 20 cm off the ground in range but 2 cm above it), while the range
 offset itself must exceed the margin and the continuation's scatter (range noise
 lies along the ray, so across a grazing surface it shrinks as the offset does).
 
+Along elevation a blend of grazing ground with the foot of an object above it (a
+board standing clear of the ground, the ground running on under it) lies nearer than
+the ground's last beams, like the object: the ground continued to its beam passes
+behind it, so the ground counts as the farther surface there (not for a return level
+with its azimuth neighbours one and two beams away: a wall's foot row). The front of a thin object one beam
+wide is an anchor of its own when both its neighbours lie behind it by more than a
+convex surface recedes in one beam (step × range) and neither lies on a surface.
+
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
 of one background surface that continues behind them. Such runs are marked too.
@@ -314,7 +322,18 @@ def mark_grid(
             # meets the ground around the sensor: rows above the highest return (a wall
             # top under an empty sky) were fired too
             hi = max(hi, lo + fired_rows - 1)
-        out |= _mixed_along(line, r, s, pos, axis, (lo, hi))
+        level = None
+        if axis == 1:
+            # on a surface along azimuth: within the scatter of r - (r₋ + r₊)/2 (sd
+            # sigma·sqrt(1.5)) of the mean of its azimuth neighbours one and two beams
+            # away on either side
+            tol = s.sigmas * s.sigma * np.sqrt(1.5)
+            level = np.ones(r.size, dtype=bool)
+            with np.errstate(invalid="ignore"):
+                for k in (1, 2):
+                    r_m, r_p = r_pad[find(key - k * n_e)], r_pad[find(key + k * n_e)]
+                    level &= np.abs(0.5 * (r_m + r_p) - r) <= tol
+        out |= _mixed_along(line, r, s, pos, axis, (lo, hi), level)
         line_done = line  # its arrays are free for the next axis
     marked[idx[order]] = out
     return marked, judged, timed is not None
@@ -426,9 +445,11 @@ def _mixed_along(
     pos: NDArray[np.int64],
     axis: int,
     extent: tuple[int, int],
+    level: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Mixed returns along one axis of the grid (``pos`` each return's index along it,
-    ``extent`` the first and last index of the field of view)."""
+    ``extent`` the first and last index of the field of view; ``level``, along
+    elevation: the returns level with their azimuth neighbours)."""
     n = r.size
     reach = s.reach
     R, V = line.R, line.V
@@ -515,6 +536,28 @@ def _mixed_along(
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
                 near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
+                # the front of a thin object one beam wide is an anchor too (it has no
+                # second beam on its line): its neighbours either side lie behind it by
+                # more than a convex surface through it recedes in one beam (step × range)
+                # and, seen from beyond, on no surface of their own (blends of the object
+                # with what lies behind; a wall running up to the object is no blend)
+                behind_c = None
+                if axis == 1 and level is not None:
+                    behind_c = np.flatnonzero(near[sd][i] & ~level)  # used below
+                if i + 3 <= reach + 2:
+                    # p behind the anchor by more than margin + step × range, picked first
+                    cp = np.flatnonzero(r - ra * (1.0 + step) > s.margin)
+                    ra_c = ra[cp]
+                    lim = s.margin + step * ra_c
+                    inner = (R[sd * (i - 1)] if i > 1 else r)[cp]
+                    cp = cp[
+                        (R[a1][cp] - ra_c > lim) & (inner - ra_c > lim) & (r[cp] - ra_c < s.max_gap)
+                    ]
+                    if cp.size:
+                        keep = ~_on_line(R, cp, a1, sd, s, step) & ~_on_line(
+                            R, cp, sd * (i - 1), -sd, s, step
+                        )
+                        near[sd][i][cp[keep]] = True
                 if axis == 1:
                     # a nearer surface (grazing ground) whose continuation to p's beam
                     # passes more than max_gap behind p: where a farther anchor lies in
@@ -536,6 +579,18 @@ def _mixed_along(
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
                 off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
                 far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
+                if axis == 1 and level is not None:
+                    # a nearer surface (grazing ground) whose continuation to p's beam
+                    # passes behind p (within max_gap): p lies in front of the ground
+                    # running on under an object above (a board's or wall's foot), so the
+                    # ground counts as the farther surface there, paired below with a
+                    # nearer one above. Not when p lies on a surface along azimuth (a
+                    # wall's foot row, the ground continued passing behind the wall)
+                    cb = behind_c
+                    if cb is not None and cb.size:
+                        v = V[a][cb] + (V[a][cb] - V[a1][cb]) * i
+                        behind = np.where(v > 0, 1.0 / v, np.inf) > r[cb] + s.margin
+                        far[sd][i][cb[behind]] = True
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
@@ -591,6 +646,25 @@ def _mixed_along(
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
+
+
+def _on_line(
+    R: dict[int, NDArray[np.float64]],
+    c: NDArray[np.intp],
+    o: int,
+    away: int,
+    s: GridSettings,
+    step: float,
+) -> NDArray[np.bool_]:
+    """Whether the returns at beam offset ``o`` (of the returns ``c``) lie on the line
+    through their next two beams in direction ``away`` (inverse range, within the
+    scatter of that line continued one beam, as an anchor is judged)."""
+    r1, r2 = R[o + away][c], R[o + 2 * away][c]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = 2.0 / r1 - 1.0 / r2
+        cont = np.where(v > 0, 1.0 / v, np.inf)
+        sd = np.sqrt(s.sigma**2 + (np.abs(r1 - r2) * s.las_scale / np.sqrt(12.0) / r1 / step) ** 2)
+    return np.abs(cont - R[o][c]) <= s.sigmas * sd * np.sqrt(6.0)
 
 
 def _cascade(
