@@ -539,7 +539,7 @@ class _Parser:
             enclosed,
             isolated,
             tuple(yields),
-            clear_exempt,
+            clear_exempt=clear_exempt,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
