@@ -36,6 +36,7 @@ Tiles with any nodata cell, and partial tiles at the right/bottom border, carry
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -152,6 +153,11 @@ class Categories:
     254 for any gradient when σ_g is 0); the filters' ``grade`` (``grade not 0 1 2 3 4``:
     a slope the DTM's noise does not explain by five times over). None: the filters
     take 254 for tiles with an inclination, else 0."""
+    flat_sigmas: float = math.inf
+    """The flatness threshold in heights the slope noise σ_g gives across a tile
+    (``flat_height`` / (σ_g × the tile's width between its outer cell centres)); inf when
+    σ_g is 0. Where it is small, noise alone tips level tiles past the threshold; the
+    filters' ``clear-share`` exemption reads it."""
 
     @property
     def step(self) -> int:
@@ -283,6 +289,7 @@ def category_grids(
     if sigma_g is None:
         sigma_g = 0.0 if params.noise == 0 else _slope_noise([tile_slopes(dtm, cell, params)])
     clear_height = params.flat_height + params.clear_slope_noise * sigma_g * (k - 1) * cell
+    flat_sigmas = params.flat_height / (sigma_g * (k - 1) * cell) if sigma_g > 0 else math.inf
     grids = list(trends or [None])
     n = rows * cols
     slopes = np.zeros((len(grids), 2, n))
@@ -375,6 +382,7 @@ def category_grids(
                 clear.reshape(shape),
                 rise_dir.reshape(shape),
                 grade.reshape(shape),
+                flat_sigmas,
             )
         )
     return out
@@ -411,6 +419,7 @@ def stack_rows(parts: list[Categories], keep: list[int]) -> Categories:
         None if first.clear is None else cat("clear"),
         None if first.rise is None else cat("rise"),
         None if first.grade is None else cat("grade"),
+        min(p.flat_sigmas for p in parts),
     )
 
 

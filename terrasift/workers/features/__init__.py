@@ -336,7 +336,9 @@ def whole_label_rules(
     if c.method == "segment":
         labels = _drop_gappy(labels, c.max_error)
     if flt.clear_share is not None:
-        labels = _drop_unclear(labels, categories, flt.clear_share)
+        labels = _drop_unclear(
+            labels, categories, flt.clear_share, clear_exempt_tiles(flt, categories)
+        )
     if flt.surround is not None:
         if support is None:
             raise ParameterError(f"filter {flt.name}: surround needs the filter's support")
@@ -497,34 +499,59 @@ def object_options(flt: Filter, params: FeatureParams) -> dict[str, Any]:
     }
 
 
+def clear_exempt_tiles(flt: Filter, categories: Categories) -> float | None:
+    """Tiles from which a resolved filter's object needs no clear share (``clear-share``'s
+    noise multiple: as many as the connect step's smallest length, where the DTM's slope
+    noise cannot tip a level tile past the flatness threshold), or None."""
+    c = flt.connect
+    if flt.clear_exempt is None or c is None or categories.flat_sigmas < flt.clear_exempt:
+        return None
+    return float(c.min_length or 1)
+
+
+def clear_kept(
+    counted: NDArray | float,
+    clear: NDArray | float,
+    tiles: NDArray | float,
+    share: float,
+    exempt: float | None,
+) -> NDArray[np.bool_]:
+    """Which objects ``clear-share`` keeps, from ``clear_counts``' sums."""
+    keep = np.asarray(clear) >= share * np.asarray(counted)
+    if exempt is not None:
+        keep |= np.asarray(tiles) >= exempt
+    return keep
+
+
 def _drop_unclear(
-    labels: NDArray[np.int32], categories: Categories, share: float
+    labels: NDArray[np.int32], categories: Categories, share: float, exempt: float | None = None
 ) -> NDArray[np.int32]:
     """Remove objects whose tiles that are not flat are clearly not flat (``Categories.clear``)
-    for less than ``share`` of them. Each object is a whole connected label, so the
-    test is the same wherever a window cuts the DTM (``tiled``). Without the band
-    every tile that is not flat counts as clear."""
+    for less than ``share`` of them, unless they have ``exempt`` tiles or more. Each object
+    is a whole connected label, so the test is the same wherever a window cuts the DTM
+    (``tiled``). Without the band every tile that is not flat counts as clear."""
     n = int(labels.max())
     if n == 0 or categories.clear is None:
         return labels
-    counted, clear = clear_counts(labels, categories, n)
+    counted, clear, tiles = clear_counts(labels, categories, n)
     keep = np.zeros(n + 1, dtype=bool)
-    keep[1:] = clear >= share * counted
+    keep[1:] = clear_kept(counted, clear, tiles, share, exempt)
     return np.where(keep[labels], labels, 0).astype(np.int32)
 
 
 def clear_counts(
     labels: NDArray[np.int32], categories: Categories, n: int
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per label 1..n: its tiles that are not flat, and of those the clearly not flat
-    ones (``_drop_unclear``'s sums, which add up over the parts of a label)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Per label 1..n: its tiles that are not flat, of those the clearly not flat ones,
+    and all its tiles (``_drop_unclear``'s sums, which add up over the parts of a label)."""
     assert categories.clear is not None
     inc, ori, st = categories.inclination, categories.orientation, categories.state
     not_flat = ((inc | ori | st) != 0) & (inc != NODATA)
     idx = np.arange(1, n + 1)
     counted = ndimage.sum_labels(not_flat, labels, idx)
     clear = ndimage.sum_labels(not_flat & (categories.clear == 1), labels, idx)
-    return np.asarray(counted, float), np.asarray(clear, float)
+    tiles = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    return np.asarray(counted, float), np.asarray(clear, float), np.asarray(tiles, float)
 
 
 def _drop_busy(

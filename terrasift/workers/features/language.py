@@ -269,6 +269,12 @@ class Filter:
     run (Sjövall §5.3.1: filters in an order of priority, an object found by the first
     taken out before the next looks). A road cut into a slope is, on the ditch filter's
     detrended tiles, a trough falling to the foot of its uphill wall."""
+    clear_exempt: float | None = None
+    """``clear-share <share> <sigmas>``: the share is not asked of an object (before
+    joining) of at least as many tiles as the connect step's smallest length where the
+    flatness threshold is at least this many slope-noise heights above level
+    (``Categories.flat_sigmas``): there noise cannot tip a level tile past the threshold,
+    and a shallow object's tiles just past it are real."""
 
     @property
     def makes_objects(self) -> bool:
@@ -351,6 +357,7 @@ class _Parser:
         hull = False
         solidity: float | None = None
         clear_share: float | None = None
+        clear_exempt: float | None = None
         surround: tuple[Length, float] | None = None
         share: float | None = None
         yields: list[tuple[str, Length, float]] = []
@@ -409,11 +416,19 @@ class _Parser:
                     raise self.error("solidity is a share above 0 and at most 1", no)
                 steps.append("solidity")
             elif key == "clear-share":
-                if clear_share is not None or len(args) != 1:
-                    raise self.error("clear-share takes one share (0-1) once", no)
-                (clear_share,) = self.numbers(args, no, "clear-share")
+                if clear_share is not None or len(args) not in (1, 2):
+                    raise self.error(
+                        "clear-share takes one share (0-1) and optionally a noise multiple, once",
+                        no,
+                    )
+                values = self.numbers(args, no, "clear-share")
+                clear_share = values[0]
                 if not 0 < clear_share <= 1:
                     raise self.error("clear-share is a share above 0 and at most 1", no)
+                if len(values) == 2:
+                    clear_exempt = values[1]
+                    if not clear_exempt > 0:
+                        raise self.error("clear-share's noise multiple is above 0", no)
                 steps.append("clear-share")
             elif key == "surround":
                 if surround is not None or len(args) != 2:
@@ -524,6 +539,7 @@ class _Parser:
             enclosed,
             isolated,
             tuple(yields),
+            clear_exempt=clear_exempt,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -748,7 +764,8 @@ def format_filter(f: Filter) -> str:
         elif step == "solidity" and f.solidity is not None:
             out.append(f"solidity {f.solidity:g}")
         elif step == "clear-share" and f.clear_share is not None:
-            out.append(f"clear-share {f.clear_share:g}")
+            exempt = "" if f.clear_exempt is None else f" {f.clear_exempt:g}"
+            out.append(f"clear-share {f.clear_share:g}{exempt}")
         elif step == "surround" and f.surround is not None:
             out.append(f"surround {_text(f.surround[0])} {f.surround[1]:g}")
         elif step == "enclosed" and f.enclosed is not None:

@@ -57,6 +57,8 @@ from terrasift.workers.features import (
     apply_yields,
     categories_for,
     clear_counts,
+    clear_exempt_tiles,
+    clear_kept,
     connect_reach,
     filter_labels,
     grid_key,
@@ -94,7 +96,7 @@ class Cut:
     edge: frozenset[tuple[int, int]]  # its tiles within the connect reach of the core's edge
     links: frozenset[tuple[int, int]]  # the label's tiles just outside the core (other cores')
     near: bool  # another label within ``near_reach`` of one of its tiles
-    clear: tuple[float, float] | None  # ``clear_counts`` (tiles not flat, clearly not flat)
+    clear: tuple[float, float, float] | None  # ``clear_counts`` (not flat, clearly, all tiles)
     lines: tuple[frozenset[int], frozenset[int]] | None  # rows, columns (``connect segment``)
     ring: tuple[frozenset[tuple[int, int]], frozenset[tuple[int, int]]] | None = None
     """``surround``: the open ground within its distance of the part's tiles, and the
@@ -104,6 +106,8 @@ class Cut:
     the label itself, is the whole label's)."""
     fall: Rim | None = None
     """``isolated``: the part's ``Rim`` with every tile, joined as ``rim``."""
+    clear_exempt: float | None = None
+    """``clear-share``'s exemption (``clear_exempt_tiles``), the same for every part."""
 
 
 @dataclass(frozen=True)
@@ -640,11 +644,18 @@ def _cut_pieces(
             frozenset(edges.get(lab, ())),
             frozenset(links.get(lab, ())),
             bool(close[lab]),
-            None if clear is None else (float(clear[0][lab - 1]), float(clear[1][lab - 1])),
+            None
+            if clear is None
+            else (
+                float(clear[0][lab - 1]),
+                float(clear[1][lab - 1]),
+                float(clear[2][lab - 1]),
+            ),
             lines,
             rings.get(lab),
             rims.get(lab),
             falls.get(lab),
+            clear_exempt_tiles(flt, cats),
         )
         fr, fc = divmod(key[lab], labels.shape[1])
         feat = Feature(flt.name, part.polygon, 0.0, 0.0, int(counts[lab]))
@@ -733,8 +744,9 @@ def _join_cuts(parts: list[Piece], flt: Filter, params: FeatureParams) -> list[P
             continue
         sums = [x.clear for x in cuts if x.clear is not None]
         if flt.clear_share is not None and sums and len(sums) == len(cuts):
-            counted = math.fsum(v[0] for v in sums)
-            if math.fsum(v[1] for v in sums) < flt.clear_share * counted:
+            counted, clear, whole = (math.fsum(v[i] for v in sums) for i in range(3))
+            exempt = cuts[0].clear_exempt
+            if not clear_kept(counted, clear, whole, flt.clear_share, exempt).all():
                 continue
         rings = [x.ring for x in cuts if x.ring is not None]
         if flt.surround is not None and rings and len(rings) == len(cuts):
