@@ -263,6 +263,11 @@ class Filter:
     into an outline of its own, runs on into the ridge's flanks, inclined across it."""
 
     yields: tuple[tuple[str, Length, float], ...] = ()
+    join_line: Length | None = None
+    """``join-line <gap>``: objects (within the connect limits on their own) lying on one
+    line, each one's centre within half the narrower one's width of the other's long
+    axis, join across gaps up to this length: a straight road whose middle the
+    categories miss over a stretch, found as two pieces on one centre line."""
     """``yield <filter> <distance> <share>`` (each once per filter named): objects of which
     at least this share of the area lies within the distance (tiles of the category tile
     size, or metres) of an object of the named filter are dropped once every filter has
@@ -356,6 +361,7 @@ class _Parser:
         yields: list[tuple[str, Length, float]] = []
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
+        join_line: Length | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -472,6 +478,11 @@ class _Parser:
                 if len(args) == 2:
                     join_aligned = self.lengths(args[1:], no, "join", lo=1)[0]
                 steps.append("join")
+            elif key == "join-line":
+                if join_line is not None or len(args) != 1:
+                    raise self.error("join-line takes one gap (tiles or metres), once", no)
+                join_line = self.lengths(args, no, "join-line", lo=1)[0]
+                steps.append("join-line")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
                     raise self.error("only one connect or findrectangle step is allowed", no)
@@ -490,6 +501,7 @@ class _Parser:
         if (
             aspect is not None
             or join is not None
+            or join_line is not None
             or hull
             or solidity is not None
             or clear_share is not None
@@ -498,7 +510,7 @@ class _Parser:
             or isolated is not None
         ) and connect is None:
             raise self.error(
-                "aspect, join, fill, solidity, clear-share, surround, enclosed and isolated"
+                "aspect, join, join-line, fill, solidity, clear-share, surround, enclosed and isolated"
                 " need a connect step",
                 last_line,
             )
@@ -524,6 +536,7 @@ class _Parser:
             enclosed,
             isolated,
             tuple(yields),
+            join_line,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -743,6 +756,8 @@ def format_filter(f: Filter) -> str:
         elif step == "join" and f.join is not None:
             aligned = "" if f.join_aligned is None else f" {_text(f.join_aligned)}"
             out.append(f"join {f.join if f.join == 'width' else _text(f.join)}{aligned}")
+        elif step == "join-line" and f.join_line is not None:
+            out.append(f"join-line {_text(f.join_line)}")
         elif step == "fill" and f.hull:
             out.append("fill hull")
         elif step == "solidity" and f.solidity is not None:
@@ -770,6 +785,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("aspect")
     if f.join is not None:
         steps.append("join")
+    if f.join_line is not None:
+        steps.append("join-line")
     if f.hull:
         steps.append("fill")
     if f.solidity is not None:
@@ -900,6 +917,7 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         rectangle=rect,
         join=join,
         join_aligned=aligned,
+        join_line=t(f.join_line, "size"),
         surround=surround,
         enclosed=enclosed,
         isolated=isolated,
