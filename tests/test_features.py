@@ -1705,3 +1705,93 @@ def test_a_sparse_interpolated_field_has_no_shallow_ditch():
         format_filter(flt).replace("grade not 0 1 2 3 4 5 6 7", "grade any"), "ditch"
     )
     assert detect_features(cats, [ungraded], tt, 2.0, stepped=stepped).objects
+
+
+def test_objects_on_one_line_join_across_a_long_gap_only_when_centred_on_it():
+    lab = np.zeros((60, 200), dtype=np.int32)
+    lab[28:31, 5:60] = 1
+    lab[28:31, 100:190] = 2  # the same line, 40 tiles (80 m) further on
+    lab[40:43, 70:95] = 3  # short, off the line: not an object alone
+    lab[5:8, 70:160] = 4  # parallel to 2, 23 tiles (46 m) aside
+    tt = Affine(2, 0, 0, 0, -2, 120)
+    limits = (30, None, None, 8)
+
+    def sizes(line):
+        fs = objects_from_labels(lab, "road", tt, 2.0, limits, join="width", join_line=line)
+        return sorted(round(f.length_m) for f in fs)
+
+    assert sizes(None) == [109, 179, 179]
+    # 110 + 80 + 180 m along one centre line; the parallel object stays apart
+    short, joined = sizes(50)
+    assert short == 179 and 365 <= joined <= 375
+    assert sizes(30) == [109, 179, 179]  # a gap over the limit stays open
+    lab[28:31, 100:190] = 0
+    lab[31:34, 100:190] = 2  # 3 tiles (6 m) off the line, more than half its width
+    assert sizes(50) == [109, 179, 179]
+    flt = parse_filter(
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect segment 60m -1 2m 16m 25\njoin width\njoin-line 100m\n"
+    )
+    assert flt.join_line == Metres(100)
+    assert parse_filter(format_filter(flt)) == flt
+    assert resolve_lengths(flt, 1.0).join_line == 100
+
+
+def test_a_road_whose_middle_reads_level_is_one_road_of_its_whole_length():
+    """A straight road on a 0.5 m embankment on level ground, 280 m long, with 50 m in
+    its middle where it lies on the ground (as where a low embankment's shoulders read
+    flat): the road filter finds two pieces on one centre line, one road."""
+    cell, w, h = 0.5, 100.0, 300.0
+    x, y = np.meshgrid(
+        (np.arange(int(w / cell)) + 0.5) * cell, h - (np.arange(int(h / cell)) + 0.5) * cell
+    )
+    t = np.clip((np.abs(x - 50) - 3.0) / 1.25, 0, 1)
+    on = (np.abs(y - 150) <= 140) & (np.abs(y - 150) > 25)
+    z = 100 + np.where(on, 0.5 * (1 - t), 0.0)
+    z = z + np.random.default_rng(3).normal(0, 0.015, z.shape)
+    flt = load_filter("road")
+    cats, stepped = categories_for(z, cell, [flt])
+    tt = Affine(cell, 0, 0, 0, -cell, h)
+    roads = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(roads) == 1
+    assert 250 < roads[0].length_m < 300
+
+
+def test_a_contour_embankment_whose_uphill_toe_reads_just_past_flat_is_a_road():
+    """A row across a road embankment along an 11 % slope as a job's DTM categorised it
+    (2 m tiles every 1 m): the downhill wall clearly not flat (tiles 15-18), the level
+    top, then the uphill toe, a tile just past the flatness threshold rising toward the
+    road but not clear (27), before the hillside rising away. Where the toe read so, the
+    road's rows went unmarked; 80 such rows are one road."""
+    inc = [0] * 15 + [1, 1, 1, 1] + [0] * 8 + [6] + [0] * 10
+    rise = [1] * 20 + [0, 8, 6, 7, 6, 7, 6, 6, 6] + [1] * 9
+    h10 = [2, 1, 2, 2, 2, 2, 2, 2, 1, 1, 2, 2, 2, 1, 2, 4, 9, 9, 5, 1, 1, 1, 1, 1, 1, 0, 2, 2]
+    h10 += [1, 1, 1, 2, 1, 2, 2, 2, 2, 1]
+    grade = [12, 11, 11, 12, 12, 13, 13, 13, 10, 11, 13, 12, 12, 10, 13, 28, 68, 67, 34, 6]
+    grade += [1, 3, 4, 5, 4, 2, 8, 13, 6, 8, 11, 12, 10, 12, 13, 11, 12, 11]
+    state = [0] * 15 + [2, 0, 0, 1] + [0] * 19
+    ori = [0] * 15 + [37, 0, 0, 37] + [0] * 19
+
+    def band(v: list[int]) -> NDArray[np.uint8]:
+        return np.tile(np.array(v, dtype=np.uint8), (80, 1))
+
+    cats = Categories(
+        inclination=band(inc),
+        orientation=band(ori),
+        state=band(state),
+        height10=band(h10),
+        cells_per_tile=4,
+        tile_size=2.0,
+        noise=0.005,
+        relief10=band(h10),
+        step_cells=2,
+        lying10=band(h10),
+        clear=band([1 if i else 0 for i in inc[:27]] + [0] * 11),
+        rise=band(rise),
+        grade=band(grade),
+    )
+    flt = resolve_lengths(load_filter("road"), cats.spacing)
+    labels, marks, _ = filter_labels(cats, flt)
+    assert marks[:, 20:26].all()  # every row marks the level top
+    assert labels is not None and np.unique(labels[labels > 0]).size == 1

@@ -496,6 +496,7 @@ def object_options(flt: Filter, params: FeatureParams) -> dict[str, Any]:
         "join_aligned": flt.join_aligned,
         "hull": flt.hull,
         "solidity": flt.solidity,
+        "join_line": flt.join_line,
     }
 
 

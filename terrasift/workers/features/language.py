@@ -269,6 +269,11 @@ class Filter:
     run (Sjövall §5.3.1: filters in an order of priority, an object found by the first
     taken out before the next looks). A road cut into a slope is, on the ditch filter's
     detrended tiles, a trough falling to the foot of its uphill wall."""
+    join_line: Length | None = None
+    """``join-line <gap>``: objects (within the connect limits on their own) lying on one
+    line, each one's centre within half the narrower one's width of the other's long
+    axis, join across gaps up to this length: a straight road whose middle the
+    categories miss over a stretch, found as two pieces on one centre line."""
     clear_exempt: float | None = None
     """``clear-share <share> <sigmas>``: the share is not asked of an object (before
     joining) of at least as many tiles as the connect step's smallest length where the
@@ -363,6 +368,7 @@ class _Parser:
         yields: list[tuple[str, Length, float]] = []
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
+        join_line: Length | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -487,6 +493,11 @@ class _Parser:
                 if len(args) == 2:
                     join_aligned = self.lengths(args[1:], no, "join", lo=1)[0]
                 steps.append("join")
+            elif key == "join-line":
+                if join_line is not None or len(args) != 1:
+                    raise self.error("join-line takes one gap (tiles or metres), once", no)
+                join_line = self.lengths(args, no, "join-line", lo=1)[0]
+                steps.append("join-line")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
                     raise self.error("only one connect or findrectangle step is allowed", no)
@@ -505,6 +516,7 @@ class _Parser:
         if (
             aspect is not None
             or join is not None
+            or join_line is not None
             or hull
             or solidity is not None
             or clear_share is not None
@@ -513,7 +525,7 @@ class _Parser:
             or isolated is not None
         ) and connect is None:
             raise self.error(
-                "aspect, join, fill, solidity, clear-share, surround, enclosed and isolated"
+                "aspect, join, join-line, fill, solidity, clear-share, surround, enclosed and isolated"
                 " need a connect step",
                 last_line,
             )
@@ -539,6 +551,7 @@ class _Parser:
             enclosed,
             isolated,
             tuple(yields),
+            join_line,
             clear_exempt=clear_exempt,
         )
 
@@ -759,6 +772,8 @@ def format_filter(f: Filter) -> str:
         elif step == "join" and f.join is not None:
             aligned = "" if f.join_aligned is None else f" {_text(f.join_aligned)}"
             out.append(f"join {f.join if f.join == 'width' else _text(f.join)}{aligned}")
+        elif step == "join-line" and f.join_line is not None:
+            out.append(f"join-line {_text(f.join_line)}")
         elif step == "fill" and f.hull:
             out.append("fill hull")
         elif step == "solidity" and f.solidity is not None:
@@ -787,6 +802,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("aspect")
     if f.join is not None:
         steps.append("join")
+    if f.join_line is not None:
+        steps.append("join-line")
     if f.hull:
         steps.append("fill")
     if f.solidity is not None:
@@ -917,6 +934,7 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         rectangle=rect,
         join=join,
         join_aligned=aligned,
+        join_line=t(f.join_line, "size"),
         surround=surround,
         enclosed=enclosed,
         isolated=isolated,

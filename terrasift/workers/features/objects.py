@@ -253,6 +253,7 @@ def objects_from_labels(
     join_aligned: float | None = None,
     hull: bool = False,
     solidity: float | None = None,
+    join_line: float | None = None,
 ) -> list[Feature]:
     """Features for every label whose length/width (in tiles) lie within ``limits``.
 
@@ -262,7 +263,8 @@ def objects_from_labels(
     ``object_size``. ``aspect`` bounds length / width; ``join`` (tiles, or
     ``"width"``) joins pieces first (``join_pieces``); ``hull`` replaces each
     object by its convex hull (an outline closed where a part of its ring is missing);
-    ``solidity`` keeps objects covering at least that share of their convex hull.
+    ``solidity`` keeps objects covering at least that share of their convex hull;
+    ``join_line`` (tiles) joins objects on one line last (``join_lines``).
 
     Three steps, which a search split into tiles runs apart (``features.tiled``):
     ``prepare_labels`` (holes, specks), ``label_pieces`` (one polygon per label)
@@ -283,6 +285,7 @@ def objects_from_labels(
         join_aligned=join_aligned,
         hull=hull,
         solidity=solidity,
+        join_line=join_line,
     )
 
 
@@ -357,8 +360,10 @@ def finish_pieces(
     join_aligned: float | None = None,
     hull: bool = False,
     solidity: float | None = None,
+    join_line: float | None = None,
 ) -> list[Feature]:
-    """Pieces joined (``join``), closed (``hull``), measured and kept within the limits."""
+    """Pieces joined (``join``), closed (``hull``), measured and kept within the limits;
+    the objects then joined along their lines (``join_line``)."""
     min_l, max_l, min_w, max_w = limits
     if join is not None and len(pieces) > 1:
         pieces = join_pieces(pieces, join, tile_size, join_aligned)
@@ -405,7 +410,77 @@ def finish_pieces(
         if (lo_a is not None and ratio < lo_a) or (hi_a is not None and ratio > hi_a):
             continue
         feats.append(f)
+    if join_line is not None and len(feats) > 1:
+        feats = join_lines(feats, join_line, tile_size)
     return feats
+
+
+def _measured(geom: Polygon | MultiPolygon, tile_size: float) -> tuple[float, float]:
+    """(length, width) as ``finish_pieces`` measures an elongated object."""
+    length, width = object_size(_smoothed(geom, tile_size))
+    if length >= 3 * width:
+        length = min(length, path_length(closed_across(geom, width), tile_size / 2))
+    return length, width
+
+
+def join_lines(feats: list[Feature], gap: float, tile_size: float) -> list[Feature]:
+    """Objects lying on one line joined across gaps up to ``gap`` tiles.
+
+    Two objects lie on one line when each one's centre is within half the narrower
+    one's width of the other's long axis (a straight road found in two pieces: both
+    centres on its centre line; two roads side by side or crossing are tens of metres
+    off). The gap is bridged by a strip as wide as the narrower object and the joined
+    object measured again (its width stays the widest piece's).
+    """
+    import shapely
+
+    geoms = [f.geometry for f in feats]
+    widths = np.array([f.width_m for f in feats])
+    axes = np.array([_axis_angle(g) for g in geoms])
+    centres = np.array([(g.centroid.x, g.centroid.y) for g in geoms])
+    normals = np.stack([-np.sin(axes), np.cos(axes)], axis=1)
+    n = len(feats)
+    i, j = np.triu_indices(n, 1)
+    d = centres[j] - centres[i]
+    half = 0.5 * np.minimum(widths[i], widths[j])
+    off_i = np.abs((d * normals[i]).sum(axis=1))  # j's centre from i's axis
+    off_j = np.abs((d * normals[j]).sum(axis=1))
+    ga, gb = np.asarray(geoms, dtype=object)[i], np.asarray(geoms, dtype=object)[j]
+    dist = shapely.distance(ga, gb)
+    ok = (off_i <= half) & (off_j <= half) & (dist <= gap * tile_size)
+    if not ok.any():
+        return feats
+    parent = list(range(n))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    strips: dict[int, list] = {}
+    for k in np.flatnonzero(ok).tolist():
+        a, b = root(int(i[k])), root(int(j[k]))
+        if a == b:
+            continue
+        parent[b] = a
+        line = shapely.shortest_line(ga[k], gb[k])
+        bridge = shapely.buffer(line, half[k], cap_style="flat")
+        strips[a] = strips.get(a, []) + strips.pop(b, []) + [bridge]
+    groups: dict[int, list[int]] = {}
+    for k in range(n):
+        groups.setdefault(root(k), []).append(k)
+    out = []
+    for r, members in groups.items():
+        if len(members) == 1:
+            out.append(feats[members[0]])
+            continue
+        geom = unary_union([geoms[m] for m in members] + strips.get(r, []))
+        length, _ = _measured(geom, tile_size)
+        width = float(widths[members].max())
+        tiles = sum(feats[m].tiles for m in members)
+        out.append(Feature(feats[members[0]].kind, geom, float(length), width, tiles))
+    return out
 
 
 def near_other(labels: NDArray[np.int32], reach: int, n: int) -> NDArray[np.bool_]:
