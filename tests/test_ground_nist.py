@@ -1311,3 +1311,23 @@ def test_grow_phases_moves_fewer_labels_under_a_translation_and_nothing_without_
         nist.classify_ground(sparse, off),
         nist.classify_ground(sparse, off.model_copy(update={"grow_phases": 2})),
     )
+
+
+def test_data_anchored_bins_label_a_translated_tile_alike():
+    """With ``bin_anchor="data"`` a bin corner sits at the centre of the data's bounds,
+    so a sparse tile moved by a few metres (not a multiple of any bin) labels point for
+    point as it did, and a quarter turn about its centre nearly so (only ties of equal
+    heights and points on bin edges may go another way); with a given ``anchor`` (a
+    job's), blocks cut from it bin alike."""
+    sc = make_scene(100, 0.6, seed=11)
+    xyz = sc.xyz + np.array([512_000.37, 5_403_000.81, 0.0])
+    params = nist.NistParams(bin_anchor="data")
+    ground = nist.classify_ground(xyz, params)
+    for dx, dy in ((3.3, 21.1), (0.7, 0.0)):
+        moved = nist.classify_ground(xyz + np.array([dx, dy, 0.0]), params)
+        assert np.array_equal(moved, ground), (dx, dy, np.count_nonzero(moved != ground))
+    c = (xyz[:, :2].min(axis=0) + xyz[:, :2].max(axis=0)) / 2
+    turned = np.column_stack([c[0] - (xyz[:, 1] - c[1]), c[1] + (xyz[:, 0] - c[0]), xyz[:, 2]])
+    assert np.count_nonzero(nist.classify_ground(turned, params) != ground) <= 0.001 * len(xyz)
+    given = nist.classify_ground(xyz, params.model_copy(update={"anchor": (c[0], c[1])}))
+    assert np.array_equal(given, ground)

@@ -80,6 +80,7 @@ from pydantic import Field
 from scipy.spatial import QhullError, cKDTree
 
 from terrasift.workers.bins import (
+    ANCHOR,
     BinStats,
     Grid,
     PlaneStats,
@@ -166,6 +167,17 @@ class NistParams(StageParams):
     vote_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
     1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
+    bin_anchor: Literal["absolute", "data"] = "absolute"
+    """Where the bins of every pass are laid: ``absolute``, on multiples of the cell in the
+    data's coordinates (``bins.anchored_origin``); ``data``, with a bin corner at the centre
+    of the data's bounding box (or at ``anchor`` when given): the bins then move with the
+    data, so a translation of a tile, or a quarter turn about its centre, labels it alike,
+    where the bin phase otherwise moves sparse ISPRS kappas by up to 5 points. Labels still
+    depend on the phase, which then follows the data's extent."""
+    anchor: tuple[float, float] | None = None
+    """With ``bin_anchor="data"``: the x, y a bin corner of every block sits at (a job gives
+    the centre of its inputs' bounds, so that its blocks bin alike); None: the centre of the
+    bounding box of the points the stage is given."""
     snap_cells: bool = True
     """Bin sizes derived from the density (cells, masking pool) snap to the nearest divisor of
     240 m (``bins.snap_cell``, steps of 4–33 %): blocks of one tile whose densities differ a
@@ -767,7 +779,7 @@ def _classify(
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
     # Anchored origin: bins line up between neighbouring blocks.
-    shift = anchored_origin(xyz)
+    shift = _origin(xyz, params)
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
     order = cell_order(xyz[:, 0] - shift[0], xyz[:, 1] - shift[1], 8.0)
@@ -843,6 +855,25 @@ def _classify(
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
+
+
+_ANCHOR_BACKOFF = 1e-6  # m: data anchors sit this far below the data's minimum (see _origin)
+
+
+def _origin(xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.float64]:
+    """Local origin, where every pass's bins start (``bin_anchor``). A data anchor is
+    moved by whole ``ANCHOR``s (a multiple of every snapped cell) to at or below the
+    data, and backed off by 1 µm: far above the rounding of projected coordinates
+    (~1e-10 m) and below any LAS scale in use (≥ 0.1 mm), so points on bin edges of a
+    quantised tile fall in the same bin however the tile is translated."""
+    if params.bin_anchor == "absolute":
+        return anchored_origin(xyz)
+    lo = np.array([xyz[:, 0].min(), xyz[:, 1].min()])
+    if params.anchor is not None:
+        a = np.asarray(params.anchor, dtype=np.float64)
+    else:
+        a = (lo + np.array([xyz[:, 0].max(), xyz[:, 1].max()])) / 2
+    return a - np.ceil((a - lo) / ANCHOR) * ANCHOR - _ANCHOR_BACKOFF
 
 
 def _passes_1_2(
