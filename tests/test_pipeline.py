@@ -395,7 +395,8 @@ def test_job_gives_data_anchored_ground_bins_one_anchor():
     models = with_ground_anchor(data, job_anchor({}, plan))
     assert models.ground_params.anchor == (550.25, 90.0)
     assert models.rotation_ground_params.anchor == (550.25, 90.0)
-    plain = block_models(jobs.validate_params(BLOCK))
+    assert block_models(jobs.validate_params(BLOCK)).ground_params.bin_anchor == "absolute"
+    plain = block_models(jobs.validate_params({**BLOCK, "ground.nist.bin_anchor": "absolute"}))
     assert with_ground_anchor(plain, (1.0, 2.0)).ground_params.anchor is None
     given = jobs.validate_params(
         {**BLOCK, "ground.nist.bin_anchor": "data", "ground.nist.anchor": [3.0, 4.0]}
