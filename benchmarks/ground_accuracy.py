@@ -271,6 +271,8 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_fit_clip_noise": 0.0},
         {"rough_fit_step_plane": True},
         {"final_nodes": "square"},
+        # Bins laid from the centre of the data's bounds (translations label alike).
+        {"bin_anchor": "data"},
     ],
 }
 
@@ -507,7 +509,11 @@ def blocks(stage) -> None:
         worst = min(worst, a)
         row = f"{name:<22} {a:>7.2f} {near:>7.2f} {k:>7}"
         if common:
-            ca, cnear, _ = _block_agreement(stage, xyz, density=job_density(xyz))
+            job = {"density": job_density(xyz)}
+            if "anchor" in stage.params.model_fields:
+                # A job gives data-anchored bins the centre of its tiles' bounds.
+                job["anchor"] = tuple((xyz[:, :2].min(axis=0) + xyz[:, :2].max(axis=0)) / 2)
+            ca, cnear, _ = _block_agreement(stage, xyz, **job)
             worst_common = min(worst_common, ca)
             row += f"   {'':>12} {ca:>5.2f} {cnear:>6.2f}"
         print(row)

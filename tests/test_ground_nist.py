@@ -243,6 +243,17 @@ def test_isprs_samp31_kappa():
     assert s.kappa > 0.88, s  # measured 95.0 %; PDAL SMRF defaults reach 93.2 %
 
 
+def test_isprs_samp61_labels_do_not_move_with_a_translation():
+    """With bins laid from the data's bounds (``bin_anchor="data"``), samp61 (0.19 pts/m²)
+    moved 5 m north labels point for point alike (bins on multiples of the cell: kappa
+    89.1 → 86.1, whether growth reaches its dike crest)."""
+    xyz, _ = _isprs("samp61")
+    params = nist.NistParams(bin_anchor="data")
+    ground = nist.classify_ground(xyz, params)
+    moved = nist.classify_ground(xyz + np.array([0.0, 5.0, 0.0]), params)
+    assert np.array_equal(moved, ground), np.count_nonzero(moved != ground)
+
+
 def test_collinear_block_does_not_raise():
     xyz = np.column_stack([np.linspace(0, 10, 50) + 5e5, np.full(50, 5.4e6), np.zeros(50)])
     assert nist.classify_ground(xyz, nist.NistParams()).shape == (50,)
@@ -756,6 +767,12 @@ def test_labels_of_2x2_blocks_agree_with_one_run_on_sparse_data():
     assert (split == whole).mean() >= 0.9995
 
 
+def _job_anchor(xyz: np.ndarray) -> tuple[float, float]:
+    """The anchor a job gives data-anchored bins: the centre of its tile's bounds."""
+    c = (xyz[:, :2].min(axis=0) + xyz[:, :2].max(axis=0)) / 2
+    return float(c[0]), float(c[1])
+
+
 def _split_2x2(xyz: np.ndarray, params: nist.NistParams, window: bool = False) -> np.ndarray:
     """Labels of each core of a 2 × 2 split (with the stage's halo), as one array;
     with ``window``, each block is told the box it was cut to."""
@@ -784,7 +801,7 @@ def test_one_density_for_every_block_makes_blocks_agree_on_isprs_samp52():
     xyz, _ = _isprs("samp52")
     cell = occupancy_cell(xyz.shape[0] / float(np.prod(np.ptp(xyz[:, :2], axis=0))))
     density = occupied_density(xyz.shape[0], [occupied_cells(xyz[:, 0], xyz[:, 1], cell)], cell)
-    params = nist.NistParams(density=density)
+    params = nist.NistParams(density=density, anchor=_job_anchor(xyz))
     whole = nist.classify_ground(xyz, params)
     assert (_split_2x2(xyz, params) == whole).mean() >= 0.996
 
@@ -944,7 +961,7 @@ def test_a_shed_crossing_a_block_cut_is_labelled_as_in_one_run():
     xyz = rural.FAMILIES["railway_yard"](100).xyz
     cell = occupancy_cell(xyz.shape[0] / float(np.prod(np.ptp(xyz[:, :2], axis=0))))
     density = occupied_density(xyz.shape[0], [occupied_cells(xyz[:, 0], xyz[:, 1], cell)], cell)
-    params = nist.NistParams(density=density)
+    params = nist.NistParams(density=density, anchor=_job_anchor(xyz))
     whole = nist.classify_ground(xyz, params)
     assert (_split_2x2(xyz, params, window=True) == whole).mean() >= 0.999
     assert (_split_2x2(xyz, params) == whole).mean() < 0.995
@@ -956,7 +973,9 @@ def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere():
     # (kappa 70-72 at these two); the default wall share keeps it.
     xyz, truth = _isprs("samp52")
     for dx, dy in ((0.0, 5.0), (40.0, 40.0)):
-        g = nist.classify_ground(xyz + np.array([dx, dy, 0.0]), nist.NistParams())
+        g = nist.classify_ground(
+            xyz + np.array([dx, dy, 0.0]), nist.NistParams(bin_anchor="absolute")
+        )
         assert ground_score(truth, g).kappa > 0.86  # measured 88.4 and 88.8 %
 
 
@@ -967,7 +986,8 @@ def test_isprs_samp52_kappa_holds_when_the_bins_fall_elsewhere_with_relative_ste
     xyz, truth = _isprs("samp52")
     for dx, dy in ((0.0, 5.0), (40.0, 40.0)):
         g = nist.classify_ground(
-            xyz + np.array([dx, dy, 0.0]), nist.NistParams(raised_relative=True)
+            xyz + np.array([dx, dy, 0.0]),
+            nist.NistParams(raised_relative=True, bin_anchor="absolute"),
         )
         assert ground_score(truth, g).kappa > 0.86  # measured 88.4 and 88.8 %
 
@@ -1014,13 +1034,17 @@ def test_isprs_samp61_kappa_holds_when_the_bins_fall_elsewhere():
     # 0.19 pts/m²: with one final grid, whether growth reaches a dike crest (and
     # which lowest points the final bins hold) is luck of where the bins fall
     # (kappa 83.2 and 82.1 at these two); the vote over four grid phases holds.
+    # Bins on multiples of the cell, so that they fall elsewhere under the translations.
     xyz, truth = _isprs("samp61")
     one, voted = [], []
+    p = nist.NistParams(bin_anchor="absolute")
     for dx, dy in ((0.0, 5.0), (11.0, 7.0)):
         moved = xyz + np.array([dx, dy, 0.0])
-        voted.append(ground_score(truth, nist.classify_ground(moved, nist.NistParams())).kappa)
+        voted.append(ground_score(truth, nist.classify_ground(moved, p)).kappa)
         one.append(
-            ground_score(truth, nist.classify_ground(moved, nist.NistParams(vote_phases=1))).kappa
+            ground_score(
+                truth, nist.classify_ground(moved, p.model_copy(update={"vote_phases": 1}))
+            ).kappa
         )
     assert min(voted) > 0.86, voted  # measured 87.1 and 89.2 %
     assert min(one) < 0.85, one
@@ -1250,7 +1274,7 @@ def test_square_nodes_label_a_translated_tile_alike_where_bins_do_not():
     # The density given, as a job gives it: measured, it follows occupied cells of a grid.
     # Without the close fit (``rough_fit``): its thresholds flip one point of these under
     # the move (rounding of the moved coordinates), the square nodes' rule is judged here.
-    p = nist.NistParams(density=0.5, rough_fit=0)
+    p = nist.NistParams(density=0.5, rough_fit=0, bin_anchor="absolute")
     sq = p.model_copy(update={"final_nodes": "square"})
     assert np.array_equal(nist.classify_ground(xyz, sq), nist.classify_ground(xyz + move, sq))
     bins = nist.classify_ground(xyz, p)
@@ -1293,9 +1317,10 @@ def test_grow_phases_moves_fewer_labels_under_a_translation_and_nothing_without_
     # crest hangs on where the bin edges fall. ``grow_phases=2`` runs growth over 2 × 2
     # offsets of those bins within each voted phase and votes their shares: a translation
     # by a fraction of a bin moves fewer labels (9 of 16 124 here, against 25 with one
-    # growth). Without growth the option changes nothing.
+    # growth). Without growth the option changes nothing. Bins on multiples of the cell,
+    # so that they move with the translation (data-anchored bins do not).
     sparse = make_scene(size=120.0, density=1.0, seed=1).xyz
-    p = nist.NistParams(rough_k=0, density=1.0)
+    p = nist.NistParams(rough_k=0, density=1.0, bin_anchor="absolute")
     moves = (np.array([1.3, 0.4, 0.0]), np.array([2.1, 2.9, 0.0]))
 
     def moved(q: nist.NistParams) -> int:
@@ -1311,3 +1336,35 @@ def test_grow_phases_moves_fewer_labels_under_a_translation_and_nothing_without_
         nist.classify_ground(sparse, off),
         nist.classify_ground(sparse, off.model_copy(update={"grow_phases": 2})),
     )
+
+
+def test_data_anchored_bins_label_a_translated_tile_alike():
+    """With ``bin_anchor="data"`` a bin corner sits at the centre of the data's bounds,
+    so a sparse tile moved by a few metres (not a multiple of any bin) labels point for
+    point as it did, and a quarter turn about its centre nearly so (only ties of equal
+    heights and points on bin edges may go another way); with a given ``anchor`` (a
+    job's), blocks cut from it bin alike."""
+    sc = make_scene(100, 0.6, seed=11)
+    xyz = sc.xyz + np.array([512_000.37, 5_403_000.81, 0.0])
+    params = nist.NistParams(bin_anchor="data")
+    ground = nist.classify_ground(xyz, params)
+    for dx, dy in ((3.3, 21.1), (0.7, 0.0)):
+        moved = nist.classify_ground(xyz + np.array([dx, dy, 0.0]), params)
+        assert np.array_equal(moved, ground), (dx, dy, np.count_nonzero(moved != ground))
+    c = (xyz[:, :2].min(axis=0) + xyz[:, :2].max(axis=0)) / 2
+    turned = np.column_stack([c[0] - (xyz[:, 1] - c[1]), c[1] + (xyz[:, 0] - c[0]), xyz[:, 2]])
+    assert np.count_nonzero(nist.classify_ground(turned, params) != ground) <= 0.001 * len(xyz)
+    given = nist.classify_ground(xyz, params.model_copy(update={"anchor": (c[0], c[1])}))
+    assert np.array_equal(given, ground)
+
+
+def test_growth_drops_a_deep_low_outlier_it_reached_at_the_edge_of_the_data():
+    """``grow_low``: at this bin phase growth reaches a return 4.4 m under the ground at
+    the edge of the data (the bend allowed over a long edge along the hull); a grown node
+    that far below its ground neighbours is a low outlier, as screening judges one."""
+    sc = make_scene(150, 1.0, seed=7)
+    depth = sc.surface(sc.xyz[:, 0], sc.xyz[:, 1]) - sc.xyz[:, 2]
+    deep = (sc.truth == 7) & (depth > 2.0)
+    p = nist.NistParams(bin_anchor="data")
+    assert nist.classify_ground(sc.xyz, p)[deep].any()
+    assert not nist.classify_ground(sc.xyz, p.model_copy(update={"grow_low": True}))[deep].any()

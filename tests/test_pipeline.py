@@ -378,6 +378,32 @@ def test_job_measures_one_occupied_area_density_for_the_ground_stage(finished_jo
     assert with_ground_density(block_models(given), 2.5).ground_params.density == 4.0
 
 
+def test_job_gives_data_anchored_ground_bins_one_anchor():
+    """With ``bin_anchor="data"`` every block of a job bins from one anchor: its survey's,
+    else its tiles' smallest x and y; absolute bins and an anchor the job sets stay."""
+    from terrasift.jobs.params import block_models, job_anchor, with_ground_anchor
+
+    plan = {
+        "tiles": [
+            {"mins": [512.5, 40.0, 1.0], "maxs": [600.25, 100.0, 9.0]},
+            {"mins": [500.25, 60.0, 0.0], "maxs": [580.0, 140.0, 5.0]},
+        ]
+    }
+    assert job_anchor({}, plan) == (550.25, 90.0)
+    assert job_anchor({"survey": {"anchor": [10.0, 20.0]}}, plan) == (10.0, 20.0)
+    data = block_models(jobs.validate_params({**BLOCK, "ground.nist.bin_anchor": "data"}))
+    models = with_ground_anchor(data, job_anchor({}, plan))
+    assert models.ground_params.anchor == (550.25, 90.0)
+    assert models.rotation_ground_params.anchor == (550.25, 90.0)
+    assert block_models(jobs.validate_params(BLOCK)).ground_params.bin_anchor == "absolute"
+    plain = block_models(jobs.validate_params({**BLOCK, "ground.nist.bin_anchor": "absolute"}))
+    assert with_ground_anchor(plain, (1.0, 2.0)).ground_params.anchor is None
+    given = jobs.validate_params(
+        {**BLOCK, "ground.nist.bin_anchor": "data", "ground.nist.anchor": [3.0, 4.0]}
+    )
+    assert with_ground_anchor(block_models(given), (1.0, 2.0)).ground_params.anchor == (3.0, 4.0)
+
+
 def test_square_by_square_features_equal_one_search_over_the_dtm(tmp_path, monkeypatch):
     """A job's objects are searched square by square (40 m squares here: 4 × 4 over the
     160 m DTM, a halo grown around objects across their edges); they must be the

@@ -15,7 +15,12 @@ import numpy as np
 
 from terrasift.files import atomic_path, load_json, write_json
 from terrasift.jobs.dirs import block_result_path, check_cancel
-from terrasift.jobs.params import block_models, with_ground_density
+from terrasift.jobs.params import (
+    block_models,
+    job_anchor,
+    with_ground_anchor,
+    with_ground_density,
+)
 from terrasift.jobs.scan import job_geometry
 from terrasift.tiling.blocks import BlockGrid, parse_block_name, read_block_points, shard_parts
 from terrasift.workers.block import classify_block
@@ -33,8 +38,10 @@ def run_block(job_dir: str, name: str) -> dict[str, Any]:
         return load_json(stats_path)
     check_cancel(job_dir_p)
     plan = load_json(job_dir_p / "plan.json")
-    models = with_ground_density(
-        block_models(load_json(job_dir_p / "job.json")["params"]), plan.get("ground_density")
+    job = load_json(job_dir_p / "job.json")
+    models = with_ground_anchor(
+        with_ground_density(block_models(job["params"]), plan.get("ground_density")),
+        job_anchor(job, plan),
     )
     if plan.get("scan_geometry"):
         models = dataclasses.replace(models, scan_geometry=job_geometry(plan["scan_geometry"]))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 import pyproj
@@ -313,6 +313,34 @@ def with_ground_density(models: BlockModels, density: float | None) -> BlockMode
         if "density" in type(p).model_fields and not p.density:
             update[name] = p.model_copy(update={"density": float(density)})
     return dataclasses.replace(models, **update) if update else models
+
+
+def with_ground_anchor(models: BlockModels, anchor: Sequence[float] | None) -> BlockModels:
+    """``models`` with the job's ``anchor`` (``job_anchor``) given to a ground method that
+    lays its bins from the data (``bin_anchor="data"``, ``anchor`` unset): every block
+    then bins alike, and a translated job labels as the original does."""
+    if anchor is None:
+        return models
+    update = {}
+    for name in ("ground_params", "rotation_ground_params"):
+        p = getattr(models, name)
+        if getattr(p, "bin_anchor", None) == "data" and getattr(p, "anchor", 0) is None:
+            update[name] = p.model_copy(update={"anchor": (float(anchor[0]), float(anchor[1]))})
+    return dataclasses.replace(models, **update) if update else models
+
+
+def job_anchor(job: Mapping[str, Any], plan: Mapping[str, Any]) -> tuple[float, float] | None:
+    """The x, y that data-anchored ground bins of a job are laid from: its survey's
+    anchor (fixed at the survey's first run), else the centre of its tiles' bounds."""
+    survey = job.get("survey")
+    if survey and survey.get("anchor"):
+        return float(survey["anchor"][0]), float(survey["anchor"][1])
+    tiles = plan.get("tiles") or []
+    if not tiles:
+        return None
+    lo = [min(float(t["mins"][k]) for t in tiles) for k in (0, 1)]
+    hi = [max(float(t["maxs"][k]) for t in tiles) for k in (0, 1)]
+    return (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
 
 
 def rotation_params(params: Mapping[str, Any], method: str) -> Any:

@@ -80,6 +80,7 @@ from pydantic import Field
 from scipy.spatial import QhullError, cKDTree
 
 from terrasift.workers.bins import (
+    ANCHOR,
     BinStats,
     Grid,
     PlaneStats,
@@ -166,6 +167,19 @@ class NistParams(StageParams):
     vote_points: float = Field(4.0, ge=0, le=1000)
     """Mean points per final bin below which the auto ``vote_phases`` votes (4: up to about
     1.8 points per m² with 1.5 m bins; the ISPRS samples hold 2.25)."""
+    bin_anchor: Literal["absolute", "data"] = "absolute"
+    """Where the bins of every pass are laid: ``absolute``, on multiples of the cell in the
+    data's coordinates (``bins.anchored_origin``), so that tiles and jobs bin alike where
+    they meet; ``data``, with a bin corner at the centre of the data's bounding box (or at
+    ``anchor`` when given): the bins move with the data and a translated tile labels alike
+    point for point, where a translation of a few metres moves sparse ISPRS kappas by up to
+    5 points. Off: labels still depend on the bin phase, which then follows the data's
+    extent (samp61 84.0–89.9 over bin phases; railway seed 97 lands on a phase where a
+    platform passes as ground; README *Measured*)."""
+    anchor: tuple[float, float] | None = None
+    """With ``bin_anchor="data"``: the x, y a bin corner of every block sits at (a job gives
+    the centre of its inputs' bounds, so that its blocks bin alike); None: the centre of the
+    bounding box of the points the stage is given."""
     snap_cells: bool = True
     """Bin sizes derived from the density (cells, masking pool) snap to the nearest divisor of
     240 m (``bins.snap_cell``, steps of 4–33 %): blocks of one tile whose densities differ a
@@ -336,6 +350,12 @@ class NistParams(StageParams):
     (README *Measured*), so it is off by default."""
     grow_peaks: bool = True
     """…switch for those rules."""
+    grow_low: bool = False
+    """Growth: a grown node more than ``screen_low_tol`` below the second-lowest of its
+    ground neighbours is a low outlier and is dropped, as screening drops such vertices
+    (a deep return is its bin's lowest point; growth reached one 4.4 m deep along a long
+    edge at the edge of the data, where the allowed bend is metres, at some bin phases).
+    Off: not measured beyond the ISPRS samples (README *Measured*)."""
     grow_reach: float = Field(0.0, ge=0, le=100)
     """Growth reaches a node only along a path of at most this many first-pass cells from the
     final surface's ground (0: no limit). The halo is ``halo_cells`` of those cells, so with
@@ -767,13 +787,17 @@ def _classify(
     n = xyz.shape[0]
     # Work in local coordinates: projected x, y of 5e5/5e6 m cost precision.
     # Anchored origin: bins line up between neighbouring blocks.
-    shift = anchored_origin(xyz)
+    shift = _origin(xyz, params)
     # Spatial order (8 m cells, row-major) keeps every later gather — bins,
     # triangles, walks — in cache; file order is often random.
     order = cell_order(xyz[:, 0] - shift[0], xyz[:, 1] - shift[1], 8.0)
     # np.take: several times faster than fancy indexing of rows (here and below), same values.
     local = np.take(xyz[:, :3], order, axis=0)
     local[:, :2] -= shift
+    if params.bin_anchor == "data":
+        # To the micrometre (below any LAS scale): the local coordinates of a translated
+        # tile then come out bit for bit alike, and so do ties between equal distances.
+        local[:, :2] = np.round(local[:, :2], 6)
     origin = (
         None if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64)[:2] - shift
     )
@@ -843,6 +867,25 @@ def _classify(
     ground = np.empty(n, dtype=bool)
     ground[order] = labels
     return ground
+
+
+_ANCHOR_BACKOFF = 1e-6  # m: data anchors sit this far below the data's minimum (see _origin)
+
+
+def _origin(xyz: NDArray[np.float64], params: NistParams) -> NDArray[np.float64]:
+    """Local origin, where every pass's bins start (``bin_anchor``). A data anchor is
+    moved by whole ``ANCHOR``s (a multiple of every snapped cell) to at or below the
+    data, and backed off by 1 µm: far above the rounding of projected coordinates
+    (~1e-10 m) and below any LAS scale in use (≥ 0.1 mm), so points on bin edges of a
+    quantised tile fall in the same bin however the tile is translated."""
+    if params.bin_anchor == "absolute":
+        return anchored_origin(xyz)
+    lo = np.array([xyz[:, 0].min(), xyz[:, 1].min()])
+    if params.anchor is not None:
+        a = np.asarray(params.anchor, dtype=np.float64)
+    else:
+        a = (lo + np.array([xyz[:, 0].max(), xyz[:, 1].max()])) / 2
+    return a - np.ceil((a - lo) / ANCHOR) * ANCHOR - _ANCHOR_BACKOFF
 
 
 def _passes_1_2(
@@ -1142,6 +1185,36 @@ def _without_raised(
         return tin, None
 
 
+def _low_grown(
+    z: NDArray[np.float64],
+    ground: NDArray[np.bool_],
+    seed: NDArray[np.bool_],
+    adjacency: tuple[NDArray[np.int64], NDArray[np.int64]],
+    low_tol: float,
+) -> NDArray[np.bool_]:
+    """Grown nodes (``ground`` but not ``seed``) more than ``low_tol`` below the
+    second-lowest of their ground neighbours: low outliers, judged as screening judges a
+    TIN's vertices (``screen_low_tol``). A node is the lowest point of its bin, so a deep
+    return takes its bin's place, and growth reached one 4.4 m deep at the edge of the
+    data where the bend allowed over a long edge along the hull is metres."""
+    indptr, indices = adjacency
+    grown = np.flatnonzero(ground & ~seed)
+    out = np.zeros(z.shape[0], dtype=bool)
+    if grown.size == 0:
+        return out
+    counts = indptr[grown + 1] - indptr[grown]
+    owner = np.repeat(np.arange(grown.size), counts)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nb = indices[indptr[grown][owner] + np.arange(owner.size) - first[owner]]
+    nz = np.where(ground[nb], z[nb], np.inf)
+    order = np.lexsort((nz, owner))
+    second = np.full(grown.size, np.inf)
+    has2 = counts >= 2
+    second[has2] = nz[order][first[has2] + 1]
+    out[grown] = z[grown] < second - low_tol
+    return out
+
+
 def _inside(tin: Tin, q: NDArray[np.float64]) -> NDArray[np.float64]:
     """Heights of ``tin`` at local points ``q``; nan outside its hull."""
     t, b = tin.locate(q)
@@ -1254,6 +1327,8 @@ def _grown(
         agree=params.grow_agree,
         reach=reach,
     )
+    if params.grow_low and params.screen_low_tol > 0 and full is not None:
+        ground &= ~_low_grown(nodes[:, 2], ground, seed, full.neighbours(), params.screen_low_tol)
     if params.plateau_step > 0 and full is not None:
         ground &= ~walled_plateaus(
             nodes[:, 2],
