@@ -601,34 +601,34 @@ def _mixed_along(
                 # the nearer surface): a background there shows one beam at most, no line to
                 # anchor it, so that beam counts as the farther surface (paired below with
                 # an anchor nearer than p on the other side, as a one-beam front is)
-                ce = np.flatnonzero(
-                    (axis == 0)
-                    & (sd * (extent[1 if sd == 1 else 0] - pos - a) <= 1)
-                    & np.isnan(R[a + sd])
-                    & (ra > r + s.margin)
-                    & (ra < r + s.max_gap)
-                )
-                if ce.size:
-                    # each step of the ramp, from p's inner neighbour out to the edge,
-                    # exceeds margin + step × range: more than a surface at up to 45°
-                    # incidence recedes in one beam (the one-beam front's bound; an
-                    # oblique wall receding into the edge is no ramp, nor a dip at p)
-                    prev = r[ce]
-                    mono = R[-sd][ce] < prev - s.margin - step * prev
-                    for j in range(1, i + 1):
-                        rj = R[sd * j][ce]
-                        mono &= rj > prev + s.margin + step * rj
-                        prev = rj
-                    # and p on no surface: off the line of its next two beams either way
-                    # by more than
-                    # the range scatter of that line continued one beam (sqrt(6) returns'
-                    # sd; the ramp's beams are placed by their firing order, no LAS blur)
-                    tol_line = s.sigmas * s.sigma * np.sqrt(6.0)
-                    for w in (-sd, sd) if i >= 2 else (-sd,):
-                        v = 2.0 / R[w][ce] - 1.0 / R[2 * w][ce]
-                        cont = np.where(v > 0, 1.0 / v, np.inf)
-                        mono &= ~(np.abs(cont - r[ce]) <= tol_line)
-                    far[sd][i][ce[mono]] = True
+                if axis == 0:
+                    ce = np.flatnonzero(
+                        (sd * (extent[1 if sd == 1 else 0] - pos - a) <= 1)
+                        & np.isnan(R[a + sd])
+                        & (ra > r + s.margin)
+                        & (ra < r + s.max_gap)
+                    )
+                    if ce.size:
+                        # each step of the ramp, from p's inner neighbour out to the edge,
+                        # exceeds margin + step × range: more than a surface at up to 45°
+                        # incidence recedes in one beam (the one-beam front's bound; an
+                        # oblique wall receding into the edge is no ramp, nor a dip at p)
+                        prev = r[ce]
+                        mono = R[-sd][ce] < prev - s.margin - step * prev
+                        for j in range(1, i + 1):
+                            rj = R[sd * j][ce]
+                            mono &= rj > prev + s.margin + step * rj
+                            prev = rj
+                        # and p on no surface: off the line of its next two beams either way
+                        # by more than the range scatter of that line continued one beam
+                        # (sqrt(6) returns' sd; the ramp's beams are placed by their firing
+                        # order, no LAS blur)
+                        tol_line = s.sigmas * s.sigma * np.sqrt(6.0)
+                        for w in (-sd, sd) if i >= 2 else (-sd,):
+                            v = 2.0 / R[w][ce] - 1.0 / R[2 * w][ce]
+                            cont = np.where(v > 0, 1.0 / v, np.inf)
+                            mono &= ~(np.abs(cont - r[ce]) <= tol_line)
+                        far[sd][i][ce[mono]] = True
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
