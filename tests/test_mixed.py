@@ -785,3 +785,22 @@ def test_grid_marks_ground_blended_with_the_foot_of_a_board_above_it():
     assert m[row].mean() > 0.9 and m[~row].mean() < 0.002
     xyz, row = _ground_under_board(0.0)
     assert not mark_mixed(xyz, MixedParams(footprint=0.43), np.zeros(3)).marked.any()
+
+
+def test_grid_marks_a_ramp_into_the_last_beam_of_the_field_of_view():
+    # A board at 6.15 m up to three columns before the scan's last azimuth column, a
+    # wall at 8.5 m in that last column only (0.057° steps, 2.9-step footprint, 2 mm
+    # noise): the three columns between blend the two. The wall, one beam wide at the
+    # field of view's edge, lies on no line of two beams, so no farther anchor existed
+    # and the ramp was kept. Now the last beam behind a ramp is the farther surface; the
+    # board and the wall stay unmarked. The board ending at the edge: none marked.
+    ramp = {36: 6.37, 37: 7.16, 38: 7.60, 39: 8.50}
+    xyz, col = _wall_grid(lambda c: ramp.get(c, 6.15), step=0.057, noise=0.002)
+    m = mark_mixed(xyz, MixedParams(footprint=0.165), np.zeros(3)).marked
+    blend = np.isin(col, [36, 37, 38])
+    assert m[blend].mean() > 0.95
+    assert m[~blend].mean() < 0.002
+    # a wall receding into the edge, 5 cm per beam over its last columns: no ramp
+    for far_wall in (lambda c: 6.15, lambda c: 6.15 + 0.05 * max(c - 30, 0)):
+        xyz, col = _wall_grid(far_wall, step=0.057, noise=0.002)
+        assert not mark_mixed(xyz, MixedParams(footprint=0.165), np.zeros(3)).marked.any()

@@ -40,6 +40,10 @@ behind it, so the ground counts as the farther surface there (not for a return l
 with its azimuth neighbours one and two beams away: a wall's foot row). The front of a thin object one beam
 wide is an anchor of its own when both its neighbours lie behind it by more than a
 convex surface recedes in one beam (step × range) and neither lies on a surface.
+Likewise along azimuth the scan's last beam on a side, behind a ramp that runs out to
+it (each beam farther than the one before by more than margin + step × range, the
+ramp's returns on no line of two beams) from an anchor nearer than p, is the farther
+surface: a background at the field of view's edge shows one beam, no line.
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -591,6 +595,40 @@ def _mixed_along(
                         v = V[a][cb] + (V[a][cb] - V[a1][cb]) * i
                         behind = np.where(v > 0, 1.0 / v, np.inf) > r[cb] + s.margin
                         far[sd][i][cb[behind]] = True
+                # along azimuth, the last beam of the field of view on this side (its last
+                # return, within the one beam the bound's rounding may add), behind p, with
+                # every beam out to it farther than the one before (a ramp into it, from
+                # the nearer surface): a background there shows one beam at most, no line to
+                # anchor it, so that beam counts as the farther surface (paired below with
+                # an anchor nearer than p on the other side, as a one-beam front is)
+                if axis == 0:
+                    ce = np.flatnonzero(
+                        (sd * (extent[1 if sd == 1 else 0] - pos - a) <= 1)
+                        & np.isnan(R[a + sd])
+                        & (ra > r + s.margin)
+                        & (ra < r + s.max_gap)
+                    )
+                    if ce.size:
+                        # each step of the ramp, from p's inner neighbour out to the edge,
+                        # exceeds margin + step × range: more than a surface at up to 45°
+                        # incidence recedes in one beam (the one-beam front's bound; an
+                        # oblique wall receding into the edge is no ramp, nor a dip at p)
+                        prev = r[ce]
+                        mono = R[-sd][ce] < prev - s.margin - step * prev
+                        for j in range(1, i + 1):
+                            rj = R[sd * j][ce]
+                            mono &= rj > prev + s.margin + step * rj
+                            prev = rj
+                        # and p on no surface: off the line of its next two beams either way
+                        # by more than the range scatter of that line continued one beam
+                        # (sqrt(6) returns' sd; the ramp's beams are placed by their firing
+                        # order, no LAS blur)
+                        tol_line = s.sigmas * s.sigma * np.sqrt(6.0)
+                        for w in (-sd, sd) if i >= 2 else (-sd,):
+                            v = 2.0 / R[w][ce] - 1.0 / R[2 * w][ce]
+                            cont = np.where(v > 0, 1.0 / v, np.inf)
+                            mono &= ~(np.abs(cont - r[ce]) <= tol_line)
+                        far[sd][i][ce[mono]] = True
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
