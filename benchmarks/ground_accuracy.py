@@ -271,7 +271,7 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_fit_clip_noise": 0.0},
         {"rough_fit_step_plane": True},
         {"rough_fit_step_slope": 0.0},
-        {"rough_fit_step_slope": 1.5},
+        {"rough_fit_step_slope": 2.0},
         {"rough_fit_step_slope": 3.0},
         {"final_nodes": "square"},
     ],
