@@ -30,6 +30,10 @@ A point goes when, in the last round, it stands above that surface by more than
   with ``step_plane`` those points' heights are first carried to the point along the
   plane of its ``k`` nearest sure points: on a 15–40 % slope at 1–2 m spacing the uphill
   one stands 0.15–0.8 m higher, and the raw step would hide a 0.3 m return beside it;
+  with ``step_slope`` > 0 they are carried only where that plane's gradient is at most
+  ``step_slope`` x the tile's median gradient (of the same planes over all its ground):
+  on a tile-wide slope it is carried, on a crest, dike or bank flank steeper than the
+  tile it is not, because there the plane overshoots the ground beside the point;
 - above the quadratic of its ``wide`` nearest sure points by more than
   ``wide_factor`` x that surface's deviation (the half-disc test's wider surface).
 """
@@ -59,6 +63,7 @@ def close_fit_high(
     wide_factor: float = 2.5,
     step_plane: bool = False,
     clip_noise: float = 0.0,
+    step_slope: float = 0.0,
 ) -> NDArray[np.bool_]:
     """The points of ``ground`` standing above the quadratic of their ``k`` nearest
     sure ground points beyond the tile's ground noise and the tests of the module doc."""
@@ -102,6 +107,11 @@ def close_fit_high(
     near = xyz[s[nb[:, :3]], 2]
     if step_plane:
         near = near + _carried(xyz, g[i], s[nb[:, :k]])[:, :3]
+    elif step_slope > 0:
+        coef = _plane(xyz, g[i], s[nb[:, :k]])
+        tile = float(np.median(np.hypot(*_plane(xyz, g, rows)[:, 1:].T)))
+        on = np.hypot(coef[:, 1], coef[:, 2]) <= step_slope * tile
+        near = near + np.where(on[:, None], _carried(xyz, g[i], s[nb[:, :3]], coef), 0.0)
     keep &= xyz[g[i], 2] - np.max(near, axis=1) > step
     hw, dw, _ = _quad_heights(xyz, g[i], s, tree, pos, wide, floor)
     keep &= hw > wide_factor * dw
@@ -109,16 +119,29 @@ def close_fit_high(
     return out
 
 
-def _carried(
+def _plane(
     xyz: NDArray[np.float64], idx: NDArray[np.int64], rows: NDArray[np.int64]
 ) -> NDArray[np.float64]:
-    """Per point of ``idx``, the rise from each of its neighbours ``rows`` (point ids)
-    to the point along the least-squares plane of those neighbours."""
+    """Per point of ``idx``, the least-squares plane (offset, x and y gradient, centred
+    on the point) of its neighbours ``rows`` (point ids)."""
     d = xyz[rows, :2] - xyz[idx, None, :2]
     a = np.concatenate([np.ones(d.shape[:2] + (1,)), d], axis=-1)
     z = xyz[rows, 2]
     at = np.swapaxes(a, 1, 2)
-    coef = np.linalg.solve(at @ a + 1e-9 * np.eye(3), (at @ z[..., None]))[..., 0]
+    return np.asarray(np.linalg.solve(at @ a + 1e-9 * np.eye(3), (at @ z[..., None]))[..., 0])
+
+
+def _carried(
+    xyz: NDArray[np.float64],
+    idx: NDArray[np.int64],
+    rows: NDArray[np.int64],
+    coef: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """Per point of ``idx``, the rise from each of its neighbours ``rows`` (point ids)
+    to the point along the least-squares plane of those neighbours (or ``coef``)."""
+    d = xyz[rows, :2] - xyz[idx, None, :2]
+    if coef is None:
+        coef = _plane(xyz, idx, rows)
     return -(d[..., 0] * coef[:, 1:2] + d[..., 1] * coef[:, 2:3])
 
 
