@@ -111,8 +111,9 @@ def close_fit_high(
             sure = ground.copy()
             sure[g] = h <= max(floor, (2.0 if r == 0 else 1.0) * factor * noise)
     # The last threshold takes the noise around each point, not the tile's or block's.
-    thr = np.maximum(floor, factor * _window_noise(xyz, g, h, sure[g]))
-    flag = (h > thr) & (h <= ceiling)
+    # Only points above the floor and under the ceiling can go: the noise is taken for them.
+    flag = (h > floor) & (h <= ceiling)
+    flag[flag] = h[flag] > factor * _window_noise(xyz, g, h, sure[g], flag)
     i = np.flatnonzero(flag)
     if i.size == 0:
         return out
@@ -137,15 +138,21 @@ def close_fit_high(
 
 
 def _window_noise(
-    xyz: NDArray[np.float64], g: NDArray[np.int64], h: NDArray[np.float64], sure: NDArray[np.bool_]
+    xyz: NDArray[np.float64],
+    g: NDArray[np.int64],
+    h: NDArray[np.float64],
+    sure: NDArray[np.bool_],
+    at: NDArray[np.bool_],
 ) -> NDArray[np.float64]:
-    """Per point of ``g``, the ground noise (1.4826 x MAD of ``h`` over the ``sure`` ones)
+    """Per point of ``g[at]``, the ground noise (1.4826 x MAD of ``h`` over the ``sure`` ones)
     within ``NOISE_WINDOW`` metres of the centre of its ``NOISE_CELL`` grid cell (cells
     fixed in map coordinates), or the tile's where a window holds fewer than
     ``NOISE_MIN`` sure points: the same for a point however the job is cut."""
+    if not at.any():
+        return np.zeros(0)
     hs, xy = h[sure], xyz[g[sure], :2]
     tile = MAD_SIGMA * float(np.median(np.abs(hs - np.median(hs))))
-    cell = np.floor(xyz[g, :2] / NOISE_CELL).astype(np.int64)
+    cell = np.floor(xyz[g[at], :2] / NOISE_CELL).astype(np.int64)
     uniq, inv = np.unique(cell, axis=0, return_inverse=True)
     lists = cKDTree(xy).query_ball_point((uniq + 0.5) * NOISE_CELL, r=NOISE_WINDOW)
     lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
@@ -161,12 +168,14 @@ def _ragged_median(
     v: NDArray[np.float64], owner: NDArray[np.int64], lens: NDArray[np.int64]
 ) -> NDArray[np.float64]:
     """Median of ``v`` per group (``owner``: group of each value, sorted; ``lens``: sizes)."""
-    v = v[np.lexsort((v, owner))]
-    start = np.concatenate([[0], np.cumsum(lens)[:-1]])
-    safe = np.maximum(lens, 1)
-    last = max(v.size - 1, 0)
     if v.size == 0:
         return np.zeros(lens.size)
+    # One float key (group, then value scaled into [0, 0.5]): argsort is 3x a lexsort.
+    span = float(np.ptp(v)) or 1.0
+    v = v[np.argsort(owner + 0.5 * (v - v.min()) / span)]
+    start = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    safe = np.maximum(lens, 1)
+    last = v.size - 1
     lo = v[np.minimum(start + (safe - 1) // 2, last)]
     hi = v[np.minimum(start + safe // 2, last)]
     return np.asarray(0.5 * (lo + hi), dtype=np.float64)
