@@ -10,14 +10,19 @@ points (itself left out; refitted without the neighbours high above the first fi
 and the tile's ground noise, the robust deviation (1.4826 x the median absolute
 deviation) of the sure points' heights. A point within ``max(floor, factor x noise)``
 (after the first round, fitted on ground still holding vegetation: twice that) is sure
-in the next round, so each round's surface is fitted on cleaner ground. With
+in the next round, so each round's surface is fitted on cleaner ground. The last
+round's threshold takes instead the noise around the point: the same deviation over the
+sure points within ``NOISE_WINDOW`` metres of its ``NOISE_CELL`` grid cell (the tile's
+where a window holds too few), a fixed metric neighbourhood, so a job cut into blocks
+gives a core point the threshold the whole tile would (the tile's noise differs from
+block to block by up to 40 %). With
 ``clip_noise`` the refits after the first round leave out the neighbours more than
 ``CLIP`` x min(their fit's deviation, ``clip_noise`` x the first round's noise) above
 it: beside low scrub a third of a dozen sure neighbours can be returns 0.15–0.3 m up,
 which widen the deviation enough to stay in the refit and lift the surface.
 
 A point goes when, in the last round, it stands above that surface by more than
-``max(floor, factor x noise)`` and all of:
+``max(floor, factor x noise around it)`` and all of:
 
 - more than ``local`` x the robust deviation of the heights of its ``around``
   nearest sure points: where real ground bends within metres (its own neighbours
@@ -46,6 +51,17 @@ from scipy.spatial import cKDTree
 
 CLIP = 2.0  # deviations above the first fit beyond which a neighbour is left out of the refit
 MAD_SIGMA = 1.4826  # median absolute deviation to a normal standard deviation
+#: metres: the ground noise is taken per cell of this grid (fixed in map coordinates),
+#: a third of the window so neighbouring cells' windows share most of their points.
+NOISE_CELL = 5.0
+#: metres: radius of a cell's noise window around its centre. It holds >= 100 sure points
+#: at the sparsest seen density (0.15 pts/m², 707 m²), so the MAD is within ~12 % (1.17 /
+#: sqrt(n)); with half the cell's diagonal (3.5 m) and the 12-point fits' reach (<= 5 m at
+#: that density) it stays inside the smallest block halo the NIST method asks for (4
+#: first-pass cells of >= 6 m = 24 m).
+NOISE_WINDOW = 15.0
+#: sure points below which a window falls back to the tile's noise (MAD within ~21 %).
+NOISE_MIN = 30
 
 
 def close_fit_high(
@@ -90,12 +106,14 @@ def close_fit_high(
         if r == 0 and clip_noise > 0:
             # Later fits clip at the first round's noise: their fits differ from this one's.
             cap, last = clip_noise * max(noise, 0.25 * floor), None
-        thr = max(floor, factor * noise)
         if r < rounds - 1:
             # The first surface is fitted on ground still holding vegetation: it keeps twice as much.
             sure = ground.copy()
-            sure[g] = h <= (max(floor, 2.0 * factor * noise) if r == 0 else thr)
-    flag = (h > thr) & (h <= ceiling)
+            sure[g] = h <= max(floor, (2.0 if r == 0 else 1.0) * factor * noise)
+    # The last threshold takes the noise around each point, not the tile's or block's.
+    # Only points above the floor and under the ceiling can go: the noise is taken for them.
+    flag = (h > floor) & (h <= ceiling)
+    flag[flag] = h[flag] > factor * _window_noise(xyz, g, h, sure[g], flag)
     i = np.flatnonzero(flag)
     if i.size == 0:
         return out
@@ -117,6 +135,50 @@ def close_fit_high(
     keep &= hw > wide_factor * dw
     out[g[i[keep]]] = True
     return out
+
+
+def _window_noise(
+    xyz: NDArray[np.float64],
+    g: NDArray[np.int64],
+    h: NDArray[np.float64],
+    sure: NDArray[np.bool_],
+    at: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Per point of ``g[at]``, the ground noise (1.4826 x MAD of ``h`` over the ``sure`` ones)
+    within ``NOISE_WINDOW`` metres of the centre of its ``NOISE_CELL`` grid cell (cells
+    fixed in map coordinates), or the tile's where a window holds fewer than
+    ``NOISE_MIN`` sure points: the same for a point however the job is cut."""
+    if not at.any():
+        return np.zeros(0)
+    hs, xy = h[sure], xyz[g[sure], :2]
+    tile = MAD_SIGMA * float(np.median(np.abs(hs - np.median(hs))))
+    cell = np.floor(xyz[g[at], :2] / NOISE_CELL).astype(np.int64)
+    uniq, inv = np.unique(cell, axis=0, return_inverse=True)
+    lists = cKDTree(xy).query_ball_point((uniq + 0.5) * NOISE_CELL, r=NOISE_WINDOW)
+    lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    owner = np.repeat(np.arange(len(lists)), lens)
+    flat = hs[np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])]
+    med = _ragged_median(flat, owner, lens)
+    mad = _ragged_median(np.abs(flat - med[owner]), owner, lens)
+    noise = np.where(lens >= NOISE_MIN, MAD_SIGMA * mad, tile)
+    return np.asarray(noise[np.ravel(inv)], dtype=np.float64)
+
+
+def _ragged_median(
+    v: NDArray[np.float64], owner: NDArray[np.int64], lens: NDArray[np.int64]
+) -> NDArray[np.float64]:
+    """Median of ``v`` per group (``owner``: group of each value, sorted; ``lens``: sizes)."""
+    if v.size == 0:
+        return np.zeros(lens.size)
+    # One float key (group, then value scaled into [0, 0.5]): argsort is 3x a lexsort.
+    span = float(np.ptp(v)) or 1.0
+    v = v[np.argsort(owner + 0.5 * (v - v.min()) / span)]
+    start = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    safe = np.maximum(lens, 1)
+    last = v.size - 1
+    lo = v[np.minimum(start + (safe - 1) // 2, last)]
+    hi = v[np.minimum(start + safe // 2, last)]
+    return np.asarray(0.5 * (lo + hi), dtype=np.float64)
 
 
 def _plane(

@@ -455,8 +455,9 @@ class NistParams(StageParams):
     rough_fit: int = Field(12, ge=0, le=64)
     """After the half-disc test (sparse data only; 0: off): a point goes when it stands
     above the quadratic of its ``rough_fit`` nearest sure ground points by more than
-    max(``rough_fit_floor``, 3 × the tile's ground noise, the robust deviation of the sure
-    points' heights), the sure ground re-estimated over 3 rounds, and at most
+    max(``rough_fit_floor``, 3 × the ground noise, the robust deviation of the sure
+    points' heights within 15 m in the last round: the same however the job is cut), the
+    sure ground re-estimated over 3 rounds, and at most
     ``rough_fit_ceiling`` (``closefit.py``: also held to ``rough_fit_local`` × the
     deviation around it, to its three nearest sure points and to the wider quadratic)."""
     rough_fit_floor: float = Field(0.15, ge=0, le=5)
