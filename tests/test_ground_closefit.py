@@ -70,9 +70,21 @@ def _slope_with_shrubs(seed: int) -> tuple[np.ndarray, np.ndarray]:
     n = 4000
     xy = rng.uniform(0, 100, (n, 2))
     z = 0.3 * xy[:, 0] + 0.1 * np.sin(xy[:, 1] / 5) + rng.normal(0, 0.02, n)
-    shrub = np.zeros(n, dtype=bool)
-    shrub[rng.choice(n, 60, replace=False)] = True
-    z[shrub] += rng.uniform(0.3, 0.5, 60)
+    return _with_shrubs(rng, xy, z, np.arange(n), 60, (0.3, 0.5))
+
+
+def _with_shrubs(
+    rng: np.random.Generator,
+    xy: np.ndarray,
+    z: np.ndarray,
+    pool: np.ndarray,
+    k: int,
+    high: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``xy, z`` with ``k`` of ``pool`` raised by ``high`` (single shrub returns)."""
+    shrub = np.zeros(len(z), dtype=bool)
+    shrub[rng.choice(pool, k, replace=False)] = True
+    z[shrub] += rng.uniform(*high, k)
     return np.column_stack([xy, z]), shrub
 
 
@@ -199,10 +211,7 @@ def _smooth_then_rough(seed: int) -> tuple[np.ndarray, np.ndarray]:
     n = 4800
     xy = rng.uniform((0, 0), (200, 60), (n, 2))
     z = 0.05 * xy[:, 1] + rng.normal(0, 1, n) * np.where(xy[:, 0] < 60, 0.02, 0.12)
-    shrub = np.zeros(n, dtype=bool)
-    shrub[rng.choice(np.flatnonzero(xy[:, 0] < 36), 40, replace=False)] = True
-    z[shrub] += rng.uniform(0.2, 0.3, 40)
-    return np.column_stack([xy, z]), shrub
+    return _with_shrubs(rng, xy, z, np.flatnonzero(xy[:, 0] < 36), 40, (0.2, 0.3))
 
 
 def test_the_threshold_noise_does_not_depend_on_where_the_tile_is_cut() -> None:
