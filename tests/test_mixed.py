@@ -804,3 +804,75 @@ def test_grid_marks_a_ramp_into_the_last_beam_of_the_field_of_view():
     for far_wall in (lambda c: 6.15, lambda c: 6.15 + 0.05 * max(c - 30, 0)):
         xyz, col = _wall_grid(far_wall, step=0.057, noise=0.002)
         assert not mark_mixed(xyz, MixedParams(footprint=0.165), np.zeros(3)).marked.any()
+
+
+def test_grid_marks_a_pole_narrower_than_the_footprint_cut_by_a_nearer_board():
+    # A pole narrower than the footprint at 37.6 m before a wall's end (0.109° steps,
+    # 4 mm noise; shared-report 4111), a board 10 m nearer hiding the wall on its right:
+    # four columns blend pole and wall, none on the pole alone. With one background
+    # there was no thin run; now a run that recedes into a surface nearer than any blend
+    # reaches is one (the pole's far edge lies within it). Nothing else is marked. A board
+    # at the same range partly hidden (its columns level up to the cut): only the blend
+    # before it is marked.
+    run = {0: 38.01, 1: 37.68, 2: 37.64, 3: 37.70}
+    for seed in range(2):
+        xyz, col = _wall_grid(
+            lambda c: run.get(c, 38.23 - 0.035 * c if c < 0 else 27.35),
+            step=0.109,
+            noise=0.004,
+            seed=seed,
+        )
+        m = mark_mixed(xyz, MixedParams(footprint=0.2), np.zeros(3)).marked
+        blend = np.isin(col, list(run))
+        assert m[blend].mean() > 0.95
+        assert m[~blend].mean() < 0.002
+    board = {0: 37.95, 1: 37.65, 2: 37.65, 3: 37.65}
+    xyz, col = _wall_grid(
+        lambda c: board.get(c, 38.23 - 0.035 * c if c < 0 else 27.35), step=0.109, noise=0.004
+    )
+    m = mark_mixed(xyz, MixedParams(footprint=0.2), np.zeros(3)).marked
+    assert m[col == 0].mean() > 0.95
+    assert m[col != 0].mean() < 0.002
+
+
+def test_grid_ramp_into_the_field_of_views_edge_without_gps_time_at_a_coarse_scale():
+    # The edge ramp at 25-28 m with 5 mm coordinates and no GPS time: every return is
+    # placed on its beam by its angles (blurred by under a quarter step), and its range was
+    # measured along that beam, so the ramp's line test needs no blur term. The ramp is
+    # marked; a board running to the edge, a wall receding 5 cm per beam and a plane
+    # receding 0.3-0.45 m per beam into it (each step past margin + step × range, but on
+    # one line in inverse range) are not.
+    ramp = {36: 25.6, 37: 26.4, 38: 27.0, 39: 27.9}
+
+    def plane(c):
+        return 1.0 / (1.0 / 25.0 - 0.00045 * max(c - 20, 0))
+
+    def quantised(r_of_col):
+        xyz, col = _wall_grid(r_of_col, step=0.057, noise=0.002)
+        return np.round(xyz / 0.005) * 0.005, col
+
+    xyz, col = quantised(lambda c: ramp.get(c, 25.0))
+    res = mark_mixed(xyz, MixedParams(footprint=0.165), np.zeros(3))
+    assert res.geometry[0]["grid_index"] == "angles"
+    blend = np.isin(col, [36, 37, 38])
+    assert res.marked[blend].mean() > 0.95
+    assert res.marked[~blend].mean() < 0.002
+    for far in (lambda c: 25.0, lambda c: 25.0 + 0.05 * max(c - 30, 0), plane):
+        xyz, col = quantised(far)
+        assert not mark_mixed(xyz, MixedParams(footprint=0.165), np.zeros(3)).marked.any()
+
+
+def test_grid_keeps_a_return_farther_behind_an_edge_than_any_blend_reaches():
+    # A board at 6.1 m ends; the next column answers from 11.2 m with nothing beyond it
+    # (report 7501: ground in the last column of the field of view behind a board). A
+    # blend of the board with a background ending within the beam lies within the 2.5 m
+    # mixing gap of the board, so that return answers alone: kept (main marked it). At
+    # 7.6 m, within the gap, it is such a blend: marked.
+    def scene(c, far):
+        return 6.1 if c < 0 or c >= 6 else (far if c == 0 else np.nan)
+
+    for far, want in ((11.2, 0.0), (7.6, 1.0)):
+        xyz, col = _wall_grid(lambda c, far=far: scene(c, far), noise=0.003)
+        m = mark_mixed(xyz, MixedParams(footprint=0.3), np.zeros(3)).marked
+        assert m[col == 0].mean() == want
+        assert not m[col != 0].any()

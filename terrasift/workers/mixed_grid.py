@@ -47,12 +47,17 @@ surface: a background at the field of view's edge shows one beam, no line.
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
-of one background surface that continues behind them. Such runs are marked too.
+of one background surface that continues behind them. Such runs are marked too,
+and so are runs in front of a background on one side only, cut on the other by a
+surface nearer than any blend reaches (``max_gap``), when they recede into that cut:
+the object's far edge then lies within the run (a pole before a wall's end, a board
+hiding the wall beyond it).
 
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a return that lies off the surface it ends by more than that surface
-alone could pull it (its continuation taken back half a footprint of beams) blends
-it with a background that ends within the beam: marked. Only with ``open_edges``
+alone could pull it (its continuation taken back half a footprint of beams), and
+within ``max_gap`` of it, blends it with a background that ends within the beam:
+marked. Only with ``open_edges``
 (off by default: such a return answers from one surface, so it is no blend, only
 displaced by the beam's width): a return off the surface it ends (that surface continued to its beam
 misses it by more than its scatter and ``min_offset`` across it) is a blend with
@@ -570,7 +575,9 @@ def _mixed_along(
                     cc = np.flatnonzero(ok & (ra < r - s.margin) & ~(gap < s.max_gap))
                     v = V[a][cc] + (V[a][cc] - V[a1][cc]) * i
                     hidden[sd][i] = (cc, np.where(v > 0, 1.0 / v, np.inf))
-                end = ok & (ra < r + s.max_gap)
+                # p blends that surface with a background ending within its beam only
+                # within max_gap of it (a return farther behind answers alone)
+                end = ok & (ra < r + s.max_gap) & (gap < s.max_gap)
                 off_end[sd] |= end
                 # the surface continued to p's beam, taken back half a footprint of beams
                 # towards the anchor: the farthest a return of that surface alone is pulled.
@@ -681,6 +688,7 @@ def _mixed_along(
             between |= ends
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
+        between |= _thin_runs_hidden(R, V, line.C, r, s, step, step_x)
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
@@ -985,4 +993,65 @@ def _thin_runs(
                 least = s.min_offset if s.min_offset > 0 else s.margin
                 in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
                 out[c[keep & cont & in_front]] = True
+    return out
+
+
+def _thin_runs_hidden(
+    R: dict[int, NDArray[np.float64]],
+    V: dict[int, NDArray[np.float64]],
+    C: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    s: GridSettings,
+    step: float,
+    step_x: float,
+) -> NDArray[np.bool_]:
+    """Runs of at most ``s.thin`` beams in front of a background surface on one side and
+    cut on the other by a surface nearer than the run by more than ``max_gap`` (which no
+    blend reaches), that recede into that cut: the run's beam next to it lies behind the
+    run's nearest beam by more than the margin. The object's far edge then lies within
+    the run, as it does between two backgrounds (``_thin_runs``): an object narrower than
+    the run, whose every return blends it with the background hidden by the nearer one."""
+    out = np.zeros(r.size, dtype=bool)
+    top = s.reach + 2
+    least = s.min_offset if s.min_offset > 0 else s.margin
+    # per beam offset: a background behind p within max_gap; a surface nearer than p by
+    # more than max_gap (the run's nearest beam is no farther than p)
+    bg: dict[int, NDArray[np.bool_]] = {}
+    cut: dict[int, NDArray[np.bool_]] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for L in range(2, s.thin + 1):
+            for q in range(L):
+                lo, hi = -(q + 1), L - q
+                for b, o in ((lo, hi), (hi, lo)):
+                    db, do = (1 if b > 0 else -1), (1 if o > 0 else -1)
+                    if abs(b) + 2 > top or abs(o) > top:
+                        continue
+                    if b not in bg:
+                        d = R[b] - r
+                        bg[b] = (d > s.margin) & (d < s.max_gap)
+                    if o not in cut:
+                        cut[o] = R[o] < r - s.max_gap
+                    c = np.flatnonzero(bg[b] & cut[o])
+                    if c.size == 0:
+                        continue
+                    run = [R[m][c] for m in range(lo + 1, hi)]
+                    near = np.minimum.reduce(run)
+                    rb = R[b][c]
+                    keep = R[o][c] < near - s.max_gap
+                    # receding into the cut: the object ends within the run
+                    keep &= R[o - do][c] > near + s.margin
+                    # the background on a surface (its next two beams continue through it)
+                    # and every beam of the run in front of it, continued across the run
+                    keep &= _on_line(R, c, b, db, s, step)
+                    vb, vb1 = V[b][c], V[b + db][c]
+                    for m in range(lo + 1, hi):
+                        v = vb + (vb - vb1) * abs(b - m)
+                        cont = np.where(v > 0, 1.0 / v, np.inf)
+                        keep &= (R[m][c] < rb - s.margin) & (R[m][c] < cont - s.margin)
+                    # in front of the background across it too (grazing ground is no
+                    # background a run stands in front of)
+                    tan_a = r[c] * np.abs(vb - vb1) / step
+                    tan_x = r[c] * C[b][c] / rb**2 / step_x
+                    keep &= (rb - r[c]) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
+                    out[c[keep]] = True
     return out
