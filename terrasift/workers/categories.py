@@ -158,6 +158,10 @@ class Categories:
     (``flat_height`` / (σ_g × the tile's width between its outer cell centres)); inf when
     σ_g is 0. Where it is small, noise alone tips level tiles past the threshold; the
     filters' ``clear-share`` exemption reads it."""
+    turned: NDArray[np.uint8] | None = None
+    """Marks of a ``diagonal`` filter's segments searched on tiles turned by 45° and set
+    back on this grid (bit 1 a turned row's, bit 2 a turned column's;
+    ``features.turned``); ``categories_for`` makes them. None: no turned search."""
 
     @property
     def step(self) -> int:

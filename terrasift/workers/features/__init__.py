@@ -15,7 +15,7 @@ Example::
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any
 
@@ -48,6 +48,7 @@ from terrasift.workers.features.language import (
 )
 from terrasift.workers.features.objects import Feature, objects_from_labels
 from terrasift.workers.features.search import search_filter
+from terrasift.workers.features.turned import turned_marks
 from terrasift.workers.registry import StageParams, register
 
 __all__ = [
@@ -140,11 +141,17 @@ def _tile_transform(cats: Categories, transform: Affine, tile_size: float) -> Af
     "Terrain objects (ditch, ridge, hill, pond, road, flat areas) from categories",
 )
 def categories_for(
-    dtm: NDArray, cell: float, filters: list[Filter], params: CategoryParams | None = None
+    dtm: NDArray,
+    cell: float,
+    filters: list[Filter],
+    params: CategoryParams | None = None,
+    origin: tuple[int, int] = (0, 0),
 ) -> tuple[Categories, dict[GridKey, Categories]]:
     """Categories of ``dtm`` on the tile grid and on every other grid ``filters`` ask for
     (overlapping tiles, a detrended DTM), ready for
-    ``detect_features(cats, filters, ..., stepped=stepped)``."""
+    ``detect_features(cats, filters, ..., stepped=stepped)``; a ``diagonal`` filter's
+    grid carries its turned marks (``Categories.turned``), whose lattice is fixed to
+    the whole DTM's first cell: ``origin`` is ``dtm``'s first cell in the whole DTM."""
     params = params or CategoryParams()
     if params.noise is None:  # one noise for every grid: the DTM's own
         params = params.model_copy(update={"noise": measure_noise(dtm, cell, params)})
@@ -169,6 +176,14 @@ def categories_for(
             cats, made = made[0], made[1:]
         others.update(zip(mine, made, strict=True))
     assert cats is not None
+    for flt in filters:
+        key = grid_key(flt)
+        if flt.diagonal is not None and key is not None and key[1] is None:
+            if others[key].turned is not None:
+                raise ParameterError(f"filter {flt.name}: one diagonal filter per grid")
+            g = others[key]
+            resolved = resolve_lengths(flt, g.spacing)
+            others[key] = replace(g, turned=turned_marks(dtm, cell, params, g, resolved, origin))
     return cats, others
 
 

@@ -280,6 +280,12 @@ class Filter:
     flatness threshold is at least this many slope-noise heights above level
     (``Categories.flat_sigmas``): there noise cannot tip a level tile past the threshold,
     and a shallow object's tiles just past it are real."""
+    diagonal: Length | None = None
+    """``diagonal <width>``: the segments are also searched on tiles turned by 45° (rows
+    and columns along the grid's diagonals), with every subsegment that is not excluded
+    (the strip) at least this long, and their marks set back on the filter's grid
+    (``features.turned``): a strip crossing the grid obliquely is crossed squarely on
+    one grid or the other."""
 
     @property
     def makes_objects(self) -> bool:
@@ -369,6 +375,7 @@ class _Parser:
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
+        diagonal: Length | None = None
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -408,6 +415,10 @@ class _Parser:
                 if len(args) != 1 or not args[0].endswith("m"):
                     raise self.error("step takes one length in metres, e.g. step 1m", no)
                 step = self.lengths(args, no, "step", lo=1)[0]
+            elif key == "diagonal":
+                if steps or segments or diagonal is not None or len(args) != 1:
+                    raise self.error("diagonal takes one width, once, before the segments", no)
+                diagonal = self.lengths(args, no, "diagonal", lo=1)[0]
             elif key == "detrend":
                 if steps or segments or detrend is not None:
                     raise self.error("detrend comes once, before the segments", no)
@@ -529,6 +540,8 @@ class _Parser:
                 " need a connect step",
                 last_line,
             )
+        if diagonal is not None and (step is None or detrend is not None):
+            raise self.error("diagonal needs a step and no detrend", last_line)
         if yields and connect is None and rect is None:
             raise self.error("yield needs a connect or findrectangle step", last_line)
         return Filter(
@@ -553,6 +566,7 @@ class _Parser:
             tuple(yields),
             join_line,
             clear_exempt=clear_exempt,
+            diagonal=diagonal,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -717,6 +731,8 @@ def format_filter(f: Filter) -> str:
     out: list[str] = [f"step {f.step.text()}"] if f.step is not None else []
     if f.detrend is not None:
         out.append(f"detrend {f.detrend.text()}")
+    if f.diagonal is not None:
+        out.append(f"diagonal {_text(f.diagonal)}")
     for seg in f.segments:
         head = (
             "beginsegment"
@@ -935,6 +951,7 @@ def resolve_lengths(f: Filter, tile_size: float) -> Filter:
         join=join,
         join_aligned=aligned,
         join_line=t(f.join_line, "size"),
+        diagonal=t(f.diagonal, "min"),
         surround=surround,
         enclosed=enclosed,
         isolated=isolated,

@@ -289,4 +289,10 @@ def search_filter(
                 marks[r : r + band] |= search_rows(
                     part, seg, band, masks, sums, prefixes, shared, looks
                 )
-    return h, np.ascontiguousarray(v.T)
+    v = np.ascontiguousarray(v.T)
+    if (
+        flt.diagonal is not None and cats.turned is not None
+    ):  # marks of the turned tiles (``turned``)
+        h |= (cats.turned & 1) > 0
+        v |= (cats.turned & 2) > 0
+    return h, v

@@ -79,6 +79,7 @@ from terrasift.workers.features.objects import (
     rectangle_size,
     scan_order,
 )
+from terrasift.workers.features.turned import turned_reach
 
 #: a window of DTM cells: (row0, col0, row1, col1), ends excluded
 Rect = tuple[int, int, int, int]
@@ -191,7 +192,23 @@ def window_reach(filters: list[Filter], cparams: CategoryParams, cell: float) ->
                 (c.min_length, c.max_length, c.min_width, c.max_width), r.join, r.join_aligned
             )
         far = max(far, tiles * _step_cells(f, k, cell) + k)
+        if f.diagonal is not None:  # its turned marks read the DTM around a tile as far as this
+            longest = max((seg.longest for seg in r.segments), default=1)
+            turned = turned_reach(longest, _step_cells(f, k, cell), k, cell)
+            far = max(far, turned + (tiles - longest) * _step_cells(f, k, cell) + k)
     return cats + far
+
+
+def _block_margin(filters: list[Filter], cparams: CategoryParams, cell: float) -> int:
+    """DTM cells a block's categories are read with around it: the categories' reach, or
+    a ``diagonal`` filter's turned marks' (``turned_reach``), whichever is farther."""
+    k = _tile_cells(cparams, cell)
+    out = category_reach(filters, cparams, cell)
+    for f in filters:
+        if f.diagonal is not None:
+            longest = max((seg.longest for seg in _resolved(f, cparams, cell).segments), default=1)
+            out = max(out, turned_reach(longest, _step_cells(f, k, cell), k, cell))
+    return out
 
 
 #: DTM cells a side of the blocks a grown window's categories are made in (each read
@@ -209,6 +226,7 @@ _BANDS = (
     "clear",
     "rise",
     "grade",
+    "turned",
 )
 
 
@@ -230,8 +248,10 @@ def blocked_categories(
     h, w = rect[2] - rect[0], rect[3] - rect[1]
     b = max(align, block // align * align)
     if h <= b and w <= b:
-        return categories_for(read(rect[0], rect[2], rect[1], rect[3]), cell, filters, cparams)
-    m = -(-category_reach(filters, cparams, cell) // align) * align
+        return categories_for(
+            read(rect[0], rect[2], rect[1], rect[3]), cell, filters, cparams, (rect[0], rect[1])
+        )
+    m = -(-_block_margin(filters, cparams, cell) // align) * align
     first: tuple[Categories, dict] | None = None
     bands: dict[object, dict[str, NDArray]] = {}
     for a0 in range(0, h, b):
@@ -241,7 +261,9 @@ def blocked_categories(
             dtm = read(
                 rect[0] + ra0, rect[0] + min(h, a1 + m), rect[1] + rc0, rect[1] + min(w, c1 + m)
             )
-            cats, stepped = categories_for(dtm, cell, filters, cparams)
+            cats, stepped = categories_for(
+                dtm, cell, filters, cparams, (rect[0] + ra0, rect[1] + rc0)
+            )
             del dtm
             first = first or (cats, stepped)
             for key, g in [(None, cats), *stepped.items()]:
@@ -343,7 +365,7 @@ def search_core(
             grids.clear()
             if every:
                 dtm = read(rect[0], rect[2], rect[1], rect[3])
-                grids[rect] = categories_for(dtm, cell, filters, cparams)
+                grids[rect] = categories_for(dtm, cell, filters, cparams, (rect[0], rect[1]))
                 del dtm
             else:  # a grown window: block by block, so its DTM is never held whole
                 grids[rect] = blocked_categories(read, rect, [flt], cparams, cell)
