@@ -1306,6 +1306,57 @@ def test_yield_drops_an_object_lying_on_another_filter_s_object_only():
             parse_filter(format_filter(flt).replace("yield road 1 0.5", bad), "ditch")
 
 
+def test_yield_with_a_length_drops_an_object_whose_part_off_the_road_is_too_short():
+    """``yield road 1 0.5 30m``: a false ditch made of pieces on a cut road's walls, joined
+    end to end to a chance piece off the road (fresh seed 169: under half its area within
+    a tile of the road), is dropped: what lies beyond the tile is no 30 m ditch. A ditch
+    crossing the road with 30 m or more on a side, and one along the road's edge, stay."""
+    from shapely.geometry import Polygon
+    from shapely.ops import unary_union
+
+    from terrasift.workers.features import apply_yields
+    from terrasift.workers.features.language import Metres
+    from terrasift.workers.features.objects import Feature
+
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 -1 -1\nyield road 1 0.5 30m\n"
+    )
+    flt = parse_filter(text, "ditch")
+    assert flt.yields == (("road", 1, 0.5, Metres(30.0)),)
+    assert parse_filter(format_filter(flt), "ditch") == flt
+    road = Feature("road", box(0, 0, 200, 4), 200, 4, 200)
+    walls = unary_union(
+        [
+            box(50, -2.5, 60, 6.5),  # pieces across the cut, wall to wall
+            box(64, -2, 68, 6),
+            box(65, 20, 70, 25),  # a chance piece 16 m off the road
+            Polygon([(58, 6.5), (68, 6), (70, 20), (65, 20)]),  # the strip joining them
+        ]
+    )
+    zone = road.geometry.buffer(2.0)
+    assert walls.intersection(zone).area < 0.5 * walls.area  # the share alone keeps it
+    false = Feature("ditch", walls, 35, 5.6, 120)
+    crossing = Feature("ditch", box(100, -40, 104, 44), 84, 4, 336)
+    along = Feature("ditch", box(0, 5, 200, 8), 200, 3, 600)  # a third within the tile
+    objs = [road, false, crossing, along]
+    assert apply_yields(objs, [flt], 2.0) == [road, crossing, along]
+    main_rule = parse_filter(text.replace("0.5 30m", "0.5"), "ditch")
+    assert apply_yields(objs, [main_rule], 2.0) == objs
+    in_tiles = parse_filter(text.replace("30m", "15"), "ditch")  # 15 tiles of 2 m
+    assert apply_yields(objs, [in_tiles], 2.0) == [road, crossing, along]
+    longer = parse_filter(text.replace("30m", "40m"), "ditch")  # 37 m a side: too short
+    assert apply_yields(objs, [longer], 2.0) == [road, along]
+    for bad in ("yield road 1 0.5 0", "yield road 1 0.5 0m", "yield road 1 0.5 30m 2"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(text.replace("yield road 1 0.5 30m", bad), "ditch")
+    ditch = load_filter("ditch")
+    assert ditch.connect is not None and ditch.yields == (
+        ("road", 1, 0.5, ditch.connect.min_length),
+    )
+
+
 def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
     """A level road cut 0.21 m into a 13 % slope along its contour is, on the ditch
     filter's detrended tiles, a trough falling to the foot of its uphill wall; the
@@ -1322,7 +1373,7 @@ def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
     z = np.where(np.abs(u) <= half + shoulder, 100 - cut + t * (z - 100 + cut), z)
     z += np.random.default_rng(5).normal(0, 0.015, z.shape)
     ditch, road = load_filter("ditch"), load_filter("road")
-    assert ditch.yields == (("road", 1, 0.5),)
+    assert ditch.yields[0][:3] == ("road", 1, 0.5)
     cats, stepped = categories_for(z, cell, [ditch, road])
     tt = Affine(cell, 0, 0, 0, -cell, size)
     kinds = [f.kind for f in detect_features(cats, [ditch, road], tt, 2.0, stepped=stepped).objects]

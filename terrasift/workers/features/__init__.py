@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 from rasterio import Affine
 from scipy import ndimage
-from shapely.geometry import mapping
+from shapely.geometry import MultiPolygon, Polygon, mapping
 from shapely.geometry.polygon import orient
 
 from terrasift.errors import ParameterError
@@ -41,12 +41,13 @@ from terrasift.workers.categories import (
 from terrasift.workers.features import connect as _connect
 from terrasift.workers.features.language import (
     Filter,
+    Length,
     Metres,
     format_filter,
     parse_filter,
     resolve_lengths,
 )
-from terrasift.workers.features.objects import Feature, objects_from_labels
+from terrasift.workers.features.objects import Feature, _measured, objects_from_labels
 from terrasift.workers.features.search import search_filter
 from terrasift.workers.features.turned import turned_marks
 from terrasift.workers.registry import StageParams, register
@@ -252,9 +253,12 @@ def detect_features(
 def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float) -> list[Feature]:
     """``objects`` without those a filter's ``yield`` drops: an object with at least the
     share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
-    object of the named filter, as that filter found it. A named filter that did not run
-    takes nothing away."""
+    object of the named filter, as that filter found it, or, where the rule gives a length,
+    no part of it beyond the distance that long. A named filter that did not run takes
+    nothing away."""
     rules = {f.name: f.yields for f in filters if f.yields}
+    # an object is measured on its filter's grid: overlapping tiles laid every step
+    grid = {f.name: tile_size if f.step is None else f.step.value for f in filters}
     if not rules:
         return objects
     by_kind: dict[str, list[Feature]] = {}
@@ -263,7 +267,7 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
     drop: set[int] = set()
     for kind, yields in rules.items():
         mine = [i for i, o in enumerate(objects) if o.kind == kind]
-        for other, reach, share in yields:
+        for other, reach, share, *rest in yields:
             theirs = by_kind.get(other)
             if not theirs or not mine:
                 continue
@@ -271,9 +275,28 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
             zone = shapely.union_all([o.geometry for o in theirs]).buffer(d)
             for i in mine:
                 g = objects[i].geometry
-                if g.area > 0 and g.intersection(zone).area >= share * g.area:
+                inside = g.intersection(zone).area if g.area > 0 else 0.0
+                if inside > 0 and (
+                    inside >= share * g.area or _short_rest(g, zone, rest, tile_size, grid[kind])
+                ):
                     drop.add(i)
     return [o for i, o in enumerate(objects) if i not in drop]
+
+
+def _short_rest(
+    geom: Polygon | MultiPolygon, zone: Any, rest: list[Length], tile_size: float, grid: float
+) -> bool:
+    """No part of ``geom`` outside ``zone`` is as long as ``rest[0]`` (tiles of ``tile_size``
+    metres, or metres), each part measured as ``finish_pieces`` measures an object on a
+    grid of ``grid`` metres; False without a length."""
+    if not rest:
+        return False
+    r = rest[0]
+    least = r.value if isinstance(r, Metres) else r * tile_size
+    parts = shapely.get_parts(geom.difference(zone))
+    return not any(
+        isinstance(p, Polygon) and p.area > 0 and _measured(p, grid)[0] >= least for p in parts
+    )
 
 
 def _run_filter(

@@ -262,13 +262,16 @@ class Filter:
     into ground that is flat or still rises toward it; the rounded end of a ridge, closed
     into an outline of its own, runs on into the ridge's flanks, inclined across it."""
 
-    yields: tuple[tuple[str, Length, float], ...] = ()
-    """``yield <filter> <distance> <share>`` (each once per filter named): objects of which
-    at least this share of the area lies within the distance (tiles of the category tile
-    size, or metres) of an object of the named filter are dropped once every filter has
+    yields: tuple[tuple[str, Length, float] | tuple[str, Length, float, Length], ...] = ()
+    """``yield <filter> <distance> <share> [<length>]`` (each once per filter named): objects
+    of which at least this share of the area lies within the distance (tiles of the category
+    tile size, or metres) of an object of the named filter are dropped once every filter has
     run (Sjövall §5.3.1: filters in an order of priority, an object found by the first
     taken out before the next looks). A road cut into a slope is, on the ditch filter's
-    detrended tiles, a trough falling to the foot of its uphill wall."""
+    detrended tiles, a trough falling to the foot of its uphill wall. With a length, an
+    object is also dropped when no part of it beyond the distance is that long: what is
+    left once the other object's ground is taken out must still be an object (pieces on a
+    cut road's walls, joined end to end to a chance piece off the road, are not a ditch)."""
     join_line: Length | None = None
     """``join-line <gap>``: objects (within the connect limits on their own) lying on one
     line, each one's centre within half the narrower one's width of the other's long
@@ -371,7 +374,7 @@ class _Parser:
         clear_exempt: float | None = None
         surround: tuple[Length, float] | None = None
         share: float | None = None
-        yields: list[tuple[str, Length, float]] = []
+        yields: list[tuple[str, Length, float] | tuple[str, Length, float, Length]] = []
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
@@ -475,17 +478,23 @@ class _Parser:
                 isolated = (dist, most)
                 steps.append("isolated")
             elif key == "yield":
-                if len(args) != 3 or any(y[0] == args[0] for y in yields):
+                if len(args) not in (3, 4) or any(y[0] == args[0] for y in yields):
                     raise self.error(
-                        "yield takes a filter name, a distance and a share (0-1), once per name", no
+                        "yield takes a filter name, a distance, a share (0-1) and optionally"
+                        " a length, once per name",
+                        no,
                     )
                 (reach,) = self.lengths(args[1:2], no, "yield", lo=0)
-                (most,) = self.numbers(args[2:], no, "yield")
+                (most,) = self.numbers(args[2:3], no, "yield")
                 if not 0 < most <= 1:
                     raise self.error("yield share is above 0 and at most 1", no)
                 if args[0] == self.name:
                     raise self.error("a filter cannot yield to itself", no)
-                yields.append((args[0], reach, most))
+                if len(args) == 4:
+                    (rest,) = self.lengths(args[3:], no, "yield", lo=1)
+                    yields.append((args[0], reach, most, rest))
+                else:
+                    yields.append((args[0], reach, most))
                 if "yield" not in steps:
                     steps.append("yield")
             elif key == "fill":
@@ -804,7 +813,10 @@ def format_filter(f: Filter) -> str:
         elif step == "isolated" and f.isolated is not None:
             out.append(f"isolated {_text(f.isolated[0])} {f.isolated[1]:g}")
         elif step == "yield":
-            out += [f"yield {k} {_text(d)} {v:g}" for k, d, v in f.yields]
+            out += [
+                f"yield {y[0]} {_text(y[1])} {y[2]:g}" + "".join(f" {_text(r)}" for r in y[3:])
+                for y in f.yields
+            ]
     return "\n".join(out) + "\n"
 
 
