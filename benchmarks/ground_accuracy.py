@@ -275,8 +275,10 @@ CANDIDATES: dict[str, list[dict]] = {
         {"rough_fit_step_slope": 2.0},
         {"rough_fit_step_slope": 3.0},
         {"final_nodes": "square"},
-        # Bins laid from the centre of the data's bounds (translations label alike).
-        {"bin_anchor": "data"},
+        # Bins on absolute multiples of the cell (the default before bins followed the data).
+        {"bin_anchor": "absolute"},
+        {"grow_low": False},
+        {"raised_over_walls": False},
     ],
 }
 

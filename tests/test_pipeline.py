@@ -379,8 +379,9 @@ def test_job_measures_one_occupied_area_density_for_the_ground_stage(finished_jo
 
 
 def test_job_gives_data_anchored_ground_bins_one_anchor():
-    """With ``bin_anchor="data"`` every block of a job bins from one anchor: its survey's,
-    else its tiles' smallest x and y; absolute bins and an anchor the job sets stay."""
+    """With ``bin_anchor="data"`` (the default) every block of a job bins from one anchor:
+    its survey's, else the centre of its tiles' bounds; absolute bins and an anchor the job
+    sets stay."""
     from terrasift.jobs.params import block_models, job_anchor, with_ground_anchor
 
     plan = {
@@ -395,7 +396,7 @@ def test_job_gives_data_anchored_ground_bins_one_anchor():
     models = with_ground_anchor(data, job_anchor({}, plan))
     assert models.ground_params.anchor == (550.25, 90.0)
     assert models.rotation_ground_params.anchor == (550.25, 90.0)
-    assert block_models(jobs.validate_params(BLOCK)).ground_params.bin_anchor == "absolute"
+    assert block_models(jobs.validate_params(BLOCK)).ground_params.bin_anchor == "data"
     plain = block_models(jobs.validate_params({**BLOCK, "ground.nist.bin_anchor": "absolute"}))
     assert with_ground_anchor(plain, (1.0, 2.0)).ground_params.anchor is None
     given = jobs.validate_params(

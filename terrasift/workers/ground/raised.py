@@ -50,6 +50,9 @@ _RAMP_RUNS = 4.0
 #: steps of a lone vertex or a pair (a shrub's top) radiate from one spot, and their ramps
 #: cross its canopy's returns as readily as a bank's (rural seed 202 kept such a shrub)
 _RAMP_VERTICES = 3
+#: ``over_walls``: the fewest returns over an edge's middle that tell a ramp from a wall (one
+#: under the ramp and one over it; railway seed 97's edge across a 0.8 m wall at 2 pts/m² has 2)
+_RAMP_MIN = 2
 #: ``along``: edges at least this many median edges long are judged by the terrain behind them
 _ALONG_RUNS = 2.0
 #: ...sampled this many runs behind the end (the median of the slopes they give)
@@ -86,6 +89,7 @@ def raised_segments(
     even: bool = False,
     sides: float = 0.0,
     points: NDArray[np.float64] | None = None,
+    over_walls: bool = False,
 ) -> NDArray[np.bool_]:
     """Vertices of ``tri`` (built on ``xyz[:, :2]``) in raised segments; see the module doc.
 
@@ -161,6 +165,13 @@ def raised_segments(
     middle of those steps lie on their ramps (``_on_ramp``): the sloped side of an embankment
     holds returns at intermediate heights between its foot and crest, the wall of a roof or
     platform has its foot and top level up to it (a facade or a shrub is a point or two).
+    ``over_walls`` with ``points``: an edge gentler than a step that rises ``step`` or more
+    from the top of a wall, no longer than ``_RAMP_RUNS`` median edges, is a step and a wall
+    when the returns over its middle stand at its foot's level and at its top's, fewer than
+    ``_RAMP_SHARE`` of them between (``_on_ramp``): it crosses the wall on a diagonal, the
+    foot going on past its start and the top before its end, and alone it joined a platform
+    to the terrain at some bin phases (railway seed 97). A bank or a slope crossed so
+    carries returns on its face, between: it joins.
     """
     n = xyz.shape[0]
     e = tin_edges(tri)
@@ -197,6 +208,9 @@ def raised_segments(
         if relative:
             grad = grad - base[lower]
     is_step = ((np.abs(dz) >= step) & (grad >= tan_step)) | (big & ((np.abs(dz) >= step) | along))
+    if over_walls and points is not None:
+        crossing = _over_walls(xyz, e, dz, run, med, is_step, wall, step, points)
+        is_step[crossing], wall[crossing] = True, True
     joins = ~is_step
     if rim > 0:
         # Slivers along the border of the data: long edges between vertices near
@@ -288,14 +302,50 @@ def raised_segments(
     return gone[seg]
 
 
+def _over_walls(
+    xyz: NDArray[np.float64],
+    e: NDArray[np.int64],
+    dz: NDArray[np.float64],
+    run: NDArray[np.float64],
+    med: float,
+    is_step: NDArray[np.bool_],
+    wall: NDArray[np.bool_],
+    step: float,
+    points: NDArray[np.float64],
+) -> NDArray[np.int64]:
+    """Edges (indices into ``e``) gentler than a step, rising ``step`` or more to a vertex
+    that tops a wall (the upper end of a step that is a wall), no longer than
+    ``_RAMP_RUNS`` median edges, over whose middle at least ``_RAMP_MIN`` returns lie,
+    some at the foot's level and some at the top's, and fewer than ``_RAMP_SHARE`` of them
+    between: a wall crossed on a diagonal (``raised_segments``' ``over_walls``)."""
+    walled = is_step & wall
+    top = np.zeros(xyz.shape[0], dtype=bool)
+    top[np.where(dz[walled] > 0, e[walled, 1], e[walled, 0])] = True
+    upper = np.where(dz > 0, e[:, 1], e[:, 0])
+    cand = np.flatnonzero(~is_step & (np.abs(dz) >= step) & top[upper] & (run <= _RAMP_RUNS * med))
+    if cand.size == 0:
+        return cand
+    lower = np.where(dz[cand] > 0, e[cand, 0], e[cand, 1])
+    on, mid = _on_ramp(points, xyz[lower], xyz[upper[cand]], both=True)
+    return cand[(mid >= _RAMP_MIN) & (on < _RAMP_SHARE * mid)]
+
+
 def _on_ramp(
-    points: NDArray[np.float64], foot: NDArray[np.float64], top: NDArray[np.float64]
+    points: NDArray[np.float64],
+    foot: NDArray[np.float64],
+    top: NDArray[np.float64],
+    both: bool = False,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per step (ends ``foot`` → ``top``, (k, 3)): the points of ``points`` over the middle of
     its run (in plan 20–80 % along it, within half the run of its line), and how many of them
     lie on the straight ramp between its ends (within 25 % of the rise of the ramp's height
     there). Fractions of the step's own run and rise: a graded side carries returns at
-    intermediate heights, a wall's foot and top are level up to it."""
+    intermediate heights, a wall's foot and top are level up to it. With ``both``: how many
+    of them stand between the ends' heights (in the middle half of the rise) instead of
+    how many on the ramp, and the count over the middle is 0 for a step without a return
+    at its foot's level (the lowest quarter of the rise or under) and one at its top's
+    (the highest quarter or over): a wall crossed on a diagonal has both and none between;
+    a bank or a slope crossed so has returns on its face, between."""
     on = np.zeros(foot.shape[0])
     mid = np.zeros(foot.shape[0])
     if foot.shape[0] == 0 or points.shape[0] == 0:
@@ -318,7 +368,12 @@ def _on_ramp(
     inside = (t > 0.2) & (t < 0.8) & (across < 0.5 * run[k])
     mid = np.bincount(k, inside, foot.shape[0]).astype(np.float64)
     on = np.bincount(k, inside & (np.abs(f - t) < 0.25), foot.shape[0]).astype(np.float64)
-    return on, mid
+    if not both:
+        return on, mid
+    foot_level = np.bincount(k, inside & (f <= 0.25), foot.shape[0]) > 0
+    top_level = np.bincount(k, inside & (f >= 0.75), foot.shape[0]) > 0
+    between = np.bincount(k, inside & (f > 0.25) & (f < 0.75), foot.shape[0]).astype(np.float64)
+    return between, mid * (foot_level & top_level)
 
 
 def _near_discs(
