@@ -407,8 +407,10 @@ def test_landform_rule_keeps_mesas_and_hills_and_drops_buildings():
     before = nist(scene.xyz, NistParams())
     after = restore_landforms(scene.xyz, before, LandformParams())
     land, bldg = scene.extra["landform"], scene.truth == 6
-    # The filter takes the mesa and the hill for buildings; the rule gives them back.
-    assert np.mean(before[land]) < 0.3 and np.mean(after[land]) > 0.8
+    mesa = land & (np.hypot(*(scene.xyz[:, :2] - scene.bounds[:2] - (35.0, 40.0)).T) < 20.0)
+    # The filter takes the mesa for a building (the hill too, in part, as its bins fall);
+    # the rule gives them back.
+    assert np.mean(before[mesa]) < 0.3 and np.mean(after[land]) > 0.8
     assert not np.any(after[bldg])
     assert (
         not restore_landforms(scene.xyz, before, LandformParams(enabled=False))[land].mean() > 0.6
