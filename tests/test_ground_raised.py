@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 from scipy.spatial import Delaunay
 
 from terrasift.workers.ground import nist
-from terrasift.workers.ground.raised import raised_segments
+from terrasift.workers.ground.raised import _on_ramp, raised_segments
 from terrasift.workers.ground.tin import Tin
 
 
@@ -197,3 +197,37 @@ def test_platform_bending_with_the_ground_under_it_is_dropped():
         # The same patch standing 0.3-1.9 m above the ground: walls of uneven height.
         xyz, top = _bending_platform(seed, 1.1, uneven=0.8)
         assert not _dropped(xyz, even=True, **rules).any(), seed
+
+
+def test_ramp_counts_match_a_count_per_step_over_near_and_far_steps() -> None:
+    # _on_ramp reads the returns through a grid of cells: each step's counts must equal a
+    # direct count over every return, for steps sharing cells, steps hundreds of metres
+    # apart (wide cells) and a step with no rise.
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(0, 40, (4000, 2)), rng.normal(0, 1, 4000)])
+    pts = np.vstack([pts, pts + [900.0, 700.0, 0.0]])
+    foot = np.column_stack([rng.uniform(0, 40, (60, 2)), rng.normal(0, 1, 60)])
+    foot[30:] += [900.0, 700.0, 0.0]
+    top = foot + np.column_stack([rng.normal(0, 3, (60, 2)), rng.normal(0, 1, 60)])
+    top[0, 2] = foot[0, 2]
+    for both in (False, True):
+        got = _on_ramp(pts, foot, top, both=both)
+        want_on, want_mid = np.zeros(60), np.zeros(60)
+        for j in range(60):
+            d = top[j, :2] - foot[j, :2]
+            run = max(float(np.hypot(*d)), 1e-9)
+            rise = top[j, 2] - foot[j, 2] or 1e-9
+            q = pts[np.hypot(*(pts[:, :2] - 0.5 * (foot[j, :2] + top[j, :2])).T) <= 0.5 * run]
+            u, v = q[:, 0] - foot[j, 0], q[:, 1] - foot[j, 1]
+            t = (u * d[0] + v * d[1]) / run**2
+            inside = (t > 0.2) & (t < 0.8) & (np.abs(u * d[1] - v * d[0]) / run < 0.5 * run)
+            f = (q[inside, 2] - foot[j, 2]) / rise
+            t = t[inside]
+            if both:
+                want_on[j] = np.sum((f > 0.25) & (f < 0.75))
+                want_mid[j] = inside.sum() * ((f <= 0.25).any() and (f >= 0.75).any())
+            else:
+                want_on[j], want_mid[j] = np.sum(np.abs(f - t) < 0.25), inside.sum()
+        assert want_mid.sum() > 100, both  # the steps do read returns
+        assert np.array_equal(got[0], want_on), both
+        assert np.array_equal(got[1], want_mid), both

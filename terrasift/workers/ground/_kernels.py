@@ -779,3 +779,91 @@ def _near_outline(
                     break
         out[i] = best <= band
     return out
+
+
+# ------------------------------------------------------------ raised segments (raised.py)
+
+
+@numba.njit(cache=True, nogil=True)
+def _ramp_counts(
+    points: NDArray[np.float64],
+    foot: NDArray[np.float64],
+    d: NDArray[np.float64],
+    run: NDArray[np.float64],
+    rise: NDArray[np.float64],
+    centre: NDArray[np.float64],
+    lo_x: float,
+    lo_y: float,
+    cell: float,
+    nx: int,
+    ny: int,
+) -> NDArray[np.int64]:
+    """Per step (foot ``foot``, plan vector ``d`` of length ``run``, ``rise``): counts of the
+    ``points`` within half the run of the run's centre that lie 20–80 % along it and within
+    half the run of its line, as columns: all of them, those on the straight ramp (height
+    fraction f within 0.25 of the fraction along), f ≤ 0.25, f ≥ 0.75, 0.25 < f < 0.75.
+
+    One pass over the points through a grid of cells (side ``cell``, corner ``lo``) each
+    listing the steps whose disc's box (widened by 1 µm) meets it: no per-step search of a
+    dense block's returns."""
+    k = foot.shape[0]
+    pad = 1e-6
+    ptr = np.zeros(nx * ny + 1, dtype=np.int64)
+    for j in range(k):
+        r = 0.5 * run[j] + pad
+        x0 = int(np.floor((centre[j, 0] - r - lo_x) / cell))
+        x1 = int(np.floor((centre[j, 0] + r - lo_x) / cell))
+        y0 = int(np.floor((centre[j, 1] - r - lo_y) / cell))
+        y1 = int(np.floor((centre[j, 1] + r - lo_y) / cell))
+        for ix in range(max(x0, 0), min(x1, nx - 1) + 1):
+            for iy in range(max(y0, 0), min(y1, ny - 1) + 1):
+                ptr[ix * ny + iy + 1] += 1
+    for c in range(nx * ny):
+        ptr[c + 1] += ptr[c]
+    fill = ptr[:-1].copy()
+    disc = np.empty(ptr[-1], dtype=np.int64)
+    for j in range(k):
+        r = 0.5 * run[j] + pad
+        x0 = int(np.floor((centre[j, 0] - r - lo_x) / cell))
+        x1 = int(np.floor((centre[j, 0] + r - lo_x) / cell))
+        y0 = int(np.floor((centre[j, 1] - r - lo_y) / cell))
+        y1 = int(np.floor((centre[j, 1] + r - lo_y) / cell))
+        for ix in range(max(x0, 0), min(x1, nx - 1) + 1):
+            for iy in range(max(y0, 0), min(y1, ny - 1) + 1):
+                c = ix * ny + iy
+                disc[fill[c]] = j
+                fill[c] += 1
+    out = np.zeros((k, 5), dtype=np.int64)
+    for i in range(points.shape[0]):
+        x = points[i, 0]
+        y = points[i, 1]
+        gx = (x - lo_x) / cell
+        gy = (y - lo_y) / cell
+        if not (gx >= 0.0 and gx < nx and gy >= 0.0 and gy < ny):
+            continue
+        c = int(gx) * ny + int(gy)
+        for p in range(ptr[c], ptr[c + 1]):
+            j = disc[p]
+            ex = x - centre[j, 0]
+            ey = y - centre[j, 1]
+            half = 0.5 * run[j]
+            if ex * ex + ey * ey > half * half:
+                continue
+            u = x - foot[j, 0]
+            v = y - foot[j, 1]
+            t = (u * d[j, 0] + v * d[j, 1]) / (run[j] * run[j])
+            across = abs(u * d[j, 1] - v * d[j, 0]) / run[j]
+            if not (t > 0.2 and t < 0.8 and across < half):
+                continue
+            h = rise[j] if rise[j] != 0 else 1e-9
+            f = (points[i, 2] - foot[j, 2]) / h
+            out[j, 0] += 1
+            if abs(f - t) < 0.25:
+                out[j, 1] += 1
+            if f <= 0.25:
+                out[j, 2] += 1
+            if f >= 0.75:
+                out[j, 3] += 1
+            if f > 0.25 and f < 0.75:
+                out[j, 4] += 1
+    return out

@@ -35,9 +35,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay
 
-from terrasift.workers.ground._kernels import _lower_medians
+from terrasift.workers.ground._kernels import _lower_medians, _ramp_counts
 
 #: ``sides``: share of the returns over the middle of a segment's steps that lie on their ramps
 #: (an embankment of the rural family 0.35-0.37 with low vegetation on it; walls of roofs and
@@ -53,6 +53,9 @@ _RAMP_VERTICES = 3
 #: ``over_walls``: the fewest returns over an edge's middle that tell a ramp from a wall (one
 #: under the ramp and one over it; railway seed 97's edge across a 0.8 m wall at 2 pts/m² has 2)
 _RAMP_MIN = 2
+#: Most grid cells ``_on_ramp`` lays over its steps (8 MB of cell offsets): steps far apart on
+#: a dense tile get wider cells, which only lengthens each cell's list
+_RAMP_CELLS = 1_000_000
 #: ``along``: edges at least this many median edges long are judged by the terrain behind them
 _ALONG_RUNS = 2.0
 #: ...sampled this many runs behind the end (the median of the slopes they give)
@@ -346,59 +349,35 @@ def _on_ramp(
     at its foot's level (the lowest quarter of the rise or under) and one at its top's
     (the highest quarter or over): a wall crossed on a diagonal has both and none between;
     a bank or a slope crossed so has returns on its face, between."""
-    on = np.zeros(foot.shape[0])
-    mid = np.zeros(foot.shape[0])
-    if foot.shape[0] == 0 or points.shape[0] == 0:
-        return on, mid
+    k = foot.shape[0]
+    if k == 0 or points.shape[0] == 0:
+        return np.zeros(k), np.zeros(k)
     d = top[:, :2] - foot[:, :2]
     run = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
     rise = top[:, 2] - foot[:, 2]
     centre = 0.5 * (foot[:, :2] + top[:, :2])
-    points = points[_near_discs(points[:, :2], centre, 0.5 * run)]
-    near = cKDTree(points[:, :2]).query_ball_point(centre, 0.5 * run)
-    count = np.fromiter((len(i) for i in near), dtype=np.int64, count=foot.shape[0])
-    if count.sum() == 0:
-        return on, mid
-    k = np.repeat(np.arange(foot.shape[0]), count)
-    q = points[np.concatenate([np.asarray(i, dtype=np.int64) for i in near])]
-    u, v = q[:, 0] - foot[k, 0], q[:, 1] - foot[k, 1]
-    t = (u * d[k, 0] + v * d[k, 1]) / run[k] ** 2
-    across = np.abs(u * d[k, 1] - v * d[k, 0]) / run[k]
-    f = (q[:, 2] - foot[k, 2]) / np.where(rise[k] != 0, rise[k], 1e-9)
-    inside = (t > 0.2) & (t < 0.8) & (across < 0.5 * run[k])
-    mid = np.bincount(k, inside, foot.shape[0]).astype(np.float64)
-    on = np.bincount(k, inside & (np.abs(f - t) < 0.25), foot.shape[0]).astype(np.float64)
+    # Cells no narrower than the widest disc, at most _RAMP_CELLS of them over the discs' box.
+    lo = (centre - 0.5 * run[:, None]).min(axis=0) - 1e-3
+    extent = (centre + 0.5 * run[:, None]).max(axis=0) + 1e-3 - lo
+    cell = max(float(run.max()), float(np.sqrt(extent[0] * extent[1] / _RAMP_CELLS)))
+    nx, ny = (np.floor(extent / cell).astype(np.int64) + 1).tolist()
+    counts = _ramp_counts(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(foot, dtype=np.float64),
+        d,
+        run,
+        rise,
+        centre,
+        float(lo[0]),
+        float(lo[1]),
+        cell,
+        nx,
+        ny,
+    ).astype(np.float64)
+    mid, on = counts[:, 0], counts[:, 1]
     if not both:
         return on, mid
-    foot_level = np.bincount(k, inside & (f <= 0.25), foot.shape[0]) > 0
-    top_level = np.bincount(k, inside & (f >= 0.75), foot.shape[0]) > 0
-    between = np.bincount(k, inside & (f > 0.25) & (f < 0.75), foot.shape[0]).astype(np.float64)
-    return between, mid * (foot_level & top_level)
-
-
-def _near_discs(
-    xy: NDArray[np.float64], centre: NDArray[np.float64], radius: NDArray[np.float64]
-) -> NDArray[np.bool_]:
-    """Points of ``xy`` in the 3 × 3 cells (side: the largest diameter) around each disc's
-    centre, a superset of the points within the discs: a cheap cut of a dense block's
-    data before a tree is built on it."""
-    cell = 2.0 * float(radius.max()) + 1e-9
-    lo = centre.min(axis=0) - cell
-    shape = np.floor((centre.max(axis=0) + cell - lo) / cell).astype(np.int64) + 1
-    if shape[0] * shape[1] > 4_000_000:  # discs far apart on a fine grid: keep every point
-        return np.ones(xy.shape[0], dtype=bool)
-    mark = np.zeros((shape[0] + 2, shape[1] + 2), dtype=bool)
-    c = np.floor((centre - lo) / cell).astype(np.int64) + 1
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            mark[c[:, 0] + dx, c[:, 1] + dy] = True
-    ij = np.floor((xy - lo) / cell).astype(np.int64) + 1
-    inside = (
-        (ij[:, 0] >= 0) & (ij[:, 0] < mark.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < mark.shape[1])
-    )
-    keep = np.zeros(xy.shape[0], dtype=bool)
-    keep[inside] = mark[ij[inside, 0], ij[inside, 1]]
-    return keep
+    return counts[:, 4], mid * ((counts[:, 2] > 0) & (counts[:, 3] > 0))
 
 
 def data_border(
