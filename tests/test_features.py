@@ -1888,3 +1888,22 @@ def test_a_small_pond_on_a_slope_under_the_flatness_threshold_is_found():
     (truth,) = [t for t in scene.truth if t.kind == "pond"]
     assert len(objs) == 1 and _on(objs[0].geometry, truth.polygon)
     assert abs(objs[0].length_m - truth.length_m) <= 0.25 * truth.length_m
+
+
+def test_turned_search_over_candidate_lines_equals_the_full_search():
+    """The turned grid is searched only along lines where a strip's run could begin
+    (``_candidates``), each band cropped to its runs and a segment's length: the marks
+    equal one search of the whole turned grid."""
+    from terrasift.workers.categories import CategoryParams, category_grids
+    from terrasift.workers.features.turned import _search_blocks, _strips_at_least, turned_dtm
+
+    _, dtm, _ = _family_dtm(166)
+    flt = resolve_lengths(load_filter("road"), 1.0)
+    tdtm, _, _ = turned_dtm(dtm[:400, :400], (0, 0), 2)
+    p = CategoryParams(noise=0.02, slope_noise=0.01)
+    tcats = category_grids(tdtm, 0.5, p, 1.0, [None])[0]
+    one = _strips_at_least(flt)
+    h, v = search_filter(tcats, one)
+    want = h.astype(np.uint8) | (v.astype(np.uint8) << 1)
+    assert want.any()
+    assert np.array_equal(_search_blocks(tcats, one, band=16), want)
