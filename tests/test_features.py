@@ -1925,3 +1925,36 @@ def test_turned_marks_of_a_window_equal_the_whole_dtm_s_inside_its_reach():
     assert not np.array_equal(moved[grid_key(flt)].turned[t:, t:], inner)
     # turned marks are kept only where the ground's gradients run near a diagonal
     assert not (g.turned.astype(bool) & ~diagonal_ground(dtm, g, 0.5)).any()
+
+
+def test_a_small_pond_on_a_slope_under_the_flatness_threshold_is_found():
+    """Feature family seed 188: a 17 m pond 1 m deep on an 8 % slope with 4.4 cm of
+    noise. The noise lifts single hillside tiles past the flatness threshold; taken as
+    banks, they made rows of hillside read as floors, which swamped the pond's core in
+    the h-and-v share. Banks must be clear, so the pond is found, and nothing else."""
+    scene, dtm, tt = _family_dtm(188)
+    pond = load_filter("pond")
+    cats, stepped = categories_for(dtm, 0.5, [pond])
+    objs = detect_features(cats, [pond], tt, 2.0, stepped=stepped).objects
+    (truth,) = [t for t in scene.truth if t.kind == "pond"]
+    assert len(objs) == 1 and _on(objs[0].geometry, truth.polygon)
+    assert abs(objs[0].length_m - truth.length_m) <= 0.25 * truth.length_m
+
+
+def test_turned_search_over_candidate_lines_equals_the_full_search():
+    """The turned grid is searched only along lines where a strip's run could begin
+    (``_candidates``), each band cropped to its runs and a segment's length: the marks
+    equal one search of the whole turned grid."""
+    from terrasift.workers.categories import CategoryParams, category_grids
+    from terrasift.workers.features.turned import _search_blocks, _strips_at_least, turned_dtm
+
+    _, dtm, _ = _family_dtm(166)
+    flt = resolve_lengths(load_filter("road"), 1.0)
+    tdtm, _, _ = turned_dtm(dtm[:400, :400], (0, 0), 2)
+    p = CategoryParams(noise=0.02, slope_noise=0.01)
+    tcats = category_grids(tdtm, 0.5, p, 1.0, [None])[0]
+    one = _strips_at_least(flt)
+    h, v = search_filter(tcats, one)
+    want = h.astype(np.uint8) | (v.astype(np.uint8) << 1)
+    assert want.any()
+    assert np.array_equal(_search_blocks(tcats, one, band=16), want)

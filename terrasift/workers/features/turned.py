@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from terrasift.workers.categories import Categories, CategoryParams, category_grids
-from terrasift.workers.features.language import Filter
-from terrasift.workers.features.search import search_filter
+from terrasift.workers.features.language import Filter, Segment, transform_segment
+from terrasift.workers.features.search import _arrays, class_mask, search_filter
 
 _R2 = math.sqrt(2.0)
 
@@ -161,11 +161,44 @@ def diagonal_ground(dtm: NDArray, cats: Categories, cell: float) -> NDArray[np.b
     return d * d - e * e <= lim * (d * d + e * e)
 
 
+def _candidates(
+    tcats: Categories, segs: tuple[Segment, ...], axis: int
+) -> NDArray[np.bool_] | None:
+    """Tiles where, along ``axis`` (0: rows), a run of some segment's first strip (its
+    first subsegment not excluded) could begin: the next ``min_len`` tiles miss its class
+    at most ``max_errors`` times. Every match holds such a run, so lines without one
+    cannot match. None when a segment has no strip to test."""
+    arrays = _arrays(tcats)
+    looks: dict = {}
+    out = np.zeros(tcats.shape, dtype=bool)
+    for seg in segs:
+        # columns are searched on the transposed bands with the segment turned a quarter
+        seg = transform_segment(seg, axis)
+        strip = next((u for u in seg.subsegments if not u.exclude and u.min_len > 0), None)
+        if strip is None:
+            return None
+        n = int(strip.min_len)
+        miss = ~class_mask(arrays, strip, looks)
+        if axis == 0:  # runs along rows: count along columns
+            cs = np.zeros((miss.shape[0], miss.shape[1] + 1), dtype=np.int32)
+            np.cumsum(miss, axis=1, out=cs[:, 1:])
+            if n <= miss.shape[1]:
+                out[:, : miss.shape[1] - n + 1] |= cs[:, n:] - cs[:, :-n] <= strip.max_errors
+        else:
+            cs = np.zeros((miss.shape[0] + 1, miss.shape[1]), dtype=np.int32)
+            np.cumsum(miss, axis=0, out=cs[1:])
+            if n <= miss.shape[0]:
+                out[: miss.shape[0] - n + 1] |= cs[n:] - cs[:-n] <= strip.max_errors
+    return out
+
+
 def _search_blocks(tcats: Categories, flt: Filter, band: int = 128) -> NDArray[np.uint8]:
     """``search_filter`` marks (bit 1 rows, bit 2 columns) of the turned grid. Half of it
-    lies outside the DTM (a square turned by 45° in its bounding box): rows are searched
-    in bands of ``band`` rows, each over the columns holding data and a margin of the
-    longest segment, then columns alike."""
+    lies outside the DTM (a square turned by 45° in its bounding box), and on inclined
+    ground most lines hold no level strip: only lines where a strip's run could begin
+    (``_candidates``) are searched, ``band`` of them at a time, each band over the
+    stretch from its first to its last such run and a margin of the longest segment
+    (every match holds a run and is at most that long), then columns alike."""
     m = max((seg.longest for seg in flt.segments), default=1) + 1
     valid = ~tcats.nodata
     out = np.zeros(tcats.shape, dtype=np.uint8)
@@ -177,15 +210,16 @@ def _search_blocks(tcats: Categories, flt: Filter, band: int = 128) -> NDArray[n
         segs = tuple(replace(g, direction=way) for g in flt.segments if g.direction != other)
         one = replace(flt, segments=segs)
         axis = 0 if way == "horizontal" else 1
-        n, across = tcats.shape[axis], tcats.shape[1 - axis]
-        for a0 in range(0, n, band):
-            a1 = min(n, a0 + band)
-            has = (valid[a0:a1] if axis == 0 else valid[:, a0:a1]).any(axis=axis)
-            idx = np.flatnonzero(has)
-            if idx.size == 0:
-                continue
-            b0, b1 = max(0, int(idx[0]) - m), min(across, int(idx[-1]) + 1 + m)
-            box = (slice(a0, a1), slice(b0, b1)) if axis == 0 else (slice(b0, b1), slice(a0, a1))
+        across = tcats.shape[1 - axis]
+        cand = _candidates(tcats, segs, axis)
+        if cand is None:
+            cand = valid
+        lines = np.flatnonzero(cand.any(axis=1 - axis))
+        for a0 in range(0, lines.size, band):
+            idx = lines[a0 : a0 + band]
+            where = np.flatnonzero((cand[idx] if axis == 0 else cand[:, idx]).any(axis=axis))
+            b0, b1 = max(0, int(where[0]) - m), min(across, int(where[-1]) + 1 + m)
+            box = (idx, slice(b0, b1)) if axis == 0 else (slice(b0, b1), idx)
             part = replace(
                 tcats,
                 **{n_: getattr(tcats, n_)[box] for n_ in _BANDS if getattr(tcats, n_) is not None},
