@@ -79,7 +79,7 @@ from terrasift.workers.features.objects import (
     rectangle_size,
     scan_order,
 )
-from terrasift.workers.features.turned import turned_reach
+from terrasift.workers.features.turned import CATEGORY_BANDS, turned_reach
 
 #: a window of DTM cells: (row0, col0, row1, col1), ends excluded
 Rect = tuple[int, int, int, int]
@@ -216,18 +216,7 @@ def _block_margin(filters: list[Filter], cparams: CategoryParams, cell: float) -
 #: never its DTM or the float arrays its categories are computed from
 BLOCK_CELLS = 1024
 
-_BANDS = (
-    "inclination",
-    "orientation",
-    "state",
-    "height10",
-    "relief10",
-    "lying10",
-    "clear",
-    "rise",
-    "grade",
-    "turned",
-)
+_BANDS = (*CATEGORY_BANDS, "turned")
 
 
 def blocked_categories(

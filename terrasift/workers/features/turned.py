@@ -222,14 +222,19 @@ def _search_blocks(tcats: Categories, flt: Filter, band: int = 128) -> NDArray[n
             box = (idx, slice(b0, b1)) if axis == 0 else (slice(b0, b1), idx)
             part = replace(
                 tcats,
-                **{n_: getattr(tcats, n_)[box] for n_ in _BANDS if getattr(tcats, n_) is not None},
+                **{
+                    n_: getattr(tcats, n_)[box]
+                    for n_ in CATEGORY_BANDS
+                    if getattr(tcats, n_) is not None
+                },
             )
             h, v = search_filter(part, one)
             out[box] |= (h if axis == 0 else v).astype(np.uint8) * np.uint8(bit)
     return out
 
 
-_BANDS = (
+#: the category grids a filter's search reads (the turned marks are not among them)
+CATEGORY_BANDS = (
     "inclination",
     "orientation",
     "state",

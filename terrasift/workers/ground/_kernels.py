@@ -784,6 +784,20 @@ def _near_outline(
 # ------------------------------------------------------------ raised segments (raised.py)
 
 
+@numba.njit(cache=True, inline="always")
+def _disc_cells(
+    cx: float, cy: float, half: float, lo_x: float, lo_y: float, cell: float
+) -> tuple[int, int, int, int]:
+    """First and last cell columns and rows the box of a disc (widened by 1 µm) meets."""
+    r = half + 1e-6
+    return (
+        int(np.floor((cx - r - lo_x) / cell)),
+        int(np.floor((cx + r - lo_x) / cell)),
+        int(np.floor((cy - r - lo_y) / cell)),
+        int(np.floor((cy + r - lo_y) / cell)),
+    )
+
+
 @numba.njit(cache=True, nogil=True)
 def _ramp_counts(
     points: NDArray[np.float64],
@@ -807,14 +821,9 @@ def _ramp_counts(
     listing the steps whose disc's box (widened by 1 µm) meets it: no per-step search of a
     dense block's returns."""
     k = foot.shape[0]
-    pad = 1e-6
     ptr = np.zeros(nx * ny + 1, dtype=np.int64)
     for j in range(k):
-        r = 0.5 * run[j] + pad
-        x0 = int(np.floor((centre[j, 0] - r - lo_x) / cell))
-        x1 = int(np.floor((centre[j, 0] + r - lo_x) / cell))
-        y0 = int(np.floor((centre[j, 1] - r - lo_y) / cell))
-        y1 = int(np.floor((centre[j, 1] + r - lo_y) / cell))
+        x0, x1, y0, y1 = _disc_cells(centre[j, 0], centre[j, 1], 0.5 * run[j], lo_x, lo_y, cell)
         for ix in range(max(x0, 0), min(x1, nx - 1) + 1):
             for iy in range(max(y0, 0), min(y1, ny - 1) + 1):
                 ptr[ix * ny + iy + 1] += 1
@@ -823,11 +832,7 @@ def _ramp_counts(
     fill = ptr[:-1].copy()
     disc = np.empty(ptr[-1], dtype=np.int64)
     for j in range(k):
-        r = 0.5 * run[j] + pad
-        x0 = int(np.floor((centre[j, 0] - r - lo_x) / cell))
-        x1 = int(np.floor((centre[j, 0] + r - lo_x) / cell))
-        y0 = int(np.floor((centre[j, 1] - r - lo_y) / cell))
-        y1 = int(np.floor((centre[j, 1] + r - lo_y) / cell))
+        x0, x1, y0, y1 = _disc_cells(centre[j, 0], centre[j, 1], 0.5 * run[j], lo_x, lo_y, cell)
         for ix in range(max(x0, 0), min(x1, nx - 1) + 1):
             for iy in range(max(y0, 0), min(y1, ny - 1) + 1):
                 c = ix * ny + iy
