@@ -1751,11 +1751,16 @@ def test_a_sparse_interpolated_field_has_no_shallow_ditch():
     cats, stepped = categories_for(z, cell, [flt])
     tt = Affine(cell, 0, 0, 0, -cell, size)
     assert not detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
-    # banks rising by twice the slope noise (``rise`` alone) do not say the DTM shows a bank
+    # banks rising by twice the slope noise (``rise`` alone) do not say the DTM shows a bank:
+    # such a filter leaves chance pieces after every rule over a piece (joined end to end,
+    # 23 of their tiles made a 40 m "ditch", which a joined object's least tiles now drop)
     ungraded = parse_filter(
         format_filter(flt).replace("grade not 0 1 2 3 4 5 6 7", "grade any"), "ditch"
     )
-    assert detect_features(cats, [ungraded], tt, 2.0, stepped=stepped).objects
+    grid = stepped[grid_key(flt)]
+    for f, pieces in ((flt, False), (ungraded, True)):
+        labels, _, _ = filter_labels(grid, resolve_lengths(f, grid.spacing))
+        assert labels is not None and bool(labels.any()) == pieces
 
 
 def test_objects_on_one_line_join_across_a_long_gap_only_when_centred_on_it():
@@ -1958,3 +1963,52 @@ def test_turned_search_over_candidate_lines_equals_the_full_search():
     want = h.astype(np.uint8) | (v.astype(np.uint8) << 1)
     assert want.any()
     assert np.array_equal(_search_blocks(tcats, one, band=16), want)
+
+
+def test_pieces_joined_across_gaps_hold_the_tiles_of_the_smallest_object():
+    """``join width 20m`` bridges pieces lined up end to end; the bridges join an object's
+    pieces but do not make one (fresh seed 193: three short pieces along a road
+    embankment's foot, 24 tiles, bridged into a 48 m × 2 m "ditch"). A joined object
+    keeps at least the tiles of the smallest object the limits admit (30 × 2 tiles of
+    1 m): three 6 m × 3 m pieces across 15 m gaps are dropped, two 25 m pieces across a
+    10 m gap stay, and a single piece is judged by its size alone, as before."""
+    from terrasift.workers.features.objects import Feature, finish_pieces
+
+    def piece(x0: float, length: float) -> Feature:
+        return Feature("ditch", box(x0, 0, x0 + length, 3), length, 3.0, int(3 * length))
+
+    limits = (30, None, 2, 16)
+    opts = {"join": "width", "join_aligned": 20}
+    chance = [piece(0, 6), piece(21, 6), piece(42, 6)]  # 48 m end to end, 54 tiles
+    assert finish_pieces(chance, 1.0, limits, **opts) == []
+    broken = finish_pieces([piece(0, 25), piece(35, 25)], 1.0, limits, **opts)
+    assert len(broken) == 1 and broken[0].tiles == 150 and broken[0].length_m > 55
+    alone = finish_pieces([piece(0, 31)], 1.0, limits, **opts)
+    assert len(alone) == 1 and alone[0].tiles == 93
+    # without a least width (or length) there is no smallest object to hold
+    assert len(finish_pieces(chance, 1.0, (30, None, None, 16), **opts)) == 1
+
+
+def test_level_ground_between_a_ridge_foot_and_a_cut_road_wall_is_not_a_road():
+    """Feature family seed 210 (level) as a DTM smoothed over 0.5 m, as its job DTM is: the
+    level ground between a ridge's foot and the wall of a 1.45 m cut road reads as a road
+    cut into the ridge's flank with no lip (the cut's wall as the hillside below it,
+    falling for 6 tiles). The hillside below such a cut falls for 7 m, more than any wall
+    of the family (at most 2.75 m across): no false road, both roads found as before."""
+    from scipy import ndimage
+
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(210)
+    exact = ndimage.gaussian_filter(surface_raster(scene, 0.5), 1.0, mode="nearest")
+    dtm = exact + np.random.default_rng([7, 210]).normal(0, scene.noise, exact.shape)
+    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    flt = load_filter("road")
+    cats, stepped = categories_for(dtm, 0.5, [flt])
+    objs = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
+    roads = [t for t in scene.truth if t.kind == "road"]
+    on = [[_on(o.geometry, r.polygon) for r in roads] for o in objs]
+    assert all(any(o) for o in on)  # every road object lies on a road
+    for i, r in enumerate(roads):
+        lengths = [o.length_m for o, hit in zip(objs, on, strict=True) if hit[i]]
+        assert len(lengths) == 1 and abs(lengths[0] / r.length_m - 1) < 0.25

@@ -366,7 +366,13 @@ def finish_pieces(
     the objects then joined along their lines (``join_line``)."""
     min_l, max_l, min_w, max_w = limits
     if join is not None and len(pieces) > 1:
+        single = {id(p) for p in pieces}
         pieces = join_pieces(pieces, join, tile_size, join_aligned)
+        if min_l is not None and min_w is not None:
+            # the strips bridging gaps join the pieces of an object, they do not make
+            # one: a joined object holds at least the tiles of the smallest object
+            # the limits admit (its pieces' marked tiles, bridges not counted)
+            pieces = [p for p in pieces if id(p) in single or p.tiles >= min_l * min_w]
     if hull:
         pieces = [
             Feature(
