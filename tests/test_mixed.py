@@ -876,3 +876,35 @@ def test_grid_keeps_a_return_farther_behind_an_edge_than_any_blend_reaches():
         m = mark_mixed(xyz, MixedParams(footprint=0.3), np.zeros(3)).marked
         assert m[col == 0].mean() == want
         assert not m[col != 0].any()
+
+
+def test_grid_marks_a_thin_run_before_a_wall_seen_one_beam_on_each_side():
+    # Shared-report 5102 (0.49° steps, a 1.5-step footprint): two columns blend a pole
+    # with a wall at 22.8 m that shows one beam on each side of them: on the left the
+    # columns beyond give no return, on the right a board 5 m nearer hides the wall. No
+    # side's surface continues across the run, but the two beams agree within the scatter
+    # of a difference of two returns: one face-on wall behind the run. Marked; nothing else
+    # but the wall's left beam (before the columns with no return: an open edge, marked
+    # before this rule too).
+    # A board face two beams wide between two blends that agree as well, the beams beyond
+    # them farther still (a ramp into a wall, itself in front of a far one: report 10 and
+    # 5102's boards): the face is kept (the agreeing beams may be blends themselves).
+    run = {1: 22.48, 2: 22.65}
+
+    def pole(c):
+        if c in run:
+            return run[c]
+        if c in (0, 3):
+            return 22.83
+        return np.nan if c in (-1, -2) else (20.3 if c < 0 else 17.46)
+
+    for seed in range(3):
+        xyz, col = _wall_grid(pole, step=0.49, noise=0.005, seed=seed)
+        m = mark_mixed(xyz, MixedParams(footprint=0.75), np.zeros(3)).marked
+        blend = np.isin(col, list(run))
+        assert m[blend].mean() > 0.95
+        assert m[~blend & (col != 0)].mean() < 0.002
+    face = {-1: 11.0, 0: 9.95, 1: 8.86, 2: 8.88, 3: 9.95, 4: 11.0}
+    xyz, col = _wall_grid(lambda c: face.get(c, 14.0), step=0.49, noise=0.005)
+    m = mark_mixed(xyz, MixedParams(footprint=0.75), np.zeros(3)).marked
+    assert not m[np.isin(col, [1, 2])].any()

@@ -240,8 +240,9 @@ def _geo(step: float, steps: float, edges: int, how: str = "mean ramp") -> ScanG
 
 def test_footprints_pooled_over_positions_of_one_scanner():
     # a position beside the scene measured its footprint on 10 edges, the one facing it
-    # on 200: both get the mean over all 210; another step (another scanner setting), a
-    # stated footprint and a position without ramps keep their own
+    # on 200: both get the mean over all 210, and so does a position of that step that
+    # showed no ramp (it has the same beam; it kept one step before); another step
+    # (another scanner setting) and a stated footprint keep their own
     geos = [
         _geo(0.1, 2.0, 200),
         _geo(0.1005, 1.0, 10),
@@ -256,8 +257,33 @@ def test_footprints_pooled_over_positions_of_one_scanner():
     assert out[1].footprint_steps == pytest.approx(want)
     assert out[1].footprint == pytest.approx(want * 0.1005)
     assert "pooled over the positions [0, 1]" in out[1].how["footprint"]
-    assert out[2:] == geos[2:]
+    assert out[4].footprint_steps == pytest.approx(want)
+    assert out[4].footprint == pytest.approx(want * 0.1)
+    assert "none measured at this position" in out[4].how["footprint"]
+    assert out[2:4] == geos[2:4] and out[5] is None
     assert pool_footprints(geos[2:]) == geos[2:]
+
+
+def test_footprint_not_shortened_by_poles_narrower_than_it():
+    # 0.11-0.12° steps, footprints of 2.5-2.7 steps, poles at 3-15 m a few beams wide:
+    # the plateau of blends before a pole narrower than the footprint sat between two
+    # ramps about the pole's width long, and counted as two edges, so the mean ran 0.77
+    # of the true footprint on both scans. Edges need flanks of three beams on a surface.
+    for step, fp, noise in ((0.12, 2.5, 0.007), (0.11, 2.7, 0.004)):
+        s = make_scan(
+            step_deg=step,
+            footprint_steps=fp,
+            range_noise=noise,
+            las_scale=0.002,
+            azimuth_deg=(-30.0, 30.0),
+            elevation_deg=(-15.0, 5.0),
+            n_boards=6,
+            n_poles=12,
+            seed=0,
+        )
+        g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+        assert g is not None
+        assert 0.9 * fp < g.footprint_steps < 1.1 * fp, g.footprint_steps
 
 
 def test_stage_and_job_pool_the_footprint_of_positions_with_one_step(tmp_path):

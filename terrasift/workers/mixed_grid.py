@@ -47,7 +47,8 @@ surface: a background at the field of view's edge shows one beam, no line.
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
-of one background surface that continues behind them. Such runs are marked too,
+of one background surface that continues behind them (or, seen one beam on each
+side, agrees with itself across the run). Such runs are marked too,
 and so are runs in front of a background on one side only, cut on the other by a
 surface nearer than any blend reaches (``max_gap``), when they recede into that cut:
 the object's far edge then lies within the run (a pole before a wall's end, a board
@@ -953,7 +954,8 @@ def _thin_runs(
     step_x: float,
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
-    continues behind them (the surface either side, continued across the run, agrees),
+    continues behind them (the surface either side, continued across the run, agrees;
+    or the one beam seen on each side agrees with the other, a face-on surface),
     by more than ``min_offset`` across that surface (the margin when 0; ``C``: range change
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
@@ -982,12 +984,21 @@ def _thin_runs(
                 tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
                 from_left = np.abs(1.0 / v_left - rb1) <= tol
                 from_right = np.abs(1.0 / v_right - rb0) <= tol
-                cont = from_left | from_right
+                # or, seen one beam on each side (the beams beyond give no return or lie
+                # on nearer surfaces), a face-on background agrees with itself across the
+                # run: the two beams within the scatter of a difference of two returns. Not
+                # when a beam beyond lies farther still: the two may be blends of a ramp
+                # into a farther surface (a board's face between its two edges' ramps)
+                level = np.abs(rb0 - rb1) <= s.sigmas * s.sigma * np.sqrt(2.0)
+                level &= ~(R[lo - 1][c] > rb0 + s.margin) & ~(R[hi + 1][c] > rb1 + s.margin)
+                cont = from_left | from_right | level
                 # the incidence of the background on a side whose surface continues
                 # across the run (the other side's outer beam may lie past the
                 # background's own edge: a pole before a wall's end)
                 tan_l = np.where(from_left, np.abs(v0 - V[lo - 1][c]), np.inf)
                 tan_r = np.where(from_right, np.abs(v1 - V[hi + 1][c]), np.inf)
+                # a level background's incidence from its change across the run
+                tan_l = np.fmin(tan_l, np.where(level, np.abs(v0 - v1) / (hi - lo), np.inf))
                 tan_a = rc * np.fmin(tan_l, tan_r) / step
                 tan_x = rc * np.where(tan_l <= tan_r, C[lo][c], C[hi][c]) / rb0**2 / step_x
                 least = s.min_offset if s.min_offset > 0 else s.margin
