@@ -15,6 +15,15 @@ alone)::
 
     python benchmarks/ground_bound.py --seeds 1000-1011,1020-1031
     python benchmarks/ground_bound.py --seeds 1000-1011 --no-relief --surfaces quad
+    python benchmarks/ground_bound.py --tails --isprs
+
+``--tails`` asks instead whether the ground's bend can be read from its lower tail:
+scrub only adds returns above the ground, so the 3rd percentile of the ground's
+height over the quadratic (``LOW_Q``) measures the surface's misfit without them. It
+prints that figure per scene and, in its units, the ground's 97th / 99th percentiles
+and the 10th / 25th / 50th of the non-ground returns up to 1 m: a threshold at a
+multiple of it would part them where the scrub's quantiles stand above the ground's
+in every scene, the ISPRS samples (``--isprs``) included.
 
 A filter's own surface is fitted on what it takes for ground, not on the true
 ground, so these are the best a rule on the height over a surface could do; a
@@ -41,6 +50,8 @@ LOW = 1.0  # m: returns this far under the surface are outliers (the family's si
 K = 12  # the close fit's neighbours (``ground.nist``'s ``rough_fit``)
 FLOOR = 0.15  # the close fit's floor (its refit's least scale is a quarter of it)
 T = np.round(np.arange(0.0, 1.0001, 0.005), 3)
+LOW_Q = 3.0  # percentile of the ground's heights taken as its lower tail
+TOP = 1.0  # m: non-ground up to this height over the surface (the close fit's ceiling)
 
 
 def _seeds(text: str) -> list[int]:
@@ -97,6 +108,41 @@ def spread(v: list[float]) -> str:
     return f"{np.nanmax(a):5.2f} / {np.nanpercentile(a, 90):5.2f} / {np.nanmedian(a):5.2f} ({int((a > 5).sum())} > 5 %)"
 
 
+def tails(h: np.ndarray, ground: np.ndarray) -> tuple[float, np.ndarray]:
+    """The ground's lower-tail figure (minus its ``LOW_Q`` percentile over the surface)
+    and, in its units, the ground's 97th / 99th and the low non-ground's 10 / 25 / 50th."""
+    low = -float(np.percentile(h[ground], LOW_Q))
+    up = np.percentile(h[ground], [97, 99])
+    obj = h[~ground & (h >= -LOW) & (h <= TOP)]
+    q = np.percentile(obj, [10, 25, 50]) if obj.size else np.full(3, np.nan)
+    return low, np.concatenate([up, q]) / low
+
+
+def print_tails(seeds: list[int], relief: bool, isprs: bool) -> None:
+    """``--tails``: the lower-tail figure per scene over the 12-point quadratic of true ground."""
+    print(
+        f"scene   pts/m²  low (m)   ground q97 q99 / low   non-ground ≤ {TOP:g} m q10 q25 q50 / low"
+    )
+    scenes: list[tuple[str, np.ndarray, np.ndarray]] = []
+    for seed in seeds:
+        sc = rural_slope(seed, relief=relief)
+        scenes.append((str(seed), sc.xyz - np.r_[sc.xyz[:, :2].min(0), 0.0], sc.is_ground))
+    if isprs:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from ground_accuracy import _samples
+
+        for name, xyz, cls in _samples():
+            scenes.append((name, xyz - np.r_[xyz[:, :2].min(0), 0.0], cls == 2))
+    for name, xyz, ground in scenes:
+        low, r = tails(quad_heights(xyz, ground), ground)
+        area = float(np.prod(np.ptp(xyz[:, :2], axis=0)))
+        print(
+            f"{name:7s} {len(ground) / area:6.2f}  {low:6.3f}    {r[0]:5.2f} {r[1]:5.2f}"
+            f"              {r[2]:5.2f} {r[3]:5.2f} {r[4]:5.2f}",
+            flush=True,
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1000-1011,1020-1031", help="e.g. 1000-1011,1020-1031")
@@ -105,7 +151,12 @@ def main() -> None:
     )
     ap.add_argument("--surfaces", default="tin,quad", help="of tin, quad, true")
     ap.add_argument("--caps", default="3,1", help="Type I caps (%%)")
+    ap.add_argument("--tails", action="store_true", help="the lower-tail figure per scene")
+    ap.add_argument("--isprs", action="store_true", help="with --tails: the five ISPRS samples too")
     args = ap.parse_args()
+    if args.tails:
+        print_tails(_seeds(args.seeds), not args.no_relief, args.isprs)
+        return
     surfaces = args.surfaces.split(",")
     caps = [float(c) for c in args.caps.split(",")]
     rows = []
