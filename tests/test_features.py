@@ -2033,3 +2033,37 @@ def test_a_broad_ridge_is_found_down_its_tapered_ends():
     ridges = [o for o in objs if o.kind == "ridge"]
     assert len(ridges) == 1 and _on(ridges[0].geometry, truth.polygon)
     assert abs(ridges[0].length_m - truth.length_m) <= 0.25 * truth.length_m
+
+
+def test_the_broadest_ridge_sought_is_found_across_its_flat_crest():
+    """A raised cosine 60 m across and 4.8 m high (the family's broadest ridge at its least
+    height, h = 0.08 W) is flat on 2 m tiles for 10.7 m over its crest, which the grid
+    reads as six flat tiles where the crest lies across them. With at most 8 m over the
+    crest the ridge's cross-section was not found and the ridge was missed; the broad-crest
+    segment takes up to 12 m of flat tiles."""
+    n = 400  # 200 m at 0.5 m
+    y, x = np.mgrid[0:n, 0:n] * 0.5 + 0.25
+    along = np.clip(np.minimum(y - 30, 170 - y) / 30, 0, 1)  # 140 m long, tapered ends
+    u = np.minimum(np.abs(x - 100) / 30, 1)
+    dtm = 4.8 * 0.5 * (1 + np.cos(np.pi * u)) * along
+    ridge, hill = load_filter("ridge"), load_filter("hill")
+    cats, stepped = categories_for(dtm, 0.5, [ridge, hill])
+    row = np.asarray(cats.inclination)[50]
+    assert np.count_nonzero(row[40:60] == 0) == 6  # the crest: six flat tiles across
+    tt = Affine(0.5, 0, 0, 0, -0.5, 200)
+    objs = detect_features(cats, [ridge, hill], tt, 2.0, stepped=stepped).objects
+    ridges = [o for o in objs if o.kind == "ridge"]
+    assert len(ridges) == 1 and abs(ridges[0].length_m - 140) <= 0.25 * 140
+
+
+def test_a_ridge_with_a_crest_wider_than_eight_metres_is_found():
+    """Feature family seed 234: a cosine ridge 59 m across, 4.8 m high and 110 m long,
+    whose crest reads flat over ~10 m; missed with at most 8 m over the crest."""
+    scene, dtm, tt = _family_dtm(234)
+    ridge, hill = load_filter("ridge"), load_filter("hill")
+    cats, stepped = categories_for(dtm, 0.5, [ridge, hill])
+    objs = detect_features(cats, [ridge, hill], tt, 2.0, stepped=stepped).objects
+    (truth,) = [t for t in scene.truth if t.kind == "ridge"]
+    ridges = [o for o in objs if o.kind == "ridge"]
+    assert len(ridges) == 1 and _on(ridges[0].geometry, truth.polygon)
+    assert abs(ridges[0].length_m - truth.length_m) <= 0.25 * truth.length_m
