@@ -463,6 +463,35 @@ def test_gps_time_judges_returns_the_angles_cannot_place(near_scan):
         mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time[:-1])
 
 
+def test_gps_time_gives_the_grid_where_the_angles_measure_no_step():
+    # 1 cm coordinates at 0.035° with the returns within about 14 m: the angles measure no
+    # step, so without times the position falls back to the interest boxes (tpr 0.72,
+    # fpr 0.062, as before with times too); the firing order measures the step and the
+    # grid places every return (tpr 0.98, fpr 0.014)
+    s = make_scan(
+        step_deg=0.035,
+        footprint_steps=2.0,
+        azimuth_deg=(-2.0, 2.0),
+        elevation_deg=(-30.0, 5.0),
+        n_boards=2,
+        n_poles=1,
+        object_range=(3.0, 7.0),
+        wall_gap=(1.0, 2.0),
+        las_scale=0.01,
+        seed=3,
+    )
+    without = mark_mixed(s.xyz, MixedParams(), s.origin)
+    timed = mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time)
+    assert without.geometry[0]["method"] == "box"
+    assert timed.geometry[0]["method"] == "grid"
+    assert timed.geometry[0]["grid_index"] == "GPS time (firing order)"
+    assert timed.geometry[0]["measured"]["how"]["step"].startswith("firing order")
+    tpr0, fpr0 = _rates(s.is_mixed, without.marked)
+    tpr1, fpr1 = _rates(s.is_mixed, timed.marked)
+    assert tpr1 > 0.95 and fpr1 < 0.02, (tpr1, fpr1)
+    assert tpr1 > tpr0 and fpr1 < fpr0
+
+
 def test_grid_bleeding_needs_a_surface_that_would_have_answered():
     # Grazing ground (2 m below the sensor, 0.43° steps) returns up to a range limit of
     # 30 m, where the next beam would meet it 3-4 m farther: the ground recedes out of

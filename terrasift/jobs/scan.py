@@ -93,6 +93,9 @@ def measure_job_geometry(
     fov = np.zeros((k, 4))
     fov[:, 2], fov[:, 3] = np.inf, -np.inf
     pts: list[list[list[NDArray[np.float64]]]] = [[[] for _ in ranges[s]] for s in range(k)]
+    # GPS time beside the points (NaN where the shards carry none): the steps from the
+    # firing order where the angles show no grid
+    tms: list[list[list[NDArray[np.float64]]]] = [[[] for _ in ranges[s]] for s in range(k)]
     for rec, ids in _scan_records(files, k):
         for s in np.unique(ids[ids < k]):
             sel = rec[ids == s]
@@ -112,23 +115,33 @@ def measure_job_geometry(
             for q, (lo, hi) in enumerate(bins[s]):
                 part = sel[(b >= lo) & (b <= hi)]
                 pts[s][q].append(np.column_stack([part["x"], part["y"], part["z"]]))
+                timed = part.dtype.names is not None and "gps_time" in part.dtype.names
+                tms[s][q].append(
+                    np.asarray(part["gps_time"], np.float64)
+                    if timed
+                    else np.full(part.size, np.nan)
+                )
     geos: list[ScanGeometry | None] = []
     for s in range(k):
         # each range's points: those in its bins sorted by azimuth, cut at its ranks
         # (the points before its first bin are counted in the histogram)
-        cut = []
+        cut, cut_t = [], []
         for q, (start, stop) in enumerate(ranges[s]):
             xyz = np.concatenate(pts[s][q]) if pts[s][q] else np.zeros((0, 3))
+            tq = np.concatenate(tms[s][q]) if tms[s][q] else np.zeros(0)
             rel = xyz - o[s]
             order = np.argsort(np.arctan2(rel[:, 1], rel[:, 0]), kind="stable")
             first = start - int(hist[s][: bins[s][q][0]].sum())
-            cut.append(xyz[order[max(first, 0) : max(first, 0) + (stop - start)]])
+            take = order[max(first, 0) : max(first, 0) + (stop - start)]
+            cut.append(xyz[take])
+            cut_t.append(tq[take])
         xyz = cut[0]
         geo = measure_scan_geometry(
             xyz - o[s],
             footprint=params.footprint,
             absolute=xyz,
             sectors=[c - o[s] for c in cut[1:]],
+            gps_time=cut_t[0] if cut_t[0].size and np.isfinite(cut_t[0]).all() else None,
         )
         a0, a1, e0, e1 = (float(v) for v in fov[s])
         geos.append(None if geo is None else replace(geo, field_of_view=(a0, a1, e0, e1)))

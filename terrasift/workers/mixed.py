@@ -270,19 +270,19 @@ def mark_mixed(
     n_regions = n_triggered = 0
     found: list[dict[str, Any]] = []
     grids: list[PositionGrid | None] = [None] * origins.shape[0]
-    geos = _position_geometry(xyz, params, origins, ids, geometry)
+    geos = _position_geometry(xyz, params, origins, ids, geometry, times)
     for k in range(origins.shape[0]):
         idx = np.flatnonzero(ids == k) if ids is not None else slice(None)
         rel = xyz[idx] - origins[k]
         if rel.shape[0] == 0:
             continue
         known = geos[k]
-        derived = derive_params(rel, params, absolute=xyz[idx], geometry=known)
+        t = times[idx] if times is not None else None
+        derived = derive_params(rel, params, absolute=xyz[idx], geometry=known, gps_time=t)
         extra: dict[str, Any] = {"method": "box"}
         if params.method == "grid" and derived.geometry is not None:
             gs = grid_settings(derived.geometry, params)
             grids[k] = PositionGrid(gs.step_az, gs.step_el, gs.sigma, gs.footprint)
-            t = times[idx] if times is not None else None
             fov = derived.geometry.field_of_view
             if fov is None:
                 r_ = np.linalg.norm(rel, axis=1)
@@ -344,6 +344,7 @@ def _position_geometry(
     origins: NDArray[np.float64],
     ids: NDArray[np.intp] | None,
     geometry: Sequence[ScanGeometry | None] | None,
+    times: NDArray[np.float64] | None = None,
 ) -> list[ScanGeometry | None]:
     """Each position's geometry: the one given, else measured on its points; the
     footprints of positions of one scanner pooled (``pool_footprints``) when any was
@@ -362,7 +363,10 @@ def _position_geometry(
             idx = np.flatnonzero(ids == i) if ids is not None else slice(None)
             if xyz[idx].shape[0] > 0:
                 geos[i] = measure_scan_geometry(
-                    xyz[idx] - origins[i], footprint=params.footprint, absolute=xyz[idx]
+                    xyz[idx] - origins[i],
+                    footprint=params.footprint,
+                    absolute=xyz[idx],
+                    gps_time=None if times is None else times[idx],
                 )
     return pool_footprints(geos)
 
@@ -398,17 +402,21 @@ def derive_params(
     p: MixedParams,
     absolute: NDArray[np.float64] | None = None,
     geometry: ScanGeometry | None = None,
+    gps_time: NDArray[np.float64] | None = None,
 ) -> Derived:
     """Resolve the angles and distances left open (None) from the scan's measured geometry.
 
     ``geometry``, when given, was measured beforehand (on the whole scan) and is used
-    as it is. Without enough points to measure, the values the filter was first tuned
+    as it is; ``gps_time`` (one per point, or None) lets it measure the steps from the
+    firing order where the angles show no grid. Without enough points to measure, the values the filter was first tuned
     with (0.25° cells, 2 cm support, 15 cm boxes) stand in.
     """
     fixed = p.cell_angle is not None and p.support_tol is not None and p.box_width is not None
     if fixed and p.method == "box":
         return Derived(p, None, None)
-    geo = geometry or measure_scan_geometry(rel, footprint=p.footprint, absolute=absolute)
+    geo = geometry or measure_scan_geometry(
+        rel, footprint=p.footprint, absolute=absolute, gps_time=gps_time
+    )
     if geo is None:
         upd = {"cell_angle": p.cell_angle or 0.25, "support_tol": p.support_tol or 0.02}
         return Derived(p.model_copy(update={**upd, "box_width": p.box_width or 0.15}), None, None)

@@ -163,7 +163,7 @@ def pulse_numbers(t: NDArray[np.float64], max_jitter: float = 0.15) -> NDArray[n
     return out
 
 
-def _column_length(
+def column_length(
     b: NDArray[np.int64], el: NDArray[np.float64], guess: float, step_el: float
 ) -> int:
     """Pulses per column: the lag L at which the return of pulse b + L (same row, next
@@ -206,7 +206,7 @@ def time_index(
 
     A scanner fires the rows of one column after the other, so pulse number =
     column × pulses per column + row (+ a constant). The column length is the lag
-    between pulses at the same elevation (``_column_length``); the row phase is the
+    between pulses at the same elevation (``column_length``); the row phase is the
     circular mean of (pulse − elevation in steps) over it, so every return counts,
     however blurred its angle by the LAS scale (``las_scale`` / √12 / range ``r``).
     The steps are then refitted by least squares (each angle weighted by its blur),
@@ -223,7 +223,7 @@ def time_index(
     jump = dx[dx > 8.0]
     if jump.size < 4:
         return None
-    per_col = _column_length(b, el, float(np.median(jump)), step_el)
+    per_col = column_length(b, el, float(np.median(jump)), step_el)
     if per_col < 2:
         return None
     y = el / step_el

@@ -14,7 +14,8 @@ beams on (locally) regular angular lines.
 - Angular step: per point, the nearest neighbour in angle space lying along
   azimuth (resp. elevation); the median of those spacings. Only points far
   enough for the scale's angular uncertainty to stay under a tenth of a step
-  take part.
+  take part. With GPS time, where no share of the returns shows the grid (every
+  angle blurred past it), from the firing order instead (``firing_steps``).
 - Range noise: residual of each point's range against the line through its
   two azimuth neighbours (a local plane seen along a scan line); a robust sd,
   then the LAS quantisation's share (scale²/12) taken out.
@@ -42,6 +43,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
+
+from .mixed_grid import column_length, pulse_numbers, time_index
 
 MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
 RAMP_SECTORS = 8  # most azimuth sectors of MAX_SAMPLE points the footprint is measured on
@@ -105,6 +108,7 @@ def measure_scan_geometry(
     absolute: NDArray[np.float64] | None = None,
     max_gap: float = 2.5,
     sectors: Sequence[NDArray[np.float64]] | None = None,
+    gps_time: NDArray[np.float64] | None = None,
 ) -> ScanGeometry | None:
     """Measure the geometry of the points ``rel`` (relative to their sensor).
 
@@ -112,6 +116,8 @@ def measure_scan_geometry(
     read; ``las_scale`` and ``footprint`` (degrees) override the measurements.
     ``sectors`` (points relative to the sensor) are the azimuth sectors the footprint
     is measured on (``ramp_sectors``); None cuts them from ``rel``, the whole scan.
+    ``gps_time`` (one per point of ``rel``, or None) gives the steps from the firing
+    order where the angles show no grid (``firing_steps``).
     Returns None when there are too few points to measure anything.
     """
     rel = np.asarray(rel, dtype=np.float64)
@@ -120,6 +126,7 @@ def measure_scan_geometry(
     if np.count_nonzero(keep) < 50:
         return None
     rel, r = rel[keep], r[keep]
+    t = None if gps_time is None else np.asarray(gps_time, dtype=np.float64)[keep]
     how: dict[str, str] = {}
     if las_scale is None:
         src = rel if absolute is None else np.asarray(absolute, np.float64)[keep]
@@ -137,11 +144,12 @@ def measure_scan_geometry(
         # no edge there (edges may lie anywhere)
         o = by_az = np.argsort(az, kind="stable")
         sectors = [rel[o[a:b]] for a, b in ramp_sectors(az.size)]
-    az, el, r = _sector(az, el, r, by_az)
+    az, el, r, t = _sector(az, el, r, by_az, t)
     # one order whatever order the points came in (a job reads them block by block):
     # the samples drawn below then depend on the points alone
     o = np.lexsort((r, el, az))
     az, el, r = az[o], el[o], r[o]
+    t = None if t is None else t[o]
 
     # First pass on the farthest half (quarter, tenth: with 1 cm coordinates at a 0.06°
     # step the nearer returns blur the spacings past any regular grid), then on every
@@ -152,10 +160,20 @@ def measure_scan_geometry(
         sa, se = _steps(az[far], el[far])
         if np.isfinite(sa) and np.isfinite(se):
             break
+    fired = False
+    if (not np.isfinite(sa) or not np.isfinite(se)) and t is not None:
+        # every share blurred past the grid (1 cm coordinates, all returns within about
+        # 10 m at a 0.035° step): the blur is zero-mean, so the mean angle change between
+        # successive pulses still gives the step
+        sa, se = firing_steps(t, az, el, las_scale, r)
+        fired = bool(np.isfinite(sa) and np.isfinite(se))
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
     sharp = 0.0  # returns nearer than this blur past a tenth of a step
-    if las_scale > 0:
+    if fired:
+        ok = far
+        sharp = r_far
+    elif las_scale > 0:
         ok = las_scale / np.sqrt(12.0) / r < 0.1 * min(sa, se)
         if np.count_nonzero(ok) >= 50:
             sharp = las_scale / np.sqrt(12.0) / (0.1 * min(sa, se))
@@ -168,13 +186,21 @@ def measure_scan_geometry(
     else:
         ok = np.ones(r.size, dtype=bool)
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
-    sa, se = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
-    how["step"] = (
-        "median spacing to the nearest neighbour along azimuth / elevation in angle space, "
-        f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step, "
-        "refined to the step whose grid the angles fit best over ever wider sectors "
-        "(each angle weighted by the fit its quantisation blur allows)"
-    )
+    if fired:
+        how["step"] = (
+            "firing order from GPS time (the angles, blurred by the LAS scale, show no grid): "
+            "mean elevation change between successive pulses of a column and azimuth change "
+            "between pulses one column length apart, refitted by least squares on every "
+            "return's beam (column, row) from its pulse number"
+        )
+    else:
+        sa, se = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
+        how["step"] = (
+            "median spacing to the nearest neighbour along azimuth / elevation in angle space, "
+            f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step, "
+            "refined to the step whose grid the angles fit best over ever wider sectors "
+            "(each angle weighted by the fit its quantisation blur allows)"
+        )
 
     sigma = _range_sigma(az[ok], el[ok], r[ok], sa, se)  # NaN when no line shows
     q2 = las_scale**2 / 12.0
@@ -351,15 +377,75 @@ def coordinate_scale(xyz: NDArray[np.float64], sample: int = 200_000) -> float:
     return best
 
 
-def _sector(az, el, r, by_az=None):
+def _sector(az, el, r, by_az=None, t=None):
     """At most MAX_SAMPLE points from one contiguous azimuth sector (neighbours stay intact);
-    ``by_az``: the stable order of ``az``, when known."""
+    ``by_az``: the stable order of ``az``, when known; ``t`` (times or None) follows."""
     if az.size <= MAX_SAMPLE:
-        return az, el, r
+        return az, el, r, t
     o = np.argsort(az, kind="stable") if by_az is None else by_az
     mid = az.size // 2
     sl = o[mid - MAX_SAMPLE // 2 : mid + MAX_SAMPLE // 2]
-    return az[sl], el[sl], r[sl]
+    return az[sl], el[sl], r[sl], None if t is None else t[sl]
+
+
+def firing_steps(
+    t: NDArray[np.float64],
+    az: NDArray[np.float64],
+    el: NDArray[np.float64],
+    las_scale: float = 0.0,
+    r: NDArray[np.float64] | None = None,
+) -> tuple[float, float]:
+    """Steps in azimuth and elevation (radians) from the firing order, or NaN.
+
+    Successive pulses are neighbouring beams of one column, pulses one column length
+    apart neighbouring beams of one row. The LAS scale blurs each angle (by half a
+    step and more for 1 cm coordinates within about 10 m at a 0.035° step), but the
+    blur of a difference is zero-mean: the mean change over many pairs is the step.
+    Not the median: within about 5 m of 1 cm coordinates most successive pulses share
+    one quantised angle, so the median change is 0. The jump back to the first row of
+    the next column is left out as any change over a quarter of the elevations' span
+    (no blur reaches that on a column of more than a few rows). The column length is
+    found as ``time_index`` finds it; the mean azimuth change (a few % off: the
+    quantised azimuths of a sector are few values) then only starts ``time_index``,
+    whose least-squares fit on every return's beam gives both steps.
+    """
+    b = pulse_numbers(t)
+    if b is None:
+        return float("nan"), float("nan")
+    o = np.argsort(b, kind="stable")
+    bs, es, as_ = b[o], el[o], az[o]
+    de = np.diff(es)[np.diff(bs) == 1]
+    de = de[np.abs(de) < 0.25 * float(np.ptp(es))]
+    if de.size < 50 or float(np.mean(de)) == 0:
+        return float("nan"), float("nan")
+    se = float(np.mean(de))
+    # (pulse - elevation in steps) is about constant along a column and jumps by about a
+    # column length at the next one
+    dx = np.diff(bs - es / se)
+    jump = dx[dx > 8.0]
+    if jump.size < 4:
+        return float("nan"), float("nan")
+    per_col = column_length(bs, es, float(np.median(jump)), abs(se))
+    if per_col < 2:
+        return float("nan"), float("nan")
+    j = np.minimum(np.searchsorted(bs, bs + per_col), bs.size - 1)
+    hit = bs[j] == bs + per_col
+    # pairs of the middle 80 % of the pulses: the points' sector was cut by blurred
+    # azimuths, which keeps the nearer of two beams more often at its ends (a step 2 %
+    # short on a sector of 60 columns, 1 % inside)
+    lo, hi = np.quantile(bs, [0.1, 0.9])
+    hit &= (bs >= lo) & (bs + per_col <= hi)
+    if np.count_nonzero(hit) < 50:
+        return float("nan"), float("nan")
+    # a plain mean: at 1 cm within 5 m most pairs share one quantised azimuth, so
+    # the median change is 0 (no trimming about it)
+    sa = float(np.mean((as_[j[hit]] - as_[hit] + np.pi) % (2 * np.pi) - np.pi))
+    if sa == 0:
+        return float("nan"), float("nan")
+    fit = time_index(t, az, el, abs(sa), abs(se), las_scale, r)
+    if fit is None:
+        return float("nan"), float("nan")
+    return abs(fit[2]), abs(fit[3])
 
 
 _LAST_TREE: list[tuple[NDArray[np.float64], cKDTree]] = []
