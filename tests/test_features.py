@@ -2033,3 +2033,29 @@ def test_a_broad_ridge_is_found_down_its_tapered_ends():
     ridges = [o for o in objs if o.kind == "ridge"]
     assert len(ridges) == 1 and _on(ridges[0].geometry, truth.polygon)
     assert abs(ridges[0].length_m - truth.length_m) <= 0.25 * truth.length_m
+
+
+def test_the_level_downhill_bank_of_a_ditch_along_a_slope_is_not_a_road():
+    """Feature family seed 236 (13 % slope) as a DTM smoothed over 0.5 m, as its job DTM
+    is: a flat-bottomed ditch 5.8 m wide and 0.31 m deep along the contour has a downhill
+    bank level across (its rise out of the ditch cancels the slope), a strip between a rise
+    and the hillside falling on, which the road filter takes for a road cut into the slope
+    and the ditch then yields to. The ditch's middle lies beside that strip, not under it
+    (``bank ditch``): the ditch is found, no road lies off the roads."""
+    from scipy import ndimage
+
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(236)
+    exact = ndimage.gaussian_filter(surface_raster(scene, 0.5), 1.0, mode="nearest")
+    dtm = exact + np.random.default_rng([7, 236]).normal(0, scene.noise, exact.shape)
+    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    filters = [load_filter("road"), load_filter("ditch")]
+    cats, stepped = categories_for(dtm, 0.5, filters)
+    objs = detect_features(cats, filters, tt, 2.0, stepped=stepped).objects
+    roads = [t.polygon for t in scene.truth if t.kind == "road"]
+    (ditch,) = [t for t in scene.truth if t.kind == "ditch"]
+    assert all(any(_on(o.geometry, r) for r in roads) for o in objs if o.kind == "road")
+    found = [o for o in objs if o.kind == "ditch" and _on(o.geometry, ditch.polygon)]
+    assert len(found) == 1 and abs(found[0].length_m / ditch.length_m - 1) < 0.25
+    assert any(o.kind == "road" for o in objs)  # the cut road is still found
