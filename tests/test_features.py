@@ -1283,6 +1283,34 @@ def test_surround_drops_objects_on_ground_as_busy_as_they_are():
         parse_filter(text.replace("surround 4m 0.5", "surround 4m"), "s")
 
 
+def test_bank_drops_a_strip_on_another_object_s_flank_not_one_under_its_middle():
+    """``bank ditch``: a road strip inside a ditch found, the ditch's middle beside it (a
+    ditch's level bank) is dropped and the ditch no longer yields to it; a road under a
+    ditch's middle (a cut road's trough) stays, and the ditch yields to it."""
+    from terrasift.workers.features import apply_yields
+    from terrasift.workers.features.objects import Feature
+
+    seg = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\nconnect edge 30m -1 -1 -1\n"
+    )
+    road_f = parse_filter(seg + "bank ditch\n", "road")
+    ditch_f = parse_filter(seg + "yield road 1 0.5\n", "ditch")
+    assert road_f.banks == ("ditch",)
+    assert parse_filter(format_filter(road_f), "road") == road_f
+    ditch = Feature("ditch", box(0, 0, 200, 5.8), 200, 5.8, 1160)
+    bank = Feature("road", box(0, 0, 200, 2.4), 200, 2.4, 480)  # centre 1.7 m off the ditch's
+    under = Feature("road", box(0, 1.5, 200, 4.3), 200, 2.8, 560)  # centre 0.05 m off
+    assert apply_yields([bank, ditch], [road_f, ditch_f], 2.0) == [ditch]
+    assert apply_yields([under, ditch], [road_f, ditch_f], 2.0) == [under]
+    assert apply_yields([bank, ditch], [ditch_f], 2.0) == [bank]  # no bank rule: as before
+    for bad in ("bank road", "bank", "bank ditch pond"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(seg + bad + "\n", "road")
+    with pytest.raises(FilterSyntaxError):
+        parse_filter(seg.split("connect")[0] + "bank ditch\n", "road")
+
+
 def test_yield_drops_an_object_lying_on_another_filter_s_object_only():
     """``yield road 1 0.5``: a ditch lying within one tile of a road (the road's bounding
     tiles) is that road; a ditch beside the road's shoulder, or with no road run, stays."""
