@@ -1283,6 +1283,34 @@ def test_surround_drops_objects_on_ground_as_busy_as_they_are():
         parse_filter(text.replace("surround 4m 0.5", "surround 4m"), "s")
 
 
+def test_bank_drops_a_strip_on_another_object_s_flank_not_one_under_its_middle():
+    """``bank ditch``: a road strip inside a ditch found, the ditch's middle beside it (a
+    ditch's level bank) is dropped and the ditch no longer yields to it; a road under a
+    ditch's middle (a cut road's trough) stays, and the ditch yields to it."""
+    from terrasift.workers.features import apply_yields
+    from terrasift.workers.features.objects import Feature
+
+    seg = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\nconnect edge 30m -1 -1 -1\n"
+    )
+    road_f = parse_filter(seg + "bank ditch\n", "road")
+    ditch_f = parse_filter(seg + "yield road 1 0.5\n", "ditch")
+    assert road_f.banks == ("ditch",)
+    assert parse_filter(format_filter(road_f), "road") == road_f
+    ditch = Feature("ditch", box(0, 0, 200, 5.8), 200, 5.8, 1160)
+    bank = Feature("road", box(0, 0, 200, 2.4), 200, 2.4, 480)  # centre 1.7 m off the ditch's
+    under = Feature("road", box(0, 1.5, 200, 4.3), 200, 2.8, 560)  # centre 0.05 m off
+    assert apply_yields([bank, ditch], [road_f, ditch_f], 2.0) == [ditch]
+    assert apply_yields([under, ditch], [road_f, ditch_f], 2.0) == [under]
+    assert apply_yields([bank, ditch], [ditch_f], 2.0) == [bank]  # no bank rule: as before
+    for bad in ("bank road", "bank", "bank ditch pond"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(seg + bad + "\n", "road")
+    with pytest.raises(FilterSyntaxError):
+        parse_filter(seg.split("connect")[0] + "bank ditch\n", "road")
+
+
 def test_yield_drops_an_object_lying_on_another_filter_s_object_only():
     """``yield road 1 0.5``: a ditch lying within one tile of a road (the road's bounding
     tiles) is that road; a ditch beside the road's shoulder, or with no road run, stays."""
@@ -2067,3 +2095,29 @@ def test_a_ridge_with_a_crest_wider_than_eight_metres_is_found():
     ridges = [o for o in objs if o.kind == "ridge"]
     assert len(ridges) == 1 and _on(ridges[0].geometry, truth.polygon)
     assert abs(ridges[0].length_m - truth.length_m) <= 0.25 * truth.length_m
+
+
+def test_the_level_downhill_bank_of_a_ditch_along_a_slope_is_not_a_road():
+    """Feature family seed 236 (13 % slope) as a DTM smoothed over 0.5 m, as its job DTM
+    is: a flat-bottomed ditch 5.8 m wide and 0.31 m deep along the contour has a downhill
+    bank level across (its rise out of the ditch cancels the slope), a strip between a rise
+    and the hillside falling on, which the road filter takes for a road cut into the slope
+    and the ditch then yields to. The ditch's middle lies beside that strip, not under it
+    (``bank ditch``): the ditch is found, no road lies off the roads."""
+    from scipy import ndimage
+
+    from terrasift.synthetic.feature_family import make_family_scene, surface_raster
+
+    scene = make_family_scene(236)
+    exact = ndimage.gaussian_filter(surface_raster(scene, 0.5), 1.0, mode="nearest")
+    dtm = exact + np.random.default_rng([7, 236]).normal(0, scene.noise, exact.shape)
+    tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
+    filters = [load_filter("road"), load_filter("ditch")]
+    cats, stepped = categories_for(dtm, 0.5, filters)
+    objs = detect_features(cats, filters, tt, 2.0, stepped=stepped).objects
+    roads = [t.polygon for t in scene.truth if t.kind == "road"]
+    (ditch,) = [t for t in scene.truth if t.kind == "ditch"]
+    assert all(any(_on(o.geometry, r) for r in roads) for o in objs if o.kind == "road")
+    found = [o for o in objs if o.kind == "ditch" and _on(o.geometry, ditch.polygon)]
+    assert len(found) == 1 and abs(found[0].length_m / ditch.length_m - 1) < 0.25
+    assert any(o.kind == "road" for o in objs)  # the cut road is still found

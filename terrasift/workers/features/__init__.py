@@ -259,6 +259,8 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
     rules = {f.name: f.yields for f in filters if f.yields}
     # an object is measured on its filter's grid: overlapping tiles laid every step
     grid = {f.name: tile_size if f.step is None else f.step.value for f in filters}
+    banks = _banks(objects, filters)
+    objects = [o for i, o in enumerate(objects) if i not in banks]
     if not rules:
         return objects
     by_kind: dict[str, list[Feature]] = {}
@@ -281,6 +283,53 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
                 ):
                     drop.add(i)
     return [o for i, o in enumerate(objects) if i not in drop]
+
+
+def _banks(objects: list[Feature], filters: list[Filter]) -> set[int]:
+    """Indices of the objects a filter's ``bank <filter>`` drops: at least half the
+    object's area lies within an object of the named filter, and that object's part
+    along the object's length has its centre more than half the object's width off the
+    object's long axis (its middle lies beside the object's strip, not under it)."""
+    drop: set[int] = set()
+    for f in filters:
+        for other in f.banks:
+            theirs = [o.geometry for o in objects if o.kind == other]
+            if not theirs:
+                continue
+            for i, o in enumerate(objects):
+                if o.kind == f.name and any(_on_flank(o, g) for g in theirs):
+                    drop.add(i)
+    return drop
+
+
+def _on_flank(o: Feature, g: Polygon | MultiPolygon) -> bool:
+    """Whether ``o`` lies on the flank of ``g`` (see ``_banks``)."""
+    own = o.geometry
+    if own.area <= 0 or own.intersection(g).area < 0.5 * own.area:
+        return False
+    xy = np.asarray(own.minimum_rotated_rectangle.exterior.coords)[:4]
+    sides = [xy[1] - xy[0], xy[2] - xy[1]]
+    along = max(sides, key=lambda v: float(np.hypot(*v)))
+    half_len = float(np.hypot(*along)) / 2
+    u = along / (2 * half_len)
+    n = np.array([-u[1], u[0]])
+    mid = xy.mean(axis=0)
+    x0, y0, x1, y1 = g.bounds
+    reach = max(float(np.hypot(x - mid[0], y - mid[1])) for x in (x0, x1) for y in (y0, y1))
+    band = Polygon(
+        [
+            mid - half_len * u - reach * n,
+            mid + half_len * u - reach * n,
+            mid + half_len * u + reach * n,
+            mid - half_len * u + reach * n,
+        ]
+    )
+    part = g.intersection(band)
+    if part.area <= 0:
+        return False
+    centre = np.asarray(own.centroid.coords[0])
+    off = abs(float(np.dot(np.asarray(part.centroid.coords[0]) - centre, n)))
+    return off > o.width_m / 2
 
 
 def _short_rest(

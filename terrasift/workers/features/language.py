@@ -289,6 +289,15 @@ class Filter:
     (the strip) at least this long, and their marks set back on the filter's grid
     (``features.turned``): a strip crossing the grid obliquely is crossed squarely on
     one grid or the other."""
+    banks: tuple[str, ...] = ()
+    """``bank <filter>``: an object lying on the flank of an object of the named filter
+    (at least half its area within that object, whose middle, over the object's length,
+    lies beside the object's strip: more than half the object's width off its axis) is
+    that object's bank: dropped, and nothing yields to it. A flat-bottomed ditch along a
+    slope's contour has a downhill bank that is level across (its rise out of the ditch
+    cancels the slope) between the ditch's floor and the hillside falling on: a strip
+    between a rise and a fall, as a road cut into the slope, but the ditch's floor lies
+    beside it where a cut road's floor is the road."""
 
     @property
     def makes_objects(self) -> bool:
@@ -375,6 +384,7 @@ class _Parser:
         surround: tuple[Length, float] | None = None
         share: float | None = None
         yields: list[tuple[str, Length, float] | tuple[str, Length, float, Length]] = []
+        banks: list[str] = []
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
@@ -497,6 +507,12 @@ class _Parser:
                     yields.append((args[0], reach, most))
                 if "yield" not in steps:
                     steps.append("yield")
+            elif key == "bank":
+                if len(args) != 1 or args[0] in banks or args[0] == self.name:
+                    raise self.error("bank takes another filter's name, once per name", no)
+                banks.append(args[0])
+                if "bank" not in steps:
+                    steps.append("bank")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -553,6 +569,8 @@ class _Parser:
             raise self.error("diagonal needs a step and no detrend", last_line)
         if yields and connect is None and rect is None:
             raise self.error("yield needs a connect or findrectangle step", last_line)
+        if banks and connect is None and rect is None:
+            raise self.error("bank needs a connect or findrectangle step", last_line)
         return Filter(
             self.name,
             tuple(segments),
@@ -574,6 +592,7 @@ class _Parser:
             isolated,
             tuple(yields),
             join_line,
+            banks=tuple(banks),
             clear_exempt=clear_exempt,
             diagonal=diagonal,
         )
@@ -817,6 +836,8 @@ def format_filter(f: Filter) -> str:
                 f"yield {y[0]} {_text(y[1])} {y[2]:g}" + "".join(f" {_text(r)}" for r in y[3:])
                 for y in f.yields
             ]
+        elif step == "bank":
+            out += [f"bank {b}" for b in f.banks]
     return "\n".join(out) + "\n"
 
 
@@ -846,6 +867,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("isolated")
     if f.yields:
         steps.append("yield")
+    if f.banks:
+        steps.append("bank")
     return tuple(steps)
 
 
