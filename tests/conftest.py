@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from terrasift.synthetic.scan import make_scan
 from terrasift.synthetic.terrain import make_scene, write_las
 
 # The suite's jobs run at the suite's own CPU priority: with a worker nice value the
@@ -38,3 +39,21 @@ def small_tile(tmp_path_factory, small_scene):
     path = tmp_path_factory.mktemp("tiles") / "small.laz"
     write_las(small_scene, path, extra_bytes=True)
     return path
+
+
+@pytest.fixture(scope="session")
+def near_coarse_scan():
+    """A ground-based scan at 0.035° with 1 cm coordinates and every return within about
+    14 m: each angle is blurred by half a step and more, so the angles alone show no grid."""
+    return make_scan(
+        step_deg=0.035,
+        footprint_steps=2.0,
+        azimuth_deg=(-2.0, 2.0),
+        elevation_deg=(-30.0, 5.0),
+        n_boards=2,
+        n_poles=1,
+        object_range=(3.0, 7.0),
+        wall_gap=(1.0, 2.0),
+        las_scale=0.01,
+        seed=3,
+    )

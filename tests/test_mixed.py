@@ -463,23 +463,12 @@ def test_gps_time_judges_returns_the_angles_cannot_place(near_scan):
         mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time[:-1])
 
 
-def test_gps_time_gives_the_grid_where_the_angles_measure_no_step():
+def test_gps_time_gives_the_grid_where_the_angles_measure_no_step(near_coarse_scan):
     # 1 cm coordinates at 0.035° with the returns within about 14 m: the angles measure no
     # step, so without times the position falls back to the interest boxes (tpr 0.72,
     # fpr 0.062, as before with times too); the firing order measures the step and the
     # grid places every return (tpr 0.98, fpr 0.014)
-    s = make_scan(
-        step_deg=0.035,
-        footprint_steps=2.0,
-        azimuth_deg=(-2.0, 2.0),
-        elevation_deg=(-30.0, 5.0),
-        n_boards=2,
-        n_poles=1,
-        object_range=(3.0, 7.0),
-        wall_gap=(1.0, 2.0),
-        las_scale=0.01,
-        seed=3,
-    )
+    s = near_coarse_scan
     without = mark_mixed(s.xyz, MixedParams(), s.origin)
     timed = mark_mixed(s.xyz, MixedParams(), s.origin, gps_time=s.gps_time)
     assert without.geometry[0]["method"] == "box"

@@ -144,22 +144,11 @@ def test_one_centimetre_coordinates_at_a_fine_step():
     assert "under 0.15 step" in g.how["footprint"]
 
 
-def test_steps_from_the_firing_order_where_the_angles_show_no_grid():
+def test_steps_from_the_firing_order_where_the_angles_show_no_grid(near_coarse_scan):
     # 1 cm coordinates at 0.035° with every return within about 14 m (median 4.6 m): each
     # angle is blurred by half a step and more, so no share of the returns shows the grid
     # and the angles alone measure nothing; the GPS time still orders the pulses.
-    s = make_scan(
-        step_deg=0.035,
-        footprint_steps=2.0,
-        azimuth_deg=(-2.0, 2.0),
-        elevation_deg=(-30.0, 5.0),
-        n_boards=2,
-        n_poles=1,
-        object_range=(3.0, 7.0),
-        wall_gap=(1.0, 2.0),
-        las_scale=0.01,
-        seed=3,
-    )
+    s = near_coarse_scan
     rel = s.xyz - s.origin
     assert measure_scan_geometry(rel, absolute=s.xyz) is None
     g = measure_scan_geometry(rel, absolute=s.xyz, gps_time=s.gps_time)
