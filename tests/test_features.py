@@ -2121,3 +2121,21 @@ def test_the_level_downhill_bank_of_a_ditch_along_a_slope_is_not_a_road():
     found = [o for o in objs if o.kind == "ditch" and _on(o.geometry, ditch.polygon)]
     assert len(found) == 1 and abs(found[0].length_m / ditch.length_m - 1) < 0.25
     assert any(o.kind == "road" for o in objs)  # the cut road is still found
+
+
+@pytest.mark.parametrize("seed", [251, 256])
+def test_level_ground_rising_on_both_sides_or_across_is_not_a_road(seed):
+    """Feature family seeds 251 and 256 as DTMs. On 251 (a 9 % slope) the level hollow
+    where a ridge's flank meets the uphill hillside rises away on both sides: the
+    hillside as a bench, the flank as the clear bound, where a road with a bench uphill
+    has a shoulder falling away downhill. On 256 (a 2 % slope) the plain ground between a
+    narrow ditch and a road embankment's foot is level on 2 m tiles but rises across with
+    the slope, where a road's top is level across. Every road found lies on a true road,
+    and every true road is found."""
+    scene, dtm, tt = _family_dtm(seed)
+    flt = load_filter("road")
+    cats, stepped = categories_for(dtm, 0.5, [flt])
+    found = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    truth = [t.polygon for t in scene.truth if t.kind == "road"]
+    assert all(any(_on(o.geometry, t) for t in truth) for o in found)
+    assert all(any(o.geometry.intersects(t) for o in found) for t in truth)
