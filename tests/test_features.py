@@ -22,6 +22,7 @@ from terrasift.workers.features import (
     format_filter,
     grid_key,
     load_filter,
+    majority_marks,
     parse_filter,
     resolve_filters,
 )
@@ -2135,3 +2136,40 @@ def test_a_level_hollow_rising_away_on_both_sides_is_not_a_road():
     truth = [t.polygon for t in scene.truth if t.kind == "road"]
     assert all(any(_on(o.geometry, t) for t in truth) for o in found)
     assert all(any(o.geometry.intersects(t) for o in found) for t in truth)
+
+
+@pytest.mark.parametrize("rise, found", [(0.185, True), (0.205, False)])
+def test_flat_area_on_a_hillside_near_the_threshold_follows_its_noise_free_reading(rise, found):
+    # a 200 m plane rising `rise` m across a 2 m tile's outer cell centres (1.5 m), with
+    # 1 cm of white noise: each tile's fitted slope carries ~0.7 cm of it across the
+    # tile, so one tile in nine of a 0.185 m hillside reads past the 0.2 m threshold
+    # (more than the 5 % a square allows). Noise-free the first is one flat area and
+    # the second none; a 0.205 m hillside reads flat on one tile in ten.
+    cell, n = 0.5, 400
+    x = (np.arange(n) + 0.5) * cell
+    dtm = np.tile(rise / 1.5 * x, (n, 1)) + np.random.default_rng(5).normal(0, 0.01, (n, n))
+    flt = load_filter("flat-area")
+    assert flt.majority and "majority" in format_filter(flt)
+    cats, stepped = categories_for(dtm, cell, [flt])
+    res = detect_features(cats, [flt], Affine(cell, 0, 0, 0, -cell, 200.0), 2.0, stepped=stepped)
+    if found:
+        (obj,) = res.objects
+        assert obj.geometry.area > 0.9 * 200 * 200
+    else:
+        assert res.objects == []
+
+
+def test_majority_needs_a_rectangle_and_marks_only_tiles_not_clearly_past_the_test():
+    with pytest.raises(FilterSyntaxError, match="majority needs a findrectangle"):
+        parse_filter(
+            "beginsegment\nbeginsubsegment 1 1\nbegincategory\nendcategory\nendsubsegment\n"
+            "endsegment\nmajority\nconnect simple 1 -1 -1 -1",
+            "bad",
+        )
+    inc = np.zeros((5, 5), np.uint8)
+    inc[2, 2] = inc[0, 0] = 1  # one tile inside flat ground, one in a corner
+    cats = dataclasses.replace(cats_from(inc), clear=np.zeros((5, 5), np.uint8))
+    marks = inc == 0
+    assert majority_marks(marks, cats).all()  # 8 of 9 and 3 of 4 around are marked
+    cats = dataclasses.replace(cats, clear=(inc == 1).astype(np.uint8))
+    assert (majority_marks(marks, cats) == marks).all()  # clearly past: stays

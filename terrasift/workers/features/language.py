@@ -299,6 +299,14 @@ class Filter:
     between a rise and a fall, as a road cut into the slope, but the ditch's floor lies
     beside it where a cut road's floor is the road."""
 
+    majority: bool = False
+    """``majority`` (with ``findrectangle``): a tile the segments miss but which is not
+    ``clear`` (its excess over the flatness threshold within what the DTM's slope noise
+    explains) is marked when more than half of the tiles with data in the 3 × 3 tiles
+    around it (itself included) are marked. On a hillside just under the threshold the
+    noise of a tile's fitted slope tips single tiles past it at random; the tile's
+    neighbours on the same plane read it again."""
+
     @property
     def makes_objects(self) -> bool:
         return self.connect is not None or self.rectangle is not None
@@ -389,6 +397,7 @@ class _Parser:
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
         diagonal: Length | None = None
+        majority = False
         steps: list[str] = []
         last_line = self.lines[-1][0] if self.lines else 1
         while (item := self.next()) is not None:
@@ -534,6 +543,11 @@ class _Parser:
                     raise self.error("join-line takes one gap (tiles or metres), once", no)
                 join_line = self.lengths(args, no, "join-line", lo=1)[0]
                 steps.append("join-line")
+            elif key == "majority":
+                if majority or args:
+                    raise self.error("majority takes no parameters, once", no)
+                majority = True
+                steps.append("majority")
             elif key == "findrectangle":
                 if connect is not None or rect is not None:
                     raise self.error("only one connect or findrectangle step is allowed", no)
@@ -567,6 +581,8 @@ class _Parser:
             )
         if diagonal is not None and (step is None or detrend is not None):
             raise self.error("diagonal needs a step and no detrend", last_line)
+        if majority and rect is None:
+            raise self.error("majority needs a findrectangle step", last_line)
         if yields and connect is None and rect is None:
             raise self.error("yield needs a connect or findrectangle step", last_line)
         if banks and connect is None and rect is None:
@@ -595,6 +611,7 @@ class _Parser:
             banks=tuple(banks),
             clear_exempt=clear_exempt,
             diagonal=diagonal,
+            majority=majority,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -838,6 +855,8 @@ def format_filter(f: Filter) -> str:
             ]
         elif step == "bank":
             out += [f"bank {b}" for b in f.banks]
+        elif step == "majority" and f.majority:
+            out.append("majority")
     return "\n".join(out) + "\n"
 
 
@@ -869,6 +888,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("yield")
     if f.banks:
         steps.append("bank")
+    if f.majority:
+        steps.append("majority")
     return tuple(steps)
 
 
