@@ -926,3 +926,22 @@ def test_grid_marks_a_thin_run_before_a_wall_seen_one_beam_on_each_side():
     xyz, col = _wall_grid(lambda c: face.get(c, 14.0), step=0.49, noise=0.005)
     m = mark_mixed(xyz, MixedParams(footprint=0.75), np.zeros(3)).marked
     assert not m[np.isin(col, [1, 2])].any()
+
+
+def test_grid_keeps_a_board_whose_run_lands_on_a_ramp_beam():
+    # Coarse 2708 (0.49° steps, a 1.95-step footprint): a board three beams wide before an
+    # oblique wall, two-beam ramps of blends on each side. The wall on the right, continued
+    # across the six-beam run, lands within its scatter on the left ramp's outer blend, so
+    # the run read as a pole in front of one wall and the board's face was marked (main: 8-28
+    # % of its first two columns). That beam is no wall's: the beam beyond it lies farther
+    # by more than the margin. The face is kept, the ramps marked, nothing else.
+    def wall(c):
+        return 11.0 + 0.02 * c
+
+    run = {-2: wall(-2) - 0.12, -1: 10.50, 0: 10.12, 1: 10.14, 2: 10.16, 3: 10.55, 4: 10.87}
+    for seed in range(3):
+        xyz, col = _wall_grid(lambda c: run.get(c, wall(c)), step=0.486, noise=0.005, seed=seed)
+        m = mark_mixed(xyz, MixedParams(footprint=0.95), np.zeros(3)).marked
+        assert not m[np.isin(col, [0, 1])].any()
+        assert m[np.isin(col, [-2, -1, 3, 4])].mean() > 0.95
+        assert not m[~np.isin(col, list(run))].any()

@@ -954,8 +954,9 @@ def _thin_runs(
     step_x: float,
 ) -> NDArray[np.bool_]:
     """Returns in a run of at most ``s.thin`` beams lying in front of one surface that
-    continues behind them (the surface either side, continued across the run, agrees;
-    or the one beam seen on each side agrees with the other, a face-on surface),
+    continues behind them (the surface either side, continued across the run, agrees
+    with the other side's beam, unless that beam is a blend of a ramp into a farther
+    surface; or the one beam seen on each side agrees with the other, a face-on surface),
     by more than ``min_offset`` across that surface (the margin when 0; ``C``: range change
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
@@ -984,6 +985,19 @@ def _thin_runs(
                 tol = s.sigmas * s.sigma * np.sqrt((1 + L) ** 2 + L**2 + 1)
                 from_left = np.abs(1.0 / v_left - rb1) <= tol
                 from_right = np.abs(1.0 / v_right - rb0) <= tol
+                # the beam a surface lands on is that surface's, not a blend in a ramp into
+                # a farther one: the beam beyond it lies no farther than the landing beam
+                # or the surface continued one beam on, by more than the margin, or
+                # beyond max_gap of it (too far to have blended with it: a wall's end)
+                v_on = (v_left + (v0 - V[lo - 1][c]), v_right + (v1 - V[hi + 1][c]))
+                r_on = [np.where(v > 0, 1.0 / v, np.inf) for v in v_on]  # receding: any
+                far_l, far_r = R[hi + 1][c], R[lo - 1][c]
+                from_left &= ~(
+                    (far_l > np.fmax(rb1, r_on[0]) + s.margin) & (far_l < rb1 + s.max_gap)
+                )
+                from_right &= ~(
+                    (far_r > np.fmax(rb0, r_on[1]) + s.margin) & (far_r < rb0 + s.max_gap)
+                )
                 # or, seen one beam on each side (the beams beyond give no return or lie
                 # on nearer surfaces), a face-on background agrees with itself across the
                 # run: the two beams within the scatter of a difference of two returns. Not
