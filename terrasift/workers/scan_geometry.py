@@ -740,9 +740,33 @@ def box_steps(
     steps where too few boxes carry any.
     """
     da, de = box_halfwidths(az, el, r, las_scale)
-    sa, fa = box_step(az, da, s0_az)
-    se, fe = box_step(el, de, s0_el)
+    blur = las_scale / np.sqrt(12.0) / np.maximum(r, 1e-6)
+    sa, fa = _fitted(az, da, box_step(az, da, s0_az), blur)
+    se, fe = _fitted(el, de, box_step(el, de, s0_el), blur)
     return sa, se, fa, fe
+
+
+def _fitted(
+    a: NDArray[np.float64],
+    d: NDArray[np.float64],
+    found: tuple[float, float],
+    blur: NDArray[np.float64],
+    sample: int = 20_000,
+) -> tuple[float, float]:
+    """The step of the grid fit (``refine_step``, every angle weighted by its blur)
+    started from the boxes' step, when its grid meets the boxes as well: the boxes
+    bound the step (their best count is tied over a range of steps when the
+    best-resolved returns lie in a narrow sector), the fit on every angle is finer."""
+    s, frac = found
+    if not np.isfinite(s):
+        return found
+    fit = refine_step(a, s, blur=blur)
+    if fit == s:
+        return found
+    use = np.argsort(d, kind="stable")[:sample]
+    x = a[use] - float(np.median(a[use]))
+    score = _box_scores(x, d[use], np.array([s, fit]))
+    return (fit, frac) if score[1] >= score[0] else found
 
 
 def box_halfwidths(
