@@ -926,3 +926,28 @@ def test_grid_marks_a_thin_run_before_a_wall_seen_one_beam_on_each_side():
     xyz, col = _wall_grid(lambda c: face.get(c, 14.0), step=0.49, noise=0.005)
     m = mark_mixed(xyz, MixedParams(footprint=0.75), np.zeros(3)).marked
     assert not m[np.isin(col, [1, 2])].any()
+
+
+def test_support_tolerance_holds_at_least_the_quantisation_of_the_ranges():
+    # a scatter measured on a few far returns can come out far below what 1 cm
+    # coordinates allow (0.01 mm on report 7006); the support tolerance then rejected
+    # near ground whose angle the scale blurs, and the boxes marked it
+    from terrasift.workers.mixed import derive_params
+    from terrasift.workers.scan_geometry import ScanGeometry
+
+    geo = ScanGeometry(
+        step_az=0.078,
+        step_el=0.078,
+        range_noise=0.0,
+        range_sigma=1e-5,
+        las_scale=0.01,
+        footprint=0.086,
+        footprint_steps=1.1,
+        n_points=1000,
+    )
+    d = derive_params(np.zeros((10, 3)), MixedParams(), geometry=geo)
+    assert d.params.support_tol == pytest.approx(5.0 * 0.01 / np.sqrt(12.0))
+    sharp = replace(geo, range_sigma=0.006)
+    assert derive_params(np.zeros((10, 3)), MixedParams(), geometry=sharp).params.support_tol == (
+        pytest.approx(0.03)
+    )

@@ -16,8 +16,9 @@ beams on (locally) regular angular lines.
   enough for the scale's angular uncertainty to stay under a tenth of a step
   take part. With GPS time, where no share of the returns shows the grid (every
   angle blurred past it), from the firing order instead (``firing_steps``).
-  Without GPS time, where no 50 returns are that sharp, the largest step whose
-  grid has a line inside nearly every return's quantisation box (``box_steps``).
+  Where no 50 returns are that sharp (and the firing order did not give the
+  steps), the largest step whose grid has a line inside nearly every return's
+  quantisation box (``box_steps``).
 - Range noise: residual of each point's range against the line through its
   two azimuth neighbours (a local plane seen along a scan line); a robust sd,
   then the LAS quantisation's share (scale²/12) taken out.
@@ -188,15 +189,13 @@ def measure_scan_geometry(
             ok = far
             sharp = r_far
             # every return blurred past a tenth of a step: the spacings run off (0.041 /
-            # 0.028° for 0.030° with 1 cm coordinates within 41 m); without GPS time the
-            # grid every quantisation box meets instead (with it, the firing order places
-            # the returns and refits the steps)
-            if t is None:
-                ba, be, fa, fe = box_steps(*whole, las_scale, sa, se)
-                if np.isfinite(ba) or np.isfinite(be):
-                    boxed = (fa if np.isfinite(ba) else None, fe if np.isfinite(be) else None)
-                    sa = ba if np.isfinite(ba) else sa
-                    se = be if np.isfinite(be) else se
+            # 0.028° for 0.030° with 1 cm coordinates within 41 m); the grid every
+            # quantisation box meets instead
+            ba, be, fa, fe = box_steps(*whole, las_scale, sa, se)
+            if np.isfinite(ba) or np.isfinite(be):
+                boxed = (fa if np.isfinite(ba) else None, fe if np.isfinite(be) else None)
+                sa = ba if np.isfinite(ba) else sa
+                se = be if np.isfinite(be) else se
     else:
         ok = np.ones(r.size, dtype=bool)
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
