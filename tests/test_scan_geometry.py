@@ -330,28 +330,3 @@ def test_stage_and_job_pool_the_footprint_of_positions_with_one_step(tmp_path):
     geo = job_geometry(measure_job_geometry([tmp_path / "p"], origins, MixedParams()))
     assert geo is not None
     assert [g.footprint_steps for g in geo] == pytest.approx([want, want], rel=1e-3)
-
-
-def test_step_from_the_quantisation_boxes_when_every_angle_is_blurred():
-    # 1 cm coordinates at a 0.03° step within 38 m: every return's angle is blurred by
-    # more than a tenth of a step (a step needs 55 m), and the nearest-neighbour spacing
-    # runs 26 % short; the grid every return's quantisation box meets is the scanner's
-    s = make_scan(
-        step_deg=0.03,
-        footprint_steps=1.4,
-        range_noise=0.007,
-        las_scale=0.01,
-        azimuth_deg=(-2.5, 2.5),
-        elevation_deg=(-12.0, 3.0),
-        mast_height=1.0,
-        sub_rays=(3, 3),
-        n_boards=2,
-        n_poles=2,
-        object_range=(8.0, 33.0),
-        seed=5,
-    )
-    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
-    assert g is not None
-    assert g.step_az == pytest.approx(0.03, rel=0.003)
-    assert g.step_el == pytest.approx(0.03, rel=0.003)
-    assert "quantisation box" in g.how["step"]

@@ -16,9 +16,6 @@ beams on (locally) regular angular lines.
   enough for the scale's angular uncertainty to stay under a tenth of a step
   take part. With GPS time, where no share of the returns shows the grid (every
   angle blurred past it), from the firing order instead (``firing_steps``).
-  Where no 50 returns are that sharp (and the firing order did not give the
-  steps), the largest step whose grid has a line inside nearly every return's
-  quantisation box (``box_steps``).
 - Range noise: residual of each point's range against the line through its
   two azimuth neighbours (a local plane seen along a scan line); a robust sd,
   then the LAS quantisation's share (scale²/12) taken out.
@@ -147,7 +144,6 @@ def measure_scan_geometry(
         # no edge there (edges may lie anywhere)
         o = by_az = np.argsort(az, kind="stable")
         sectors = [rel[o[a:b]] for a, b in ramp_sectors(az.size)]
-    whole = (az, el, r)  # every return: the box test wants the far ones wherever they lie
     az, el, r, t = _sector(az, el, r, by_az, t)
     # one order whatever order the points came in (a job reads them block by block):
     # the samples drawn below then depend on the points alone
@@ -165,7 +161,6 @@ def measure_scan_geometry(
         if np.isfinite(sa) and np.isfinite(se):
             break
     fired = False
-    boxed: tuple[float | None, float | None] | None = None  # per axis: from the boxes
     if (not np.isfinite(sa) or not np.isfinite(se)) and t is not None:
         # every share blurred past the grid (1 cm coordinates, all returns within about
         # 10 m at a 0.035° step): the blur is zero-mean, so the mean angle change between
@@ -188,14 +183,6 @@ def measure_scan_geometry(
         else:
             ok = far
             sharp = r_far
-            # every return blurred past a tenth of a step: the spacings run off (0.041 /
-            # 0.028° for 0.030° with 1 cm coordinates within 41 m); the grid every
-            # quantisation box meets instead
-            ba, be, fa, fe = box_steps(*whole, las_scale, sa, se)
-            if np.isfinite(ba) or np.isfinite(be):
-                boxed = (fa if np.isfinite(ba) else None, fe if np.isfinite(be) else None)
-                sa = ba if np.isfinite(ba) else sa
-                se = be if np.isfinite(be) else se
     else:
         ok = np.ones(r.size, dtype=bool)
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
@@ -205,24 +192,6 @@ def measure_scan_geometry(
             "mean elevation change between successive pulses of a column and azimuth change "
             "between pulses one column length apart, refitted by least squares on every "
             "return's beam (column, row) from its pulse number"
-        )
-    elif boxed is not None:
-        # an axis the boxes leave undetermined keeps the spacing, refined as before
-        ways = []
-        for name, got in (("azimuth", boxed[0]), ("elevation", boxed[1])):
-            if got is None:
-                ways.append(f"{name}: median nearest-neighbour spacing refined on the grid fit")
-            else:
-                ways.append(f"{name}: quantisation boxes ({got:.3f} met beyond chance)")
-        if boxed[0] is None:
-            sa = refine_step(az, sa, blur=blur)
-        if boxed[1] is None:
-            se = refine_step(el, se, blur=blur)
-        how["step"] = (
-            "the largest step (within half to twice the nearest-neighbour spacing) whose "
-            "grid has a line inside the quantisation box of nearly every return (each "
-            "return lies on its beam's ray, the LAS scale moves it within ±scale/2 per "
-            "coordinate), where the boxes determine it; " + "; ".join(ways)
         )
     else:
         sa, se = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
@@ -709,194 +678,3 @@ def _phase(a: NDArray[np.float64], s: float) -> float:
     """Offset of a regular angular grid of step ``s`` (circular mean of a mod s)."""
     t = 2 * np.pi * a / s
     return float(np.angle(np.mean(np.exp(1j * t))) / (2 * np.pi) * s)
-
-
-PHASE_BINS = 64  # phase resolution of the box test (1/64 step)
-MIN_BOXES = 500  # returns in the first sector searched
-MIN_INFO = 30.0  # returns' worth of box information (1 - width in steps) a step needs
-DETERMINED = 0.05  # score lost by lines drifting half a step at a sector's ends
-PLATEAU = 1e-9  # score within which candidates count as one top (ties of the best count)
-
-
-def box_steps(
-    az: NDArray[np.float64],
-    el: NDArray[np.float64],
-    r: NDArray[np.float64],
-    las_scale: float,
-    s0_az: float,
-    s0_el: float,
-) -> tuple[float, float, float, float]:
-    """Steps in azimuth and elevation (radians) whose grids every quantisation box meets.
-
-    A return lies on its beam's central ray; the LAS scale moves it within a box of
-    ±scale/2 per coordinate, and range noise moves it along the ray, which leaves its
-    angles alone. So the true grid has a line inside every return's box, seen as an
-    angular interval ±δ about its angles (``box_halfwidths``), whatever the range.
-    With 1 cm coordinates at a 0.03° step no return within 19 m has a box narrower
-    than a step, and the nearest-neighbour spacing (``_steps``) ran 7-38 % off. Each
-    axis is searched within [s0/2, 2·s0] (``box_step``). Returns the two steps and the
-    share of the information (boxes narrower than a step) each grid accounts for; NaN
-    steps where too few boxes carry any.
-    """
-    da, de = box_halfwidths(az, el, r, las_scale)
-    blur = las_scale / np.sqrt(12.0) / np.maximum(r, 1e-6)
-    sa, fa = _fitted(az, da, box_step(az, da, s0_az), blur)
-    se, fe = _fitted(el, de, box_step(el, de, s0_el), blur)
-    return sa, se, fa, fe
-
-
-def _fitted(
-    a: NDArray[np.float64],
-    d: NDArray[np.float64],
-    found: tuple[float, float],
-    blur: NDArray[np.float64],
-    sample: int = 20_000,
-) -> tuple[float, float]:
-    """The step of the grid fit (``refine_step``, every angle weighted by its blur)
-    started from the boxes' step, when its grid meets the boxes as well: the boxes
-    bound the step (their best count is tied over a range of steps when the
-    best-resolved returns lie in a narrow sector), the fit on every angle is finer."""
-    s, frac = found
-    if not np.isfinite(s):
-        return found
-    fit = refine_step(a, s, blur=blur)
-    if fit == s:
-        return found
-    use = np.argsort(d, kind="stable")[:sample]
-    x = a[use] - float(np.median(a[use]))
-    score = _box_scores(x, d[use], np.array([s, fit]))
-    return (fit, frac) if score[1] >= score[0] else found
-
-
-def box_halfwidths(
-    az: NDArray[np.float64], el: NDArray[np.float64], r: NDArray[np.float64], q: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Half-widths (radians) in azimuth and elevation of the cube ±q/2 about each return,
-    seen from the sensor (to first order: the largest change of each angle over the
-    cube's corners)."""
-    ca, sa_ = np.abs(np.cos(az)), np.abs(np.sin(az))
-    ce, se_ = np.abs(np.cos(el)), np.abs(np.sin(el))
-    rho = np.maximum(r * ce, 1e-9)
-    d_az = 0.5 * q * (ca + sa_) / rho
-    d_el = 0.5 * q * (ce + se_ * (ca + sa_)) / np.maximum(r, 1e-9)
-    return d_az, d_el
-
-
-def box_step(
-    a: NDArray[np.float64], d: NDArray[np.float64], s0: float, sample: int = 4_000
-) -> tuple[float, float]:
-    """The largest step within [s0/2, 2·s0] whose grid has a line in nearly every
-    interval a ± d (radians), and the share of the information it accounts for.
-
-    Score of a step: the best phase's count of intervals holding a grid line, less the
-    count expected by chance (each interval's width in steps, at most 1), over the most
-    that can exceed chance. The true grid scores 1; so do its integer fractions (every
-    line of the grid is one of theirs), while a multiple k·s misses all but 1/k of the
-    lines (score about 1/k). Hence the largest step scoring within 10 % of the best.
-    Intervals a step wide or wider carry nothing and are left out. The search narrows
-    as ``refine_step``'s: first a sector of about 50 lines (candidates 0.2 % apart),
-    then ever wider sectors, each searched within the last one's resolution.
-    Returns (NaN, 0) when the intervals carry less than 30 returns' worth of
-    information.
-    """
-    nan = (float("nan"), 0.0)
-    if not np.isfinite(s0) or s0 <= 0 or a.size < 50:
-        return nan
-    lo_s = 0.5 * s0
-    use = 2.0 * d < 2.0 * s0  # narrower than the widest candidate step
-    if np.count_nonzero(use) < 50:
-        return nan
-    a, d = a[use], d[use]
-    if a.size > 20 * sample:
-        keep = np.argsort(d, kind="stable")[: 20 * sample]  # the best-resolved returns
-        a, d = a[keep], d[keep]
-    # the sectors grow about the best-resolved returns (far ones, often on a few walls)
-    c = float(np.median(a[np.argsort(d, kind="stable")[:MIN_BOXES]]))
-    x = a - c
-    span = float(np.max(np.abs(x)))
-    order = np.argsort(np.abs(x), kind="stable")
-    s = float("nan")
-    width = 0.0
-    for lines in (50, 500, 5_000, 50_000):
-        half = lines * (s0 if not np.isfinite(s) else s) / 2
-        inside = order[np.abs(x[order]) <= half]
-        if inside.size < MIN_BOXES:
-            # too few boxes to tell a grid: the sector widens to hold enough
-            inside = order[: min(order.size, MIN_BOXES)]
-            # at most 200 lines wide: the candidates' spacing follows the sector's width
-            inside = inside[np.abs(x[inside]) <= 100 * s0]
-            if inside.size < 50:
-                return nan
-        if inside.size > sample:
-            inside = inside[np.argsort(d[inside], kind="stable")[:sample]]
-        xs, ds = x[inside], d[inside]
-        ext = max(float(np.max(np.abs(xs))), 1e-12)
-        if not np.isfinite(s):
-            # relative spacing keeps the drift over the sector under 0.1 step
-            rel = 0.1 * lo_s / ext
-            cand = s0 * np.exp(np.arange(np.log(0.5), np.log(2.0) + rel, rel))
-        else:
-            rel = 0.1 * s / ext
-            k = int(np.ceil(width / rel))
-            cand = np.asarray(s * (1.0 + rel * np.arange(-k, k + 1)), dtype=np.float64)
-        score = _box_scores(xs, ds, cand)
-        if not np.isfinite(s):
-            good = score >= score.max() - 0.1 * abs(score.max())
-            best = int(np.flatnonzero(good)[-1])  # candidates ascend: the largest
-            j = best
-            while j > 0 and good[j - 1]:
-                j -= 1
-            run = (float(cand[j]), float(cand[best]))  # the peak the next sector searches
-            best = j + int(np.argmax(score[j : best + 1]))
-        else:
-            best = int(np.argmax(score))
-            run = (float(cand[best]), float(cand[best]))
-        # the middle of the top: with boxes a good part of a step wide, a step slightly
-        # off still meets them all over a sector, as much too short as too long
-        top = score >= score[best] - PLATEAU
-        lo_i = hi_i = best
-        while lo_i > 0 and top[lo_i - 1]:
-            lo_i -= 1
-        while hi_i < cand.size - 1 and top[hi_i + 1]:
-            hi_i += 1
-        s = float(0.5 * (cand[lo_i] + cand[hi_i]))
-        if np.sum(np.clip(1.0 - 2.0 * ds / s, 0.0, 1.0)) < MIN_INFO:
-            return nan
-        width = max(2.0 * rel, float(cand[hi_i] - cand[lo_i]) / s, (run[1] - run[0]) / s)
-        frac = float(score[best])
-        if ext >= span:
-            break
-    # determined only if the lines drifting half a step at the sector's ends lose
-    # boxes: boxes nearly a step wide fit a wide range of steps (a step 3 % off over
-    # 1 500 rows of 1 cm coordinates within 21 m)
-    q = 0.5 * s / ext
-    drift = _box_scores(xs, ds, np.array([s * (1 - q), s, s * (1 + q)]))
-    if drift[1] - max(drift[0], drift[2]) < DETERMINED:
-        return nan
-    return s, frac
-
-
-def _box_scores(
-    x: NDArray[np.float64], d: NDArray[np.float64], cand: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Score of each candidate step (see ``box_step``)."""
-    B = PHASE_BINS
-    score = np.empty(cand.size)
-    chunk = max(1, 2_000_000 // max(x.size, 1))
-    for c0 in range(0, cand.size, chunk):
-        cs = cand[c0 : c0 + chunk, None]
-        lo = np.floor((x - d) / cs * B).astype(np.int64)
-        hi = np.floor((x + d) / cs * B).astype(np.int64)
-        n = np.minimum(hi - lo + 1, B)  # bins each interval covers
-        start = lo % B
-        k = np.arange(cs.shape[0])[:, None] * (2 * B)
-        idx = np.concatenate([(k + start).ravel(), (k + start + n).ravel()])
-        w = np.concatenate([np.ones(start.size), -np.ones(start.size)])
-        diff = np.bincount(idx, weights=w, minlength=cs.shape[0] * 2 * B)
-        cov = np.cumsum(diff.reshape(cs.shape[0], 2 * B), axis=1)
-        cov = cov[:, :B] + cov[:, B:]
-        width = n / B
-        chance = np.where(n >= B, 1.0, width).sum(axis=1)
-        room = np.maximum(x.size - chance, 1e-9)
-        score[c0 : c0 + chunk] = (cov.max(axis=1) - chance) / room
-    return score
