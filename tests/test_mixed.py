@@ -945,3 +945,28 @@ def test_grid_keeps_a_board_whose_run_lands_on_a_ramp_beam():
         assert not m[np.isin(col, [0, 1])].any()
         assert m[np.isin(col, [-2, -1, 3, 4])].mean() > 0.95
         assert not m[~np.isin(col, list(run))].any()
+
+
+def test_support_tolerance_holds_at_least_the_quantisation_of_the_ranges():
+    # a scatter measured on a few far returns can come out far below what 1 cm
+    # coordinates allow (0.01 mm on report 7006); the support tolerance then rejected
+    # near ground whose angle the scale blurs, and the boxes marked it
+    from terrasift.workers.mixed import derive_params
+    from terrasift.workers.scan_geometry import ScanGeometry
+
+    geo = ScanGeometry(
+        step_az=0.078,
+        step_el=0.078,
+        range_noise=0.0,
+        range_sigma=1e-5,
+        las_scale=0.01,
+        footprint=0.086,
+        footprint_steps=1.1,
+        n_points=1000,
+    )
+    d = derive_params(np.zeros((10, 3)), MixedParams(), geometry=geo)
+    assert d.params.support_tol == pytest.approx(5.0 * 0.01 / np.sqrt(12.0))
+    sharp = replace(geo, range_sigma=0.006)
+    assert derive_params(np.zeros((10, 3)), MixedParams(), geometry=sharp).params.support_tol == (
+        pytest.approx(0.03)
+    )

@@ -421,10 +421,15 @@ def derive_params(
         upd = {"cell_angle": p.cell_angle or 0.25, "support_tol": p.support_tol or 0.02}
         return Derived(p.model_copy(update={**upd, "box_width": p.box_width or 0.15}), None, None)
     cell = p.cell_angle if p.cell_angle is not None else p.cell_steps * geo.step
+    # a range scatters at least by its coordinates' quantisation (scale / √12), as the
+    # grid takes it (``grid_settings``): on a few far returns the measured scatter can
+    # come out far below (report 7006: 0.01 mm with 1 cm coordinates), and near ground,
+    # whose angle the scale blurs, then lies off the line of its neighbours
+    q_sd = geo.las_scale / np.sqrt(12.0)
     tol = (
         p.support_tol
         if p.support_tol is not None
-        else float(np.clip(p.support_sigmas * geo.range_sigma, 0.002, 1.0))
+        else float(np.clip(p.support_sigmas * max(geo.range_sigma, q_sd), 0.002, 1.0))
         if np.isfinite(geo.range_sigma)
         else 0.02
     )
