@@ -30,6 +30,9 @@ low vegetation) and prints
 the worst case, 10th percentile and median, and the seeds where the issue's
 figure (Type II <= 5 %, Type I <= 3 %) fails, scoring the stage alone on the
 points' x, y, z (``--seeds`` and ``--family``: other seed ranges, one family).
+A failing seed is listed with
+its Type II split by the plant its wrong ground returns came from (shrubs, hedges,
+scrub; shares of all object points).
 ``jobs`` scores the same scenes through the whole job: each written as a LAS
 tile with its return numbers (the families write a second, last return from
 the ground under vegetation taller than the scene's dead zone) and processed
@@ -438,7 +441,7 @@ def _families(stage, through_job: bool) -> None:
             if p["type1"] > 3 or p["type2"] > 5:
                 fails.append(
                     f"{seed} ({dens:.2f} pts/m², {100 * multi:.1f} % multi-return, "
-                    f"I {p['type1']:.1f}, II {p['type2']:.1f})"
+                    f"I {p['type1']:.1f}, II {p['type2']:.1f}{_taken(sc, g)})"
                 )
         for label, v in (("Type I ", t1), ("Type II", t2)):
             print(
@@ -447,6 +450,21 @@ def _families(stage, through_job: bool) -> None:
             )
         print(f"{'':<{len(name)}}  kappa   {_stats(kap)}")
         print(f"{'':<{len(name)}}  fails: {', '.join(fails) or 'none'}")
+
+
+def _taken(scene, ground: np.ndarray) -> str:
+    """Which plants the Type II returns of ``scene`` came from (``rural``'s
+    ``extra["vegetation"]``): points of Type II by kind, as a share of the object points."""
+    plant = scene.extra.get("vegetation")
+    if plant is None:
+        return ""
+    wrong = ground & ~scene.is_ground
+    objects = max(int(np.count_nonzero(~scene.is_ground)), 1)
+    parts = [
+        f"{name} {100 * np.count_nonzero(wrong & (plant == k)) / objects:.1f}"
+        for name, k in (("shrubs", rural.SHRUB), ("hedges", rural.HEDGE), ("scrub", rural.SCRUB))
+    ]
+    return "; of it " + ", ".join(parts)
 
 
 def families(stage) -> None:

@@ -127,6 +127,37 @@ def test_rural_family_writes_echoes_above_the_dead_zone_only():
     assert np.all(rural.rural_slope(107).number_of_returns == 1)
 
 
+def test_rural_family_names_the_plant_each_return_came_from():
+    # ``extra["vegetation"]`` tells shrubs, hedges and scrub apart so a score can be
+    # split by what was taken for ground; the tag draws nothing, so the scene is the same.
+    from terrasift.synthetic import rural
+
+    sc = rural.rural_slope(1067)
+    plant = sc.extra["vegetation"]
+    assert plant.shape == (len(sc),)
+    veg = sc.truth >= 3
+    veg &= sc.truth <= 5
+    assert np.all(plant[veg] >= 0)  # every vegetation return came from a plant
+    assert np.all(np.isin(sc.truth[plant < 0], [2, 7]))  # the rest is ground or outliers
+    assert np.all(plant[sc.return_number == 2] == -1)  # last returns are the ground's
+    # Hedges run along the contour: their returns lie in narrow bands across the fall
+    # line (each 2-4 m wide), so they fill few 1 m steps of the distance down the slope.
+    xy = sc.xyz[:, :2] - sc.xyz[:, :2].mean(axis=0)
+    hedge = xy[plant == rural.HEDGE]
+    assert hedge.shape[0] > 500
+    grad = np.linalg.lstsq(
+        np.column_stack([xy[~veg], np.ones(np.count_nonzero(~veg))]),
+        sc.xyz[~veg, 2],
+        rcond=None,
+    )[0][:2]
+    down = hedge @ (grad / np.hypot(*grad))
+    assert np.unique(np.floor(down)).size <= 4 * 5  # at most 4 hedges, 4 m + 1 step each
+    assert np.all(np.isin(np.unique(plant), [-1, rural.SHRUB, rural.HEDGE, rural.SCRUB]))
+    # Scenes without kinds (railway yards) call every plant a shrub.
+    yard = rural.railway_yard(100).extra["vegetation"]
+    assert set(np.unique(yard)) <= {-1, rural.SHRUB}
+
+
 def test_vegetation_below_the_dead_zone_is_held_to_the_roughness_of_the_ground_beside_it():
     # Rural slope seed 108 (a tuning seed, 0.68 pts/m², dead zone 1.07 m): shrub
     # returns lower than the dead zone leave no echo and stand among the

@@ -27,7 +27,10 @@ the scene's seed), so the pulses, heights and truth of the single-return
 scenes are those drawn before echoes were written. Each scene may lose a strip of data (a missing
 flight-line overlap) and keeps ``make_scene``'s share of outliers (class 7).
 Every length is drawn from the ranges in the docstrings; ``family(name, seed)``
-draws one scene.
+draws one scene. ``Scene.extra["vegetation"]`` names what each point's pulse hit
+first: ``SHRUB``, ``HEDGE`` or ``SCRUB`` (the plant a return came from, grass
+included), else -1 (open ground, objects, outliers, last returns), so a score can
+be split by what was taken as ground.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ ORIGIN = (500_000.0, 5_400_000.0)
 GRASS = 0.25  # m: vegetation returns lower than this above the ground count as ground
 DEAD_ZONE = (0.6, 3.5)  # m: least separation of two returns of a pulse, by sensor
 THROUGH = (0.3, 0.8)  # share of pulses into vegetation above the dead zone reaching the ground
+SHRUB, HEDGE, SCRUB = 0, 1, 2  # kinds of plant in Scene.extra["vegetation"]
 
 
 @dataclass(frozen=True)
@@ -186,9 +190,11 @@ def _assemble(
     noise_sigma: float,
     missing_strip: bool,
     echoes: Echoes | None = None,
+    kinds: NDArray[np.int8] | None = None,
 ) -> Scene:
     """Pulses over ``size``² m at ``density``: box tops, shrub returns (rows of
-    ``shrubs``: x, y, radius, top height, gap fraction), else ground; plus outliers.
+    ``shrubs``: x, y, radius, top height, gap fraction; ``kinds``: each row's kind of
+    plant, ``SHRUB`` for all when none), else ground; plus outliers.
     With ``echoes``, pulses into vegetation higher than its dead zone may go on to
     a last return from the ground (module doc); without, every pulse returns once."""
     n = int(round(size * size * density))
@@ -205,6 +211,7 @@ def _assemble(
     z = gz.copy()
     cls = np.full(n, GROUND, dtype=np.uint8)
     roof = np.zeros(n, dtype=bool)
+    plant = np.full(n, -1, dtype=np.int8)  # kind of plant a pulse's return came from
     second = np.zeros(0, dtype=np.int64)  # pulses with a last return from the ground
     for b in boxes:
         inside = b.inside(px, py) & ~roof
@@ -230,6 +237,7 @@ def _assemble(
         z[hit] = gz[hit] + rh
         # Returns within GRASS of the ground are grass: no filter parts them from ground noise.
         cls[hit] = np.where(rh < GRASS, GROUND, _veg_class(rh))
+        plant[hit] = SHRUB if kinds is None else kinds[idx[np.arange(n), best][hit]]
         if echoes is not None:
             # Vegetation returns more than the dead zone above the ground: the pulse
             # may go on to the ground, a second (last) return of the same pulse.
@@ -243,10 +251,11 @@ def _assemble(
         oz = ground(ox, oy) + np.where(low, -rng.uniform(1, 6, n_out), rng.uniform(40, 80, n_out))
         px, py, z = np.r_[px, ox], np.r_[py, oy], np.r_[z, oz]
         cls = np.r_[cls, np.full(n_out, NOISE, np.uint8)]
+        plant = np.r_[plant, np.full(n_out, -1, np.int8)]
     order = rng.permutation(px.size)
     ox0, oy0 = ORIGIN
     xyz = np.column_stack([px[order] + ox0, py[order] + oy0, z[order]])
-    cls = cls[order]
+    cls, plant = cls[order], plant[order]
     ret = np.ones(px.size, dtype=np.uint8)
     nret = np.ones(px.size, dtype=np.uint8)
 
@@ -255,7 +264,7 @@ def _assemble(
 
     bounds = (ox0, oy0, ox0 + size, oy0 + size)
     if echoes is None or second.size == 0:
-        return Scene(xyz, cls, ret, nret, absolute, bounds)
+        return Scene(xyz, cls, ret, nret, absolute, bounds, {"vegetation": plant})
     # The first returns of the pulses that went on are 1 of 2; their last returns
     # (on the ground, with the scene's noise) 2 of 2, mixed into the order.
     where = np.empty(order.size, dtype=np.int64)
@@ -268,8 +277,11 @@ def _assemble(
     cls = np.concatenate([cls, np.full(second.size, GROUND, np.uint8)])
     ret = np.concatenate([ret, np.full(second.size, 2, np.uint8)])
     nret = np.concatenate([nret, np.full(second.size, 2, np.uint8)])
+    plant = np.concatenate([plant, np.full(second.size, -1, np.int8)])
     mix = echoes.rng.permutation(xyz.shape[0])
-    return Scene(xyz[mix], cls[mix], ret[mix], nret[mix], absolute, bounds)
+    return Scene(
+        xyz[mix], cls[mix], ret[mix], nret[mix], absolute, bounds, {"vegetation": plant[mix]}
+    )
 
 
 def _terrain(rng: np.random.Generator, grade: float, size: float) -> Surface:
@@ -391,7 +403,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: boo
     grade = rng.uniform(0.15, 0.40) if steep else rng.uniform(0.02, 0.05)
     surf = _terrain(rng, grade, size)
     fall = np.arctan2(surf.gy, surf.gx)
-    shrubs = []
+    shrubs, kinds = [], []
     n = int(rng.integers(40, 400))
     shrubs.append(
         np.column_stack(
@@ -403,6 +415,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: boo
             ]
         )
     )
+    kinds.append(np.full(n, SHRUB, np.int8))
     for _ in range(int(rng.integers(1, 5))):
         # A hedge along the contour: shrubs 2 m apart on a line across the fall line.
         p = rng.uniform(0.1, 0.9, 2) * size
@@ -421,6 +434,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: boo
                 ]
             )
         )
+        kinds.append(np.full(m, HEDGE, np.int8))
     for _ in range(int(rng.integers(0, 3))):
         # Scrub: a dense patch 15–40 m across of small shrubs.
         c = rng.uniform(0.1, 0.9, 2) * size
@@ -438,6 +452,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: boo
                 ]
             )
         )
+        kinds.append(np.full(m, SCRUB, np.int8))
     embankments = []
     for _ in range(int(rng.integers(0, 3))):
         cx, cy = rng.uniform(0.2, 0.8, 2) * size  # drawn first, as before
@@ -461,6 +476,7 @@ def rural_slope(seed: int, size: float = 200.0, echoes: bool = True, relief: boo
         rng.uniform(0.01, 0.05),
         rng.random() < 0.3,
         Echoes.draw(seed) if echoes else None,
+        np.concatenate(kinds),
     )
 
 
