@@ -16,6 +16,8 @@ alone)::
     python benchmarks/ground_bound.py --seeds 1000-1011,1020-1031
     python benchmarks/ground_bound.py --seeds 1000-1011 --no-relief --surfaces quad
     python benchmarks/ground_bound.py --tails --isprs
+    python benchmarks/ground_bound.py --echoes --seeds 1000-1031
+    python benchmarks/ground_bound.py --lift --isprs --seeds 1000-1031
 
 ``--tails`` asks instead whether the ground's bend can be read from its lower tail:
 scrub only adds returns above the ground, so the 3rd percentile of the ground's
@@ -24,6 +26,22 @@ prints that figure per scene and, in its units, the ground's 97th / 99th percent
 and the 10th / 25th / 50th of the non-ground returns up to 1 m: a threshold at a
 multiple of it would part them where the scrub's quantiles stand above the ground's
 in every scene, the ISPRS samples (``--isprs``) included.
+
+``--echoes`` asks whether echo structure could mark the low returns instead: per
+scene, the returns in height bands over the ground (``BANDS``) and the share of
+them that are single returns and that are not the last of their pulse (something
+lay behind them), for the family (heights over its true ground), for
+Topography.laz (the one real survey at hand with return numbers; heights over the
+12-point quadratic of its provider ground, so its class 1 below that ground's
+noise is mostly ground the provider did not keep) and which echo fields the ISPRS
+samples carry at all.
+
+``--lift`` runs ``ground.nist`` (the stage alone, default parameters) and asks what
+its own surface shows: per scene, the vegetation it took for ground (FP) at its
+median height in units of the lower tail, once over the true ground's quadratic
+(``L``) and once over the quadratic of what the stage took for ground (``Ls``,
+each point left out), and what a cut at ``c`` x ``Ls`` on that surface (``CUTS``)
+would make of Type I, Type II and kappa; the ISPRS samples (``--isprs``) beside.
 
 A filter's own surface is fitted on what it takes for ground, not on the true
 ground, so these are the best a rule on the height over a surface could do; a
@@ -51,7 +69,14 @@ K = 12  # the close fit's neighbours (``ground.nist``'s ``rough_fit``)
 FLOOR = 0.15  # the close fit's floor (its refit's least scale is a quarter of it)
 T = np.round(np.arange(0.0, 1.0001, 0.005), 3)
 LOW_Q = 3.0  # percentile of the ground's heights taken as its lower tail
+#: multiple of the lower tail: the least cut the ISPRS samples stand (5.9 samp61, 6.9
+#: samp12, on the stage's own surface); ``--tails`` prints the ground's share above it
+FAR = 6.0
 TOP = 1.0  # m: non-ground up to this height over the surface (the close fit's ceiling)
+#: m over the ground: the family's grass line (0.25), its least dead zone (0.6 is drawn
+#: from 0.6-3.5; 0.5 the band edge below it), the close fit's ceiling (1), and 2 m.
+BANDS = (0.25, 0.5, 1.0, 2.0)
+CUTS = (1.0, 1.5, 2.0, 3.0)  # multiples of the stage surface's lower tail tried by ``--lift``
 
 
 def _seeds(text: str) -> list[int]:
@@ -110,18 +135,21 @@ def spread(v: list[float]) -> str:
 
 def tails(h: np.ndarray, ground: np.ndarray) -> tuple[float, np.ndarray]:
     """The ground's lower-tail figure (minus its ``LOW_Q`` percentile over the surface)
-    and, in its units, the ground's 97th / 99th and the low non-ground's 10 / 25 / 50th."""
+    and, in its units, the ground's 97th / 99th and the low non-ground's 10 / 25 / 50th;
+    last, the share (%) of the ground standing more than ``FAR`` x the figure up."""
     low = -float(np.percentile(h[ground], LOW_Q))
     up = np.percentile(h[ground], [97, 99])
     obj = h[~ground & (h >= -LOW) & (h <= TOP)]
     q = np.percentile(obj, [10, 25, 50]) if obj.size else np.full(3, np.nan)
-    return low, np.concatenate([up, q]) / low
+    far = 100 * float(np.mean(h[ground] > FAR * low))
+    return low, np.concatenate([np.r_[up, q] / low, [far]])
 
 
 def print_tails(seeds: list[int], relief: bool, isprs: bool) -> None:
     """``--tails``: the lower-tail figure per scene over the 12-point quadratic of true ground."""
     print(
         f"scene   pts/m²  low (m)   ground q97 q99 / low   non-ground ≤ {TOP:g} m q10 q25 q50 / low"
+        f"   ground > {FAR:g} x low %"
     )
     scenes: list[tuple[str, np.ndarray, np.ndarray]] = []
     for seed in seeds:
@@ -138,9 +166,126 @@ def print_tails(seeds: list[int], relief: bool, isprs: bool) -> None:
         area = float(np.prod(np.ptp(xyz[:, :2], axis=0)))
         print(
             f"{name:7s} {len(ground) / area:6.2f}  {low:6.3f}    {r[0]:5.2f} {r[1]:5.2f}"
-            f"              {r[2]:5.2f} {r[3]:5.2f} {r[4]:5.2f}",
+            f"              {r[2]:5.2f} {r[3]:5.2f} {r[4]:5.2f}         {r[5]:5.2f}",
             flush=True,
         )
+
+
+def _echo_row(name: str, dens: float, h: np.ndarray, rn: np.ndarray, nr: np.ndarray) -> str:
+    cells = []
+    for lo, hi in zip(BANDS[:-1], BANDS[1:], strict=True):
+        m = (h > lo) & (h <= hi)
+        n = int(m.sum())
+        one = 100 * float(np.mean(nr[m] == 1)) if n else float("nan")
+        behind = 100 * float(np.mean(rn[m] < nr[m])) if n else float("nan")
+        cells.append(f"{n:6d} {one:5.1f} {behind:5.1f}")
+    return f"{name:10s} {dens:5.2f}  " + "   ".join(cells)
+
+
+def print_echoes(seeds: list[int]) -> None:
+    """``--echoes``: single and not-last shares of the returns in ``BANDS`` over the ground."""
+    import laspy
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from ground_accuracy import DATA
+
+    bands = "   ".join(
+        f"{lo:g}-{hi:g} m: n  1-of-1% not-last%"
+        for lo, hi in zip(BANDS[:-1], BANDS[1:], strict=True)
+    )
+    print(f"scene      pts/m²  {bands}")
+    for seed in seeds:
+        sc = rural_slope(seed)
+        h = sc.xyz[:, 2] - sc.surface(sc.xyz[:, 0], sc.xyz[:, 1])
+        area = float(np.prod(np.ptp(sc.xyz[:, :2], axis=0)))
+        rn, nr = sc.return_number, sc.number_of_returns
+        print(_echo_row(str(seed), len(h) / area, h, rn, nr), flush=True)
+    topo = DATA / "lidr" / "Topography.laz"
+    if topo.exists():
+        las = laspy.read(str(topo))
+        keep = np.asarray(las.classification) != 9  # water
+        xyz = np.column_stack([las.x, las.y, las.z])[keep]
+        xyz = xyz - np.r_[xyz[:, :2].min(0), 0.0]
+        ground = np.asarray(las.classification)[keep] == 2
+        h = quad_heights(xyz, ground)
+        rn = np.asarray(las.return_number)[keep]
+        nr = np.asarray(las.number_of_returns)[keep]
+        area = float(np.prod(np.ptp(xyz[:, :2], axis=0)))
+        print(_echo_row("Topography", len(h) / area, np.where(ground, -np.inf, h), rn, nr))
+        pulses = float(np.sum(rn == nr)) / area
+        print(
+            f"  (Topography: {pulses:.2f} pulses/m²; its provider ground: 1-of-1 {100 * np.mean(nr[ground] == 1):.1f} %, not-last {100 * np.mean(rn[ground] < nr[ground]):.1f} %)"
+        )
+    for f in sorted((DATA / "isprs").glob("samp*.laz")):
+        las = laspy.read(str(f))
+        fields = [
+            d
+            for d in ("return_number", "number_of_returns", "intensity", "gps_time")
+            if np.ptp(np.asarray(las[d])) > 0
+        ]
+        print(
+            f"{f.stem}: fields that vary: {', '.join(fields) or 'none (one return per point, no intensity)'}"
+        )
+
+
+def _scores(ground: np.ndarray, taken: np.ndarray) -> tuple[float, float, float]:
+    """Type I, Type II and kappa (%)."""
+    n = ground.size
+    t1 = 100 * float(np.sum(ground & ~taken)) / max(int(ground.sum()), 1)
+    t2 = 100 * float(np.sum(~ground & taken)) / max(int((~ground).sum()), 1)
+    agree = float(np.sum(ground == taken)) / n
+    chance = (ground.sum() * taken.sum() + (~ground).sum() * (~taken).sum()) / n / n
+    return t1, t2, 100 * (agree - chance) / (1 - chance)
+
+
+def print_lift(seeds: list[int], isprs: bool) -> None:
+    """``--lift``: the stage's false ground over the true and over its own surface."""
+    from terrasift.workers import registry
+
+    stage = registry.get_stage("ground.nist")
+    params = stage.params.preset("default")
+    scenes: list[tuple[str, np.ndarray, np.ndarray]] = []
+    for seed in seeds:
+        sc = rural_slope(seed)
+        scenes.append((str(seed), sc.xyz, sc.is_ground))
+    if isprs:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from ground_accuracy import _samples
+
+        scenes += [(name, xyz, cls == 2) for name, xyz, cls in _samples()]
+    cuts = "  ".join(f"c {c:g}: I/II/dkappa" for c in CUTS)
+    print(f"scene   pts/m²   I %  II %  kappa  FP  h/L  h/Ls    {cuts}")
+    rows = []
+    for name, xyz0, ground in scenes:
+        xyz = xyz0 - np.r_[xyz0[:, :2].min(0), 0.0]
+        taken = np.asarray(stage.run(xyz0, params), dtype=bool)
+        h = quad_heights(xyz, ground)
+        hs = quad_heights(xyz, taken)
+        low = -float(np.percentile(h[ground], LOW_Q))
+        low_s = -float(np.percentile(hs[taken], LOW_Q))
+        fp = ~ground & taken
+        t1, t2, k = _scores(ground, taken)
+        cut = [_scores(ground, taken & ~(hs > c * low_s)) for c in CUTS]
+        rows.append((name, t1, t2, k, cut))
+        area = float(np.prod(np.ptp(xyz[:, :2], axis=0)))
+        med = (np.median(h[fp]) / low, np.median(hs[fp]) / low_s) if fp.any() else (np.nan,) * 2
+        cells = "  ".join(f"{a:4.2f}/{b:5.2f}/{c - k:+6.2f}" for a, b, c in cut)
+        print(
+            f"{name:7s} {len(ground) / area:5.2f}  {t1:5.2f} {t2:5.2f} {k:6.2f} {int(fp.sum()):4d}"
+            f" {med[0]:5.2f} {med[1]:5.2f}    {cells}",
+            flush=True,
+        )
+    fam = [r for r in rows if not r[0].startswith("samp")]
+    if fam:
+        print(
+            "family, stage as it is: "
+            + f"Type II {spread([r[2] for r in fam])}, Type I worst {max(r[1] for r in fam):.2f}"
+        )
+        for j, c in enumerate(CUTS):
+            print(
+                f"  cut at {c:g} x Ls: Type II {spread([r[4][j][1] for r in fam])}, "
+                f"Type I worst {max(r[4][j][0] for r in fam):.2f}"
+            )
 
 
 def main() -> None:
@@ -152,8 +297,18 @@ def main() -> None:
     ap.add_argument("--surfaces", default="tin,quad", help="of tin, quad, true")
     ap.add_argument("--caps", default="3,1", help="Type I caps (%%)")
     ap.add_argument("--tails", action="store_true", help="the lower-tail figure per scene")
-    ap.add_argument("--isprs", action="store_true", help="with --tails: the five ISPRS samples too")
+    ap.add_argument(
+        "--isprs", action="store_true", help="with --tails or --lift: the five ISPRS samples too"
+    )
+    ap.add_argument("--echoes", action="store_true", help="echo structure of the low returns")
+    ap.add_argument("--lift", action="store_true", help="the stage's own surface (ground.nist)")
     args = ap.parse_args()
+    if args.lift:
+        print_lift(_seeds(args.seeds), args.isprs)
+        return
+    if args.echoes:
+        print_echoes(_seeds(args.seeds))
+        return
     if args.tails:
         print_tails(_seeds(args.seeds), not args.no_relief, args.isprs)
         return
