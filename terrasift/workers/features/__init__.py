@@ -417,13 +417,13 @@ def majority_marks(marks: NDArray[np.bool_], categories: Categories) -> NDArray[
     0.19, the share seen near the threshold on a 3 points/m^2 job DTM, stay tipped where
     4 of their 8 neighbours are tipped too: 0.9 % of the tiles, under a square's 5 %). A
     tile clearly past the threshold stays as it reads."""
+    clear = categories.clear
+    if clear is None:  # without the band every tile that is not flat counts as clear
+        return marks
     valid = categories.inclination != NODATA
     ones = np.ones((3, 3), np.int32)
     marked = ndimage.convolve(marks.astype(np.int32), ones, mode="constant")
     around = ndimage.convolve(valid.astype(np.int32), ones, mode="constant")
-    clear = categories.clear
-    if clear is None:  # without the band every tile that is not flat counts as clear
-        return marks
     return marks | (valid & (clear == 0) & (2 * marked > around))
 
 
