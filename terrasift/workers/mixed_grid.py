@@ -58,9 +58,7 @@ The dual along azimuth: a surface seen only through a gap narrower than the foot
 between two others (the wall behind a board, between the board's edge and a nearer
 wall's edge) shows no return of its own, so a short run of beams on no surface climbs
 from one side's surface to a peak beyond both and falls to the other (``_hidden_gaps``);
-its returns off both surfaces are marked. A return inside its neighbour's surface (on
-it, the line through the two going on past it: ceil(footprint) + 3 beams on one line,
-more than a ramp forms) pairs with no farther anchor on that side.
+its returns off both surfaces are marked.
 
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a return that lies off the surface it ends by more than that surface
@@ -503,8 +501,6 @@ def _mixed_along(
     off_end = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     # per side and beam offset: the beam is an anchor (on a surface), and p lies off it
     anchors: dict[int, dict[int, tuple[NDArray[np.bool_], NDArray[np.bool_]]]] = {1: {}, -1: {}}
-    # along azimuth: p lies inside the surface of its neighbour on that side
-    within = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
     # off_blend[sd]: off by more than the surface itself could pull it (a footprint partly
     # on one surface answers at most half a footprint of beams back along it)
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
@@ -558,7 +554,7 @@ def _mixed_along(
                 # (grazing ground a beam before a far wall's foot lies metres nearer
                 # than the blend, its continuation half a metre behind it)
                 gap = np.fmin(np.abs(ra - r), dev)
-                near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap) & ~within[sd]
+                near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
                 # the front of a thin object one beam wide is an anchor too (it has no
                 # second beam on its line): its neighbours either side lie behind it by
                 # more than a convex surface through it recedes in one beam (step × range)
@@ -603,20 +599,7 @@ def _mixed_along(
                 v_c = V[a][c] + g * i
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
                 off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
-                far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap) & ~within[sd]
-                if i == 1 and axis == 0:
-                    # p inside its neighbour's surface: on it, and the line through the
-                    # two goes on through ceil(footprint) - 1 beams past p (at least one),
-                    # each within the scatter of its range alone: ceil(footprint) + 3 beams
-                    # on one line, more than a ramp's blends (about ceil(footprint)) with
-                    # a corner beam at each end can form. A farther anchor on this side is
-                    # then no surface p blends with: the ends of a narrow oblique board,
-                    # bent by its edges' returns, continue off p
-                    past = max(int(np.ceil(s.footprint)) - 1, 1)
-                    within[sd] = anchored & (dev <= spread(1)) & (past <= s.reach + 2)
-                    for k in range(1, min(past, s.reach + 2) + 1):
-                        cont = extrapolated(0, a, float(k))
-                        within[sd] &= np.abs(cont - R[-sd * k]) <= spread(k)
+                far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
                 if axis == 1 and level is not None:
                     # a nearer surface (grazing ground) whose continuation to p's beam
                     # passes behind p (within max_gap): p lies in front of the ground
