@@ -970,3 +970,22 @@ def test_support_tolerance_holds_at_least_the_quantisation_of_the_ranges():
     assert derive_params(np.zeros((10, 3)), MixedParams(), geometry=sharp).params.support_tol == (
         pytest.approx(0.03)
     )
+
+
+def test_grid_marks_blends_of_a_surface_seen_only_through_a_gap_narrower_than_the_beam():
+    # Shared-report 5102 (0.49° steps, a 1.5-step footprint): a board's edge at 9.3 m, a
+    # nearer wall's edge at 11.0 m, and between them the wall behind the board, seen only
+    # through the gap. Its three beams are all blends: the middle one lies beyond both the
+    # board and the wall beside it (no farther anchor on either side, so main kept it); the
+    # run climbs to it from the board and falls from it to the wall.
+    def wall(c):
+        return 11.03 - 0.023 * (c - 4)
+
+    gap = {1: 10.45, 2: 11.35, 3: 11.15}
+    for seed in range(3):
+        xyz, col = _wall_grid(
+            lambda c: 9.27 if c <= 0 else gap.get(c, wall(c)), step=0.493, noise=0.005, seed=seed
+        )
+        m = mark_mixed(xyz, MixedParams(footprint=0.725), np.zeros(3)).marked
+        assert m[np.isin(col, [1, 2])].mean() > 0.95
+        assert not m[~np.isin(col, list(gap))].any()

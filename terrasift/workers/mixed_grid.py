@@ -54,6 +54,12 @@ surface nearer than any blend reaches (``max_gap``), when they recede into that 
 the object's far edge then lies within the run (a pole before a wall's end, a board
 hiding the wall beyond it).
 
+The dual along azimuth: a surface seen only through a gap narrower than the footprint
+between two others (the wall behind a board, between the board's edge and a nearer
+wall's edge) shows no return of its own, so a short run of beams on no surface climbs
+from one side's surface to a peak beyond both and falls to the other (``_hidden_gaps``);
+its returns off both surfaces are marked.
+
 Where nothing answers behind an edge (no return, or a background farther than
 ``max_gap``), a return that lies off the surface it ends by more than that surface
 alone could pull it (its continuation taken back half a footprint of beams), and
@@ -493,6 +499,8 @@ def _mixed_along(
     # off_end[sd]: an anchor on side sd whose surface, continued to p's beam, misses p
     # by more than its scatter and min_offset across it
     off_end = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
+    # per side and beam offset: the beam is an anchor (on a surface), and p lies off it
+    anchors: dict[int, dict[int, tuple[NDArray[np.bool_], NDArray[np.bool_]]]] = {1: {}, -1: {}}
     # off_blend[sd]: off by more than the surface itself could pull it (a footprint partly
     # on one surface answers at most half a footprint of beams back along it)
     off_blend = {1: np.zeros(n, dtype=bool), -1: np.zeros(n, dtype=bool)}
@@ -541,6 +549,7 @@ def _mixed_along(
                 cos_inc = incidence_cos(r, V[a], V[a1], line.C[a], ra, step, step_x)
                 off = (dev > sp) & (dev * cos_inc > across)
                 ok = anchored & off
+                anchors[sd][i] = (anchored, ok)
                 # within max_gap of p: the anchor, or its surface continued to p's beam
                 # (grazing ground a beam before a far wall's foot lies metres nearer
                 # than the blend, its continuation half a metre behind it)
@@ -689,6 +698,8 @@ def _mixed_along(
             between |= ends
     if s.thin > 0:
         between |= _thin_runs(R, V, line.C, r, s, step, step_x)
+        if axis == 0:
+            between |= _hidden_gaps(R, V, r, anchors, s)
         between |= _thin_runs_hidden(R, V, line.C, r, s, step, step_x)
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
@@ -1018,6 +1029,64 @@ def _thin_runs(
                 least = s.min_offset if s.min_offset > 0 else s.margin
                 in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
                 out[c[keep & cont & in_front]] = True
+    return out
+
+
+def _hidden_gaps(
+    R: dict[int, NDArray[np.float64]],
+    V: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    anchors: dict[int, dict[int, tuple[NDArray[np.bool_], NDArray[np.bool_]]]],
+    s: GridSettings,
+) -> NDArray[np.bool_]:
+    """Returns in a run of at most ``s.thin`` unanchored beams between the nearest anchor on
+    each side, off both anchors' surfaces, that rises from one anchor to a peak and falls
+    from it to the other (every beam farther than the one before, then nearer, by more than
+    the margin), the peak with a beam of the run on each side of it, farther than both
+    anchors and both their surfaces continued to it by more than the margin and within
+    ``max_gap`` of the farther anchor. A third surface seen between the two only through a
+    gap narrower than the footprint (the wall behind a board, between the board's edge and
+    a nearer wall's edge) shows no return of its own: every return there blends it with an
+    edge, so the run climbs to it and falls from it. A peak next to an anchor has no blend
+    on that side (a plain occlusion, nothing that says the gap is narrower than the beam).
+    The dual of a thin object (``_thin_runs``)."""
+    n = r.size
+    out = np.zeros(n, dtype=bool)
+    reach = max(anchors[1]) if anchors[1] else 0
+    first = {}
+    for sd in (1, -1):
+        f = np.zeros(n, dtype=np.int64)  # 0: no anchor within reach
+        for i in range(reach, 0, -1):
+            f = np.where(anchors[sd][i][0], i, f)
+        first[sd] = f
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for fl in range(1, reach + 1):
+            for fr in range(1, min(reach, s.thin + 1 - fl) + 1):
+                if fl + fr - 1 < 3:  # the peak and a beam either side of it
+                    continue
+                sel = (first[-1] == fl) & (first[1] == fr) & anchors[-1][fl][1] & anchors[1][fr][1]
+                c = np.flatnonzero(sel)
+                if c.size == 0:
+                    continue
+                rl, rr = R[-fl][c], R[fr][c]
+                run = np.stack([R[t][c] if t else r[c] for t in range(-fl + 1, fr)])  # (L, c)
+                full = np.vstack([rl[None], run, rr[None]])
+                k = np.argmax(np.where(np.isfinite(run), run, -np.inf), axis=0) + 1  # in full
+                keep = np.isfinite(run).all(axis=0) & (k >= 2) & (k <= run.shape[0] - 1)
+                # rising to the peak, falling after it, by more than the margin at every beam
+                d = np.diff(full, axis=0)  # (L + 1, c)
+                j = np.arange(d.shape[0])[:, None]
+                keep &= np.where(j < k[None], d > s.margin, -d > s.margin).all(axis=0)
+                # the peak beyond both anchors and their surfaces continued to it
+                tp = k - 1 - (fl - 1)  # the peak's beam offset from p
+                rp = full[k, np.arange(c.size)]
+                vl = V[-fl][c] + (V[-fl][c] - V[-fl - 1][c]) * (tp + fl)
+                vr = V[fr][c] + (V[fr][c] - V[fr + 1][c]) * (fr - tp)
+                cl = np.where(vl > 0, 1.0 / vl, np.inf)
+                cr = np.where(vr > 0, 1.0 / vr, np.inf)
+                keep &= (rp > np.fmax(cl, rl) + s.margin) & (rp > np.fmax(cr, rr) + s.margin)
+                keep &= rp < np.fmax(rl, rr) + s.max_gap
+                out[c[keep]] = True
     return out
 
 
