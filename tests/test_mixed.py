@@ -989,3 +989,35 @@ def test_grid_marks_blends_of_a_surface_seen_only_through_a_gap_narrower_than_th
         m = mark_mixed(xyz, MixedParams(footprint=0.725), np.zeros(3)).marked
         assert m[np.isin(col, [1, 2])].mean() > 0.95
         assert not m[~np.isin(col, list(gap))].any()
+
+
+def test_grid_judges_a_blend_whose_box_holds_one_line_beside_a_blurred_surface():
+    # 1 cm coordinates at 0.1° (report 8106): a board at 5.2 m, whose quantisation boxes
+    # span more than a step, blends over two beams (6.0, 6.4 m) into a wall at 7 m. The
+    # blends' boxes span under a step near the horizon: they lie on their own beams and
+    # are judged, with the board's returns beside them as their near surface (main judged
+    # only returns blurred by under a quarter step, beyond 6.6 m: no blend). The board's
+    # returns themselves are never judged.
+    from terrasift.workers.mixed import grid_settings
+    from terrasift.workers.mixed_grid import mark_grid
+    from terrasift.workers.scan_geometry import ScanGeometry
+
+    ramp = {0: 6.0, 1: 6.4}
+    xyz, col = _wall_grid(lambda c: 5.2 if c < 0 else ramp.get(c, 7.0), step=0.1, noise=0.003)
+    geo = ScanGeometry(
+        step_az=0.1,
+        step_el=0.1,
+        range_noise=0.003,
+        range_sigma=0.0042,
+        las_scale=0.01,
+        footprint=0.2,
+        footprint_steps=2.0,
+        n_points=len(xyz),
+        how={"footprint": "mean ramp"},
+    )
+    marked, judged, _ = mark_grid(xyz, grid_settings(geo, MixedParams()))
+    blend = np.isin(col, [0, 1])
+    assert marked[blend].mean() > 0.7
+    assert marked[blend & judged].all()
+    assert not judged[col < 0].any()
+    assert not marked[~blend].any()

@@ -330,3 +330,45 @@ def test_stage_and_job_pool_the_footprint_of_positions_with_one_step(tmp_path):
     geo = job_geometry(measure_job_geometry([tmp_path / "p"], origins, MixedParams()))
     assert geo is not None
     assert [g.footprint_steps for g in geo] == pytest.approx([want, want], rel=1e-3)
+
+
+def _one_cm_fine_step_scan(seed: int):
+    # report 7806's scanner: 1 cm coordinates at a 0.0301° step, every return within
+    # 41 m, so no angle is blurred by under a tenth of a step (that needs 55 m)
+    return make_scan(
+        step_deg=0.0301,
+        footprint_steps=1.4,
+        range_noise=0.007,
+        las_scale=0.01,
+        azimuth_deg=(-2.2, 2.2),
+        elevation_deg=(-20.0, 5.0),
+        mast_height=2.0,
+        sub_rays=(3, 3),
+        n_boards=2,
+        n_poles=2,
+        object_range=(3.0, 34.0),
+        seed=seed,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_step_from_the_octave_when_no_grid_fits_near_the_blurred_spacing(seed):
+    # The nearest-neighbour spacing along azimuth runs 16-25 % long (0.0350°, 0.0378°),
+    # the fit within 20 % of it finds no grid and kept it. The octave about the spacing
+    # holds the step and neither its half nor its double.
+    s = _one_cm_fine_step_scan(seed)
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None
+    assert g.step_az == pytest.approx(0.0301, rel=0.005)
+    assert "octave" in g.how["step_az"]
+
+
+def test_footprint_from_returns_whose_quantisation_box_spans_under_a_step():
+    # The same scanner: returns blurred by under 0.2 step show no regular grid (80 % within
+    # a quarter step), so no ramp was measured and one step was assumed. Each return
+    # whose box spans under a step lies on the line nearest it: the ramps give the beam.
+    s = _one_cm_fine_step_scan(4)
+    g = measure_scan_geometry(s.xyz - s.origin, absolute=s.xyz)
+    assert g is not None
+    assert 1.2 < g.footprint_steps < 1.7, g  # 1.4 drawn
+    assert "quantisation box" in g.how["footprint"]

@@ -60,7 +60,6 @@ from terrasift.workers.scan_geometry import (
 )
 
 GRID_REST = 0.02  # share of returns off the grid above which the boxes judge them
-GRID_RESOLVE = 0.25  # LAS quantisation angle, in steps, beyond which a return is off the grid
 GRID_SPAN = 2  # beams between the surfaces of a blend beyond the footprint
 GRID_FOOTPRINT = 3.0  # footprint (steps) the grid searches over when none was measured
 # With open_edges, a beam past an open edge is marked when the geometry (footprint, step, range) gives it
@@ -468,7 +467,6 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         footprint=float(bleed_fp),
         span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,
-        resolve=GRID_RESOLVE,
         min_offset=p.min_offset,
         bleed_prob=GRID_BLEED,
         open_edges=p.open_edges,

@@ -116,12 +116,24 @@ class GridSettings:
     footprint: float = 1.0  # beam footprint in steps (edges bleed by half of it)
     span: int = 99  # most beams between the two surfaces of a blend
     las_scale: float = 0.0
-    resolve: float = 0.25  # quantisation angle over step beyond which a return is not judged
     min_offset: float = 0.0  # returns nearer a surface than this (across it) count as on it
     bleed_prob: float = 0.5  # least probability of a bleeding beam being past by min_offset
     axes: tuple[int, ...] = (0, 1)  # 0 azimuth, 1 elevation
     open_edges: bool = False  # judge returns at edges with nothing behind them
     fit_beams: int = 2  # beams of a face-on anchor's surface continued to a return (2 or 3)
+
+
+def box_halfwidths(
+    az: NDArray[np.float64], el: NDArray[np.float64], r: NDArray[np.float64], scale: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Half-widths (radians) of the azimuth and elevation a return's LAS quantisation box
+    (± scale/2 in x, y and z) spans seen from the sensor: scale/2·(|cos az|+|sin az|)/ρ
+    and scale/2·(cos el + |sin el|·(|cos az|+|sin az|))/r (ρ the horizontal distance)."""
+    c = np.abs(np.cos(az)) + np.abs(np.sin(az))
+    rho = np.maximum(r * np.cos(el), 1e-6)
+    ha = 0.5 * scale * c / rho
+    he = 0.5 * scale * (np.cos(el) + np.abs(np.sin(el)) * c) / np.maximum(r, 1e-6)
+    return ha, he
 
 
 def grid_index(
@@ -289,9 +301,15 @@ def mark_grid(
     ia, ok_a = grid_index(az, s.step_az)
     ie, ok_e = grid_index(el, s.step_el)
     judged = ok_a & ok_e & (r_all > 1e-6)
+    own = judged  # returns whose own beam the grid index gives for certain
     if s.las_scale > 0:
-        quant = s.las_scale / np.sqrt(12.0) / np.maximum(r_all, 1e-6)
-        judged &= quant <= s.resolve * min(s.step_az, s.step_el)
+        # a return whose quantisation box spans under a step in both angles lies on the
+        # line nearest it (the only line its box holds): judged. The others on the grid
+        # still fill the range image about it (their ranges are exact, their beams at
+        # most a line off) as neighbours, never judged: left out, a judged blend lost the
+        # near surface it lies between (1 cm coordinates within 18 m at 0.1°)
+        ha, he = box_halfwidths(az, el, r_all, s.las_scale)
+        own = judged & (ha < 0.5 * s.step_az) & (he < 0.5 * s.step_el)
     timed = None
     fired_rows = 0  # pulses per column, when the firing order gives it
     if gps_time is not None:
@@ -300,10 +318,10 @@ def mark_grid(
         ia, ie = timed[0], timed[1]
         s = replace(s, step_az=timed[2], step_el=timed[3])
         fired_rows = timed[4]
-        judged = r_all > 1e-6
+        judged = own = r_all > 1e-6
     idx = np.flatnonzero(judged)
     if idx.size < 3:
-        return marked, judged, timed is not None
+        return marked, own, timed is not None
     ia, ie, r = ia[idx], ie[idx], r_all[idx]
     pad = 2 * s.reach + 4
     ia = ia - ia.min() + pad
@@ -352,7 +370,7 @@ def mark_grid(
         out |= _mixed_along(line, r, s, pos, axis, (lo, hi), level)
         line_done = line  # its arrays are free for the next axis
     marked[idx[order]] = out
-    return marked, judged, timed is not None
+    return marked & own, own, timed is not None
 
 
 def _fov_bounds(

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .mixed_grid import column_length, pulse_numbers, time_index
+from .mixed_grid import box_halfwidths, column_length, pulse_numbers, time_index
 
 MAX_SAMPLE = 60_000  # points used for the neighbour statistics (a contiguous azimuth sector)
 RAMP_SECTORS = 8  # most azimuth sectors of MAX_SAMPLE points the footprint is measured on
@@ -170,6 +170,7 @@ def measure_scan_geometry(
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
     sharp = 0.0  # returns nearer than this blur past a tenth of a step
+    blurred = False  # no return sharp enough: the spacing was measured on blurred angles
     if fired:
         ok = far
         sharp = r_far
@@ -183,6 +184,7 @@ def measure_scan_geometry(
         else:
             ok = far
             sharp = r_far
+            blurred = True
     else:
         ok = np.ones(r.size, dtype=bool)
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
@@ -194,7 +196,28 @@ def measure_scan_geometry(
             "return's beam (column, row) from its pulse number"
         )
     else:
-        sa, se = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
+        ra, re_ = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
+        if blurred and (ra == sa or re_ == se):
+            # every angle blurred and no grid fits within 20 % of the spacing (1 cm
+            # coordinates, all returns within 41 m at 0.03°: the spacing ran 37 % long):
+            # the step is sought within the octave about the spacing, on the sectors
+            # spread over the whole scan, whose farthest returns blur least
+            lines = [_angles(v) for v in sectors]
+            oa, oe = _octave_steps(
+                np.concatenate([v[0] for v in lines]),
+                np.concatenate([v[1] for v in lines]),
+                np.concatenate([v[2] for v in lines]),
+                las_scale,
+                sa,
+                se,
+            )
+            if ra == sa and np.isfinite(oa):
+                ra = oa
+                how["step_az"] = "octave about the spacing (no grid within 20 %)"
+            if re_ == se and np.isfinite(oe):
+                re_ = oe
+                how["step_el"] = "octave about the spacing (no grid within 20 %)"
+        sa, se = ra, re_
         how["step"] = (
             "median spacing to the nearest neighbour along azimuth / elevation in angle space, "
             f"on {int(np.count_nonzero(ok))} points whose quantisation angle is under 0.1 step, "
@@ -230,6 +253,13 @@ def measure_scan_geometry(
                 if np.isfinite(steps):
                     on = f", on returns whose quantisation angle is under {lim:g} step"
                     break
+            if not np.isfinite(steps):
+                # every return blurred past that (1 cm within 18 m at 0.1°): each return
+                # whose quantisation box spans under a step in both angles is put on the
+                # line nearest it, the only line its box holds
+                steps, edges = _ramp_steps(lines, sa, se, jump, max_gap, scale=las_scale)
+                if np.isfinite(steps):
+                    on = ", on returns whose quantisation box spans under a step"
         if np.isfinite(steps):
             how["footprint"] = (
                 f"mean ramp of blended returns at range edges closer than {max_gap:g} m, "
@@ -551,33 +581,51 @@ def _ramp_steps(
     jump: float,
     max_gap: float,
     nearest: float = 0.0,
+    scale: float = 0.0,
 ) -> tuple[float, int]:
     """Mean number of beams blended between two surfaces at azimuth edges (NaN if fewer
     than 5 edges show one) and the number of edges, pooled over azimuth sectors (each with its own grid phase,
     so a step refined on one sector does not drift off the lines of a far one); returns
-    nearer than ``nearest`` (blurred by the LAS scale) are left out."""
+    nearer than ``nearest`` (blurred by the LAS scale) are left out. ``scale`` > 0: the
+    returns placed by their quantisation boxes instead (``_ramps``)."""
     found = []
     for az, el, r in sectors:
         sel = r >= nearest
-        found.append(_ramps(az[sel], el[sel], r[sel], sa, se, jump, max_gap))
+        found.append(_ramps(az[sel], el[sel], r[sel], sa, se, jump, max_gap, scale))
     ramps = np.concatenate(found) if found else np.zeros(0)
     if ramps.size < 5:
         return float("nan"), 0
     return float(np.mean(ramps)), int(ramps.size)
 
 
-def _ramps(az, el, r, sa, se, jump: float, max_gap: float) -> NDArray[np.float64]:
-    """Numbers of beams blended between two surfaces at the azimuth edges of one sector."""
+def _ramps(
+    az, el, r, sa, se, jump: float, max_gap: float, scale: float = 0.0
+) -> NDArray[np.float64]:
+    """Numbers of beams blended between two surfaces at the azimuth edges of one sector.
+
+    ``scale`` > 0: the returns whose LAS quantisation box spans under a step in both
+    angles (half-widths ``box_halfwidths`` under half a step) are put on their nearest
+    lines, the only ones their boxes hold; the grid's phase and the 80 % test are taken
+    on those whose boxes span under half a step."""
     none = np.zeros(0)
-    if az.size < 3:
+    if scale > 0:
+        ha, he = box_halfwidths(az, el, r, scale)
+        placed = (ha < 0.5 * sa) & (he < 0.5 * se)
+        az, el, r = az[placed], el[placed], r[placed]
+        fine = (ha[placed] < 0.25 * sa) & (he[placed] < 0.25 * se)
+    else:
+        fine = np.ones(az.size, dtype=bool)
+    if az.size < 3 or np.count_nonzero(fine) < 3:
         return none
-    phase_a = _phase(az, sa)
-    phase_e = _phase(el, se)
+    phase_a = _phase(az[fine], sa)
+    phase_e = _phase(el[fine], se)
     ca = np.round((az - phase_a) / sa).astype(np.int64)
     ce = np.round((el - phase_e) / se).astype(np.int64)
     on_grid = (np.abs((az - phase_a) / sa - ca) < 0.25) & (np.abs((el - phase_e) / se - ce) < 0.25)
-    if np.count_nonzero(on_grid) < 0.8 * az.size:
+    if np.count_nonzero(on_grid & fine) < 0.8 * np.count_nonzero(fine):
         return none  # not a regular grid: ramps cannot be followed along lines
+    if scale > 0:
+        on_grid = np.ones(az.size, dtype=bool)
     ca, ce, r = ca[on_grid], ce[on_grid], r[on_grid]
     o = np.lexsort((ca, ce))
     ca, ce, r = ca[o], ce[o], r[o]
@@ -620,6 +668,8 @@ def refine_step(
     s0: float,
     sample: int = 20_000,
     blur: NDArray[np.float64] | float = 0.0,
+    weight: NDArray[np.float64] | None = None,
+    width: float = 0.2,
 ) -> float:
     """The step of the regular grid the angles ``a`` (radians) fit best, within 20 % of ``s0``.
 
@@ -630,12 +680,16 @@ def refine_step(
     radians: the LAS scale over range) weights each angle by the coherence its blur
     leaves, exp(-2π²(blur/s)²): with 1 cm coordinates at a 0.06° step the near points
     are blurred by a third of a step and the nearest-neighbour spacing ``s0`` runs up to
-    8 % long. Returns ``s0`` when no grid fits.
+    8 % long. Returns ``s0`` when no grid fits. ``weight`` (one per angle) replaces the
+    weights from ``blur``; ``width`` is the first search's half-width (relative).
     """
     a = np.asarray(a, dtype=np.float64)
     if a.size < 50 or not np.isfinite(s0) or s0 <= 0:
         return s0
-    w = np.exp(-2.0 * np.pi**2 * (np.broadcast_to(blur, a.shape) / s0) ** 2)
+    if weight is None:
+        w = np.exp(-2.0 * np.pi**2 * (np.broadcast_to(blur, a.shape) / s0) ** 2)
+    else:
+        w = np.asarray(weight, dtype=np.float64)
     use = w > 0.2  # angles blurred by more than 0.29 step carry no grid
     if np.count_nonzero(use) < 50:
         return s0
@@ -644,7 +698,7 @@ def refine_step(
         pick = np.random.default_rng(0).choice(a.size, sample, replace=False)
         a, w = a[pick], w[pick]
     c = float(np.median(a))
-    s, width = s0, 0.2
+    s = s0
     span = float(np.max(np.abs(a - c)))
     covered = False
     for lines in (50, 500, 5_000, 50_000, 500_000):
@@ -672,6 +726,105 @@ def refine_step(
         # once the sector holds every angle, one more search within this one's resolution
         covered = lines * s / 2 >= span
     return s
+
+
+def octave_step(
+    a: NDArray[np.float64],
+    s0: float,
+    per_metre: NDArray[np.float64],
+    scale: float,
+    lines: int = 50,
+    sample: int = 20_000,
+) -> float:
+    """The step (radians) in the octave [s0/√2, s0·√2] whose grid the angles ``a`` fit
+    best on the ``lines`` lines about their median, or NaN when none fits.
+
+    Where every angle is blurred (1 cm coordinates, all returns within about 40 m at a
+    0.03° step) the nearest-neighbour spacing ``s0`` runs 7-40 % off, past the 20 % that
+    ``refine_step`` searches. A grid of step S also fits S/2, S/3 ... (each of its lines
+    is one of theirs) and no multiple k·S (its lines fall on every phase of those): an
+    octave holds S and neither S/2 nor 2·S, so its best fit is the step wherever s0 lies
+    within √2 of it. Every angle is weighted by the coherence its quantisation box keeps
+    at the octave's finest step (``box_weights`` from ``per_metre``, the angle's change
+    per metre of each coordinate), so that each angle kept carries the grid whichever
+    step in the octave is the true one, and left out under 0.2 as in ``refine_step``.
+    Candidates lie a quarter of the fit's peak width (1/lines, relative) apart.
+    """
+    f0, f1 = 1.0 / (np.sqrt(2.0) * s0), np.sqrt(2.0) / s0
+    w = box_weights(per_metre, scale, 1.0 / f1)  # at the finest candidate
+    use = w > 0.2
+    if np.count_nonzero(use) < 50:
+        return float("nan")
+    a, w = a[use], w[use]
+    if a.size > sample:
+        pick = np.random.default_rng(0).choice(a.size, sample, replace=False)
+        a, w = a[pick], w[pick]
+    c = float(np.median(a))
+    inside = np.abs(a - c) <= lines * s0 / 2
+    x, w = a[inside] - c, w[inside]
+    if x.size < 50:
+        return float("nan")
+    freq = np.linspace(f0, f1, int(np.ceil(4.0 * lines * (f1 - f0) * s0)) + 1)
+    z = w * np.exp(2j * np.pi * x * freq[0])
+    dz = np.exp(2j * np.pi * x * (freq[1] - freq[0]))
+    coh = np.empty(freq.size)
+    total = float(w.sum())
+    for k in range(freq.size):
+        coh[k] = abs(z.sum()) / total
+        z *= dz
+    best = int(np.argmax(coh))
+    return float(1.0 / freq[best]) if coh[best] >= 0.3 else float("nan")
+
+
+def _octave_steps(
+    az: NDArray[np.float64],
+    el: NDArray[np.float64],
+    r: NDArray[np.float64],
+    scale: float,
+    sa: float,
+    se: float,
+) -> tuple[float, float]:
+    """Both steps where every angle is blurred: ``octave_step`` from the spacings, then
+    ``refine_step`` within that search's resolution, each angle weighted by its box's
+    coherence at the step found. NaN for an axis whose octave shows no grid."""
+    out = []
+    for a, s0, g in ((az, sa, _per_metre_az(az, el, r)), (el, se, _per_metre_el(az, el, r))):
+        s1 = octave_step(a, s0, g, scale)
+        if not np.isfinite(s1):
+            out.append(float("nan"))
+            continue
+        out.append(refine_step(a, s1, weight=box_weights(g, scale, s1), width=1.0 / 50))
+    return out[0], out[1]
+
+
+def _per_metre_az(az, el, r) -> NDArray[np.float64]:
+    """Change of azimuth (radians) per metre of x and of y: |sin az|/ρ, |cos az|/ρ."""
+    rho = np.maximum(r * np.cos(el), 1e-6)
+    return np.column_stack([np.abs(np.sin(az)) / rho, np.abs(np.cos(az)) / rho])
+
+
+def _per_metre_el(az, el, r) -> NDArray[np.float64]:
+    """Change of elevation (radians) per metre of z, x and y: cos el/r,
+    |sin el|·|cos az|/r, |sin el|·|sin az|/r."""
+    rr = np.maximum(r, 1e-6)
+    se_ = np.abs(np.sin(el))
+    return np.column_stack(
+        [np.cos(el) / rr, se_ * np.abs(np.cos(az)) / rr, se_ * np.abs(np.sin(az)) / rr]
+    )
+
+
+def box_weights(per_metre: NDArray[np.float64], scale: float, s: float) -> NDArray[np.float64]:
+    """Coherence |E exp(2πi δ/s)| an angle keeps at step ``s`` under the LAS rounding of
+    its coordinates (``per_metre``: the angle's change per metre of each coordinate).
+
+    Each coordinate is off by a uniform error of width ``scale``, whose coherence is
+    sinc(scale·g/s) for an angle moving by g per metre of it; the errors are independent,
+    so the coherences multiply. Negative past one step (a box wider than the step keeps
+    no grid). The Gaussian exp(-2π²(σ/s)²) of the same sd is up to twice as high where
+    the box spans most of a step (20-30 m for 1 cm at 0.03°): it weighted those returns
+    as if they carried the grid.
+    """
+    return np.prod(np.sinc(scale * per_metre / s), axis=1)
 
 
 def _phase(a: NDArray[np.float64], s: float) -> float:
