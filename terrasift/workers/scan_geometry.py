@@ -706,17 +706,9 @@ def refine_step(
         sel, ws = a[inside], w[inside]
         if sel.size < 50:
             continue
-        # candidates evenly spaced in frequency: exp(2πi x f) at the next frequency is
-        # the last one times exp(2πi x df), a product instead of an exponential
+        # candidates evenly spaced in frequency
         freq = (1.0 + np.linspace(-width, width, 81)) / s
-        x = sel - c
-        z = ws * np.exp(2j * np.pi * x * freq[0])  # weighted: the product keeps the weight
-        dz = np.exp(2j * np.pi * x * (freq[1] - freq[0]))
-        coh = np.empty(freq.size)
-        total = float(ws.sum())
-        for k in range(freq.size):
-            coh[k] = abs(z.sum()) / total
-            z *= dz
+        coh = _coherence(sel - c, ws, freq)
         best = int(np.argmax(coh))
         if coh[best] < 0.3:
             return s0
@@ -726,6 +718,22 @@ def refine_step(
         # once the sector holds every angle, one more search within this one's resolution
         covered = lines * s / 2 >= span
     return s
+
+
+def _coherence(
+    x: NDArray[np.float64], w: NDArray[np.float64], freq: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Weighted coherence |Σ w exp(2πi x f)| / Σ w of the angles ``x`` at each of the
+    evenly spaced frequencies ``freq``: exp(2πi x f) at the next frequency is the last
+    one times exp(2πi x df), a product instead of an exponential."""
+    z = w * np.exp(2j * np.pi * x * freq[0])  # weighted: the product keeps the weight
+    dz = np.exp(2j * np.pi * x * (freq[1] - freq[0]))
+    coh = np.empty(freq.size)
+    total = float(w.sum())
+    for k in range(freq.size):
+        coh[k] = abs(z.sum()) / total
+        z *= dz
+    return coh
 
 
 def octave_step(
@@ -765,13 +773,7 @@ def octave_step(
     if x.size < 50:
         return float("nan")
     freq = np.linspace(f0, f1, int(np.ceil(4.0 * lines * (f1 - f0) * s0)) + 1)
-    z = w * np.exp(2j * np.pi * x * freq[0])
-    dz = np.exp(2j * np.pi * x * (freq[1] - freq[0]))
-    coh = np.empty(freq.size)
-    total = float(w.sum())
-    for k in range(freq.size):
-        coh[k] = abs(z.sum()) / total
-        z *= dz
+    coh = _coherence(x, w, freq)
     best = int(np.argmax(coh))
     return float(1.0 / freq[best]) if coh[best] >= 0.3 else float("nan")
 
