@@ -1021,3 +1021,30 @@ def test_grid_judges_a_blend_whose_box_holds_one_line_beside_a_blurred_surface()
     assert marked[blend & judged].all()
     assert not judged[col < 0].any()
     assert not marked[~blend].any()
+
+
+def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_wall():
+    # Shared-report 5205 and 4309 (0.42-0.44° steps, footprints of 2.1-2.7 steps, 9-13 mm
+    # range scatter): a pole narrower than the footprint in front of a wall leaves a flat
+    # run of blends (14.33 14.33), which reads as a surface; four beams of the wall past
+    # it, then a ramp of two blends into a farther wall. The wall's strip lay between that
+    # run (nearer) and the ramp's beams (farther), so main marked it (23-51 false marks per
+    # such strip). A face-on strip stepping nearer past one end and farther past the other
+    # is kept (a noisy beam of it may still pair); the pole's blends and the ramp stay marked.
+    def wall(c):
+        return 14.90 - 0.025 * (c + 1)
+
+    run = {0: 14.47, 1: 14.33, 2: 14.33, 3: 14.63, 8: 14.97, 9: 15.10}
+
+    def scene(c):
+        if c in run:
+            return run[c]
+        return wall(c) if c < 10 else 15.32
+
+    strip = [4, 5, 6, 7]
+    for seed in range(3):
+        xyz, col = _wall_grid(scene, step=0.418, noise=0.009, seed=seed)
+        m = mark_mixed(xyz, MixedParams(footprint=0.9), np.zeros(3)).marked
+        # main: 52-79 % of the strip's end columns, 30-35 % of the strip
+        assert m[np.isin(col, strip)].mean() < 0.05
+        assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95

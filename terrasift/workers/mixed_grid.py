@@ -667,6 +667,7 @@ def _mixed_along(
     # A blend spans about a footprint: at most ``span`` beams lie between the surfaces
     # (a strip of ground seen between a board's top and the wall behind is longer).
     between = np.zeros(n, dtype=bool)
+    paired = np.zeros(n, dtype=bool)
     for sd in (1, -1):
         upto = np.zeros(n, dtype=bool)
         nearer = []
@@ -674,10 +675,14 @@ def _mixed_along(
             upto = upto | near[-sd][i]
             nearer.append(upto)
         for j in range(1, min(reach, s.span) + 1):
-            between |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
+            paired |= far[sd][j] & nearer[min(s.span + 1 - j, reach) - 1]
             for k in range(1, min(s.span + 1 - j, reach) + 1) if hidden[-sd] else ():
                 cc, cont = hidden[-sd][k]
                 between[cc] |= far[sd][j][cc] & (cont > R[sd * j][cc])
+    # a return on a face-on strip stepping nearer past one end and farther past the other
+    # (a wall between a nearer object's edge and a farther surface) pairs no anchors
+    cand = np.flatnonzero(paired)
+    between[cand[~_step_run(R, r, s, flat_tol, cand)]] = True
     if axis == 0:
         # along elevation the ground recedes monotonically from the sensor up to a
         # wall's foot: runs there are left to the rules above
@@ -722,6 +727,51 @@ def _mixed_along(
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
+
+
+def _step_run(
+    R: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    s: GridSettings,
+    flat_tol: float,
+    c: NDArray[np.intp],
+) -> NDArray[np.bool_]:
+    """Returns on a face-on strip of at least three beams that steps nearer past one end
+    and farther past the other: a wall seen between a nearer object's edge (often the
+    flat run of blends of a pole narrower than the footprint, which reads as a surface)
+    and a ramp into a farther surface. Such a return lies on its strip, so it is no blend
+    of the anchors either side of the strip. p lies within the margin of its strip
+    neighbours, each further beam of the strip within ``flat_tol`` (a difference of two
+    returns, face on) of the one before, out to ``s.reach`` beams; the first beam past
+    each end lies nearer by more than the margin on one side and farther by more than
+    the margin on the other. A pole's flat run of blends lies nearer than both sides (it
+    steps farther at both ends), so it is not such a strip. Judged for the returns ``c``."""
+    n = c.size
+    r = r[c]
+    ext: dict[int, NDArray[np.int64]] = {}
+    past: dict[int, NDArray[np.float64]] = {}
+    with np.errstate(invalid="ignore"):
+        for sd in (1, -1):
+            k = np.zeros(n, dtype=np.int64)
+            on = np.abs(R[sd][c] - r) <= s.margin
+            stopped = np.zeros(n, dtype=bool)
+            prev = r
+            out = np.full(n, np.nan)  # range of the first beam past the strip's end
+            for i in range(1, s.reach + 1):
+                cur = R[sd * i][c]
+                if i > 1:
+                    on &= np.abs(cur - prev) <= flat_tol
+                k += on
+                ends = ~on & ~stopped
+                out[ends] = cur[ends]
+                stopped |= ends
+                prev = np.where(on, cur, prev)
+            ext[sd], past[sd] = k, out
+        run = 1 + ext[1] + ext[-1]
+        stair = np.zeros(n, dtype=bool)
+        for sd in (1, -1):
+            stair |= (past[sd] > r + s.margin) & (past[-sd] < r - s.margin)
+    return (run >= 3) & stair
 
 
 def _on_line(
