@@ -1048,3 +1048,35 @@ def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_
         # main: 52-79 % of the strip's end columns, 30-35 % of the strip
         assert m[np.isin(col, strip)].mean() < 0.05
         assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95
+
+def test_boxes_judge_returns_the_las_scale_blurs_past_a_quarter_cell_without_gps_time():
+    # report 7600's first position: 1 cm coordinates at a 0.0365° step, a board and a pole
+    # at 3-14 m. Half the returns lie within 5 m, whose angle the scale blurs by more than
+    # a quarter of the 2.5-step cell: they were never box content, and the boxes found a
+    # third of the blends. They are judged again with the cell doubled.
+    from terrasift.synthetic.scan import make_scan_tile
+
+    near = 3.03
+    half = np.degrees(np.arctan(3.0 / near)) + 1.0
+    tile = make_scan_tile(
+        [(0.0, 0.0, 1.26)],
+        seed=7600,
+        step_deg=0.0365,
+        footprint_steps=1.07,
+        sub_rays=(13, 7),
+        range_noise=0.0033,
+        las_scale=0.01,
+        azimuth_deg=(-1.5, 1.5),
+        elevation_deg=(-half, half),
+        n_boards=1,
+        n_poles=1,
+        object_range=(near, 14.0),
+    )
+    truth = tile.is_mixed
+    m = mark_mixed(tile.xyz, MixedParams(), tile.origins, tile.scan_id).marked
+    assert np.count_nonzero(m & truth) / np.count_nonzero(truth) > 0.6  # main: 0.32
+    assert np.count_nonzero(m & ~truth) / np.count_nonzero(~truth) < 0.02
+    with_time = mark_mixed(
+        tile.xyz, MixedParams(), tile.origins, tile.scan_id, gps_time=tile.gps_time
+    ).marked
+    assert np.count_nonzero(with_time & truth) / np.count_nonzero(truth) > 0.85
