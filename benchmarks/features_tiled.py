@@ -34,6 +34,7 @@ from rasterio import Affine
 from terrasift.synthetic.feature_family import make_family_scene, surface_raster
 from terrasift.workers.categories import CategoryParams, measure_noise, measure_slope_noise
 from terrasift.workers.features import (
+    DtmHeights,
     FeatureParams,
     categories_for,
     detect_features,
@@ -100,7 +101,7 @@ def one(
     cats, stepped = categories_for(dtm, CELL, filters, cp)
     fp = FeatureParams(simplify_tiles=simplify)
     cap = None if cap_m is None else int(round(cap_m / CELL))
-    whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
+    whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped, dtm=dtm).objects
     del cats, stepped
     whole_cpu = time.process_time() - t0
     _, whole_peak = tracemalloc.get_traced_memory()
@@ -121,7 +122,7 @@ def one(
             windows.append((seen[2] - seen[0]) * (seen[3] - seen[1]) / dtm.size)
             core_peak = max(core_peak, tracemalloc.get_traced_memory()[1] - base)
     cut = sum(p.cut is not None for p in pieces)
-    tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
+    tiled = merge_pieces(pieces, filters, cp, CELL, fp, dtm=DtmHeights.of(dtm, t)).objects
     tiled_cpu = time.process_time() - t0
     tracemalloc.stop()
     a, b = sorted(whole, key=_key), sorted(tiled, key=_key)

@@ -601,7 +601,9 @@ def scene_result():
     scene = make_feature_scene(seed=0)
     filters = resolve_filters("all")
     cats, stepped = categories_for(scene.dtm, scene.cell, filters)
-    result = detect_features(cats, filters, scene.transform, cats.tile_size, stepped=stepped)
+    result = detect_features(
+        cats, filters, scene.transform, cats.tile_size, stepped=stepped, dtm=scene.dtm
+    )
     return scene, cats, result
 
 
@@ -1391,6 +1393,108 @@ def test_yield_with_a_length_drops_an_object_whose_part_off_the_road_is_too_shor
     )
 
 
+def test_yield_deeper_keeps_an_object_lying_clearly_below_the_road_only():
+    """``yield road 1 0.5 deeper 2``: a ditch within a tile of a road yields only if its
+    median height is not more than twice the DTM's noise below the road's alongside it: a
+    ditch 0.3 m below the road stays; a ditch-shaped strip level with the road, or within
+    the noise of it, still yields; without the DTM the rule raises."""
+    from terrasift.workers.features import DtmHeights, apply_yields
+    from terrasift.workers.features.objects import Feature
+
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 -1 -1\nyield road 1 0.5 30m deeper 2\n"
+    )
+    flt = parse_filter(text, "ditch")
+    assert flt.yields == (("road", 1, 0.5, Metres(30.0)),) and flt.yield_deeper == (("road", 2.0),)
+    assert parse_filter(format_filter(flt), "ditch") == flt
+    plain = parse_filter(text.replace(" deeper 2", ""), "ditch")
+    cell, noise = 0.5, 0.02
+    z = np.full((40, 400), 100.0)  # 200 x 20 m, y from 0 (bottom row) to 20 m
+    t = Affine(cell, 0, 0, 0, -cell, 20.0)
+    z[12:20, :] = 100.3  # the road's top, y 10-14 m
+    z[22:26, :] = 100.0  # a ditch's floor beside it, y 7-9 m, 0.3 m below the road
+    z[28:32, :] = 100.3 - noise  # a strip level with the road within the noise, y 4-6 m
+    road = Feature("road", box(0, 10, 200, 14), 200, 4, 100)
+    ditch = Feature("ditch", box(0, 7, 200, 9), 200, 2, 100)
+    level = Feature("ditch", box(0, 10.5, 200, 13.5), 200, 3, 150)  # on the road itself
+    shallow = Feature("ditch", box(0, 4, 200, 6), 200, 2, 100)
+    heights = DtmHeights.of(z, t)
+    assert np.allclose(heights.within(ditch.geometry), 100.0)
+    assert heights.within(ditch.geometry).size == 4 * 400
+    objs = [road, ditch, level]
+    assert apply_yields(objs, [plain], 2.0) == [road]  # as before: both yield
+    assert apply_yields(objs, [flt], 2.0, heights, noise) == [road, ditch]
+    wide = parse_filter(text.replace("road 1 0.5", "road 3 0.5"), "ditch")  # reaches y 4-6
+    assert apply_yields([road, shallow], [wide], 2.0, heights, noise) == [road]
+    assert apply_yields([road, shallow], [wide], 2.0, heights, 0.0) == [road, shallow]
+    with pytest.raises(ParameterError, match="DTM"):
+        apply_yields(objs, [flt], 2.0)
+    # a road filter that is not run takes nothing away and needs no DTM
+    assert apply_yields([ditch], [flt], 2.0) == [ditch]
+    for bad in ("deeper", "deeper -1", "deeper x", "deeper 2 30m"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(text.replace("deeper 2", bad), "ditch")
+    assert dict(load_filter("ditch").yield_deeper) == {"road": 2.0}
+    assert dict(load_filter("ditch-shallow").yield_deeper) == {"road": 2.0}
+    assert not load_filter("ridge").yield_deeper
+
+
+def _roadside(offset: float, sides: tuple[int, ...], seed: int) -> tuple[NDArray, list]:
+    """A 5 m road 200 m long at 23 degrees to the grid on level ground, its top ``offset``
+    above the ground with 1.5 : 1 shoulders plus 0.5 m, and a 1.5 m wide, 0.4 m deep
+    ditch at the foot of each shoulder of ``sides`` (-1, 1); 2 cm of noise on 0.5 m cells.
+    The ditches' strips as polygons (metres, y up from the bottom edge)."""
+    from shapely.geometry import LineString
+
+    cell, size, length, half = 0.5, 240.0, 200.0, 2.5
+    c = (np.arange(int(size / cell)) + 0.5) * cell
+    x, y = np.meshgrid(c, size - c)
+    ux, uy = np.cos(np.radians(23)), np.sin(np.radians(23))
+    across = -(x - size / 2) * uy + (y - size / 2) * ux
+    along = (x - size / 2) * ux + (y - size / 2) * uy
+    shoulder = 1.5 * abs(offset) + 0.5
+    t = np.clip((np.abs(across) - half) / shoulder, 0, 1)
+    on = np.abs(along) <= length / 2
+    z = np.where(on, 100.0 + offset * (1 - t), 100.0)
+    ditches = []
+    for sd in sides:
+        mid = sd * (half + shoulder + 0.75)
+        z = z - np.where(on, 0.4 * np.clip((0.75 - np.abs(across - mid)) / 0.525, 0, 1), 0.0)
+        cx, cy = size / 2 - mid * uy, size / 2 + mid * ux
+        line = LineString(
+            [
+                (cx - ux * length / 2, cy - uy * length / 2),
+                (cx + ux * length / 2, cy + uy * length / 2),
+            ]
+        )
+        ditches.append(line.buffer(0.75, cap_style="flat"))
+    return z + np.random.default_rng(seed).normal(0, 0.02, z.shape), ditches
+
+
+def test_a_ditch_at_the_foot_of_a_road_embankment_on_level_land_is_kept():
+    """A 1.5 m wide, 0.4 m deep ditch at the foot of a 0.3 m road embankment lies within a
+    tile of the road's marks and yielded to the road (``features_roadside.py``: 39 of 120
+    such ditches found); it lies 0.6 m below the road's top, 30 noise heights, and is kept.
+    The road is found as before, and a road with no ditch gives no ditch."""
+    cell, size = 0.5, 240.0
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    filters = [load_filter("ditch"), load_filter("road")]
+    z, (truth,) = _roadside(0.3, (1,), 3)
+    cats, stepped = categories_for(z, cell, filters)
+    objs = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped, dtm=z).objects
+    assert [o.kind for o in objs].count("road") == 1
+    found = [o for o in objs if o.kind == "ditch"]
+    assert len(found) == 1 and _on(found[0].geometry, truth), found
+    with pytest.raises(ParameterError, match="DTM"):
+        detect_features(cats, filters, tt, cats.tile_size, stepped=stepped)
+    z, _ = _roadside(0.3, (), 3)
+    cats, stepped = categories_for(z, cell, filters)
+    objs = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped, dtm=z).objects
+    assert [o.kind for o in objs] == ["road"]
+
+
 def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
     """A level road cut 0.21 m into a 13 % slope along its contour is, on the ditch
     filter's detrended tiles, a trough falling to the foot of its uphill wall; the
@@ -1410,7 +1514,8 @@ def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
     assert ditch.yields[0][:3] == ("road", 1, 0.5)
     cats, stepped = categories_for(z, cell, [ditch, road])
     tt = Affine(cell, 0, 0, 0, -cell, size)
-    kinds = [f.kind for f in detect_features(cats, [ditch, road], tt, 2.0, stepped=stepped).objects]
+    both = detect_features(cats, [ditch, road], tt, 2.0, stepped=stepped, dtm=z).objects
+    kinds = [f.kind for f in both]
     assert kinds == ["road"]
     alone = detect_features(cats, [ditch], tt, 2.0, stepped=stepped).objects
     assert [f.kind for f in alone] == ["ditch"]
@@ -2157,7 +2262,7 @@ def test_the_level_downhill_bank_of_a_ditch_along_a_slope_is_not_a_road():
     tt = Affine(0.5, 0, 0, 0, -0.5, scene.size)
     filters = [load_filter("road"), load_filter("ditch")]
     cats, stepped = categories_for(dtm, 0.5, filters)
-    objs = detect_features(cats, filters, tt, 2.0, stepped=stepped).objects
+    objs = detect_features(cats, filters, tt, 2.0, stepped=stepped, dtm=dtm).objects
     roads = [t.polygon for t in scene.truth if t.kind == "road"]
     (ditch,) = [t for t in scene.truth if t.kind == "ditch"]
     assert all(any(_on(o.geometry, r) for r in roads) for o in objs if o.kind == "road")

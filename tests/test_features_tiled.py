@@ -12,7 +12,12 @@ from shapely.geometry import box
 
 from terrasift.synthetic.feature_family import make_family_scene, surface_raster
 from terrasift.workers.categories import CategoryParams, measure_noise, measure_slope_noise
-from terrasift.workers.features import categories_for, detect_features, resolve_filters
+from terrasift.workers.features import (
+    DtmHeights,
+    categories_for,
+    detect_features,
+    resolve_filters,
+)
 from terrasift.workers.features.tiled import merge_pieces, tile_pieces, window_reach
 
 CELL = 0.5
@@ -37,7 +42,9 @@ def scene() -> dict:
     filters = resolve_filters("all")
     cp = _measured(dtm)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
-    whole = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped).objects
+    whole = detect_features(
+        cats, filters, transform, cats.tile_size, stepped=stepped, dtm=dtm
+    ).objects
     return {"dtm": dtm, "t": transform, "filters": filters, "cp": cp, "whole": whole}
 
 
@@ -64,7 +71,8 @@ def _tiled(scene: dict, n: int, halo: int | None, edges: list[int] | None = None
                 scene["cp"],
                 halo=halo,
             )
-    return merge_pieces(pieces, scene["filters"], scene["cp"], CELL).objects
+    heights = DtmHeights.of(dtm, scene["t"])
+    return merge_pieces(pieces, scene["filters"], scene["cp"], CELL, dtm=heights).objects
 
 
 def test_cores_without_halo_grow_to_the_whole_objects(scene: dict) -> None:
@@ -205,7 +213,7 @@ def test_objects_as_large_as_the_dtm_are_searched_in_parts_within_a_capped_windo
     cp = _measured(dtm)
     fp = FeatureParams(simplify_tiles=0)
     cats, stepped = categories_for(dtm, CELL, filters, cp)
-    whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped).objects
+    whole = detect_features(cats, filters, t, cats.tile_size, fp, stepped=stepped, dtm=dtm).objects
     assert sorted(f.kind for f in whole) == sorted(names.split(","))
     assert all(f.length_m > 0.9 * size for f in whole)  # each spans the DTM
     reach = window_reach(filters, cp, CELL)
@@ -232,7 +240,7 @@ def test_objects_as_large_as_the_dtm_are_searched_in_parts_within_a_capped_windo
     ]
     assert seen == (0, 0, *dtm.shape)
     assert sum(p.cut is not None for p in pieces) >= n * n // 2
-    tiled = merge_pieces(pieces, filters, cp, CELL, fp).objects
+    tiled = merge_pieces(pieces, filters, cp, CELL, fp, dtm=DtmHeights.of(dtm, t)).objects
     assert sorted(_key(f) for f in tiled) == sorted(_key(f) for f in whole)
     for a in whole:
         (b,) = [f for f in tiled if _key(f) == _key(a)]

@@ -58,7 +58,10 @@ def _whole_features(version: Path, params: dict) -> list[dict]:
     filters = feat.resolve_filters("all")
     with rasterio.open(version / "dtm.vrt") as ds:
         cats, stepped, _ = dtm_category_grids(ds, cparams, filters)
-        whole = feat.detect_features(cats, filters, ds.transform, cats.tile_size, stepped=stepped)
+        dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+        whole = feat.detect_features(
+            cats, filters, ds.transform, cats.tile_size, stepped=stepped, dtm=dtm
+        )
     return feat.features_geojson(whole, 0, "x", to_wgs84=False)["features"]
 
 

@@ -307,9 +307,10 @@ def _write_categories(job: Path) -> list[str]:
         result = feat.detect_features(
             cats, marking, transform, cats.tile_size, fparams, stepped=stepped
         )
-        result.objects = tiled.merge_pieces(
-            pieces, objects, cparams, abs(transform.a), fparams
-        ).objects
+        with rasterio.open(out / "dtm.tif") as ds:
+            result.objects = tiled.merge_pieces(
+                pieces, objects, cparams, abs(transform.a), fparams, dtm=dtm_heights(ds)
+            ).objects
         crs = plan["crs_wkt"]
         # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its
         # CRS; WGS 84 (RFC 7946) only when the CRS is known.
@@ -342,6 +343,22 @@ def _write_categories(job: Path) -> list[str]:
             m.close_as_cog(out / f"{fname}.tif", resampling="nearest")
             names.append(f"{fname}.tif")
     return names
+
+
+def dtm_heights(ds: Any) -> Any:
+    """The heights of an open DTM, read by windows (``features.DtmHeights``)."""
+    from rasterio.windows import Window
+
+    from terrasift.workers.features import DtmHeights
+
+    def read(r0: int, r1: int, c0: int, c1: int) -> NDArray:
+        return (
+            ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+            .filled(np.nan)
+            .astype(np.float64)
+        )
+
+    return DtmHeights(read, (ds.height, ds.width), ds.transform)
 
 
 def _square_pieces(ds: Any, filters: list, cparams: Any, fparams: Any) -> list:

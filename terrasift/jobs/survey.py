@@ -931,6 +931,9 @@ def _assemble(
     and the previous version's files for the rest; what ``state.json`` records of them."""
     import pickle
 
+    import rasterio
+
+    from terrasift.jobs.finish import dtm_heights
     from terrasift.workers import categories as cat
     from terrasift.workers import features as feat
     from terrasift.workers.features import tiled
@@ -987,7 +990,10 @@ def _assemble(
         pieces += found["pieces"]
         windows_searched[key] = found["window"]
     if p["filters"]:
-        result = tiled.merge_pieces(pieces, p["filters"], p["categories"], res, p["features"])
+        with bounded_raster_cache(), rasterio.open(d / "dtm.vrt") as ds:  # the searched DTM
+            result = tiled.merge_pieces(
+                pieces, p["filters"], p["categories"], res, p["features"], dtm=dtm_heights(ds)
+            )
         from terrasift.tiling.vectors import crs_member
 
         survey_id = Path(s["dir"]).name

@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from typing import Any
@@ -53,6 +54,7 @@ from terrasift.workers.features.turned import turned_marks
 from terrasift.workers.registry import StageParams, register
 
 __all__ = [
+    "DtmHeights",
     "Feature",
     "FeatureParams",
     "FeatureResult",
@@ -93,6 +95,58 @@ class FeatureResult:
 
     objects: list[Feature] = field(default_factory=list)
     marked: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DtmHeights:
+    """A DTM read by windows, for the heights under objects (``yield ... deeper``):
+    ``read(r0, r1, c0, c1)`` gives rows r0:r1 and columns c0:c1 of a grid of ``shape``
+    cells (NaN nodata) whose geotransform is ``transform`` (north up)."""
+
+    read: Callable[[int, int, int, int], NDArray]
+    shape: tuple[int, int]
+    transform: Affine
+
+    #: cells a side of the blocks an object's heights are read in (memory follows a block)
+    BLOCK = 1024
+
+    @classmethod
+    def of(cls, dtm: NDArray, transform: Affine) -> DtmHeights:
+        """Heights of a DTM held as an array."""
+        z = np.asarray(dtm)
+        return cls(lambda r0, r1, c0, c1: z[r0:r1, c0:c1], (z.shape[0], z.shape[1]), transform)
+
+    def within(self, geom: Any) -> NDArray[np.float64]:
+        """Heights (with data) of the cells whose centres lie in ``geom``, read block by
+        block over the blocks its bounds reach that it touches."""
+        t = self.transform
+        if geom.is_empty or t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
+            if not geom.is_empty:
+                raise ParameterError("DTM heights need a north-up geotransform")
+            return np.zeros(0)
+        x0, y0, x1, y1 = geom.bounds
+        c0 = max(0, int(np.floor((x0 - t.c) / t.a - 0.5)))
+        c1 = min(self.shape[1], int(np.ceil((x1 - t.c) / t.a - 0.5)) + 1)
+        r0 = max(0, int(np.floor((y1 - t.f) / t.e - 0.5)))
+        r1 = min(self.shape[0], int(np.ceil((y0 - t.f) / t.e - 0.5)) + 1)
+        out = []
+        shapely.prepare(geom)
+        for br in range(r0, r1, self.BLOCK):
+            er = min(r1, br + self.BLOCK)
+            for bc in range(c0, c1, self.BLOCK):
+                ec = min(c1, bc + self.BLOCK)
+                corner = t @ (bc, br)
+                far = t @ (ec, er)
+                if not geom.intersects(shapely.box(corner[0], far[1], far[0], corner[1])):
+                    continue
+                xs = t.c + (np.arange(bc, ec) + 0.5) * t.a
+                ys = t.f + (np.arange(br, er) + 0.5) * t.e
+                gx, gy = np.meshgrid(xs, ys)
+                inside = shapely.contains_xy(geom, gx, gy)
+                if inside.any():
+                    z = np.asarray(self.read(br, er, bc, ec), dtype=np.float64)[inside]
+                    out.append(z[np.isfinite(z)])
+        return np.concatenate(out) if out else np.zeros(0)
 
 
 def builtin_filter_names() -> list[str]:
@@ -219,6 +273,7 @@ def detect_features(
     params: FeatureParams | None = None,
     *,
     stepped: dict[GridKey, Categories] | None = None,
+    dtm: NDArray | None = None,
 ) -> FeatureResult:
     """Run ``filters`` over the category grid.
 
@@ -228,6 +283,8 @@ def detect_features(
     Filters with a ``step`` or ``detrend`` run on ``stepped[grid_key(filter)]``:
     categories of overlapping tiles (``compute_categories(..., step=step)``, which
     need the DTM's transform) or of the detrended DTM (``categories_for`` makes them).
+    ``dtm`` is the DTM the categories were made of, which a ``yield ... deeper`` rule
+    reads the heights under objects from (required when such a rule can apply).
     """
     params = params or FeatureParams()
     tt = _tile_transform(categories, transform, tile_size)
@@ -246,16 +303,51 @@ def detect_features(
                 grid = cats.transform(transform)
         flt = resolve_lengths(flt, cats.spacing)
         result.objects += _run_filter(cats, flt, grid, params, result)
-    result.objects = apply_yields(result.objects, filters, categories.tile_size)
+    heights = None
+    if dtm is not None:
+        k = categories.cells_per_tile
+        rows, cols = np.shape(dtm)
+        if not (rows // k <= categories.shape[0] <= -(-rows // k)) or not (
+            cols // k <= categories.shape[1] <= -(-cols // k)
+        ):
+            raise ParameterError(
+                f"dtm of {rows}x{cols} cells does not match {categories.shape[0]}x"
+                f"{categories.shape[1]} category tiles of {k} cells"
+            )
+        # ``transform`` is the tile grid's when it is the grid's own (``_tile_transform``)
+        dtm_transform = transform @ Affine.scale(1 / k) if tt is transform else transform
+        heights = DtmHeights.of(dtm, dtm_transform)
+    result.objects = apply_yields(
+        result.objects, filters, categories.tile_size, heights, categories.noise
+    )
     return result
 
 
-def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float) -> list[Feature]:
+def apply_yields(
+    objects: list[Feature],
+    filters: list[Filter],
+    tile_size: float,
+    heights: DtmHeights | None = None,
+    noise: float | None = None,
+) -> list[Feature]:
     """``objects`` without those a filter's ``yield`` drops: an object with at least the
     share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
     object of the named filter, as that filter found it, or, where the rule gives a length,
     no part of it beyond the distance that long. A named filter that did not run takes
-    nothing away."""
+    nothing away. Where the rule says ``deeper k``, the object yields only if its median
+    height in ``heights`` (the DTM) is not more than k × ``noise`` (the DTM's noise σ, as
+    the flatness tests take it) below the median height of the named filter's objects
+    alongside it (their parts within the distance plus their own width of it); without
+    ``heights`` such a rule raises ParameterError when the named filter is among
+    ``filters`` (or objects of it are given)."""
+    ran = {f.name for f in filters} | {o.kind for o in objects}
+    deeper = {f.name: dict(f.yield_deeper) for f in filters if f.yield_deeper}
+    needs = [f"{k} (yield {o} deeper)" for k, d in deeper.items() for o in d if o in ran]
+    if needs and (heights is None or noise is None):
+        raise ParameterError(
+            f"filter {', '.join(needs)} compares heights: pass the DTM"
+            + (" and its noise" if heights is not None else "")
+        )
     rules = {f.name: f.yields for f in filters if f.yields}
     # an object is measured on its filter's grid: overlapping tiles laid every step
     grid = {f.name: tile_size if f.step is None else f.step.value for f in filters}
@@ -275,14 +367,46 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
                 continue
             d = reach.value if isinstance(reach, Metres) else reach * tile_size
             zone = shapely.union_all([o.geometry for o in theirs]).buffer(d)
+            k = deeper.get(kind, {}).get(other)
             for i in mine:
                 g = objects[i].geometry
                 inside = g.intersection(zone).area if g.area > 0 else 0.0
-                if inside > 0 and (
-                    inside >= share * g.area or _short_rest(g, zone, rest, tile_size, grid[kind])
+                if (
+                    inside > 0
+                    and (
+                        inside >= share * g.area
+                        or _short_rest(g, zone, rest, tile_size, grid[kind])
+                    )
+                    and (k is None or not _deeper(g, theirs, d, k * (noise or 0.0), heights))
                 ):
                     drop.add(i)
     return [o for i, o in enumerate(objects) if i not in drop]
+
+
+def _deeper(
+    geom: Polygon | MultiPolygon,
+    theirs: list[Feature],
+    reach: float,
+    margin: float,
+    heights: DtmHeights | None,
+) -> bool:
+    """Whether the median DTM height under ``geom`` lies more than ``margin`` below the
+    median height of ``theirs`` alongside it: each one's part within ``reach`` plus its
+    own width of ``geom`` (so across its whole width beside ``geom``). False where either
+    has no heights."""
+    assert heights is not None
+    own = heights.within(geom)
+    if own.size == 0:
+        return False
+    near = [
+        o.geometry.intersection(geom.buffer(reach + o.width_m))
+        for o in theirs
+        if o.geometry.distance(geom) <= reach
+    ]
+    beside = heights.within(shapely.union_all(near)) if near else np.zeros(0)
+    if beside.size == 0:
+        return False
+    return float(np.median(beside)) - float(np.median(own)) > margin
 
 
 def _banks(objects: list[Feature], filters: list[Filter]) -> set[int]:

@@ -307,6 +307,14 @@ class Filter:
     noise of a tile's fitted slope tips single tiles past it at random; the tile's
     neighbours on the same plane read it again."""
 
+    yield_deeper: tuple[tuple[str, float], ...] = ()
+    """``yield <filter> ... deeper <k>``: (filter name, k) of the yields that also ask
+    for depth: an object yields to an object of the named filter only if its median DTM
+    height is not more than k times the DTM's noise σ (the flatness tests' noise) below
+    the median height of that filter's objects alongside it (within the yield distance
+    plus their own width of it). A ditch beside a road lies clearly below the road; a
+    trough the ditch filter finds in the road itself lies at the road's own height."""
+
     @property
     def makes_objects(self) -> bool:
         return self.connect is not None or self.rectangle is not None
@@ -393,6 +401,7 @@ class _Parser:
         share: float | None = None
         yields: list[tuple[str, Length, float] | tuple[str, Length, float, Length]] = []
         banks: list[str] = []
+        deeper: list[tuple[str, float]] = []
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
@@ -497,10 +506,16 @@ class _Parser:
                 isolated = (dist, most)
                 steps.append("isolated")
             elif key == "yield":
+                if len(args) >= 2 and args[-2] == "deeper":
+                    (k,) = self.numbers(args[-1:], no, "yield deeper")
+                    if not (k >= 0 and math.isfinite(k)):
+                        raise self.error("yield deeper takes a noise multiple of at least 0", no)
+                    deeper.append((args[0], k))
+                    args = args[:-2]
                 if len(args) not in (3, 4) or any(y[0] == args[0] for y in yields):
                     raise self.error(
-                        "yield takes a filter name, a distance, a share (0-1) and optionally"
-                        " a length, once per name",
+                        "yield takes a filter name, a distance, a share (0-1), optionally"
+                        " a length and optionally 'deeper <noise multiple>', once per name",
                         no,
                     )
                 (reach,) = self.lengths(args[1:2], no, "yield", lo=0)
@@ -612,6 +627,7 @@ class _Parser:
             clear_exempt=clear_exempt,
             diagonal=diagonal,
             majority=majority,
+            yield_deeper=tuple(deeper),
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -849,8 +865,11 @@ def format_filter(f: Filter) -> str:
         elif step == "isolated" and f.isolated is not None:
             out.append(f"isolated {_text(f.isolated[0])} {f.isolated[1]:g}")
         elif step == "yield":
+            deeper = dict(f.yield_deeper)
             out += [
-                f"yield {y[0]} {_text(y[1])} {y[2]:g}" + "".join(f" {_text(r)}" for r in y[3:])
+                f"yield {y[0]} {_text(y[1])} {y[2]:g}"
+                + "".join(f" {_text(r)}" for r in y[3:])
+                + (f" deeper {deeper[y[0]]:g}" if y[0] in deeper else "")
                 for y in f.yields
             ]
         elif step == "bank":

@@ -51,6 +51,7 @@ from shapely.ops import unary_union
 
 from terrasift.workers.categories import NODATA, Categories, CategoryParams
 from terrasift.workers.features import (
+    DtmHeights,
     FeatureParams,
     FeatureResult,
     Rim,
@@ -690,9 +691,13 @@ def merge_pieces(
     cparams: CategoryParams,
     cell: float,
     params: FeatureParams | None = None,
+    *,
+    dtm: DtmHeights | None = None,
 ) -> FeatureResult:
     """Objects of all cores' pieces: per filter (in order), the pieces in the order of
-    their first tiles, joined, sized and limited as ``detect_features`` does."""
+    their first tiles, joined, sized and limited as ``detect_features`` does. ``dtm``
+    reads the DTM the pieces were searched on (the heights a ``yield ... deeper`` rule
+    compares; required when such a rule can apply)."""
     params = params or FeatureParams()
     result = FeatureResult()
     by_filter: dict[int, list[Piece]] = {}
@@ -712,7 +717,9 @@ def merge_pieces(
         opts.pop("simplify_tiles", None)
         limits = opts.pop("limits", (None, None, None, None))
         result.objects += finish_pieces([p.feature for p in mine], spacing, limits, **opts)
-    result.objects = apply_yields(result.objects, filters, _tile_cells(cparams, cell) * cell)
+    result.objects = apply_yields(
+        result.objects, filters, _tile_cells(cparams, cell) * cell, dtm, cparams.noise
+    )
     return result
 
 
