@@ -310,7 +310,7 @@ def rerun_kept_scene(seed: int, keep: Path, make=make_family_scene) -> tuple[str
         transform = ds.transform
     filters = [load_filter(n) for n in builtin_filter_names()]
     cats, stepped = categories_for(dtm, abs(transform.a), filters)
-    res = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped)
+    res = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped, dtm=dtm)
     dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
     truth, flat, tt = scene_truth(scene)
     return scene.describe(), score_scene(truth, dets, flat, tt)
@@ -368,7 +368,7 @@ def run_dtm_scene(seed: int) -> tuple[str, dict]:
     tt = Affine(0.5, 0, ORIGIN[0], 0, -0.5, ORIGIN[1] + scene.size)
     filters = [load_filter(n) for n in builtin_filter_names()]
     cats, stepped = categories_for(dtm, 0.5, filters)
-    res = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped)
+    res = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped, dtm=dtm)
     dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
     flat, objects = _flat_definition(exact, 0.5, tt)
     sc = score_scene(field_truth(_shifted_truth(scene), objects), dets, flat, cats.transform(tt))
@@ -405,7 +405,9 @@ def part_scene(seeds: list[int]) -> None:
     for seed in seeds:
         scene = make_feature_scene(seed=seed)
         cats, stepped = categories_for(scene.dtm, scene.cell, filters)
-        res = detect_features(cats, filters, scene.transform, cats.tile_size, stepped=stepped)
+        res = detect_features(
+            cats, filters, scene.transform, cats.tile_size, stepped=stepped, dtm=scene.dtm
+        )
         dets = [(f.kind, f.geometry, f.length_m) for f in res.objects]
         rows.append(
             (f"hillside seed {seed}", score_scene(scene.truth, dets, None, Affine.identity()))
@@ -430,7 +432,7 @@ def run_speed(label: str, dtm, cell: float, transform) -> None:
     times = {}
     for f in filters:
         s = time.process_time()
-        res = detect_features(cats, [f], transform, cats.tile_size, stepped=stepped)
+        res = detect_features(cats, [f], transform, cats.tile_size, stepped=stepped, dtm=dtm)
         times[f.name] = (time.process_time() - s, len(res.objects))
     t2 = time.process_time()
     print(

@@ -91,7 +91,9 @@ def found(dtm: NDArray[np.float64], road: Polygon, ditches: list[Polygon]) -> tu
     filters = resolve_filters("all")
     cats, stepped = categories_for(dtm, CELL, filters)
     transform = Affine(CELL, 0, 0, 0, -CELL, SIZE)
-    objects = detect_features(cats, filters, transform, cats.tile_size, stepped=stepped).objects
+    objects = detect_features(
+        cats, filters, transform, cats.tile_size, stepped=stepped, dtm=dtm
+    ).objects
     roads = [o.geometry for o in objects if o.kind == "road"]
     mine = [o.geometry for o in objects if o.kind == "ditch"]
     return any(_on(g, road) for g in roads), sum(any(_on(g, d) for g in mine) for d in ditches)

@@ -432,7 +432,10 @@ def test_square_by_square_features_equal_one_search_over_the_dtm(tmp_path, monke
         cats, stepped, _ = finish.dtm_category_grids(
             ds, stage_params(params, "categories"), filters
         )
-        whole = feat.detect_features(cats, filters, ds.transform, cats.tile_size, stepped=stepped)
+        dtm = ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+        whole = feat.detect_features(
+            cats, filters, ds.transform, cats.tile_size, stepped=stepped, dtm=dtm
+        )
 
     def objects(features: list[dict]) -> list[str]:
         return sorted(

@@ -308,7 +308,7 @@ def _write_categories(job: Path) -> list[str]:
             cats, marking, transform, cats.tile_size, fparams, stepped=stepped
         )
         result.objects = tiled.merge_pieces(
-            pieces, objects, cparams, abs(transform.a), fparams
+            pieces, objects, cparams, abs(transform.a), fparams, dtm_window(out / "dtm.tif")
         ).objects
         crs = plan["crs_wkt"]
         # Tile CRS: a GeoPackage (OGR reads its CRS) and a GeoJSON naming its
@@ -342,6 +342,23 @@ def _write_categories(job: Path) -> list[str]:
             m.close_as_cog(out / f"{fname}.tif", resampling="nearest")
             names.append(f"{fname}.tif")
     return names
+
+
+def dtm_window(path: Path) -> Any:
+    """A reader of the DTM at ``path`` around map bounds (``features.edges.Reader``): the
+    window's heights (NaN for no data) and its geotransform."""
+
+    def read(bounds: tuple[float, float, float, float]) -> tuple[NDArray, Any]:
+        import rasterio
+        from rasterio.windows import from_bounds
+
+        with rasterio.open(path) as ds:
+            w = from_bounds(*bounds, transform=ds.transform).round_offsets().round_lengths()
+            w = w.intersection(rasterio.windows.Window(0, 0, ds.width, ds.height))
+            z = ds.read(1, window=w, masked=True).filled(np.nan).astype(np.float64)
+            return z, ds.window_transform(w)
+
+    return read
 
 
 def _square_pieces(ds: Any, filters: list, cparams: Any, fparams: Any) -> list:

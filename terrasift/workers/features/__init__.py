@@ -39,6 +39,8 @@ from terrasift.workers.categories import (
     regional_gradient,
 )
 from terrasift.workers.features import connect as _connect
+from terrasift.workers.features.edges import Reader, array_reader, unbounded
+from terrasift.workers.features.edges import sides as edge_sides
 from terrasift.workers.features.language import (
     Filter,
     Length,
@@ -219,6 +221,7 @@ def detect_features(
     params: FeatureParams | None = None,
     *,
     stepped: dict[GridKey, Categories] | None = None,
+    dtm: NDArray[np.float64] | None = None,
 ) -> FeatureResult:
     """Run ``filters`` over the category grid.
 
@@ -228,6 +231,7 @@ def detect_features(
     Filters with a ``step`` or ``detrend`` run on ``stepped[grid_key(filter)]``:
     categories of overlapping tiles (``compute_categories(..., step=step)``, which
     need the DTM's transform) or of the detrended DTM (``categories_for`` makes them).
+    ``dtm`` (on ``transform``) lets a filter's ``edges`` read its objects' sides.
     """
     params = params or FeatureParams()
     tt = _tile_transform(categories, transform, tile_size)
@@ -246,12 +250,16 @@ def detect_features(
                 grid = cats.transform(transform)
         flt = resolve_lengths(flt, cats.spacing)
         result.objects += _run_filter(cats, flt, grid, params, result)
-    result.objects = apply_yields(result.objects, filters, categories.tile_size)
+    read = None if dtm is None else array_reader(dtm, transform)
+    result.objects = apply_yields(result.objects, filters, categories.tile_size, read)
     return result
 
 
-def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float) -> list[Feature]:
-    """``objects`` without those a filter's ``yield`` drops: an object with at least the
+def apply_yields(
+    objects: list[Feature], filters: list[Filter], tile_size: float, read: Reader | None = None
+) -> list[Feature]:
+    """``objects`` without those a filter's ``edges`` (with ``read``, the DTM) or ``bank``
+    drops, and then those its ``yield`` drops: an object with at least the
     share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
     object of the named filter, as that filter found it, or, where the rule gives a length,
     no part of it beyond the distance that long. A named filter that did not run takes
@@ -259,6 +267,8 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
     rules = {f.name: f.yields for f in filters if f.yields}
     # an object is measured on its filter's grid: overlapping tiles laid every step
     grid = {f.name: tile_size if f.step is None else f.step.value for f in filters}
+    if read is not None:
+        objects = _drop_unbounded(objects, filters, tile_size, read)
     banks = _banks(objects, filters)
     objects = [o for i, o in enumerate(objects) if i not in banks]
     if not rules:
@@ -282,6 +292,23 @@ def apply_yields(objects: list[Feature], filters: list[Filter], tile_size: float
                     inside >= share * g.area or _short_rest(g, zone, rest, tile_size, grid[kind])
                 ):
                     drop.add(i)
+    return [o for i, o in enumerate(objects) if i not in drop]
+
+
+def _drop_unbounded(
+    objects: list[Feature], filters: list[Filter], tile_size: float, read: Reader
+) -> list[Feature]:
+    """``objects`` without the troughs and verges of the filters with ``edges``."""
+    drop: set[int] = set()
+    for f in filters:
+        if f.edges is None:
+            continue
+        mine = [i for i, o in enumerate(objects) if o.kind == f.name]
+        for i in mine:
+            others = [objects[j].geometry for j in mine if j != i]
+            s = edge_sides(objects[i].geometry, read, tile_size, f.edges, others)
+            if s is not None and unbounded(s, f.edges) is not None:
+                drop.add(i)
     return [o for i, o in enumerate(objects) if i not in drop]
 
 

@@ -68,6 +68,7 @@ from terrasift.workers.features import (
     rim_sets,
     whole_label_rules,
 )
+from terrasift.workers.features.edges import Reader
 from terrasift.workers.features.language import Filter, resolve_lengths
 from terrasift.workers.features.objects import (
     Feature,
@@ -690,9 +691,11 @@ def merge_pieces(
     cparams: CategoryParams,
     cell: float,
     params: FeatureParams | None = None,
+    read: Reader | None = None,
 ) -> FeatureResult:
     """Objects of all cores' pieces: per filter (in order), the pieces in the order of
-    their first tiles, joined, sized and limited as ``detect_features`` does."""
+    their first tiles, joined, sized and limited as ``detect_features`` does (``read``:
+    the DTM around given bounds, for a filter's ``edges``)."""
     params = params or FeatureParams()
     result = FeatureResult()
     by_filter: dict[int, list[Piece]] = {}
@@ -712,7 +715,8 @@ def merge_pieces(
         opts.pop("simplify_tiles", None)
         limits = opts.pop("limits", (None, None, None, None))
         result.objects += finish_pieces([p.feature for p in mine], spacing, limits, **opts)
-    result.objects = apply_yields(result.objects, filters, _tile_cells(cparams, cell) * cell)
+    tile = _tile_cells(cparams, cell) * cell
+    result.objects = apply_yields(result.objects, filters, tile, read)
     return result
 
 
