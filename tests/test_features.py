@@ -2320,3 +2320,39 @@ def test_majority_needs_a_rectangle_and_marks_only_tiles_not_clearly_past_the_te
     assert majority_marks(marks, cats).all()  # 8 of 9 and 3 of 4 around are marked
     cats = dataclasses.replace(cats, clear=(inc == 1).astype(np.uint8))
     assert (majority_marks(marks, cats) == marks).all()  # clearly past: stays
+
+
+@pytest.mark.parametrize("seed", [256, 299])
+def test_a_verge_beside_a_road_and_a_trough_between_slopes_are_not_roads(seed):
+    """Feature family seeds as DTMs. Seed 256 (2 %): the level ground between a 1.2 m
+    embankment road and a ditch, its only step the embankment's shoulder, went on at its
+    own height and tilt past the ditch (a verge). Seed 299 (13 %): a level strip where the
+    hillside meets a ridge's flank, the ground past both sides rising on (a trough). The
+    road filter's ``edges`` reads each object on the DTM and drops both; every true road
+    stays. Without the DTM nothing is dropped."""
+    scene, dtm, tt = _family_dtm(seed)
+    flt = load_filter("road")
+    assert flt.edges == 0.1 and "edges 0.1" in format_filter(flt).splitlines()
+    cats, stepped = categories_for(dtm, 0.5, [flt])
+    found = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped, dtm=dtm).objects
+    truth = [t.polygon for t in scene.truth if t.kind == "road"]
+    assert all(any(_on(o.geometry, t) for t in truth) for o in found)
+    assert all(any(_on(o.geometry, t) for o in found) for t in truth)
+    blind = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped).objects
+    assert len(blind) == len(found) + 1
+
+
+def test_edges_parses_formats_and_needs_a_connect_step():
+    """``edges <height>`` (metres, once) needs objects to read; it survives a round trip."""
+    seg = "beginsegment\n  beginsubsegment 2 4\n    begincategory\n      inclination 0\n"
+    seg += "      state 0\n      orientation 0\n    endcategory\n  endsubsegment\nendsegment\n"
+    flt = parse_filter(seg + "connect segment 10 -1 1 -1\nedges 0.2\n", "x")
+    assert flt.edges == 0.2 and parse_filter(format_filter(flt), "x") == flt
+    for bad in (
+        "edges 0.2\n",
+        "connect segment 10 -1 1 -1\nedges\n",
+        "connect segment 10 -1 1 -1\nedges 0\n",
+        "connect segment 10 -1 1 -1\nedges 0.1\nedges 0.1\n",
+    ):
+        with pytest.raises(FilterSyntaxError, match="edges"):
+            parse_filter(seg + bad, "x")

@@ -1049,6 +1049,7 @@ def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_
         assert m[np.isin(col, strip)].mean() < 0.05
         assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95
 
+
 def test_boxes_judge_returns_the_las_scale_blurs_past_a_quarter_cell_without_gps_time():
     # report 7600's first position: 1 cm coordinates at a 0.0365° step, a board and a pole
     # at 3-14 m. Half the returns lie within 5 m, whose angle the scale blurs by more than

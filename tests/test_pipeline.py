@@ -448,3 +448,27 @@ def test_square_by_square_features_equal_one_search_over_the_dtm(tmp_path, monke
         found = json.loads((j / "outputs" / "features.native.geojson").read_text())["features"]
         assert objects(found) == expected
     assert len(expected) >= 2, len(expected)
+
+
+def test_the_job_reads_the_dtm_around_an_object_as_the_whole_array_holds_it(tmp_path):
+    """The road filter's ``edges`` reads the job's DTM window by window
+    (``finish.dtm_heights(ds).window``): heights and geotransform of the window equal
+    the whole array's cells there, and the window is cut at the DTM's edges."""
+    from rasterio.transform import from_origin
+
+    from terrasift.jobs import finish
+
+    z = np.arange(40 * 60, dtype=np.float32).reshape(40, 60)
+    t = from_origin(1000.0, 2000.0, 0.5, 0.5)
+    path = tmp_path / "dtm.tif"
+    with rasterio.open(
+        path, "w", driver="GTiff", width=60, height=40, count=1, dtype="float32", transform=t
+    ) as ds:
+        ds.write(z, 1)
+    with rasterio.open(path) as ds:
+        read = finish.dtm_heights(ds).window
+        win, wt = read((1005.0, 1990.0, 1010.0, 1995.0))  # x 10-20 cells, y 10-20 rows down
+        assert (wt.c, wt.f) == (1005.0, 1995.0)
+        assert np.array_equal(win, z[10:20, 10:20])
+        win, wt = read((990.0, 1990.0, 1002.0, 2010.0))  # past the west and north edges
+        assert (wt.c, wt.f) == (1000.0, 2000.0) and np.array_equal(win, z[:20, :4])

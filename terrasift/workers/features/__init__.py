@@ -40,6 +40,8 @@ from terrasift.workers.categories import (
     regional_gradient,
 )
 from terrasift.workers.features import connect as _connect
+from terrasift.workers.features.edges import sides as edge_sides
+from terrasift.workers.features.edges import unbounded
 from terrasift.workers.features.language import (
     Filter,
     Length,
@@ -115,6 +117,18 @@ class DtmHeights:
         """Heights of a DTM held as an array."""
         z = np.asarray(dtm)
         return cls(lambda r0, r1, c0, c1: z[r0:r1, c0:c1], (z.shape[0], z.shape[1]), transform)
+
+    def window(self, bounds: tuple[float, float, float, float]) -> tuple[NDArray, Affine]:
+        """The cells covering map ``bounds`` (x0, y0, x1, y1), cut at the DTM's edges, and
+        their geotransform (``edges.Reader``)."""
+        t = self.transform
+        x0, y0, x1, y1 = bounds
+        c0 = max(0, int(np.floor((x0 - t.c) / t.a + 1e-9)))
+        c1 = min(self.shape[1], max(c0, int(np.ceil((x1 - t.c) / t.a - 1e-9))))
+        r0 = max(0, int(np.floor((y1 - t.f) / t.e + 1e-9)))
+        r1 = min(self.shape[0], max(r0, int(np.ceil((y0 - t.f) / t.e - 1e-9))))
+        z = np.asarray(self.read(r0, r1, c0, c1), dtype=np.float64)
+        return z, t * Affine.translation(c0, r0)
 
     def within(self, geom: Any) -> NDArray[np.float64]:
         """Heights (with data) of the cells whose centres lie in ``geom``, read block by
@@ -284,7 +298,8 @@ def detect_features(
     categories of overlapping tiles (``compute_categories(..., step=step)``, which
     need the DTM's transform) or of the detrended DTM (``categories_for`` makes them).
     ``dtm`` is the DTM the categories were made of, which a ``yield ... deeper`` rule
-    reads the heights under objects from (required when such a rule can apply).
+    reads the heights under objects from (required when such a rule can apply), and a
+    filter's ``edges`` reads its objects' sides from.
     """
     params = params or FeatureParams()
     tt = _tile_transform(categories, transform, tile_size)
@@ -330,7 +345,8 @@ def apply_yields(
     heights: DtmHeights | None = None,
     noise: float | None = None,
 ) -> list[Feature]:
-    """``objects`` without those a filter's ``yield`` drops: an object with at least the
+    """``objects`` without those a filter's ``edges`` (with ``heights``, the DTM) or
+    ``bank`` drops, and then those its ``yield`` drops: an object with at least the
     share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
     object of the named filter, as that filter found it, or, where the rule gives a length,
     no part of it beyond the distance that long. A named filter that did not run takes
@@ -351,6 +367,8 @@ def apply_yields(
     rules = {f.name: f.yields for f in filters if f.yields}
     # an object is measured on its filter's grid: overlapping tiles laid every step
     grid = {f.name: tile_size if f.step is None else f.step.value for f in filters}
+    if heights is not None:
+        objects = _drop_unbounded(objects, filters, tile_size, heights)
     banks = _banks(objects, filters)
     objects = [o for i, o in enumerate(objects) if i not in banks]
     if not rules:
@@ -407,6 +425,23 @@ def _deeper(
     if beside.size == 0:
         return False
     return float(np.median(beside)) - float(np.median(own)) > margin
+
+
+def _drop_unbounded(
+    objects: list[Feature], filters: list[Filter], tile_size: float, heights: DtmHeights
+) -> list[Feature]:
+    """``objects`` without the troughs and verges of the filters with ``edges``."""
+    drop: set[int] = set()
+    for f in filters:
+        if f.edges is None:
+            continue
+        mine = [i for i, o in enumerate(objects) if o.kind == f.name]
+        for i in mine:
+            others = [objects[j].geometry for j in mine if j != i]
+            s = edge_sides(objects[i].geometry, heights.window, tile_size, f.edges, others)
+            if s is not None and unbounded(s, f.edges) is not None:
+                drop.add(i)
+    return [o for i, o in enumerate(objects) if i not in drop]
 
 
 def _banks(objects: list[Feature], filters: list[Filter]) -> set[int]:

@@ -299,6 +299,14 @@ class Filter:
     between a rise and a fall, as a road cut into the slope, but the ditch's floor lies
     beside it where a cut road's floor is the road."""
 
+    edges: float | None = None
+    """``edges <height>``: once every filter has run, and before the banks and yields, an
+    object is read on the DTM across its whole length (``features.edges``) and dropped
+    when it is a trough (the ground past both its sides rising on, at more than half its
+    stations) or a verge (a step of more than ``height`` metres past one side at more
+    than half its stations, with another object of the filter beside it there, and none
+    past the other side). Needs the DTM; without it nothing is dropped."""
+
     majority: bool = False
     """``majority`` (with ``findrectangle``): a tile the segments miss but which is not
     ``clear`` (its excess over the flatness threshold within what the DTM's slope noise
@@ -402,6 +410,7 @@ class _Parser:
         yields: list[tuple[str, Length, float] | tuple[str, Length, float, Length]] = []
         banks: list[str] = []
         deeper: list[tuple[str, float]] = []
+        edges: float | None = None
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
@@ -537,6 +546,14 @@ class _Parser:
                 banks.append(args[0])
                 if "bank" not in steps:
                     steps.append("bank")
+            elif key == "edges":
+                msg = "edges takes one height in metres, above 0 and at most 5, once"
+                if len(args) != 1 or edges is not None:
+                    raise self.error(msg, no)
+                (edges,) = self.numbers(args, no, "edges")
+                if not 0 < edges <= 5:
+                    raise self.error(msg, no)
+                steps.append("edges")
             elif key == "fill":
                 if hull or args != ["hull"]:
                     raise self.error("fill takes 'hull', once", no)
@@ -602,6 +619,8 @@ class _Parser:
             raise self.error("yield needs a connect or findrectangle step", last_line)
         if banks and connect is None and rect is None:
             raise self.error("bank needs a connect or findrectangle step", last_line)
+        if edges is not None and connect is None:
+            raise self.error("edges needs a connect step", last_line)
         return Filter(
             self.name,
             tuple(segments),
@@ -628,6 +647,7 @@ class _Parser:
             diagonal=diagonal,
             majority=majority,
             yield_deeper=tuple(deeper),
+            edges=edges,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -876,6 +896,8 @@ def format_filter(f: Filter) -> str:
             out += [f"bank {b}" for b in f.banks]
         elif step == "majority" and f.majority:
             out.append("majority")
+        elif step == "edges" and f.edges is not None:
+            out.append(f"edges {f.edges:g}")
     return "\n".join(out) + "\n"
 
 
@@ -909,6 +931,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("bank")
     if f.majority:
         steps.append("majority")
+    if f.edges is not None:
+        steps.append("edges")
     return tuple(steps)
 
 
