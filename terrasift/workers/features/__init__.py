@@ -128,7 +128,7 @@ class DtmHeights:
         r0 = max(0, int(np.floor((y1 - t.f) / t.e + 1e-9)))
         r1 = min(self.shape[0], max(r0, int(np.ceil((y0 - t.f) / t.e - 1e-9))))
         z = np.asarray(self.read(r0, r1, c0, c1), dtype=np.float64)
-        return z, t * Affine.translation(c0, r0)
+        return z, t @ Affine.translation(c0, r0)
 
     def within(self, geom: Any) -> NDArray[np.float64]:
         """Heights (with data) of the cells whose centres lie in ``geom``, read block by
