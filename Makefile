@@ -19,7 +19,7 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check terrasift tests benchmarks scripts
 	$(VENV)/bin/ruff format --check terrasift tests benchmarks scripts
 	$(VENV)/bin/mypy terrasift
-	$(PY) -m pytest
+	$(PY) -m pytest -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(PY) benchmarks/pipeline_speed.py

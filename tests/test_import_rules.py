@@ -7,6 +7,7 @@ with ``ast`` rather than importing it.
 from __future__ import annotations
 
 import ast
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -66,8 +67,10 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     return found
 
 
-def _edges() -> list[tuple[str, str, str]]:
-    """(importing room, imported room, where) over every module of the package."""
+@cache
+def _edges() -> tuple[tuple[str, str, str], ...]:
+    """(importing room, imported room, where) over every module of the package; read once
+    for all the tests below."""
     edges = []
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).with_suffix("")
@@ -78,7 +81,7 @@ def _edges() -> list[tuple[str, str, str]]:
                 edges.append(
                     (src, dst, f"{path.relative_to(PACKAGE.parent)}:{line} imports {module}")
                 )
-    return edges
+    return tuple(edges)
 
 
 def test_the_walk_sees_function_level_imports():
