@@ -1041,15 +1041,23 @@ def _thin_runs(
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
+        # runs longer than s.thin fall to one nearest beam and rise from it by more than
+        # the margin at every beam: only returns off both neighbours by that much
+        steep = np.flatnonzero((np.abs(R[1] - r) > s.margin) & (np.abs(R[-1] - r) > s.margin))
         for L in range(1, max(s.thin, s.thin_peak) + 1):
             # p at position q (0..L-1) within a run of L beams: background at -(q+1) and +(L-q)
             for q in range(L):
                 lo, hi = -(q + 1), L - q
                 if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
                     continue
-                d0, d1 = R[lo] - r, R[hi] - r
+                if s.thin < L:
+                    d0, d1 = R[lo][steep] - r[steep], R[hi][steep] - r[steep]
+                else:
+                    d0, d1 = R[lo] - r, R[hi] - r
                 behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap) & (d1 < s.max_gap)
                 c = np.flatnonzero(behind)  # the rest is judged on these few only
+                if s.thin < L:
+                    c = steep[c]
                 if c.size == 0:
                     continue
                 rc, rb0, rb1 = r[c], R[lo][c], R[hi][c]
