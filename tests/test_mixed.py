@@ -1081,3 +1081,28 @@ def test_boxes_judge_returns_the_las_scale_blurs_past_a_quarter_cell_without_gps
         tile.xyz, MixedParams(), tile.origins, tile.scan_id, gps_time=tile.gps_time
     ).marked
     assert np.count_nonzero(with_time & truth) / np.count_nonzero(truth) > 0.85
+
+
+def test_grid_marks_a_pole_run_with_one_pure_return_longer_than_two_footprints():
+    # Shared-report 4405 (0.047° steps, 2.1 mm range scatter, a footprint of 2.05 steps
+    # measured): a pole at 23 m in front of a background at 23.65 m shows seven beams,
+    # three in front on each side of its one pure return, one beam more than the
+    # ceil(2F) + 1 thin runs reached; each ramp spans up to ceil(F) = 3 beams. Main marked
+    # 15-40 % of the run. A run falling to one nearest beam and rising from it, by more
+    # than the margin at every beam, is marked up to 2 ceil(F) + 1 beams; a pole wider
+    # than the footprint, whose three pure returns lie level, is not (its ramps are).
+    step = 0.047
+    pole = {0: 23.58, 1: 23.33, 2: 23.10, 3: 22.98, 4: 23.11, 5: 23.33, 6: 23.59}
+    wide = {0: 23.58, 1: 23.25, 2: 22.98, 3: 22.98, 4: 22.98, 5: 23.25, 6: 23.59}
+    for seed in range(3):
+        for run in (pole, wide):
+            xyz, col = _wall_grid(
+                lambda c, run=run: run.get(c, 23.65), step=step, seed=seed, noise=0.0021
+            )
+            m = mark_mixed(xyz, MixedParams(footprint=2.05 * step), np.zeros(3)).marked
+            assert m[~np.isin(col, list(run))].mean() < 0.002
+            if run is pole:
+                assert m[np.isin(col, list(run))].mean() > 0.95  # main: 0.15-0.40
+            else:
+                assert m[np.isin(col, [0, 1, 5, 6])].mean() > 0.95
+                assert m[np.isin(col, [2, 3, 4])].mean() < 0.25  # 0.16-0.17, as on main

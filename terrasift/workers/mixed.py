@@ -462,6 +462,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         reach=reach,
         max_gap=p.box_depth,
         thin=int(min(np.ceil(2 * wide) + 1, reach + 1)),
+        thin_peak=int(min(2 * np.ceil(wide) + 1, reach + 1)),
         footprint=float(bleed_fp),
         span=int(np.ceil(fp)) + GRID_SPAN,
         las_scale=geo.las_scale,

@@ -113,6 +113,7 @@ class GridSettings:
     reach: int  # beams searched for the surfaces on each side
     max_gap: float  # largest foreground-background gap that still blends
     thin: int  # longest run of beams in front of a background marked as thin (0: off)
+    thin_peak: int = 0  # longest such run falling to one nearest beam and rising from it
     footprint: float = 1.0  # beam footprint in steps (edges bleed by half of it)
     span: int = 99  # most beams between the two surfaces of a blend
     las_scale: float = 0.0
@@ -1040,15 +1041,23 @@ def _thin_runs(
     per beam across the axis; grazing ground before a pole's foot is not in front of it)."""
     out = np.zeros(r.size, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
-        for L in range(1, s.thin + 1):
+        # runs longer than s.thin fall to one nearest beam and rise from it by more than
+        # the margin at every beam: only returns off both neighbours by that much
+        steep = np.flatnonzero((np.abs(R[1] - r) > s.margin) & (np.abs(R[-1] - r) > s.margin))
+        for L in range(1, max(s.thin, s.thin_peak) + 1):
             # p at position q (0..L-1) within a run of L beams: background at -(q+1) and +(L-q)
             for q in range(L):
                 lo, hi = -(q + 1), L - q
                 if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
                     continue
-                d0, d1 = R[lo] - r, R[hi] - r
+                if s.thin < L:
+                    d0, d1 = R[lo][steep] - r[steep], R[hi][steep] - r[steep]
+                else:
+                    d0, d1 = R[lo] - r, R[hi] - r
                 behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap) & (d1 < s.max_gap)
                 c = np.flatnonzero(behind)  # the rest is judged on these few only
+                if s.thin < L:
+                    c = steep[c]
                 if c.size == 0:
                     continue
                 rc, rb0, rb1 = r[c], R[lo][c], R[hi][c]
@@ -1056,6 +1065,12 @@ def _thin_runs(
                 keep = np.ones(c.size, dtype=bool)
                 for m in range(lo + 1, hi):
                     keep &= R[m][c] < np.minimum(rb0, rb1) - s.margin
+                if s.thin < L:
+                    # longer than a run with one return off the ramps: the run shows at
+                    # most one return of the object. Two returns of a face-on object lie
+                    # within the margin of each other
+                    run = np.stack([R[m][c] if m else rc for m in range(lo + 1, hi)])
+                    keep &= _one_nearest(run, s.margin)
                 # the background continues behind the run: each side's surface,
                 # continued across the run, lands on the other side's beam
                 v0, v1 = V[lo][c], V[hi][c]
@@ -1098,6 +1113,17 @@ def _thin_runs(
                 in_front = (rb0 - rc) / np.sqrt(1.0 + tan_a**2 + tan_x**2) > least
                 out[c[keep & cont & in_front]] = True
     return out
+
+
+def _one_nearest(run: NDArray[np.float64], margin: float) -> NDArray[np.bool_]:
+    """Runs (beams × returns) falling to one nearest beam and rising from it: every beam
+    nearer than the one before by more than ``margin`` down to the nearest, every beam
+    after it farther by more than ``margin``."""
+    k = np.argmin(np.where(np.isfinite(run), run, np.inf), axis=0)
+    d = np.diff(run, axis=0)
+    j = np.arange(d.shape[0])[:, None]
+    with np.errstate(invalid="ignore"):
+        return np.asarray(np.where(j < k[None], -d > margin, d > margin).all(axis=0), dtype=bool)
 
 
 def _hidden_gaps(
