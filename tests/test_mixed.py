@@ -1106,3 +1106,37 @@ def test_grid_marks_a_pole_run_with_one_pure_return_longer_than_two_footprints()
             else:
                 assert m[np.isin(col, [0, 1, 5, 6])].mean() > 0.95
                 assert m[np.isin(col, [2, 3, 4])].mean() < 0.25  # 0.16-0.17, as on main
+
+
+def test_a_position_whose_angles_show_no_grid_takes_the_steps_of_another_without_gps_time():
+    # report 8008: 1 cm coordinates at a 0.0352° step. The first position sees every return
+    # within about 10 m, so its angles show no grid and it ran on the fixed 0.25° cells with
+    # no blur test: 9500 false marks at 4-15 m. The second position, looking to 15 m, measures
+    # the steps, and they give both positions' returns per square radian: the first takes them.
+    from terrasift.synthetic.scan import make_scan_tile
+
+    near = 4.657
+    half = np.degrees(np.arctan(3.0 / near)) + 1.0
+    tile = make_scan_tile(
+        [(0.0, -3.0, 2.04), (60.0, 4.0, 2.40)],
+        seed=8008,
+        step_deg=0.0352,
+        footprint_steps=2.11,
+        sub_rays=(13, 7),
+        range_noise=0.008,
+        las_scale=0.01,
+        azimuth_deg=(-3.0, 3.0),
+        elevation_deg=(-half, half),
+        n_boards=1,
+        n_poles=1,
+        object_range=(near, 17.08),
+    )
+    res = mark_mixed(tile.xyz, MixedParams(), tile.origins, tile.scan_id)
+    on = tile.scan_id == 0
+    truth, m = tile.is_mixed[on], res.marked[on]
+    assert np.count_nonzero(m & ~truth) / np.count_nonzero(~truth) < 0.01  # main: 0.056
+    assert np.count_nonzero(m & truth) / np.count_nonzero(truth) > 0.8  # 0.85 (main: 0.93)
+    g = res.geometry[0]["measured"]
+    assert g["how"]["step"].startswith("lent by another position")
+    assert g["step_az"] == res.geometry[1]["measured"]["step_az"]
+    assert np.count_nonzero(res.marked & ~tile.is_mixed) / np.count_nonzero(~tile.is_mixed) < 0.01

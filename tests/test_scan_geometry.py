@@ -372,3 +372,48 @@ def test_footprint_from_returns_whose_quantisation_box_spans_under_a_step():
     assert g is not None
     assert 1.2 < g.footprint_steps < 1.7, g  # 1.4 drawn
     assert "quantisation box" in g.how["footprint"]
+
+
+def test_a_position_with_no_grid_takes_the_steps_of_one_that_holds_its_returns(
+    near_coarse_scan,
+):
+    # report 8008: one position sees every return within about 10 m with 1 cm coordinates
+    # at 0.035°, so its angles show no grid; another position of the tile, looking farther,
+    # measures the steps. Its steps are lent when 1 / (step_az · step_el) matches the
+    # returns per square radian of both positions; a lender 8 % short in azimuth (report
+    # 7304's, measured on blurred angles) is refused and the position keeps no geometry.
+    from dataclasses import replace
+
+    from terrasift.workers.scan_geometry import angular_density, lenders
+
+    s = near_coarse_scan
+    rel = s.xyz - s.origin
+    assert measure_scan_geometry(rel, absolute=s.xyz) is None
+    far = make_scan(
+        step_deg=0.035,
+        footprint_steps=2.0,
+        azimuth_deg=(-2.0, 2.0),
+        elevation_deg=(-8.0, 4.0),
+        n_boards=2,
+        n_poles=1,
+        object_range=(14.0, 30.0),
+        las_scale=0.01,
+        seed=4,
+    )
+    lender = measure_scan_geometry(far.xyz - far.origin, absolute=far.xyz)
+    assert lender is not None and lender.step_az == pytest.approx(0.035, rel=0.01)
+    assert lender.density * np.radians(lender.step_az) * np.radians(lender.step_el) == (
+        pytest.approx(1.0, abs=0.02)
+    )
+    g = measure_scan_geometry(rel, absolute=s.xyz, lenders=lenders([None, lender]))
+    assert g is not None
+    assert (g.step_az, g.step_el) == (lender.step_az, lender.step_el)
+    assert g.how["step"].startswith("lent by another position")
+    assert g.las_scale == pytest.approx(0.01)
+    short = replace(lender, step_az=0.92 * lender.step_az)
+    assert measure_scan_geometry(rel, absolute=s.xyz, lenders=[short]) is None
+    # the count checks the product of both steps, whatever their blur
+    r = np.linalg.norm(rel, axis=1)
+    az, el = np.arctan2(rel[:, 1], rel[:, 0]), np.arcsin(rel[:, 2] / r)
+    st = np.radians(0.035)
+    assert angular_density(az, el, st, st) * st * st == pytest.approx(1.0, abs=0.02)

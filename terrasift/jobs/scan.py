@@ -28,6 +28,7 @@ from terrasift.workers.mixed import MixedParams
 from terrasift.workers.scan_geometry import (
     MAX_SAMPLE,
     ScanGeometry,
+    lenders,
     measure_scan_geometry,
     pool_footprints,
     ramp_sectors,
@@ -121,7 +122,7 @@ def measure_job_geometry(
                     if timed
                     else np.full(part.size, np.nan)
                 )
-    geos: list[ScanGeometry | None] = []
+    taken: list[tuple[list[NDArray[np.float64]], list[NDArray[np.float64]]]] = []
     for s in range(k):
         # each range's points: those in its bins sorted by azimuth, cut at its ranks
         # (the points before its first bin are counted in the histogram)
@@ -135,16 +136,28 @@ def measure_job_geometry(
             take = order[max(first, 0) : max(first, 0) + (stop - start)]
             cut.append(xyz[take])
             cut_t.append(tq[take])
-        xyz = cut[0]
-        geo = measure_scan_geometry(
-            xyz - o[s],
-            footprint=params.footprint,
-            absolute=xyz,
-            sectors=[c - o[s] for c in cut[1:]],
-            gps_time=cut_t[0] if cut_t[0].size and np.isfinite(cut_t[0]).all() else None,
-        )
-        a0, a1, e0, e1 = (float(v) for v in fov[s])
-        geos.append(None if geo is None else replace(geo, field_of_view=(a0, a1, e0, e1)))
+        taken.append((cut, cut_t))
+    geos: list[ScanGeometry | None] = [None] * k
+    for lend in (False, True):
+        # a position whose angles show no grid takes the steps of another (``lent_steps``)
+        others = lenders(geos) if lend else []
+        if lend and not others:
+            break
+        for s in range(k):
+            if geos[s] is not None:
+                continue
+            cut, cut_t = taken[s]
+            xyz = cut[0]
+            geo = measure_scan_geometry(
+                xyz - o[s],
+                footprint=params.footprint,
+                absolute=xyz,
+                sectors=[c - o[s] for c in cut[1:]],
+                gps_time=cut_t[0] if cut_t[0].size and np.isfinite(cut_t[0]).all() else None,
+                lenders=others,
+            )
+            a0, a1, e0, e1 = (float(v) for v in fov[s])
+            geos[s] = None if geo is None else replace(geo, field_of_view=(a0, a1, e0, e1))
     out: list[dict[str, Any] | None] = []
     for s, geo in enumerate(pool_footprints(geos)):
         if geo is None:

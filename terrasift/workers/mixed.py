@@ -55,6 +55,7 @@ from terrasift.workers.registry import StageParams, register
 from terrasift.workers.scan_geometry import (
     ScanGeometry,
     field_of_view,
+    lenders,
     measure_scan_geometry,
     pool_footprints,
 )
@@ -355,16 +356,24 @@ def _position_geometry(
         return geos
     if all(g is not None for g in geos):
         return geos
-    for i in range(k):
-        if geos[i] is None:
-            idx = np.flatnonzero(ids == i) if ids is not None else slice(None)
-            if xyz[idx].shape[0] > 0:
-                geos[i] = measure_scan_geometry(
-                    xyz[idx] - origins[i],
-                    footprint=params.footprint,
-                    absolute=xyz[idx],
-                    gps_time=None if times is None else times[idx],
-                )
+    given = geometry is not None
+    for lend in (False, True):
+        # a position whose angles show no grid takes the steps of another (``lent_steps``);
+        # a job has tried that on the geometry it passes
+        if lend and (given or all(g is None for g in geos)):
+            break
+        others = lenders(geos) if lend else []
+        for i in range(k):
+            if geos[i] is None:
+                idx = np.flatnonzero(ids == i) if ids is not None else slice(None)
+                if xyz[idx].shape[0] > 0:
+                    geos[i] = measure_scan_geometry(
+                        xyz[idx] - origins[i],
+                        footprint=params.footprint,
+                        absolute=xyz[idx],
+                        gps_time=None if times is None else times[idx],
+                        lenders=others,
+                    )
     return pool_footprints(geos)
 
 

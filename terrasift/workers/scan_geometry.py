@@ -70,6 +70,13 @@ class ScanGeometry:
     # job holds only part of it); None: the returns at hand bound it
     field_of_view: tuple[float, float, float, float] | None = None
     footprint_edges: int = 0  # ramps the footprint was measured on (0: stated or none)
+    # returns whose quantisation angle stays under a tenth of the step that the steps were
+    # measured on; 0 when every angle was blurred past that (the steps then rest on blurred
+    # spacings) or the steps came from the firing order
+    sharp_returns: int = 0
+    # returns per square radian of azimuth × elevation where the returns fill the view
+    # (``angular_density``); 0 when not measured. A regular grid holds 1 / (step_az · step_el)
+    density: float = 0.0
 
     @property
     def step(self) -> float:
@@ -109,6 +116,7 @@ def measure_scan_geometry(
     max_gap: float = 2.5,
     sectors: Sequence[NDArray[np.float64]] | None = None,
     gps_time: NDArray[np.float64] | None = None,
+    lenders: Sequence[ScanGeometry] = (),
 ) -> ScanGeometry | None:
     """Measure the geometry of the points ``rel`` (relative to their sensor).
 
@@ -118,6 +126,8 @@ def measure_scan_geometry(
     is measured on (``ramp_sectors``); None cuts them from ``rel``, the whole scan.
     ``gps_time`` (one per point of ``rel``, or None) gives the steps from the firing
     order where the angles show no grid (``firing_steps``).
+    ``lenders`` (other positions of the tile, best measured first) lend their steps where
+    these angles show none (``lent_steps``).
     Returns None when there are too few points to measure anything.
     """
     rel = np.asarray(rel, dtype=np.float64)
@@ -167,13 +177,19 @@ def measure_scan_geometry(
         # successive pulses still gives the step
         sa, se = firing_steps(t, az, el, las_scale, r)
         fired = bool(np.isfinite(sa) and np.isfinite(se))
+    lent, lender = False, ""
+    if (not np.isfinite(sa) or not np.isfinite(se)) and lenders:
+        sa, se, lender = lent_steps(az, el, lenders)
+        lent = bool(np.isfinite(sa) and np.isfinite(se))
     if not np.isfinite(sa) or not np.isfinite(se):
         return None
     sharp = 0.0  # returns nearer than this blur past a tenth of a step
     blurred = False  # no return sharp enough: the spacing was measured on blurred angles
-    if fired:
+    n_sharp = 0
+    if fired or lent:
         ok = far
         sharp = r_far
+        blurred = lent
     elif las_scale > 0:
         ok = las_scale / np.sqrt(12.0) / r < 0.1 * min(sa, se)
         if np.count_nonzero(ok) >= 50:
@@ -181,12 +197,14 @@ def measure_scan_geometry(
             sa2, se2 = _steps(az[ok], el[ok])
             if np.isfinite(sa2) and np.isfinite(se2):
                 sa, se = sa2, se2
+                n_sharp = int(np.count_nonzero(ok))
         else:
             ok = far
             sharp = r_far
             blurred = True
     else:
         ok = np.ones(r.size, dtype=bool)
+        n_sharp = r.size
     blur = las_scale / np.sqrt(12.0) / r  # sd of each angle from the coordinate step
     if fired:
         how["step"] = (
@@ -194,6 +212,13 @@ def measure_scan_geometry(
             "mean elevation change between successive pulses of a column and azimuth change "
             "between pulses one column length apart, refitted by least squares on every "
             "return's beam (column, row) from its pulse number"
+        )
+    elif lent:
+        how["step"] = (
+            f"lent by another position of the tile ({lender}): these angles show no grid "
+            "(every return blurred past it by the LAS scale), and its steps give this "
+            f"position's own returns per square radian within {LEND_TOL:.0%}, as they give "
+            "its own"
         )
     else:
         ra, re_ = refine_step(az, sa, blur=blur), refine_step(el, se, blur=blur)
@@ -281,7 +306,90 @@ def measure_scan_geometry(
         n_points=int(r.size),
         how=how,
         footprint_edges=int(edges),
+        sharp_returns=n_sharp,
+        density=angular_density(az, el, sa, se),
     )
+
+
+DENSITY_CELL = 8  # steps across a cell of ``angular_density``
+LEND_TOL = 0.04  # 1 / (step_az · step_el) against returns per square radian (2 × SAME_STEP)
+
+
+def angular_density(
+    az: NDArray[np.float64], el: NDArray[np.float64], sa: float, se: float
+) -> float:
+    """Returns per square radian of azimuth × elevation where they fill the view (0: none).
+
+    Cells of ``DENSITY_CELL`` steps (``sa``, ``se``, radians) across the azimuths of the
+    returns (a contiguous sector) less two steps at either end; a cell counts where it and
+    its eight neighbours hold returns (inside a surface, not at the sky's edge); the mean
+    count over those within 25 % of their median (a median of whole counts runs up to 1 %
+    short). A regular grid of beams that all return holds 1 / (sa · se); the LAS scale's
+    blur moves returns across cell borders both ways and leaves the count. Beams without
+    a return (dark surfaces) lower it.
+    """
+    if az.size < 50 or not (np.isfinite(sa) and np.isfinite(se)) or sa <= 0 or se <= 0:
+        return 0.0
+    a0, a1 = float(az.min()) + 2.0 * sa, float(az.max()) - 2.0 * sa
+    na = int((a1 - a0) // (DENSITY_CELL * sa))
+    if na < 1:
+        return 0.0
+    ca, ce = (a1 - a0) / na, DENSITY_CELL * se
+    inside = (az >= a0) & (az < a1)
+    ia = np.minimum(((az[inside] - a0) / ca).astype(np.int64), na - 1)
+    ie = ((el[inside] - float(el.min())) / ce).astype(np.int64)
+    if ie.size == 0:
+        return 0.0
+    img = np.zeros((na, int(ie.max()) + 1), dtype=np.int64)
+    np.add.at(img, (ia, ie), 1)
+    full = img > 0
+    inner = full.copy()
+    inner[:, 0] = inner[:, -1] = False
+    inner[:, 1:-1] &= full[:, :-2] & full[:, 2:]
+    # the sector's first and last cells lie inside it: their outer side counts as held
+    inner[1:, 1:-1] &= full[:-1, :-2] & full[:-1, 1:-1] & full[:-1, 2:]
+    inner[:-1, 1:-1] &= full[1:, :-2] & full[1:, 1:-1] & full[1:, 2:]
+    v = img[inner].astype(np.float64)
+    if v.size < 10:
+        return 0.0
+    v = v[np.abs(v / np.median(v) - 1.0) <= 0.25]
+    return float(v.mean() / (ca * ce))
+
+
+def lenders(geos: Sequence[ScanGeometry | None]) -> list[ScanGeometry]:
+    """The measured positions that may lend their steps, best measured first (most
+    returns sharp to a tenth of a step, then most returns)."""
+    have = [g for g in geos if g is not None]
+    return sorted(have, key=lambda g: (-g.sharp_returns, -g.n_points))
+
+
+def _holds(density: float, sa: float, se: float) -> bool:
+    """Whether steps (radians) agree with returns per square radian within ``LEND_TOL``."""
+    return density > 0 and abs(density * sa * se - 1.0) <= LEND_TOL
+
+
+def lent_steps(
+    az: NDArray[np.float64], el: NDArray[np.float64], lenders: Sequence[ScanGeometry]
+) -> tuple[float, float, str]:
+    """Steps (radians) of the first of ``lenders`` whose grid agrees with its own returns
+    per square radian and with those of the angles ``az``, ``el`` (a position whose angles
+    show no grid: 1 cm coordinates, every return within 10 m at a 0.035° step), with how
+    that lender was measured; NaN when none does.
+
+    The positions of a tile are taken as one scanner (as ``pool_footprints`` does). A
+    lender's steps measured on blurred angles can run off (5 mm coordinates at 0.033°: 8 %
+    short in azimuth) and would set this position's cells and boxes as far off; the count
+    of returns per square radian checks the product of both steps, whatever their blur.
+    """
+    for g in lenders:
+        sa, se = np.radians(g.step_az), np.radians(g.step_el)
+        if not _holds(g.density, sa, se):
+            continue
+        if _holds(angular_density(az, el, sa, se), sa, se):
+            n = g.sharp_returns
+            on = f"on {n} sharp returns" if n else "on blurred returns"
+            return float(sa), float(se), f"steps {on}"
+    return float("nan"), float("nan"), ""
 
 
 SAME_STEP = 0.02  # relative difference of two positions' steps still taken as one scanner
