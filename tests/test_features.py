@@ -2346,7 +2346,7 @@ def test_a_verge_beside_a_road_and_a_trough_between_slopes_are_not_roads(seed):
 
 
 def test_a_band_leaning_with_its_slope_is_not_a_road():
-    """ISPRS samp61/samp52: berms and terraces 4-11 m wide on 14-27 % embankment and
+    """ISPRS samp61/samp52: berms and terraces 4-11 m wide on 14-28 % embankment and
     hillside slopes, tilted 4-5 % with the slope, read level on 2 m tiles (under 0.15 m
     over a tile) between a rising and a falling side, a road along the contour. Here a
     20 % hillside holds an 8 m band falling at 4.5 % and an 8 m bench that is level
