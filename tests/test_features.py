@@ -13,6 +13,7 @@ from shapely.geometry import box
 from terrasift.errors import FilterSyntaxError, ParameterError
 from terrasift.workers.categories import NODATA, Categories
 from terrasift.workers.features import (
+    DtmHeights,
     builtin_filter_names,
     categories_for,
     connect_reach,
@@ -28,6 +29,8 @@ from terrasift.workers.features import (
 )
 from terrasift.workers.features import connect as C
 from terrasift.workers.features import search as search_mod
+from terrasift.workers.features.edges import sides as edge_sides
+from terrasift.workers.features.edges import unbounded
 from terrasift.workers.features.language import (
     Filter,
     Metres,
@@ -2332,7 +2335,7 @@ def test_a_verge_beside_a_road_and_a_trough_between_slopes_are_not_roads(seed):
     stays. Without the DTM nothing is dropped."""
     scene, dtm, tt = _family_dtm(seed)
     flt = load_filter("road")
-    assert flt.edges == 0.1 and "edges 0.1" in format_filter(flt).splitlines()
+    assert flt.edges == 0.1 and "edges 0.1 0.03" in format_filter(flt).splitlines()
     cats, stepped = categories_for(dtm, 0.5, [flt])
     found = detect_features(cats, [flt], tt, cats.tile_size, stepped=stepped, dtm=dtm).objects
     truth = [t.polygon for t in scene.truth if t.kind == "road"]
@@ -2342,17 +2345,51 @@ def test_a_verge_beside_a_road_and_a_trough_between_slopes_are_not_roads(seed):
     assert len(blind) == len(found) + 1
 
 
+def test_a_band_leaning_with_its_slope_is_not_a_road():
+    """ISPRS samp61/samp52: berms and terraces 4-11 m wide on 14-28 % embankment and
+    hillside slopes, tilted 4-5 % with the slope, read level on 2 m tiles (under 0.15 m
+    over a tile) between a rising and a falling side, a road along the contour. Here a
+    20 % hillside holds an 8 m band falling at 4.5 % and an 8 m bench that is level
+    across: the road filter's ``edges`` reads the band's tilt on the DTM and drops it;
+    the level bench stays a road."""
+    cell = 0.5
+    x = (np.arange(240) + 0.5) * cell
+    g = np.full_like(x, 0.2)
+    g[(x >= 30) & (x < 38)] = 0.045
+    g[(x >= 80) & (x < 88)] = 0.0
+    dtm = np.tile(100 - np.cumsum(g) * cell, (480, 1))
+    dtm += np.random.default_rng(7).normal(0, 0.01, dtm.shape)
+    tt = Affine(cell, 0, 0, 0, -cell, 240.0)
+    flt = load_filter("road")
+    assert flt.edges_tilt == 0.03
+    cats, stepped = categories_for(dtm, cell, [flt])
+    blind = detect_features(cats, [flt], tt, 2.0, stepped=stepped).objects
+    found = detect_features(cats, [flt], tt, 2.0, stepped=stepped, dtm=dtm).objects
+    assert sorted(round(o.geometry.centroid.x) for o in blind) == [34, 84]
+    (road,) = found
+    assert round(road.geometry.centroid.x) == 84 and road.length_m > 200
+    band = min(blind, key=lambda o: o.geometry.centroid.x)
+    s = edge_sides(band.geometry, DtmHeights.of(dtm, tt).window, 2.0, 0.1)
+    assert s is not None and 0.04 < abs(s.tilt) < abs(s.ground)
+    assert unbounded(s, 0.1) is None and unbounded(s, 0.1, 0.03) == "slope"
+
+
 def test_edges_parses_formats_and_needs_a_connect_step():
     """``edges <height>`` (metres, once) needs objects to read; it survives a round trip."""
     seg = "beginsegment\n  beginsubsegment 2 4\n    begincategory\n      inclination 0\n"
     seg += "      state 0\n      orientation 0\n    endcategory\n  endsubsegment\nendsegment\n"
     flt = parse_filter(seg + "connect segment 10 -1 1 -1\nedges 0.2\n", "x")
     assert flt.edges == 0.2 and parse_filter(format_filter(flt), "x") == flt
+    flt = parse_filter(seg + "connect segment 10 -1 1 -1\nedges 0.2 0.03\n", "x")
+    assert (flt.edges, flt.edges_tilt) == (0.2, 0.03)
+    assert parse_filter(format_filter(flt), "x") == flt
     for bad in (
         "edges 0.2\n",
         "connect segment 10 -1 1 -1\nedges\n",
         "connect segment 10 -1 1 -1\nedges 0\n",
         "connect segment 10 -1 1 -1\nedges 0.1\nedges 0.1\n",
+        "connect segment 10 -1 1 -1\nedges 0.1 0\n",
+        "connect segment 10 -1 1 -1\nedges 0.1 0.03 1\n",
     ):
         with pytest.raises(FilterSyntaxError, match="edges"):
             parse_filter(seg + bad, "x")

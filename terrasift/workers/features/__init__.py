@@ -430,7 +430,8 @@ def _deeper(
 def _drop_unbounded(
     objects: list[Feature], filters: list[Filter], tile_size: float, heights: DtmHeights
 ) -> list[Feature]:
-    """``objects`` without the troughs and verges of the filters with ``edges``."""
+    """``objects`` without the troughs, verges and slope bands of the filters with
+    ``edges``."""
     drop: set[int] = set()
     for f in filters:
         if f.edges is None:
@@ -439,7 +440,7 @@ def _drop_unbounded(
         for i in mine:
             others = [objects[j].geometry for j in mine if j != i]
             s = edge_sides(objects[i].geometry, heights.window, tile_size, f.edges, others)
-            if s is not None and unbounded(s, f.edges) is not None:
+            if s is not None and unbounded(s, f.edges, f.edges_tilt) is not None:
                 drop.add(i)
     return [o for i, o in enumerate(objects) if i not in drop]
 

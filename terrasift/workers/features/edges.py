@@ -12,6 +12,12 @@ DTM's heights (not its tiles):
   wall on one side; on the other it simply goes on at the strip's own height and tilt
   (a ditch dug in it does not make it a road). A road on an embankment or in a cut has
   its own step on both sides.
+- a *slope band*: a berm or slope break on an embankment, a terrace on a hillside, only
+  gentler than the slope it lies on. On 2 m tiles it reads level (a tile may rise 0.15 m
+  over 1.5 m) between a rising and a falling side, as a road along the contour does; on
+  the DTM its strip leans with the slope: it falls across, by more than a road's crossfall,
+  toward the side the ground past both its sides falls to, and that ground falls more
+  steeply.
 
 The object is read along its long axis at stations one tile apart: at each, the strip's
 samples inside the polygon (every half tile across), the strip's level (their median),
@@ -58,6 +64,11 @@ class Sides:
     rise_right: NDArray[np.bool_]
     beside: NDArray[np.bool_]
     """(2, stations): the near band touches another object of the filter, per side."""
+    tilt: float = 0.0
+    """The strip's slope across (rise per metre toward the right side), over the object."""
+    ground: float = 0.0
+    """The ground's slope across past both sides (near and far bands, one plane through
+    both sides' samples over the object), rise per metre toward the right side."""
 
 
 def _axis(g: Polygon | MultiPolygon) -> tuple[NDArray, NDArray, float, float]:
@@ -112,6 +123,7 @@ def sides(
     hi = np.array([tr[m].max() for tr, m in zip(t, inside, strict=True)])
     out = []
     beside = np.zeros((2, len(top)), dtype=bool)
+    ground = _ground_slope(z, t, lo, hi, tile)
     for k, (sign, edge) in enumerate(((-1, lo), (1, hi))):
         past = sign * (t - edge[:, None])  # metres past the strip's edge, this side
         near = (past >= tile) & (past <= 3 * tile)
@@ -132,7 +144,33 @@ def sides(
                 hit |= shapely.contains_xy(o, p[..., 0], p[..., 1])
             beside[k] = (hit & near).any(axis=1)
     (left, rl), (right, rr) = out
-    return Sides(left, right, rl, rr, beside)
+    return Sides(left, right, rl, rr, beside, float(tilt), ground)
+
+
+def _ground_slope(
+    z: NDArray[np.float64],
+    t: NDArray[np.float64],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    tile: float,
+) -> float:
+    """The ground's slope across past both sides of the strip (every sample from one
+    tile past its edges out to the far band's end), one slope for the object with a
+    height of its own at every station (the slope along the object left out); 0 where
+    no station has ground on both sides."""
+    band = ((t <= lo[:, None] - tile) | (t >= hi[:, None] + tile)) & np.isfinite(z)
+    left = np.any(band & (t < lo[:, None]), axis=1)
+    right = np.any(band & (t > hi[:, None]), axis=1)
+    band = band & (left & right)[:, None]
+    if not band.any():
+        return 0.0
+    tc = np.where(band, t, np.nan)
+    zc = np.where(band, z, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # stations without ground
+        dt = tc - np.nanmean(tc, axis=1)[:, None]
+        dz = zc - np.nanmean(zc, axis=1)[:, None]
+    return float(np.sum(dt[band] * dz[band]) / max(np.sum(dt[band] ** 2), 1e-12))
 
 
 def _band_median(z: NDArray[np.float64], band: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -143,13 +181,18 @@ def _band_median(z: NDArray[np.float64], band: NDArray[np.bool_]) -> NDArray[np.
         return np.nanmedian(v, axis=1)
 
 
-def unbounded(s: Sides, step: float) -> str | None:
+def unbounded(s: Sides, step: float, tilt: float | None = None) -> str | None:
     """Why an object with these sides is not a road: ``"trough"`` (the ground rises on
     past both sides at more than half the stations), ``"verge"`` (an edge on one side
     at more than half the stations, at most half on the other, and another object of
-    the filter beside the edged side at more than half), else None."""
+    the filter beside the edged side at more than half), ``"slope"`` (with ``tilt``: the
+    strip falls across by more than ``tilt`` m/m toward the side the ground past both
+    sides falls to, and that ground falls more steeply: a band of a slope, not a level
+    road cut into or built onto it), else None."""
     if np.mean(s.rise_left & s.rise_right) > 0.5:
         return "trough"
+    if tilt is not None and s.tilt * s.ground > 0 and tilt < abs(s.tilt) < abs(s.ground):
+        return "slope"
     edged = [
         float(np.mean(np.abs(s.left) > step)) > 0.5,
         float(np.mean(np.abs(s.right) > step)) > 0.5,

@@ -307,6 +307,12 @@ class Filter:
     than half its stations, with another object of the filter beside it there, and none
     past the other side). Needs the DTM; without it nothing is dropped."""
 
+    edges_tilt: float | None = None
+    """``edges <height> <tilt>``: also drop an object that leans with the slope it lies on
+    (``features.edges``): its strip, fitted across over the whole object, falls by more
+    than ``tilt`` metres per metre toward the side the ground past both its sides falls
+    to, and that ground falls more steeply than the strip."""
+
     majority: bool = False
     """``majority`` (with ``findrectangle``): a tile the segments miss but which is not
     ``clear`` (its excess over the flatness threshold within what the DTM's slope noise
@@ -411,6 +417,7 @@ class _Parser:
         banks: list[str] = []
         deeper: list[tuple[str, float]] = []
         edges: float | None = None
+        edges_tilt: float | None = None
         enclosed: tuple[Length, int] | None = None
         isolated: tuple[Length, float] | None = None
         join_line: Length | None = None
@@ -547,11 +554,15 @@ class _Parser:
                 if "bank" not in steps:
                     steps.append("bank")
             elif key == "edges":
-                msg = "edges takes one height in metres, above 0 and at most 5, once"
-                if len(args) != 1 or edges is not None:
+                msg = (
+                    "edges takes one height in metres, above 0 and at most 5, and optionally"
+                    " a tilt in metres per metre, above 0 and at most 1, once"
+                )
+                if len(args) not in (1, 2) or edges is not None:
                     raise self.error(msg, no)
-                (edges,) = self.numbers(args, no, "edges")
-                if not 0 < edges <= 5:
+                edges, *more = self.numbers(args, no, "edges")
+                edges_tilt = more[0] if more else None
+                if not 0 < edges <= 5 or (edges_tilt is not None and not 0 < edges_tilt <= 1):
                     raise self.error(msg, no)
                 steps.append("edges")
             elif key == "fill":
@@ -648,6 +659,7 @@ class _Parser:
             majority=majority,
             yield_deeper=tuple(deeper),
             edges=edges,
+            edges_tilt=edges_tilt,
         )
 
     def segment(self, start: int, args: list[str]) -> Segment:
@@ -897,7 +909,8 @@ def format_filter(f: Filter) -> str:
         elif step == "majority" and f.majority:
             out.append("majority")
         elif step == "edges" and f.edges is not None:
-            out.append(f"edges {f.edges:g}")
+            tilt = "" if f.edges_tilt is None else f" {f.edges_tilt:g}"
+            out.append(f"edges {f.edges:g}{tilt}")
     return "\n".join(out) + "\n"
 
 
