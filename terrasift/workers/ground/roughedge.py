@@ -13,7 +13,9 @@ plane's gradient and split into four azimuth sectors (quadrants around it). A
 sector is *below* the point when it holds a neighbour and the point stands over
 every neighbour in it by more than ``factor`` × the block's 95th percentile of
 the ground's residuals (each ground point's height over its neighbours' plane,
-absolute): the ground's own roughness, noise and curvature, taken from the data.
+absolute): the ground's own roughness, noise and curvature, taken from the data;
+and by more than ``floor`` metres, under which smooth flat ground (railway yards,
+residuals' 95th percentile 0.05 m) stood 0.10–0.20 m over its neighbours.
 A point with ``need`` sectors below goes. Over every neighbour, not the lowest:
 across a crest the lowest neighbour of every quadrant lies on a flank, but the
 quadrants that hold a neighbour along the crest hold one as high as it (judged
@@ -52,6 +54,7 @@ def edge_high(
     reach: float = 2.0,
     density: float = 0.2,
     max_slope: float = 0.7,
+    floor: float = 0.25,
 ) -> NDArray[np.bool_]:
     """The points of ``ground`` standing over every ground neighbour of ``need`` of the
     four quadrants by more than ``factor`` × the 95th percentile of the ground's residual,
@@ -62,7 +65,7 @@ def edge_high(
     if found is None:
         return out
     g, lift, rho, resid, grad = found
-    thr = factor * float(np.percentile(np.abs(resid), RESIDUAL_QUANTILE))
+    thr = max(floor, factor * float(np.percentile(np.abs(resid), RESIDUAL_QUANTILE)))
     below = np.count_nonzero(np.isfinite(lift) & (lift > thr), axis=1)
     out[g[(below >= need) & (rho >= density) & (grad <= max_slope)]] = True
     return out
