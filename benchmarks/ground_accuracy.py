@@ -282,6 +282,12 @@ CANDIDATES: dict[str, list[dict]] = {
         {"bin_anchor": "absolute"},
         {"grow_low": False},
         {"raised_over_walls": False},
+        {"rough_edge": 0.0},
+        {"rough_edge": 1.5},
+        {"rough_edge": 3.0},
+        {"rough_edge_density": 0.0},
+        {"rough_edge_density": 0.5},
+        {"rough_edge_slope": 10.0},
     ],
 }
 
