@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import shared_data
 from numpy.typing import NDArray
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
@@ -35,14 +34,10 @@ from terrasift.workers.ground.tin import (
 )
 from terrasift.workers.registry import get_stage
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
 
 def _isprs(sample: str) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """An ISPRS sample's points and its ground truth, or skip without the shared data."""
-    path = DATA / "isprs" / f"{sample}.laz"
-    if not path.exists():
-        pytest.skip("shared ISPRS data not present")
+    path = shared_data("isprs", f"{sample}.laz")
     laspy = pytest.importorskip("laspy")
     las = laspy.read(str(path))
     return np.column_stack([las.x, las.y, las.z]), np.asarray(las.classification) == 2

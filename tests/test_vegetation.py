@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import shared_data
 
 from terrasift.errors import ParameterError
 from terrasift.synthetic.forest import BUSH, EMPTY, OPEN, TREE, make_forest
@@ -20,8 +19,6 @@ from terrasift.workers.vegetation import (
     north_up,
     support_for_density,
 )
-
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 
 @pytest.fixture(scope="module")
@@ -202,13 +199,10 @@ def test_no_ground_points_falls_back_to_zmin(forest):
     assert (vb.bin_class == forest.truth_class).mean() >= 0.9
 
 
-@pytest.mark.skipif(
-    not (DATA / "lidr" / "MixedConifer.laz").exists(), reason="shared data folder not present"
-)
 def test_mixed_conifer_tree_coverage():
     import laspy
 
-    las = laspy.read(DATA / "lidr" / "MixedConifer.laz")
+    las = laspy.read(shared_data("lidr", "MixedConifer.laz"))
     xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
     grid = Grid.covering(xyz[:, 0], xyz[:, 1], 1.0)
     st = bin_statistics(xyz, grid)
