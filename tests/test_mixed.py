@@ -1045,8 +1045,10 @@ def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_
     for seed in range(3):
         xyz, col = _wall_grid(scene, step=0.418, noise=0.009, seed=seed)
         m = mark_mixed(xyz, MixedParams(footprint=0.9), np.zeros(3)).marked
-        # main: 52-79 % of the strip's end columns, 30-35 % of the strip
-        assert m[np.isin(col, strip)].mean() < 0.05
+        # main: 52-79 % of the strip's end columns, 30-35 % of the strip. With the margin
+        # from the scatter on surfaces (5.0 cm for 6.4) a noisy beam pairs a little more
+        # often: 0-7.8 % over seeds 0-5, against 0.9-6.9 % with the median residual's
+        assert m[np.isin(col, strip)].mean() < 0.1
         assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95
 
 
@@ -1105,7 +1107,9 @@ def test_grid_marks_a_pole_run_with_one_pure_return_longer_than_two_footprints()
                 assert m[np.isin(col, list(run))].mean() > 0.95  # main: 0.15-0.40
             else:
                 assert m[np.isin(col, [0, 1, 5, 6])].mean() > 0.95
-                assert m[np.isin(col, [2, 3, 4])].mean() < 0.25  # 0.16-0.17, as on main
+                # 0.24-0.29 over seeds 0-5 with the margin from the scatter on surfaces
+                # (1.05 cm for 1.2), 0.14-0.18 with the median residual's
+                assert m[np.isin(col, [2, 3, 4])].mean() < 0.35
 
 
 def test_a_position_whose_angles_show_no_grid_takes_the_steps_of_another_without_gps_time():
@@ -1140,3 +1144,43 @@ def test_a_position_whose_angles_show_no_grid_takes_the_steps_of_another_without
     assert g["how"]["step"].startswith("lent by another position")
     assert g["step_az"] == res.geometry[1]["measured"]["step_az"]
     assert np.count_nonzero(res.marked & ~tile.is_mixed) / np.count_nonzero(~tile.is_mixed) < 0.01
+
+
+def _fence_before_a_wall(blend: float, seed: int):
+    """Shared-report 5205's scatter at its 0.42° step (9 mm of range noise): boards six
+    beams wide every twelve beams, 1.3 m before a wall at 14.8 m, on one half of the view;
+    on the other half, beams 10, 20 and 30 are blends ``blend`` in front of the wall (a
+    thin pole 30 cm before it taking a fifth of the footprint)."""
+
+    def r_of_col(c):
+        if c < 0:
+            return 13.5 if c % 12 < 6 else 14.8
+        return 14.8 - blend if c in (10, 20, 30) else 14.8
+
+    return _wall_grid(r_of_col, step=0.42, seed=seed, noise=0.009)
+
+
+def test_surface_scatter_leaves_out_the_residuals_of_edges():
+    # A return beside an edge lies far off the line through its two neighbours: at a
+    # coarse step, with an edge every six beams, the median residual counts them and
+    # reads the scatter 1.2× the noise; the trimmed sd on the residuals within 2.5 sd
+    # gives the noise.
+    for seed in range(3):
+        xyz, _ = _fence_before_a_wall(0.0, seed)
+        g = measure_scan_geometry(xyz, footprint=0.42)
+        assert g.range_sigma > 1.15 * 0.009  # 10.8-11.4 mm
+        assert g.surface_sigma == pytest.approx(0.009, rel=0.06)  # 8.8-9.4 mm
+        assert g.how["surface_sigma"].startswith("sd of the same residuals")
+
+
+def test_grid_margin_follows_the_scatter_on_surfaces_not_the_edges():
+    # The margin (5 sd) a blend must lie off both surfaces: with the median residual's
+    # 13-14 mm (edges and the blends themselves counted) main required 6.7 cm and marked
+    # 9-25 % of blends 6 cm in front of the wall; the scatter on surfaces (10-11 mm)
+    # asks 5.0-5.4 cm. Nothing else is marked, the fence's edges included.
+    for seed in range(4):
+        xyz, col = _fence_before_a_wall(0.06, seed)
+        m = mark_mixed(xyz, MixedParams(footprint=0.42), np.zeros(3)).marked
+        blends = np.isin(col, [10, 20, 30])
+        assert m[blends].mean() > 0.4  # 0.48-0.68 (main 0.09-0.16)
+        assert not m[~blends].any()
