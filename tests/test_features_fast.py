@@ -95,3 +95,25 @@ def test_compiled_search_equals_the_array_passes_for_the_builtin_filters(name):
     h, v = search_filter(on, flt)
     hr, vr = search_filter(on, flt, compiled=False)
     assert (h == hr).all() and (v == vr).all()
+
+
+@pytest.mark.parametrize(
+    ("shape", "size"), [((60, 45), 12), ((31, 52), 7), ((9, 4), 6), ((1, 1), 4), ((17, 13), 1)]
+)
+def test_compiled_median_equals_scipy(shape, size):
+    """The regional slope's median filter gives scipy's ``median_filter`` (edges taken
+    as the nearest cell) on rough and smooth fields, with ties (level tiles) and with
+    windows wider than the field."""
+    from scipy import ndimage
+
+    from terrasift.workers._median_kernels import median_filter
+
+    rng = np.random.default_rng(sum(shape) + size)
+    rough = rng.normal(size=shape)
+    smooth = ndimage.gaussian_filter(rng.normal(size=shape), 3)
+    for a in (rough, smooth):
+        a = a.copy()
+        a[rng.random(shape) < 0.2] = 0.0
+        a[rng.random(shape) < 0.1] = 0.125
+        want = ndimage.median_filter(a, size=size, mode="nearest")
+        assert np.array_equal(median_filter(a, size), want)
