@@ -42,20 +42,31 @@ def search_lines(
     for t in range(lo, hi + 1):
         allowed |= one << np.uint64(t)
     for r in range(nrows):
-        for i in range(nsub):
-            cm[i, 0] = 0
-            for b in range(ncols):
-                cm[i, b + 1] = cm[i, b] + miss[i, r, b]
+        last = 0
         for b in range(nb):
             prefix[0, b] = one  # the empty match, length 0, at every boundary
         for i in range(nsub):
             a, z, me = min_len[i], max_len[i], max_errors[i]
+            cm[i, 0] = 0  # misses of subsegment i's class before each boundary
+            for b in range(ncols):
+                cm[i, b + 1] = cm[i, b] + miss[i, r, b]
             last = -1  # the boundaries where prefix i has a match, each to the one before
+            first = -1
             for b in range(nb):
                 before[b] = last
                 if prefix[i, b] != 0:
                     last = b
-            for b in range(nb):
+                    if first < 0:
+                        first = b
+            if last < 0:  # no match of the prefix in this row: none of the segment
+                break
+            # runs of a..z tiles extend the prefix's matches to boundaries first+a..last+z
+            b0, b1 = min(nb, first + a), min(nb, last + z + 1)
+            for b in range(b0):
+                prefix[i + 1, b] = 0
+            for b in range(b1, nb):
+                prefix[i + 1, b] = 0
+            for b in range(b0, b1):
                 acc = np.uint64(0)
                 # the runs ending at b, shortest first, that start where prefix i matched
                 p = b - a
@@ -70,6 +81,8 @@ def search_lines(
                     p = before[p]
                 prefix[i + 1, b] = acc
         found = False
+        if last < 0:
+            continue
         for b in range(nb):
             diff[b] = 0
         for b in range(nb):
