@@ -117,3 +117,19 @@ def test_compiled_median_equals_scipy(shape, size):
         a[rng.random(shape) < 0.1] = 0.125
         want = ndimage.median_filter(a, size=size, mode="nearest")
         assert np.array_equal(median_filter(a, size), want)
+
+
+@pytest.mark.parametrize("d", [1, 3, 5, 9, 21])
+def test_square_dilation_equals_scipy(d):
+    """The rings around objects grow as scipy's dilation by a d × d square does, up to
+    the array's edges, on sparse and dense masks and on a single row."""
+    from scipy import ndimage
+
+    from terrasift.workers.features.objects import square_dilation
+
+    rng = np.random.default_rng(d)
+    for shape, p in (((37, 23), 0.02), ((37, 23), 0.3), ((1, 40), 0.1), ((5, 5), 0.5)):
+        mask = rng.random(shape) < p
+        want = ndimage.binary_dilation(mask, np.ones((d, d), bool))
+        got = square_dilation(mask, d)
+        assert got.dtype == bool and np.array_equal(got, want)
