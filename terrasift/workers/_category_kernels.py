@@ -62,6 +62,7 @@ def fit_tiles(
     z = np.empty(kk)
     r0 = np.empty(kk)
     fit = np.empty(kk)
+    proj = np.empty(ne)
     for t in range(n):
         r = (t // cols) * s
         q = (t % cols) * s
@@ -90,13 +91,18 @@ def fit_tiles(
         for c in range(kk):
             r0[c] = z[c] - ax * xs[c] - ay * ys[c]
             rss0 += r0[c] * r0[c]
+        # every hinge's projection at once, each summed over the cells in order
+        for e in range(ne):
+            proj[e] = 0.0
+        for c in range(kk):
+            rc = r0[c]
+            for e in range(ne):
+                proj[e] += rc * hinge[c, e]
         bi = 0
         bg = -1.0
         bp = 0.0
         for e in range(ne):
-            p = 0.0
-            for c in range(kk):
-                p += r0[c] * hinge[c, e]
+            p = proj[e]
             g = p * p / hnorm[e]
             if g > bg:
                 bg = g

@@ -45,10 +45,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 from rasterio import Affine
-from scipy import ndimage
 
 from terrasift.errors import ParameterError
 from terrasift.workers._category_kernels import fit_tiles
+from terrasift.workers._median_kernels import median_filter
 from terrasift.workers.registry import StageParams, register
 
 NODATA = 255
@@ -542,18 +542,15 @@ def regional_gradient(
 
 
 def _strided_median(a: NDArray, size: int, stride: int) -> NDArray:
-    """Median over ``size`` × ``size`` windows of ``a``; with ``stride`` > 1 over the
+    """Median over ``size`` × ``size`` windows of ``a`` (``scipy.ndimage.median_filter``
+    with ``mode="nearest"``, compiled: ``_median_kernels``); with ``stride`` > 1 over the
     samples every ``stride`` tiles, taken on that coarse grid and spread back."""
     if stride == 1 or a.size == 0:
-        return ndimage.median_filter(a, size=size, mode="nearest")
+        return median_filter(a, size)
     # the first sample half a stride in; an axis shorter than that (a thin window)
     # is sampled at its middle tile, so the coarse grid is never empty
     r0, c0 = (stride // 2 if n > stride // 2 else (n - 1) // 2 for n in a.shape)
-    coarse = ndimage.median_filter(
-        a[r0::stride, c0::stride],
-        size=max(1, -(-size // stride)),
-        mode="nearest",
-    )
+    coarse = median_filter(a[r0::stride, c0::stride], max(1, -(-size // stride)))
     r = np.minimum(np.arange(a.shape[0]) // stride, coarse.shape[0] - 1)
     c = np.minimum(np.arange(a.shape[1]) // stride, coarse.shape[1] - 1)
     return coarse[np.ix_(r, c)]

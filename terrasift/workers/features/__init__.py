@@ -50,7 +50,12 @@ from terrasift.workers.features.language import (
     parse_filter,
     resolve_lengths,
 )
-from terrasift.workers.features.objects import Feature, _measured, objects_from_labels
+from terrasift.workers.features.objects import (
+    Feature,
+    _measured,
+    objects_from_labels,
+    square_dilation,
+)
 from terrasift.workers.features.search import search_filter
 from terrasift.workers.features.turned import turned_marks
 from terrasift.workers.registry import StageParams, register
@@ -650,7 +655,7 @@ def rim_sets(
         r0, r1 = max(0, box[0].start - distance), min(labels.shape[0], box[0].stop + distance)
         b0, b1 = max(0, box[1].start - distance), min(labels.shape[1], box[1].stop + distance)
         mine = ndimage.binary_fill_holes(labels[r0:r1, b0:b1] == lab)
-        ring = ndimage.binary_dilation(mine, np.ones((d, d), bool)) & ~mine
+        ring = square_dilation(mine, d) & ~mine
         a, b = np.nonzero(ring & inclined[r0:r1, b0:b1])
         tiles = frozenset(
             zip(
@@ -849,7 +854,7 @@ def _drop_busy(
         # the object's box grown by the distance, clipped to the grid
         r0, r1 = max(0, box[0].start - distance), min(labels.shape[0], box[0].stop + distance)
         c0, c1 = max(0, box[1].start - distance), min(labels.shape[1], box[1].stop + distance)
-        ring = ndimage.binary_dilation(labels[r0:r1, c0:c1] == lab, np.ones((d, d), bool))
+        ring = square_dilation(labels[r0:r1, c0:c1] == lab, d)
         around = int((ring & open_ground[r0:r1, c0:c1]).sum())
         busy = int((ring & not_flat[r0:r1, c0:c1]).sum())
         keep[lab] = busy <= share * around

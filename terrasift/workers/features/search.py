@@ -11,7 +11,10 @@ array operations whatever the row count; segments that begin with the same
 subsegments share those passes. The chosen match at an end boundary is the longest
 within the segment's total limits; it is then traced back from the pattern's
 end to place the subsegments (the seed's end-first matching), and the tiles of
-the subsegments not marked ``exclude`` are marked.
+the subsegments not marked ``exclude`` are marked. A compiled pass
+(``_search_kernels.search_lines``) does the same row by row, extending a prefix only
+from the boundaries where it matched; the array passes (``compiled=False``) are its
+reference.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from terrasift.workers.categories import NODATA, Categories
+from terrasift.workers.features._search_kernels import search_lines
 from terrasift.workers.features.language import (
     CategorySpec,
     Filter,
@@ -123,6 +127,7 @@ def search_rows(
     prefixes: dict[tuple[tuple[SubSegment, ...], int], NDArray[np.unsignedinteger]] | None = None,
     shared: set[tuple[SubSegment, ...]] | None = None,
     looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] | None = None,
+    compiled: bool = True,
 ) -> NDArray[np.bool_]:
     """Marks of ``seg`` (already inverted/rotated as searched) along every row, west→east.
 
@@ -134,6 +139,10 @@ def search_rows(
     the matches of the leading subsegments in ``shared`` (runs of subsegments that
     begin more than one segment), so segments that start alike match that start once;
     ``looks`` the bands' look-ups by value set (``category_mask``), kept with ``masks``.
+
+    ``compiled`` (the default) searches each row in one compiled pass
+    (``_search_kernels.search_lines``); False runs the array passes of ``_search_band``,
+    the reference it is tested against (the same marks).
     """
     masks = {} if masks is None else masks
     sums = {} if sums is None else sums
@@ -144,6 +153,15 @@ def search_rows(
         keys.append(sub.categories)
     nrows = cats[0].shape[0]
     out = []
+    if compiled:
+        subs = seg.subsegments
+        lens = [np.array([int(getattr(u, n)) for u in subs], np.int64) for n in _LIMITS]
+        skip = np.array([u.exclude for u in subs], dtype=np.bool_)
+        lo, hi = max(1, int(seg.min_total or 1)), int(seg.longest)
+        for r in range(0, nrows, band):
+            stacked = np.stack([masks[key][r : r + band] for key in keys]).view(np.uint8)
+            out.append(search_lines(stacked, *lens, skip, lo, hi))
+        return out[0] if len(out) == 1 else np.concatenate(out)
     for r in range(0, nrows, band):
         mism = []
         for key in keys:
@@ -157,6 +175,10 @@ def search_rows(
             mism.append(sums[(key, r)])
         out.append(_search_band(mism, seg, prefixes, shared, r))
     return out[0] if len(out) == 1 else np.concatenate(out)
+
+
+#: the run limits of a subsegment, in the order ``search_lines`` takes them
+_LIMITS = ("min_len", "max_len", "max_errors")
 
 
 def _search_band(
@@ -262,13 +284,13 @@ def _shared_leads(segs: list[Segment]) -> set[tuple[SubSegment, ...]]:
 
 
 def search_filter(
-    cats: Categories, flt: Filter, band: int = 512
+    cats: Categories, flt: Filter, band: int = 512, compiled: bool = True
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Horizontal and vertical marks of all segments of ``flt`` on the tile grid.
 
     Rows (then columns) go through in bands of ``band`` lines, every segment over one
     band before the next, so the class masks and mismatch counts the segments share
-    are kept for one band only."""
+    are kept for one band only. ``compiled`` as ``search_rows``."""
     flt = resolve_lengths(flt, cats.spacing)
     arrays = _arrays(cats)
     h = np.zeros(cats.shape, dtype=bool)
@@ -287,7 +309,7 @@ def search_filter(
             looks: dict[tuple[int, ValueSet], NDArray[np.bool_]] = {}
             for seg in segs:
                 marks[r : r + band] |= search_rows(
-                    part, seg, band, masks, sums, prefixes, shared, looks
+                    part, seg, band, masks, sums, prefixes, shared, looks, compiled
                 )
     v = np.ascontiguousarray(v.T)
     if (

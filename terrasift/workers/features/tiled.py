@@ -79,6 +79,7 @@ from terrasift.workers.features.objects import (
     prepare_labels,
     rectangle_size,
     scan_order,
+    square_dilation,
 )
 from terrasift.workers.features.turned import CATEGORY_BANDS, turned_reach
 
@@ -490,7 +491,7 @@ def _window_pieces(
         # in a cover the window cannot see, so it counts as support there
         support = support | (marks & ~(safe_r[:, None] & safe_c[None, :]))
     r = connect_reach(flt)
-    closure = ndimage.binary_dilation(support, structure=np.ones((2 * r + 1, 2 * r + 1), bool))
+    closure = square_dilation(support, 2 * r + 1)
     if flt.rectangle is None:  # a rectangle's objects fill no holes (covers are its objects)
         closure = ndimage.binary_fill_holes(closure)
     comp, n = ndimage.label(closure, structure=np.ones((3, 3), bool))
@@ -861,7 +862,7 @@ def _ring_sets(
             continue
         r0, r1 = max(0, box[0].start - dist), min(parts.shape[0], box[0].stop + dist)
         b0, b1 = max(0, box[1].start - dist), min(parts.shape[1], box[1].stop + dist)
-        ring = ndimage.binary_dilation(parts[r0:r1, b0:b1] == lab, np.ones((d, d), bool))
+        ring = square_dilation(parts[r0:r1, b0:b1] == lab, d)
         a, b = np.nonzero(ring & open_ground[r0:r1, b0:b1])
         around = frozenset(zip((g0 + r0 + a).tolist(), (c0 + b0 + b).tolist(), strict=True))
         a, b = np.nonzero(ring & not_flat[r0:r1, b0:b1])

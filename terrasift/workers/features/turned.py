@@ -171,6 +171,7 @@ def _candidates(
     arrays = _arrays(tcats)
     looks: dict = {}
     out = np.zeros(tcats.shape, dtype=bool)
+    tested = set()  # segments whose strips are alike (a road's) are tested once
     for seg in segs:
         # columns are searched on the transposed bands with the segment turned a quarter
         seg = transform_segment(seg, axis)
@@ -178,6 +179,9 @@ def _candidates(
         if strip is None:
             return None
         n = int(strip.min_len)
+        if (strip.categories, n, strip.max_errors) in tested:
+            continue
+        tested.add((strip.categories, n, strip.max_errors))
         miss = ~class_mask(arrays, strip, looks)
         if axis == 0:  # runs along rows: count along columns
             cs = np.zeros((miss.shape[0], miss.shape[1] + 1), dtype=np.int32)
