@@ -1144,7 +1144,7 @@ def test_a_position_whose_angles_show_no_grid_takes_the_steps_of_another_without
 def test_grid_places_returns_whose_quantisation_box_reaches_their_line_without_gps_time():
     # report 8106's first position: 1 cm coordinates at a 0.096° step, a footprint of 3
     # steps, a board and a pole at 3.8-10.5 m. At 6-10 m the scale blurs an angle by a
-    # quarter of a step (sd), so a tenth to a third of the returns lay more than 0.35 step
+    # quarter of a step (sd), so 3-15 % of the blends (per angle) lay more than 0.35 step
     # off their line: left out of the range image, they broke the three beams in a row an
     # anchor needs, and a return whose box spans over half a step was never judged, though
     # its box holds no other line. Main: grid share 0.29, tpr 0.77, fpr 0.0076.

@@ -318,7 +318,7 @@ def mark_grid(
         # about the stored angle). It is on the grid when its box comes within OFF_GRID of
         # the nearest line: the returns near enough for the box to span a third of a step
         # all are, so blurred surfaces leave no holes in the range image (with 1 cm
-        # coordinates at a 0.1° step, a tenth to a third of the returns at 6-10 m fell
+        # coordinates at a 0.1° step, 3-15 % of the blends (per angle) at 6-10 m fell
         # more than OFF_GRID off their line, and an anchor needs three beams in a row).
         # A return whose box holds no other line than its nearest (off + half-width under
         # a step, in both angles) lies on that line: judged. The others on the grid still
