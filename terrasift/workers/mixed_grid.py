@@ -100,6 +100,8 @@ from numpy.typing import NDArray
 
 from ._mixed_kernels import continued, incidence_cos, line_gather, spread_of
 
+OFF_GRID = 0.35  # a beam's angle lies within this many steps of its grid line
+
 
 @dataclass(frozen=True)
 class GridSettings:
@@ -138,15 +140,23 @@ def box_halfwidths(
 
 
 def grid_index(
-    az: NDArray[np.float64], step: float, off_grid: float = 0.35
+    az: NDArray[np.float64], step: float, off_grid: float = OFF_GRID
 ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Grid index of each angle on a regular grid of ``step`` (phase from the data) and
     whether the angle sits near its grid line (off by less than ``off_grid`` steps)."""
+    i, off = grid_offsets(az, step)
+    return i, off < off_grid
+
+
+def grid_offsets(
+    az: NDArray[np.float64], step: float
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Nearest grid line of each angle (``grid_index``) and how far off it the angle lies, in steps."""
     t = 2 * np.pi * az / step
     phase = float(np.angle(np.mean(np.exp(1j * t))) / (2 * np.pi) * step)
     f = (az - phase) / step
     i = np.round(f).astype(np.int64)
-    return i, np.abs(f - i) < off_grid
+    return i, np.abs(f - i)
 
 
 def pulse_numbers(t: NDArray[np.float64], max_jitter: float = 0.15) -> NDArray[np.int64] | None:
@@ -299,18 +309,26 @@ def mark_grid(
     r_all = np.linalg.norm(rel, axis=1)
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / np.maximum(r_all, 1e-12), -1.0, 1.0))
-    ia, ok_a = grid_index(az, s.step_az)
-    ie, ok_e = grid_index(el, s.step_el)
-    judged = ok_a & ok_e & (r_all > 1e-6)
+    ia, off_a = grid_offsets(az, s.step_az)
+    ie, off_e = grid_offsets(el, s.step_el)
+    judged = (off_a < OFF_GRID) & (off_e < OFF_GRID) & (r_all > 1e-6)
     own = judged  # returns whose own beam the grid index gives for certain
     if s.las_scale > 0:
-        # a return whose quantisation box spans under a step in both angles lies on the
-        # line nearest it (the only line its box holds): judged. The others on the grid
-        # still fill the range image about it (their ranges are exact, their beams at
-        # most a line off) as neighbours, never judged: left out, a judged blend lost the
-        # near surface it lies between (1 cm coordinates within 18 m at 0.1°)
+        # the angle of a return lies anywhere in its quantisation box (half-widths ha, he
+        # about the stored angle). It is on the grid when its box comes within OFF_GRID of
+        # the nearest line: the returns near enough for the box to span a third of a step
+        # all are, so blurred surfaces leave no holes in the range image (with 1 cm
+        # coordinates at a 0.1° step, 3-15 % of the blends (per angle) at 6-10 m fell
+        # more than OFF_GRID off their line, and an anchor needs three beams in a row).
+        # A return whose box holds no other line than its nearest (off + half-width under
+        # a step, in both angles) lies on that line: judged. The others on the grid still
+        # fill the range image about it (their ranges are exact, their beams at most a
+        # line off) as neighbours, never judged: left out, a judged blend lost the near
+        # surface it lies between (1 cm coordinates within 18 m at 0.1°)
         ha, he = box_halfwidths(az, el, r_all, s.las_scale)
-        own = judged & (ha < 0.5 * s.step_az) & (he < 0.5 * s.step_el)
+        ha, he = ha / s.step_az, he / s.step_el
+        judged = (off_a < OFF_GRID + ha) & (off_e < OFF_GRID + he) & (r_all > 1e-6)
+        own = judged & (off_a + ha < 1.0) & (off_e + he < 1.0)
     timed = None
     fired_rows = 0  # pulses per column, when the firing order gives it
     if gps_time is not None:
