@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_features import DITCHLIKE
 
 from terrasift.workers.categories import NODATA
 from terrasift.workers.features import (
@@ -17,26 +18,6 @@ from terrasift.workers.features import (
     parse_filter,
 )
 from terrasift.workers.features.search import search_filter, search_rows
-
-THREE = """beginsegment
-  beginsubsegment 1 2
-    begincategory
-      inclination 5
-    endcategory
-  endsubsegment
-  beginsubsegment 0 2
-    begincategory
-      inclination 0
-    endcategory
-  endsubsegment
-  beginsubsegment 1 2
-    begincategory
-      inclination 1
-    endcategory
-  endsubsegment
-endsegment
-connect simple -1 -1 -1 -1
-"""
 
 
 def _random_segment(rng: np.random.Generator, base):
@@ -68,7 +49,7 @@ def test_compiled_row_search_equals_the_array_passes():
     tiles) on random rows with nodata: the compiled search marks the tiles the array
     passes mark."""
     rng = np.random.default_rng(22)
-    base = parse_filter(THREE).segments[0]
+    base = parse_filter(DITCHLIKE).segments[0]
     searched = 0
     for trial in range(150):
         p = [0.4, 0.25, 0.25, 0.1] if trial % 2 else [0.8, 0.08, 0.08, 0.04]
