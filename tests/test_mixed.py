@@ -1046,9 +1046,40 @@ def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_
         m = mark_mixed(xyz, MixedParams(footprint=0.9), np.zeros(3)).marked
         # main: 52-79 % of the strip's end columns, 30-35 % of the strip. With the margin
         # from the scatter on surfaces (5.0 cm for 6.4) a noisy beam pairs a little more
-        # often: 0-7.8 % over seeds 0-5, against 0.9-6.9 % with the median residual's
+        # often: 0-7.8 % over seeds 0-5, against 0.9-6.9 % with the median residual's;
+        # with the strip's first step in the anchors' tolerance 0-5.2 % over seeds 0-7
         assert m[np.isin(col, strip)].mean() < 0.1
         assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95
+
+
+def test_a_wall_strip_is_face_on_when_its_neighbour_differs_by_a_difference_of_two_returns():
+    # The strip rule's first step, p to its neighbour, is a difference of two returns on
+    # the strip like every later one, so it takes the same tolerance (grid_sigmas x the
+    # median-residual scatter x sqrt 2), not the margin. With the margin from the scatter
+    # on surfaces (9 mm -> 4.5 cm, against 11 mm read with edges: 6.2 cm), an oblique
+    # wall's strip whose first step reads 5 cm was left out of the strip and marked
+    # (report 10, coarse 2708).
+    from terrasift.workers.mixed_grid import GridSettings, _step_run
+
+    s = GridSettings(
+        step_az=np.radians(0.418),
+        step_el=np.radians(0.418),
+        sigma=0.011,
+        sigmas=4.0,
+        margin=5 * 0.009,
+        reach=3,
+        max_gap=0.5,
+        thin=3,
+    )
+    flat_tol = s.sigmas * s.sigma * np.sqrt(2.0)
+    # beams -3..3 of one line: nearer past the left end, farther past the right one
+    row = {-3: 14.40, -2: 14.47, -1: 14.65, 0: 14.70, 1: 14.74, 2: 15.00, 3: 15.10}
+    R = {k: np.array([v]) for k, v in row.items() if k}
+    r = np.array([row[0]])
+    assert _step_run(R, r, s, flat_tol, np.array([0]))[0]  # a69bc77: False
+    # a step of more than flat_tol ends the strip: two beams are no strip
+    R[-1] = np.array([14.70 - 1.1 * flat_tol])
+    assert not _step_run(R, r, s, flat_tol, np.array([0]))[0]
 
 
 def test_boxes_judge_returns_the_las_scale_blurs_past_a_quarter_cell_without_gps_time():

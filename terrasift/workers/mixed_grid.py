@@ -759,9 +759,9 @@ def _step_run(
     and farther past the other: a wall seen between a nearer object's edge (often the
     flat run of blends of a pole narrower than the footprint, which reads as a surface)
     and a ramp into a farther surface. Such a return lies on its strip, so it is no blend
-    of the anchors either side of the strip. p lies within the margin of its strip
-    neighbours, each further beam of the strip within ``flat_tol`` (a difference of two
-    returns, face on) of the one before, out to ``s.reach`` beams; the first beam past
+    of the anchors either side of the strip. Each beam of the strip, p's neighbour first,
+    lies within ``flat_tol`` (a difference of two returns, face on, in the scatter the
+    anchors take) of the one before, out to ``s.reach`` beams; the first beam past
     each end lies nearer by more than the margin on one side and farther by more than
     the margin on the other. A pole's flat run of blends lies nearer than both sides (it
     steps farther at both ends), so it is not such a strip. Judged for the returns ``c``."""
@@ -772,14 +772,13 @@ def _step_run(
     with np.errstate(invalid="ignore"):
         for sd in (1, -1):
             k = np.zeros(n, dtype=np.int64)
-            on = np.abs(R[sd][c] - r) <= s.margin
+            on = np.ones(n, dtype=bool)
             stopped = np.zeros(n, dtype=bool)
             prev = r
             out = np.full(n, np.nan)  # range of the first beam past the strip's end
             for i in range(1, s.reach + 1):
                 cur = R[sd * i][c]
-                if i > 1:
-                    on &= np.abs(cur - prev) <= flat_tol
+                on &= np.abs(cur - prev) <= flat_tol
                 k += on
                 ends = ~on & ~stopped
                 out[ends] = cur[ends]
