@@ -857,6 +857,35 @@ def test_a_ditch_broken_by_crossings_oblique_to_the_tiles_is_one_object():
         assert lengths(long, stem) == [31, 75]
 
 
+def test_ditches_side_by_side_do_not_meet_end_to_end_and_a_jog_under_the_width_does():
+    """Two 2.5 m ditches 8 m apart (centre lines; a road between them), their ends
+    staggered by 18 m: each end part's direction is within 20 degrees of the way to the
+    other's (8 m across over some 24 m), but neither end's line passes the other end
+    within their width, so they stay two (roadside held out: pieces of the ditches and
+    shoulders beside a road joined into one object on both). A ditch broken with its
+    second piece 1.5 m to the side still joins across 8 and 15 m."""
+    shape, grid = (160, 200), Affine(1, 0, 0, 0, -1, 160)
+    along = np.array([np.cos(np.radians(30)), np.sin(np.radians(30))])
+    across = np.array([-along[1], along[0]])
+    p0 = np.array([15.0, 15.0])
+
+    def lengths(*strips: NDArray[np.bool_]) -> list[int]:
+        lab = np.zeros(shape, np.int32)
+        for k, m in enumerate(strips, 1):
+            lab[m & (lab == 0)] = k
+        fs = objects_from_labels(
+            lab, "ditch", grid, 1.0, (15, None, 2, 8), join="width", join_aligned=20
+        )
+        return sorted(round(f.length_m) for f in fs)
+
+    first = _strip(shape, *p0, 30, 50, 2.5)
+    beside = _strip(shape, *(p0 + 68 * along + 8 * across), 30, 50, 2.5)
+    assert lengths(first, beside) == [53, 53]
+    for gap in (8, 15):
+        jogged = _strip(shape, *(p0 + (50 + gap) * along + 1.5 * across), 30, 50, 2.5)
+        assert lengths(first, jogged) == [pytest.approx(100 + gap, abs=10)]
+
+
 def test_ridge_on_a_slope_is_found_and_a_pond_rim_on_it_is_not():
     """On a 12 % slope the downhill rim of a pond dug into it (bank rising to the rim,
     slope falling beyond) has a ridge's cross-section; on its regional slope it has not."""
