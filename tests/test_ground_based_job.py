@@ -50,7 +50,14 @@ def test_scan_job_marks_mixed_points_class_7(tmp_path):
     geo = report["mixed_measurements"]["geometry"]["0"]
     assert geo["grid_share"] > 0.95  # judged in the grid, not left to the boxes
     assert abs(geo["step_az"] - 0.4) < 0.02 and abs(geo["cell_angle"] - 2.5 * geo["step"]) < 1e-3
-    assert set(geo["how"]) == {"las_scale", "step", "range_noise", "footprint", "scope"}
+    assert set(geo["how"]) == {
+        "las_scale",
+        "step",
+        "range_noise",
+        "surface_sigma",
+        "footprint",
+        "scope",
+    }
     (planned,) = json.loads((job / "plan.json").read_text())["scan_geometry"]
     assert planned["step_az"] == geo["step_az"] and planned["n_points"] == len(scan)
     assert report["counts_per_class"]["7"] == int(marked.sum())
