@@ -485,6 +485,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         bleed_prob=GRID_BLEED,
         open_edges=p.open_edges,
         fit_beams=p.anchor_beams,
+        surface_sigma=float(surface),
     )
 
 
