@@ -798,6 +798,18 @@ def test_join_lines_up_pieces_end_to_end_across_a_longer_gap_only():
     assert resolve_lengths(flt, 2.0).join_aligned == 10
 
 
+def _ditch_lengths(shape, grid, aligned: int, *strips: NDArray[np.bool_]) -> list[int]:
+    """Lengths (m, rounded) of the ditches made of ``strips`` (one piece each, earlier
+    strips winning overlaps) with the width join and ``aligned`` degrees end to end."""
+    lab = np.zeros(shape, np.int32)
+    for k, m in enumerate(strips, 1):
+        lab[m & (lab == 0)] = k
+    fs = objects_from_labels(
+        lab, "ditch", grid, 1.0, (15, None, 2, 8), join="width", join_aligned=aligned
+    )
+    return sorted(round(f.length_m) for f in fs)
+
+
 def _strip(shape: tuple[int, int], x0: float, y0: float, ang: float, length: float, width: float):
     """Cells (1 m, rows down from y = rows) within a strip from (x0, y0) at ``ang`` degrees."""
     h, w = shape
@@ -840,13 +852,7 @@ def test_a_ditch_broken_by_crossings_oblique_to_the_tiles_is_one_object():
     p0 = np.array([20.0, 20.0])
 
     def lengths(*strips: NDArray[np.bool_]) -> list[int]:
-        lab = np.zeros(shape, np.int32)
-        for k, m in enumerate(strips, 1):
-            lab[m & (lab == 0)] = k
-        fs = objects_from_labels(
-            lab, "ditch", grid, 1.0, (15, None, 2, 8), join="width", join_aligned=10
-        )
-        return sorted(round(f.length_m) for f in fs)
+        return _ditch_lengths(shape, grid, 10, *strips)
 
     first = _strip(shape, *p0, 30, 40, 2.5)
     side = _strip(shape, *(p0 + 30 * along + 4 * across), 30, 40, 2.5)
@@ -870,13 +876,7 @@ def test_ditches_side_by_side_do_not_meet_end_to_end_and_a_jog_under_the_width_d
     p0 = np.array([15.0, 15.0])
 
     def lengths(*strips: NDArray[np.bool_]) -> list[int]:
-        lab = np.zeros(shape, np.int32)
-        for k, m in enumerate(strips, 1):
-            lab[m & (lab == 0)] = k
-        fs = objects_from_labels(
-            lab, "ditch", grid, 1.0, (15, None, 2, 8), join="width", join_aligned=20
-        )
-        return sorted(round(f.length_m) for f in fs)
+        return _ditch_lengths(shape, grid, 20, *strips)
 
     first = _strip(shape, *p0, 30, 50, 2.5)
     beside = _strip(shape, *(p0 + 68 * along + 8 * across), 30, 50, 2.5)

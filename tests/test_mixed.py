@@ -1082,29 +1082,42 @@ def test_a_wall_strip_is_face_on_when_its_neighbour_differs_by_a_difference_of_t
     assert not _step_run(R, r, s, flat_tol, np.array([0]))[0]
 
 
+def _board_and_pole_scan(
+    seed: int,
+    step: float,
+    footprint: float,
+    noise: float,
+    mast: float,
+    azimuth: float,
+    objects: tuple[float, float],
+):
+    """One scan position with 1 cm coordinates seeing a board and a pole at ``objects``
+    (m) within ±``azimuth`` degrees, its elevations spanning the nearest object."""
+    from terrasift.synthetic.scan import make_scan_tile
+
+    half = np.degrees(np.arctan(3.0 / objects[0])) + 1.0
+    return make_scan_tile(
+        [(0.0, 0.0, mast)],
+        seed=seed,
+        step_deg=step,
+        footprint_steps=footprint,
+        sub_rays=(13, 7),
+        range_noise=noise,
+        las_scale=0.01,
+        azimuth_deg=(-azimuth, azimuth),
+        elevation_deg=(-half, half),
+        n_boards=1,
+        n_poles=1,
+        object_range=objects,
+    )
+
+
 def test_boxes_judge_returns_the_las_scale_blurs_past_a_quarter_cell_without_gps_time():
     # report 7600's first position: 1 cm coordinates at a 0.0365° step, a board and a pole
     # at 3-14 m. Half the returns lie within 5 m, whose angle the scale blurs by more than
     # a quarter of the 2.5-step cell: they were never box content, and the boxes found a
     # third of the blends. They are judged again with the cell doubled.
-    from terrasift.synthetic.scan import make_scan_tile
-
-    near = 3.03
-    half = np.degrees(np.arctan(3.0 / near)) + 1.0
-    tile = make_scan_tile(
-        [(0.0, 0.0, 1.26)],
-        seed=7600,
-        step_deg=0.0365,
-        footprint_steps=1.07,
-        sub_rays=(13, 7),
-        range_noise=0.0033,
-        las_scale=0.01,
-        azimuth_deg=(-1.5, 1.5),
-        elevation_deg=(-half, half),
-        n_boards=1,
-        n_poles=1,
-        object_range=(near, 14.0),
-    )
+    tile = _board_and_pole_scan(7600, 0.0365, 1.07, 0.0033, 1.26, 1.5, (3.03, 14.0))
     truth = tile.is_mixed
     m = mark_mixed(tile.xyz, MixedParams(), tile.origins, tile.scan_id).marked
     assert np.count_nonzero(m & truth) / np.count_nonzero(truth) > 0.6  # main: 0.32
@@ -1245,24 +1258,7 @@ def test_grid_places_returns_whose_quantisation_box_reaches_their_line_without_g
     # off their line: left out of the range image, they broke the three beams in a row an
     # anchor needs, and a return whose box spans over half a step was never judged, though
     # its box holds no other line. Main: grid share 0.29, tpr 0.77, fpr 0.0076.
-    from terrasift.synthetic.scan import make_scan_tile
-
-    near = 3.82
-    half = np.degrees(np.arctan(3.0 / near)) + 1.0
-    tile = make_scan_tile(
-        [(0.0, 0.0, 2.62)],
-        seed=8106,
-        step_deg=0.096,
-        footprint_steps=2.98,
-        sub_rays=(13, 7),
-        range_noise=0.008,
-        las_scale=0.01,
-        azimuth_deg=(-4.0, 4.0),
-        elevation_deg=(-half, half),
-        n_boards=1,
-        n_poles=1,
-        object_range=(near, 10.5),
-    )
+    tile = _board_and_pole_scan(8106, 0.096, 2.98, 0.008, 2.62, 4.0, (3.82, 10.5))
     truth = tile.is_mixed
     res = mark_mixed(tile.xyz, MixedParams(), tile.origins, tile.scan_id)
     m = res.marked
