@@ -11,6 +11,7 @@ from terrasift.workers.scan_geometry import (
     coordinate_scale,
     measure_scan_geometry,
     pool_footprints,
+    ramp_sectors,
 )
 
 
@@ -421,3 +422,38 @@ def test_a_position_with_no_grid_takes_the_steps_of_one_that_holds_its_returns(
     az, el = np.arctan2(rel[:, 1], rel[:, 0]), np.arcsin(rel[:, 2] / r)
     st = np.radians(0.035)
     assert angular_density(az, el, st, st) * st * st == pytest.approx(1.0, abs=0.02)
+
+
+@pytest.mark.parametrize("case", ["regular", "octave"])
+def test_sectors_cut_here_give_the_geometry_of_the_same_sectors_passed_in(case):
+    # Cut here, the sectors' angles are taken from the angles computed for the whole scan;
+    # passed in (a job's), they are computed from their points. Both give one geometry to
+    # the bit, a return at the sensor (left out) included.
+    if case == "regular":
+        s = make_scan(
+            step_deg=0.12,
+            footprint_steps=2.0,
+            range_noise=0.003,
+            las_scale=0.001,
+            azimuth_deg=(-40.0, 40.0),
+            n_boards=6,
+            n_poles=6,
+            object_range=(3.0, 30.0),
+            seed=3,
+        )
+    else:
+        s = _one_cm_fine_step_scan(0)
+    rel = np.vstack([s.xyz - s.origin, np.zeros((1, 3))])
+    absolute = np.vstack([s.xyz, s.origin[None, :]])
+    here = measure_scan_geometry(rel, absolute=absolute)
+    kept = rel[np.linalg.norm(rel, axis=1) > 1e-6]
+    az = np.arctan2(kept[:, 1], kept[:, 0])
+    o = np.argsort(az, kind="stable")
+    cut = [kept[o[a:b]] for a, b in ramp_sectors(az.size)]
+    assert len(cut) > 1  # several sectors, each cut in azimuth order
+    given = measure_scan_geometry(rel, absolute=absolute, sectors=cut)
+    assert here is not None and given is not None
+    assert here.footprint_edges > 0 and ("octave" in here.how.get("step_az", "")) == (
+        case == "octave"
+    )
+    assert here == given

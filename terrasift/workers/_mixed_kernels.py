@@ -4,7 +4,8 @@ cache follows the source file).
 
 Each kernel does in one pass over the returns what a chain of numpy expressions did
 in several, with the same floating-point operations in the same order, so its
-results are the same to the bit (no fastmath).
+results are the same to the bit (no fastmath); a value no later test reads (the
+incidence where p lies on the anchor's surface) is not computed.
 """
 
 from __future__ import annotations
@@ -79,35 +80,134 @@ def spread_of(
     return out
 
 
-@numba.njit(cache=True)
-def continued(
-    va: NDArray[np.float64], vb: NDArray[np.float64], steps: float
-) -> NDArray[np.float64]:
-    """Range of the surface through inverse ranges ``va`` (nearer p) and ``vb`` continued
-    ``steps`` beyond ``va``: 1 / (va + (va − vb) × steps), infinite where not positive."""
-    out = np.empty(va.size, dtype=np.float64)
-    for i in range(va.size):
-        v = va[i] + (va[i] - vb[i]) * steps
-        out[i] = 1.0 / v if v > 0 else np.inf
-    return out
-
-
-@numba.njit(cache=True)
-def incidence_cos(
+@numba.njit(cache=True, error_model="numpy")
+def anchor_pass(
     r: NDArray[np.float64],
-    va: NDArray[np.float64],
-    vb: NDArray[np.float64],
-    across: NDArray[np.float64],
     ra: NDArray[np.float64],
+    ra1: NDArray[np.float64],
+    ra2: NDArray[np.float64],
+    va: NDArray[np.float64],
+    va1: NDArray[np.float64],
+    va2: NDArray[np.float64],
+    ca: NDArray[np.float64],
+    blur: NDArray[np.float64],
+    i: int,
+    sigma2: float,
+    sigmas: float,
+    spread0: float,
+    f1: float,
+    fi: float,
+    fit3: bool,
+    flat_tol: float,
+    c3scale: float,
+    margin: float,
     step: float,
     step_x: float,
-) -> NDArray[np.float64]:
-    """cos(incidence) at p's beam (range ``r``) of the surface through inverse ranges
-    ``va`` and ``vb`` along the axis (tan = r |va − vb| / step) with range change
-    ``across`` per beam across it at range ``ra`` (tan = r across / ra² / step_x)."""
-    out = np.empty(r.size, dtype=np.float64)
-    for i in range(r.size):
-        tan_a = r[i] * abs(va[i] - vb[i]) / step
-        tan_x = r[i] * across[i] / (ra[i] * ra[i]) / step_x
-        out[i] = 1.0 / np.sqrt(1.0 + tan_a * tan_a + tan_x * tan_x)
-    return out
+    across: float,
+    max_gap: float,
+    half: float,
+    off_end: NDArray[np.bool_],
+    met: NDArray[np.bool_],
+    off_blend: NDArray[np.bool_],
+) -> tuple[NDArray[np.bool_], ...]:
+    """The tests of the beam ``i`` beams from each return p on one side of a line
+    (``mixed_grid._mixed_along``): the beam's range, inverse range and range change
+    across at offsets i, i + 1, i + 2 (``ra``.., ``va``.., ``ca``), p's range ``r`` and
+    angle blur ``blur`` (in steps). Settings: the range variance ``sigma2`` and
+    ``sigmas``; ``spread0`` the tolerance of two returns on one surface, ``f1`` and
+    ``fi`` the scatter factors of a surface continued one and ``i`` beams on; with
+    ``fit3`` a face-on anchor (three beams within ``flat_tol``) is continued by the
+    line through its three beams, its scatter times ``c3scale``; ``across`` the least
+    offset across a surface; ``half`` half the footprint in beams.
+
+    Returns (anchored, ok, near, far, front, hidden): the beam is on a surface; and p
+    lies off it; ok and nearer / farther than p by more than the margin within
+    max_gap (its surface continued to p, or itself); p behind it by more than margin +
+    step × range (a one-beam front's candidates); ok and nearer, beyond max_gap.
+    Updates ``off_end`` (ok within max_gap), ``off_blend`` (off by more than the
+    surface could pull it, where no anchor on this side was met before) and ``met``.
+    """
+    n = r.size
+    anchored = np.zeros(n, dtype=np.bool_)
+    ok = np.zeros(n, dtype=np.bool_)
+    near = np.zeros(n, dtype=np.bool_)
+    far = np.zeros(n, dtype=np.bool_)
+    front = np.empty(n, dtype=np.bool_)
+    hidden = np.zeros(n, dtype=np.bool_)
+    fi_ = float(i)
+    for k in range(n):
+        rk, a, a1, a2 = r[k], ra[k], ra1[k], ra2[k]
+        front[k] = rk - a * (1.0 + step) > margin
+        v, v1, v2 = va[k], va1[k], va2[k]
+        # on a surface: the line through the outer two continues through it
+        w = v1 + (v1 - v2) * 1.0
+        ext = 1.0 / w if w > 0 else np.inf
+        d = abs(a1 - a2)
+        if np.isnan(d):
+            d = 0.0
+        t = d * blur[k]
+        three = abs(ext - a) <= sigmas * np.sqrt(sigma2 + t * t) * f1
+        if not (three or abs(a1 - a) <= spread0):
+            continue  # no anchor: none of the rest holds
+        anchored[k] = True
+        # off its surface, continued to p's beam (each value computed only where needed)
+        w = v + (v - v1) * fi_
+        dev = abs((1.0 / w if w > 0 else np.inf) - rk)
+        d = abs(a - a1)
+        if np.isnan(d):
+            d = 0.0
+        t = d * blur[k]
+        sp = sigmas * np.sqrt(sigma2 + t * t) * fi
+        if fit3 and three and abs(a - a2) <= flat_tol and abs(a - rk) > margin:
+            v3 = (v + v1 + v2) / 3.0 - (v2 - v) / 2.0 * (i + 1)
+            dev = abs((1.0 / v3 if v3 > 0 else np.inf) - rk)
+            sp = sp * c3scale
+        o = False
+        if dev > sp:
+            tan_a = rk * abs(v - v1) / step
+            tan_x = rk * ca[k] / (a * a) / step_x
+            o = dev * (1.0 / np.sqrt(1.0 + tan_a * tan_a + tan_x * tan_x)) > across
+        if o:
+            ok[k] = True
+            gap = abs(a - rk)
+            if np.isnan(gap):
+                gap = dev
+            elif not np.isnan(dev):
+                gap = min(gap, dev)
+            within = gap < max_gap
+            near[k] = a < rk - margin and within
+            far[k] = a > rk + margin and within
+            hidden[k] = a < rk - margin and not within
+            if a < rk + max_gap and within:
+                off_end[k] = True
+                if not met[k]:
+                    gg = v - v1
+                    vc = v + gg * fi_
+                    pulled = abs(1.0 / (vc - gg * half) - 1.0 / vc)
+                    if dev > sp + pulled:
+                        off_blend[k] = True
+        if a < rk + max_gap:
+            met[k] = True
+    return anchored, ok, near, far, front, hidden
+
+
+@numba.njit(cache=True)
+def behind_both(
+    r: NDArray[np.float64],
+    r0: NDArray[np.float64],
+    r1: NDArray[np.float64],
+    margin: float,
+    max_gap: float,
+) -> NDArray[np.int64]:
+    """Indices of the returns (range ``r``) behind which both beams ``r0`` and ``r1`` lie
+    by more than ``margin`` and less than ``max_gap`` (NaN: no beam)."""
+    n = r.size
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for k in range(n):
+        d0 = r0[k] - r[k]
+        d1 = r1[k] - r[k]
+        if d0 > margin and d1 > margin and d0 < max_gap and d1 < max_gap:
+            out[m] = k
+            m += 1
+    return out[:m].copy()

@@ -86,8 +86,9 @@ order instead (``time_index``): the pulse number from its time, the column
 length from the angles of the sharp returns, so returns whose angle the LAS
 scale blurs beyond a beam (near the sensor) are judged on their own beam too.
 
-Everything is array arithmetic on the points sorted by grid index; the only
-loops run over the few beam offsets within reach.
+Everything is array arithmetic on the points sorted by grid index, the tests of
+each anchor in one compiled pass (``_mixed_kernels``); the only Python loops run
+over the few beam offsets within reach.
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._mixed_kernels import continued, incidence_cos, line_gather, spread_of
+from ._mixed_kernels import anchor_pass, behind_both, line_gather, spread_of
 
 OFF_GRID = 0.35  # a beam's angle lies within this many steps of its grid line
 
@@ -310,26 +311,6 @@ def mark_grid(
     r_all = np.linalg.norm(rel, axis=1)
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / np.maximum(r_all, 1e-12), -1.0, 1.0))
-    ia, off_a = grid_offsets(az, s.step_az)
-    ie, off_e = grid_offsets(el, s.step_el)
-    judged = (off_a < OFF_GRID) & (off_e < OFF_GRID) & (r_all > 1e-6)
-    own = judged  # returns whose own beam the grid index gives for certain
-    if s.las_scale > 0:
-        # the angle of a return lies anywhere in its quantisation box (half-widths ha, he
-        # about the stored angle). It is on the grid when its box comes within OFF_GRID of
-        # the nearest line: the returns near enough for the box to span a third of a step
-        # all are, so blurred surfaces leave no holes in the range image (with 1 cm
-        # coordinates at a 0.1° step, 3-15 % of the blends (per angle) at 6-10 m fell
-        # more than OFF_GRID off their line, and an anchor needs three beams in a row).
-        # A return whose box holds no other line than its nearest (off + half-width under
-        # a step, in both angles) lies on that line: judged. The others on the grid still
-        # fill the range image about it (their ranges are exact, their beams at most a
-        # line off) as neighbours, never judged: left out, a judged blend lost the near
-        # surface it lies between (1 cm coordinates within 18 m at 0.1°)
-        ha, he = box_halfwidths(az, el, r_all, s.las_scale)
-        ha, he = ha / s.step_az, he / s.step_el
-        judged = (off_a < OFF_GRID + ha) & (off_e < OFF_GRID + he) & (r_all > 1e-6)
-        own = judged & (off_a + ha < 1.0) & (off_e + he < 1.0)
     timed = None
     fired_rows = 0  # pulses per column, when the firing order gives it
     if gps_time is not None:
@@ -339,6 +320,8 @@ def mark_grid(
         s = replace(s, step_az=timed[2], step_el=timed[3])
         fired_rows = timed[4]
         judged = own = r_all > 1e-6
+    else:
+        ia, ie, judged, own = _angle_index(az, el, r_all, s)
     idx = np.flatnonzero(judged)
     if idx.size < 3:
         return marked, own, timed is not None
@@ -362,7 +345,7 @@ def mark_grid(
         both = np.fmin(np.abs(r_pad[find(key + stride)] - r), np.abs(r_pad[find(key - stride)] - r))
         across[axis] = np.where(np.isfinite(both), both, 0.0)
     line_done = None
-    bounds = _fov_bounds(fov, az[idx][order], el[idx][order], key // n_e, key % n_e, s)
+    bounds = _fov_bounds(fov, az[idx], el[idx], ia, ie, s)  # medians: in any order
     for axis in s.axes:
         pos = (key // n_e) if axis == 0 else (key % n_e)
         line = _Line(
@@ -391,6 +374,35 @@ def mark_grid(
         line_done = line  # its arrays are free for the next axis
     marked[idx[order]] = out
     return marked & own, own, timed is not None
+
+
+def _angle_index(
+    az: NDArray[np.float64], el: NDArray[np.float64], r_all: NDArray[np.float64], s: GridSettings
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Grid index (azimuth, elevation) of every return from its angles, the returns near
+    enough their grid lines to be judged, and those whose own beam the index gives for
+    certain (``mark_grid`` without the firing order)."""
+    ia, off_a = grid_offsets(az, s.step_az)
+    ie, off_e = grid_offsets(el, s.step_el)
+    judged = (off_a < OFF_GRID) & (off_e < OFF_GRID) & (r_all > 1e-6)
+    own = judged  # returns whose own beam the grid index gives for certain
+    if s.las_scale > 0:
+        # the angle of a return lies anywhere in its quantisation box (half-widths ha, he
+        # about the stored angle). It is on the grid when its box comes within OFF_GRID of
+        # the nearest line: the returns near enough for the box to span a third of a step
+        # all are, so blurred surfaces leave no holes in the range image (with 1 cm
+        # coordinates at a 0.1° step, 3-15 % of the blends (per angle) at 6-10 m fell
+        # more than OFF_GRID off their line, and an anchor needs three beams in a row).
+        # A return whose box holds no other line than its nearest (off + half-width under
+        # a step, in both angles) lies on that line: judged. The others on the grid still
+        # fill the range image about it (their ranges are exact, their beams at most a
+        # line off) as neighbours, never judged: left out, a judged blend lost the near
+        # surface it lies between (1 cm coordinates within 18 m at 0.1°)
+        ha, he = box_halfwidths(az, el, r_all, s.las_scale)
+        ha, he = ha / s.step_az, he / s.step_el
+        judged = (off_a < OFF_GRID + ha) & (off_e < OFF_GRID + he) & (r_all > 1e-6)
+        own = judged & (off_a + ha < 1.0) & (off_e + he < 1.0)
+    return ia, ie, judged, own
 
 
 def _fov_bounds(
@@ -527,10 +539,6 @@ def _mixed_along(
         sl = np.broadcast_to(np.asarray(slope, dtype=np.float64), blur.shape)
         return spread_of(np.ascontiguousarray(sl), blur, s.sigma**2, s.sigmas, factor)
 
-    def extrapolated(a: int, b: int, steps: float) -> NDArray[np.float64]:
-        """Range of the surface through beams a and b (a nearer p) continued ``steps`` beyond a."""
-        return continued(V[a], V[b], float(steps))
-
     # near[sd][i] / far[sd][i]: a surface i beams away on side sd, nearer / farther than p
     near: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
     far: dict[int, dict[int, NDArray[np.bool_]]] = {1: {}, -1: {}}
@@ -555,48 +563,64 @@ def _mixed_along(
                 a, a1, a2 = sd * i, sd * (i + 1), sd * (i + 2)
                 ra = R[a]
                 # on a surface: the line through its outer neighbours continues through
-                # it, or (a surface only two beams wide) its outer neighbour agrees
-                three = np.abs(extrapolated(a1, a2, 1.0) - ra) <= spread(1, np.abs(R[a1] - R[a2]))
-                anchored = three | (np.abs(R[a1] - ra) <= spread(0))
-                # off its surface: in range beyond the continuation's scatter, and across
+                # it, or (a surface only two beams wide) its outer neighbour agrees.
+                # Off its surface: in range beyond the continuation's scatter, and across
                 # the surface by more than min_offset (at grazing incidence a range offset
-                # is mostly along the surface)
-                slope = np.abs(ra - R[a1])
-                dev = np.abs(extrapolated(a, a1, float(i)) - r)
-                sp = spread(i, slope)
-                if s.fit_beams >= 3:
-                    # an anchor nearer or farther than p by more than the margin (the
-                    # anchors of a blend) on a face-on surface (three beams on one line,
-                    # their range within the scatter of a difference): the least-squares
-                    # line through the three, whose continuation i beams on scatters by
-                    # sqrt(1/3 + (i+1)²/2) returns' sd against sqrt(i² + (i+1)²) through
-                    # two. Not on sloped surfaces: a bleeding end bends their third beam,
-                    # which the fit would carry to p. Three beams on one face-on line are
-                    # on a surface, so they scatter as returns on a surface do, not as the
-                    # median residual, which also counts edges and blends (shared-report
-                    # 4400: 10.8 mm against 9.0 mm; blends 7 cm off the line were missed)
-                    c3 = np.flatnonzero(
-                        three & (np.abs(ra - R[a2]) <= flat_tol) & (np.abs(ra - r) > s.margin)
-                    )
-                    if c3.size:
-                        v3 = (V[a][c3] + V[a1][c3] + V[a2][c3]) / 3.0 - (
-                            V[a2][c3] - V[a][c3]
-                        ) / 2.0 * (i + 1)
-                        dev[c3] = np.abs(np.where(v3 > 0, 1.0 / v3, np.inf) - r[c3])
-                        sp[c3] *= on_surface * np.sqrt(
-                            (4.0 / 3.0 + (i + 1) ** 2 / 2.0) / ((1 + i) ** 2 + i**2 + 1)
-                        )
-                # incidence at p's beam: along a plane the inverse range changes evenly,
-                # so tan(incidence) along an axis = r × |Δ(1/r) per beam| / step
-                cos_inc = incidence_cos(r, V[a], V[a1], line.C[a], ra, step, step_x)
-                off = (dev > sp) & (dev * cos_inc > across)
-                ok = anchored & off
+                # is mostly along the surface; the incidence at p's beam from the change
+                # in inverse range per beam, which along a plane is even: tan = r ×
+                # |Δ(1/r) per beam| / step). With fit_beams 3, an anchor nearer or farther
+                # than p by more than the margin on a face-on surface (three beams on one
+                # line, their range within the scatter of a difference) is continued by
+                # the least-squares line through the three, whose continuation i beams on
+                # scatters by sqrt(1/3 + (i+1)²/2) returns' sd against sqrt(i² + (i+1)²)
+                # through two. Not on sloped surfaces: a bleeding end bends their third
+                # beam, which the fit would carry to p. Three beams on one face-on line are
+                # on a surface, so they scatter as returns on a surface do, not as the
+                # median residual, which also counts edges and blends (shared-report
+                # 4400: 10.8 mm against 9.0 mm; blends 7 cm off the line were missed).
+                # Within max_gap of p: the anchor, or its surface continued to p's beam
+                # (grazing ground a beam before a far wall's foot lies metres nearer than
+                # the blend, its continuation half a metre behind it). p blends that
+                # surface with a background ending within its beam (off_end) only within
+                # max_gap of it (a return farther behind answers alone). off_blend: the
+                # surface continued to p's beam, taken back half a footprint of beams
+                # towards the anchor, is the farthest a return of that surface alone is
+                # pulled; judged against the nearest anchor on that side only (met: the
+                # surface p ends), as a farther one may be the bleeding returns of that
+                # surface's other end. All of it in one compiled pass (``anchor_pass``).
+                anchored, ok, near[sd][i], far[sd][i], front, beyond = anchor_pass(
+                    r,
+                    ra,
+                    R[a1],
+                    R[a2],
+                    V[a],
+                    V[a1],
+                    V[a2],
+                    line.C[a],
+                    blur,
+                    i,
+                    s.sigma**2,
+                    s.sigmas,
+                    float(spread(0)),
+                    float(np.sqrt((1 + 1) ** 2 + 1**2 + 1)),
+                    float(np.sqrt((1 + i) ** 2 + i**2 + 1)),
+                    s.fit_beams >= 3,
+                    float(flat_tol),
+                    float(
+                        on_surface
+                        * np.sqrt((4.0 / 3.0 + (i + 1) ** 2 / 2.0) / ((1 + i) ** 2 + i**2 + 1))
+                    ),
+                    s.margin,
+                    step,
+                    step_x,
+                    across,
+                    s.max_gap,
+                    s.footprint / 2.0,
+                    off_end[sd],
+                    met[sd],
+                    off_blend[sd],
+                )
                 anchors[sd][i] = (anchored, ok)
-                # within max_gap of p: the anchor, or its surface continued to p's beam
-                # (grazing ground a beam before a far wall's foot lies metres nearer
-                # than the blend, its continuation half a metre behind it)
-                gap = np.fmin(np.abs(ra - r), dev)
-                near[sd][i] = ok & (ra < r - s.margin) & (gap < s.max_gap)
                 # the front of a thin object one beam wide is an anchor too (it has no
                 # second beam on its line): its neighbours either side lie behind it by
                 # more than a convex surface through it recedes in one beam (step × range)
@@ -607,7 +631,7 @@ def _mixed_along(
                     behind_c = np.flatnonzero(near[sd][i] & ~level)  # used below
                 if i + 3 <= reach + 2:
                     # p behind the anchor by more than margin + step × range, picked first
-                    cp = np.flatnonzero(r - ra * (1.0 + step) > s.margin)
+                    cp = np.flatnonzero(front)
                     ra_c = ra[cp]
                     lim = s.margin + step * ra_c
                     inner = (R[sd * (i - 1)] if i > 1 else r)[cp]
@@ -624,24 +648,9 @@ def _mixed_along(
                     # passes more than max_gap behind p: where a farther anchor lies in
                     # front of that continuation, it hides the ground running on under it
                     # (a wall's foot), and p blends the two (paired below)
-                    cc = np.flatnonzero(ok & (ra < r - s.margin) & ~(gap < s.max_gap))
+                    cc = np.flatnonzero(beyond)
                     v = V[a][cc] + (V[a][cc] - V[a1][cc]) * i
                     hidden[sd][i] = (cc, np.where(v > 0, 1.0 / v, np.inf))
-                # p blends that surface with a background ending within its beam only
-                # within max_gap of it (a return farther behind answers alone)
-                end = ok & (ra < r + s.max_gap) & (gap < s.max_gap)
-                off_end[sd] |= end
-                # the surface continued to p's beam, taken back half a footprint of beams
-                # towards the anchor: the farthest a return of that surface alone is pulled.
-                # Judged against the nearest anchor on that side only (the surface p ends):
-                # a farther one may be the bleeding returns of that surface's other end
-                c = np.flatnonzero(end & ~met[sd])
-                met[sd] |= anchored & (ra < r + s.max_gap)
-                g = V[a][c] - V[a1][c]
-                v_c = V[a][c] + g * i
-                pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
-                off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
-                far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
                 if axis == 1 and level is not None:
                     # a nearer surface (grazing ground) whose continuation to p's beam
                     # passes behind p (within max_gap): p lies in front of the ground
@@ -661,12 +670,11 @@ def _mixed_along(
                 # anchor it, so that beam counts as the farther surface (paired below with
                 # an anchor nearer than p on the other side, as a one-beam front is)
                 if axis == 0:
-                    ce = np.flatnonzero(
-                        (sd * (extent[1 if sd == 1 else 0] - pos - a) <= 1)
-                        & np.isnan(R[a + sd])
-                        & (ra > r + s.margin)
-                        & (ra < r + s.max_gap)
-                    )
+                    ce = np.flatnonzero(sd * (extent[1 if sd == 1 else 0] - pos - a) <= 1)
+                    ra_e, r_e = ra[ce], r[ce]
+                    ce = ce[
+                        np.isnan(R[a + sd][ce]) & (ra_e > r_e + s.margin) & (ra_e < r_e + s.max_gap)
+                    ]
                     if ce.size:
                         # each step of the ramp, from p's inner neighbour out to the edge,
                         # exceeds margin + step × range: more than a surface at up to 45°
@@ -1072,14 +1080,13 @@ def _thin_runs(
                 lo, hi = -(q + 1), L - q
                 if -lo + 1 > s.reach + 2 or hi + 1 > s.reach + 2:
                     continue
+                # the rest is judged on these few only
                 if s.thin < L:
                     d0, d1 = R[lo][steep] - r[steep], R[hi][steep] - r[steep]
+                    behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap)
+                    c = steep[np.flatnonzero(behind & (d1 < s.max_gap))]
                 else:
-                    d0, d1 = R[lo] - r, R[hi] - r
-                behind = (d0 > s.margin) & (d1 > s.margin) & (d0 < s.max_gap) & (d1 < s.max_gap)
-                c = np.flatnonzero(behind)  # the rest is judged on these few only
-                if s.thin < L:
-                    c = steep[c]
+                    c = behind_both(r, R[lo], R[hi], s.margin, s.max_gap)
                 if c.size == 0:
                     continue
                 rc, rb0, rb1 = r[c], R[lo][c], R[hi][c]
@@ -1228,6 +1235,7 @@ def _thin_runs_hidden(
     # more than max_gap (the run's nearest beam is no farther than p)
     bg: dict[int, NDArray[np.bool_]] = {}
     cut: dict[int, NDArray[np.bool_]] = {}
+    r_cut = r - s.max_gap
     with np.errstate(invalid="ignore", divide="ignore"):
         for L in range(2, s.thin + 1):
             for q in range(L):
@@ -1240,7 +1248,7 @@ def _thin_runs_hidden(
                         d = R[b] - r
                         bg[b] = (d > s.margin) & (d < s.max_gap)
                     if o not in cut:
-                        cut[o] = R[o] < r - s.max_gap
+                        cut[o] = R[o] < r_cut
                     c = np.flatnonzero(bg[b] & cut[o])
                     if c.size == 0:
                         continue

@@ -151,9 +151,11 @@ def measure_scan_geometry(
     """
     rel = np.asarray(rel, dtype=np.float64)
     r = np.linalg.norm(rel, axis=1)
-    keep = r > 1e-6
-    if np.count_nonzero(keep) < 50:
+    valid = r > 1e-6
+    n_kept = np.count_nonzero(valid)
+    if n_kept < 50:
         return None
+    keep: NDArray[np.bool_] | slice = valid if n_kept < r.size else slice(None)  # all: views
     rel, r = rel[keep], r[keep]
     t = None if gps_time is None else np.asarray(gps_time, dtype=np.float64)[keep]
     how: dict[str, str] = {}
@@ -167,12 +169,13 @@ def measure_scan_geometry(
     az = np.arctan2(rel[:, 1], rel[:, 0])
     el = np.arcsin(np.clip(rel[:, 2] / r, -1.0, 1.0))
     by_az = None  # the points' order by azimuth, when sorted already
+    lines = None  # azimuth, elevation and range of each sector's points
     if sectors is None:
         # the footprint on sectors spread over the whole scan, not the sample's middle one:
         # a position looking past a scene another position stands in front of may show
-        # no edge there (edges may lie anywhere)
+        # no edge there (edges may lie anywhere); their angles are those found here
         o = by_az = np.argsort(az, kind="stable")
-        sectors = [rel[o[a:b]] for a, b in ramp_sectors(az.size)]
+        lines = [(az[o[a:b]], el[o[a:b]], r[o[a:b]]) for a, b in ramp_sectors(az.size)]
     az, el, r, t = _sector(az, el, r, by_az, t)
     # one order whatever order the points came in (a job reads them block by block):
     # the samples drawn below then depend on the points alone
@@ -246,7 +249,7 @@ def measure_scan_geometry(
             # coordinates, all returns within 41 m at 0.03°: the spacing ran 37 % long):
             # the step is sought within the octave about the spacing, on the sectors
             # spread over the whole scan, whose farthest returns blur least
-            lines = [_angles(v) for v in sectors]
+            lines = lines if lines is not None else [_angles(v) for v in sectors or ()]
             oa, oe = _octave_steps(
                 np.concatenate([v[0] for v in lines]),
                 np.concatenate([v[1] for v in lines]),
@@ -288,7 +291,7 @@ def measure_scan_geometry(
         how["footprint"] = "stated"
     else:
         jump = max(6.0 * sigma, 0.03) if np.isfinite(sigma) else 0.05
-        lines = [_angles(v) for v in sectors]
+        lines = lines if lines is not None else [_angles(v) for v in sectors or ()]
         steps, edges = _ramp_steps(lines, sa, se, jump, max_gap, sharp)
         on = ""
         if not np.isfinite(steps) and las_scale > 0:
