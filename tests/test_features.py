@@ -2481,3 +2481,58 @@ def test_edges_parses_formats_and_needs_a_connect_step():
     ):
         with pytest.raises(FilterSyntaxError, match="edges"):
             parse_filter(seg + bad, "x")
+
+
+def test_a_low_embankment_whose_shoulder_reads_level_but_rises_is_a_road():
+    """A cross-section of a 0.21 m embankment road on level ground (4 cm noise) as the
+    turned tiles of a job's DTM read it (2 m tiles every 1 m, seen seed 315, rise turned
+    to a row): the top level over 3 tiles; its east shoulder's tile 0.15-0.25 m (2 dm),
+    its west shoulder's tiles each under 0.15 m (1 dm, the level threshold), the middle
+    one rising toward the top by 7 times the slope noise (grade). Where the shoulder read
+    so, whole runs of cross-sections went unmarked and the road came out in pieces (80 of
+    its 180 m lost). A shoulder 0.05-0.15 m across its tile rising by at least five times
+    the slope noise bounds the strip as one past the level threshold does; under five
+    times (the tiles beside it, grade 4), under 0.05 m, or rising the same way on both
+    sides (a plain slope), it does not."""
+    inc = [0] * 17
+    h10 = [0, 0, 0, 0, 1, 2, 1, 0, 0, 0, 1, 2, 0, 0, 0, 0, 0]
+    relief = [0, 0, 0, 0, 1, 1, 1, 0, 0, 0, 1, 2, 0, 0, 0, 0, 0]
+    rise = [0, 0, 0, 0, 1, 1, 1, 0, 0, 0, 5, 5, 0, 0, 0, 0, 0]
+    grade = [0, 0, 0, 0, 4, 7, 4, 0, 1, 0, 4, 10, 1, 0, 0, 0, 0]
+
+    def marked(rise: list[int], grade: list[int]) -> NDArray[np.bool_]:
+        def band(v: list[int]) -> NDArray[np.uint8]:
+            return np.tile(np.array(v, dtype=np.uint8), (80, 1))
+
+        cats = Categories(
+            inclination=band(inc),
+            orientation=band(inc),
+            state=band(inc),
+            height10=band(h10),
+            cells_per_tile=4,
+            tile_size=2.0,
+            noise=0.008,
+            relief10=band(relief),
+            step_cells=2,
+            lying10=band(relief),
+            clear=band(inc),
+            rise=band(rise),
+            grade=band(grade),
+        )
+        flt = resolve_lengths(load_filter("road"), cats.spacing)
+        labels, marks, _ = filter_labels(cats, flt)
+        assert labels is not None
+        return marks
+
+    marks = marked(rise, grade)
+    assert marks[:, 7:10].all()  # every row marks the level top
+    assert not marks[:, :4].any() and not marks[:, 13:].any()
+    weak = grade[:5] + [4] + grade[6:]  # the shoulder rising by 4 sigma only
+    assert not marked(rise, weak).any()
+    # rising by 7 sigma but under 0.05 m across the tile (a 2 % slope on a DTM whose
+    # slope noise is small): not a shoulder
+    relief[5] = 0
+    assert not marked(rise, grade).any()
+    relief[5] = 1
+    slope = rise[:10] + [1, 1] + rise[12:]  # rising east on both sides: a hillside
+    assert not marked(slope, grade).any()
