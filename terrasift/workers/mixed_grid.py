@@ -44,6 +44,9 @@ Likewise along azimuth the scan's last beam on a side, behind a ramp that runs o
 it (each beam farther than the one before by more than margin + step × range, the
 ramp's returns on no line of two beams) from an anchor nearer than p, is the farther
 surface: a background at the field of view's edge shows one beam, no line.
+A beam whose next beams outwards are a thin object's run (a wall seen one beam wide
+between a pole's blends and a board's ramp) is an anchor when the surface beyond the
+run, continued across it, lands on it (``_past_thin_run``).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -642,6 +645,15 @@ def _mixed_along(
                 pulled = np.abs(1.0 / (v_c - g * (s.footprint / 2.0)) - 1.0 / v_c)
                 off_blend[sd][c[dev[c] > sp[c] + pulled]] = True
                 far[sd][i] = ok & (ra > r + s.margin) & (gap < s.max_gap)
+                # a beam seen past a thin object (the pole before a wall's one beam between
+                # its blends and a board's ramp) has no line of its own outwards: the
+                # surface beyond the object's run, continued across it, anchors it
+                cx, dx = _past_thin_run(line, R, r, anchored, s, sd, i, blur, step, across)
+                if cx.size:
+                    rx, rax = r[cx], ra[cx]
+                    close = np.fmin(np.abs(rax - rx), dx) < s.max_gap
+                    far[sd][i][cx[close & (rax > rx + s.margin)]] = True
+                    near[sd][i][cx[close & (rax < rx - s.margin)]] = True
                 if axis == 1 and level is not None:
                     # a nearer surface (grazing ground) whose continuation to p's beam
                     # passes behind p (within max_gap): p lies in front of the ground
@@ -751,6 +763,78 @@ def _mixed_along(
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
+
+
+def _past_thin_run(
+    line: _Line,
+    R: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    anchored: NDArray[np.bool_],
+    s: GridSettings,
+    sd: int,
+    i: int,
+    blur: NDArray[np.float64],
+    step: float,
+    across: float,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Beams ``i`` beams from p on side ``sd`` that lie on a surface seen past a thin
+    object, and p's range offset from that surface, for the returns p off it.
+
+    A surface seen between the blends of a thin object and a nearer edge (a wall's one
+    beam between a pole narrower than the footprint and the ramp into a board) shows
+    no line of its own outwards: its next beams are the object's run. The beam (not
+    anchored otherwise) is on the surface beyond the run when every beam of the run,
+    at most ``s.thin`` of them, lies nearer than it by more than the margin, the first
+    beam past the run lies behind the run's last, and the line through the first two
+    beams past the run, continued across it, lands on the beam (within the scatter of
+    a two-beam line continued that far, as an anchor's own line is judged). p is off
+    that surface when the line, continued on to p's beam, misses p by more than its
+    scatter there and by more than ``across`` across the surface (its incidence from the
+    line's change in inverse range per beam).
+    Returns the indexes of those p and their range offsets."""
+    a = sd * i
+    n = r.size
+    top = max(k for k in R)  # beam offsets held by the line
+    c = np.flatnonzero(R[sd * (i + 1)] < R[a] - s.margin)
+    c = c[~anchored[c] & (np.abs(R[a][c] - r[c]) > s.margin)]
+    if c.size == 0:
+        return c, np.zeros(0)
+
+    def at(o: int) -> NDArray[np.float64]:
+        if abs(o) <= top:
+            return R[o][c]
+        j = np.asarray(line.J.find(line.J.key[c] + o * line.J.stride), dtype=np.int64)
+        return np.where(j < n, r[np.minimum(j, n - 1)], np.nan)
+
+    ra, rp, bl = R[a][c], r[c], blur[c]
+    run = np.ones(c.size, dtype=bool)
+    found = np.zeros(c.size, dtype=bool)
+    dev = np.full(c.size, np.nan)
+    off = np.zeros(c.size, dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for L in range(1, s.thin + 1):
+            rl = at(sd * (i + L))
+            run &= rl < ra - s.margin
+            b1, b2 = at(sd * (i + L + 1)), at(sd * (i + L + 2))
+            v1, v2 = 1.0 / b1, 1.0 / b2
+            sd1 = s.sigmas * np.sqrt(s.sigma**2 + (np.abs(b1 - b2) * bl) ** 2)
+            k = L + 1  # beams from the line's first beam to the anchor
+            va = v1 + (v1 - v2) * k
+            land = np.abs(np.where(va > 0, 1.0 / va, np.inf) - ra)
+            hit = run & ~found & (b1 > rl + s.margin)
+            hit &= land <= sd1 * np.sqrt((k + 1) ** 2 + k**2 + 1)
+            if not hit.any():
+                continue
+            k = L + 1 + i  # and on to p's beam
+            vp = v1 + (v1 - v2) * k
+            d = np.abs(np.where(vp > 0, 1.0 / vp, np.inf) - rp)
+            cos_inc = 1.0 / np.sqrt(1.0 + (rp * np.abs(v1 - v2) / step) ** 2)
+            o = (d > sd1 * np.sqrt((k + 1) ** 2 + k**2 + 1)) & (d * cos_inc > across)
+            dev[hit] = d[hit]
+            off[hit] = o[hit]
+            found |= hit
+    keep = found & off
+    return c[keep], dev[keep]
 
 
 def _step_run(
