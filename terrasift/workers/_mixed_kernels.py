@@ -111,3 +111,23 @@ def incidence_cos(
         tan_x = r[i] * across[i] / (ra[i] * ra[i]) / step_x
         out[i] = 1.0 / np.sqrt(1.0 + tan_a * tan_a + tan_x * tan_x)
     return out
+
+
+@numba.njit(cache=True)
+def edge_drops(
+    r_out: NDArray[np.float64],
+    r_a: NDArray[np.float64],
+    r: NDArray[np.float64],
+    anchored: NDArray[np.bool_],
+    margin: float,
+) -> NDArray[np.int64]:
+    """Indexes of the returns whose beam at some offset (range ``r_a``) is not
+    ``anchored``, lies off the return by more than ``margin`` in range, and whose next
+    beam outwards (``r_out``) lies nearer than it by more than ``margin``."""
+    out = np.empty(r.size, dtype=np.int64)
+    m = 0
+    for i in range(r.size):
+        if r_out[i] < r_a[i] - margin and not anchored[i] and abs(r_a[i] - r[i]) > margin:
+            out[m] = i
+            m += 1
+    return out[:m]
