@@ -101,7 +101,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._mixed_kernels import continued, edge_drops, incidence_cos, line_gather, spread_of
+from ._mixed_kernels import (
+    continued,
+    edge_drops,
+    incidence_cos,
+    line_gather,
+    past_run,
+    spread_of,
+)
 
 OFF_GRID = 0.35  # a beam's angle lies within this many steps of its grid line
 
@@ -793,51 +800,14 @@ def _past_thin_run(
     line's change in inverse range per beam).
     Returns the indexes of those p and their range offsets."""
     a = sd * i
-    n = r.size
-    top = max(k for k in R)  # beam offsets held by the line
     c = edge_drops(R[sd * (i + 1)], R[a], r, anchored, s.margin)
     if c.size == 0:
         return c, np.zeros(0)
-
-    def at(o: int, q: NDArray[np.intp]) -> NDArray[np.float64]:
-        if abs(o) <= top:
-            return R[o][q]
-        j = np.asarray(line.J.find(line.J.key[q] + o * line.J.stride), dtype=np.int64)
-        return np.where(j < n, r[np.minimum(j, n - 1)], np.nan)
-
-    live = c  # runs not yet ended nor placed
-    got: list[NDArray[np.intp]] = []
-    devs: list[NDArray[np.float64]] = []
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for L in range(1, s.thin + 1):
-            rl = at(sd * (i + L), live)
-            ra = R[a][live]
-            on = rl < ra - s.margin
-            live, rl, ra = live[on], rl[on], ra[on]
-            if live.size == 0:
-                break
-            b1, b2 = at(sd * (i + L + 1), live), at(sd * (i + L + 2), live)
-            v1, v2 = 1.0 / b1, 1.0 / b2
-            sd1 = s.sigmas * np.sqrt(s.sigma**2 + (np.abs(b1 - b2) * blur[live]) ** 2)
-            k = L + 1  # beams from the line's first beam to the anchor
-            va = v1 + (v1 - v2) * k
-            land = np.abs(np.where(va > 0, 1.0 / va, np.inf) - ra)
-            hit = (b1 > rl + s.margin) & (land <= sd1 * np.sqrt((k + 1) ** 2 + k**2 + 1))
-            if not hit.any():
-                continue
-            h = live[hit]
-            k = L + 1 + i  # and on to p's beam
-            v1, v2, rp = v1[hit], v2[hit], r[h]
-            vp = v1 + (v1 - v2) * k
-            d = np.abs(np.where(vp > 0, 1.0 / vp, np.inf) - rp)
-            cos_inc = 1.0 / np.sqrt(1.0 + (rp * np.abs(v1 - v2) / step) ** 2)
-            off = (d > sd1[hit] * np.sqrt((k + 1) ** 2 + k**2 + 1)) & (d * cos_inc > across)
-            got.append(h[off])
-            devs.append(d[off])
-            live = live[~hit]
-    if not got:
-        return np.zeros(0, dtype=np.intp), np.zeros(0)
-    return np.concatenate(got), np.concatenate(devs)
+    j = line.J
+    lut = j.find.lut
+    return past_run(
+        c, j.key, lut, j.stride, r, blur, a, sd, s.thin, s.margin, s.sigma, s.sigmas, step, across
+    )
 
 
 def _step_run(
