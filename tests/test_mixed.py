@@ -1052,6 +1052,31 @@ def test_grid_keeps_a_wall_strip_between_a_pole_blend_and_a_ramp_into_a_farther_
         assert m[np.isin(col, [0, 3, 8, 9])].mean() > 0.95
 
 
+def test_grid_anchors_a_wall_beam_seen_past_a_pole_narrower_than_the_footprint():
+    # Shared-report 5102 (0.49° steps, a 1.5-step footprint, 4.6 mm of noise): a pole
+    # narrower than the footprint leaves three blends before a wall, then the wall shows
+    # one beam (its next beams outwards are the pole's blends, so it has no line of its
+    # own), then a ramp of two blends into a board. The ramp had no farther anchor within
+    # reach and was missed (main: 0 % of its rows). The wall past the pole's run,
+    # continued across it, lands on that beam: it anchors the ramp. Nothing else is marked.
+    def wall(c):
+        return 10.59 - 0.015 * c
+
+    blends = {-4: 10.42, -3: 10.09, -2: 10.39, 0: 10.04, 1: 9.46}
+
+    def scene(c):
+        if c in blends:
+            return blends[c]
+        return wall(c) if c <= -1 or c >= 14 else 9.35
+
+    for seed in range(3):
+        xyz, col = _wall_grid(scene, step=0.493, noise=0.0046, seed=seed)
+        m = mark_mixed(xyz, MixedParams(footprint=0.75), np.zeros(3)).marked
+        assert m[np.isin(col, [0, 1])].mean() > 0.95  # 43ff037: 0.0
+        assert m[np.isin(col, [-4, -3, -2])].mean() > 0.95
+        assert not m[~np.isin(col, list(blends))].any()
+
+
 def test_a_wall_strip_is_face_on_when_its_neighbour_differs_by_a_difference_of_two_returns():
     # The strip rule's first step, p to its neighbour, is a difference of two returns on
     # the strip like every later one, so it takes the same tolerance (grid_sigmas x the

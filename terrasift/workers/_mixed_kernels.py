@@ -211,3 +211,90 @@ def behind_both(
             out[m] = k
             m += 1
     return out[:m].copy()
+
+
+@numba.njit(cache=True)
+def edge_drops(
+    r_out: NDArray[np.float64],
+    r_a: NDArray[np.float64],
+    r: NDArray[np.float64],
+    anchored: NDArray[np.bool_],
+    margin: float,
+) -> NDArray[np.int64]:
+    """Indexes of the returns whose beam at some offset (range ``r_a``) is not
+    ``anchored``, lies off the return by more than ``margin`` in range, and whose next
+    beam outwards (``r_out``) lies nearer than it by more than ``margin``."""
+    out = np.empty(r.size, dtype=np.int64)
+    m = 0
+    for i in range(r.size):
+        if r_out[i] < r_a[i] - margin and not anchored[i] and abs(r_a[i] - r[i]) > margin:
+            out[m] = i
+            m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def _range_at(q, o, key, lut, stride, r):
+    """Range of the return ``o`` beams from return ``q`` along the line (NaN: none)."""
+    n = r.size
+    w = key[q] + o * stride
+    if lut.size:
+        j = lut[w]
+    else:
+        j = np.searchsorted(key, w)
+        if j < n and key[j] != w:
+            j = n
+    return r[j] if j < n else np.nan
+
+
+@numba.njit(cache=True)
+def past_run(
+    c: NDArray[np.int64],
+    key: NDArray[np.int64],
+    lut: NDArray[np.int32],
+    stride: int,
+    r: NDArray[np.float64],
+    blur: NDArray[np.float64],
+    a: int,
+    sd: int,
+    thin: int,
+    margin: float,
+    sigma: float,
+    sigmas: float,
+    step: float,
+    across: float,
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """``mixed_grid._past_thin_run``'s loop over the runs of the returns ``c`` (the beam
+    ``a`` = sd × i beams away): the returns off the surface found past a run, and their
+    range offsets from it."""
+    i = a * sd
+    out = np.empty(c.size, dtype=np.int64)
+    dev = np.empty(c.size, dtype=np.float64)
+    m = 0
+    for t in range(c.size):
+        q = c[t]
+        ra = _range_at(q, a, key, lut, stride, r)
+        for L in range(1, thin + 1):
+            rl = _range_at(q, sd * (i + L), key, lut, stride, r)
+            if not (rl < ra - margin):
+                break
+            b1 = _range_at(q, sd * (i + L + 1), key, lut, stride, r)
+            b2 = _range_at(q, sd * (i + L + 2), key, lut, stride, r)
+            v1, v2 = 1.0 / b1, 1.0 / b2
+            sd1 = sigmas * np.sqrt(sigma**2 + (np.abs(b1 - b2) * blur[q]) ** 2)
+            k = L + 1
+            va = v1 + (v1 - v2) * k
+            land = np.abs((1.0 / va if va > 0 else np.inf) - ra)
+            if not ((b1 > rl + margin) and (land <= sd1 * np.sqrt((k + 1) ** 2 + k**2 + 1))):
+                continue
+            k = L + 1 + i
+            rp = r[q]
+            vp = v1 + (v1 - v2) * k
+            d = np.abs((1.0 / vp if vp > 0 else np.inf) - rp)
+            cos_inc = 1.0 / np.sqrt(1.0 + (rp * np.abs(v1 - v2) / step) ** 2)
+            if (d > sd1 * np.sqrt((k + 1) ** 2 + k**2 + 1)) and (d * cos_inc > across):
+                out[m] = q
+                dev[m] = d
+                m += 1
+            break
+    return out[:m], dev[:m]

@@ -44,6 +44,9 @@ Likewise along azimuth the scan's last beam on a side, behind a ramp that runs o
 it (each beam farther than the one before by more than margin + step × range, the
 ramp's returns on no line of two beams) from an anchor nearer than p, is the farther
 surface: a background at the field of view's edge shows one beam, no line.
+A beam whose next beams outwards are a thin object's run (a wall seen one beam wide
+between a pole's blends and a board's ramp) is an anchor when the surface beyond the
+run, continued across it, lands on it (``_past_thin_run``).
 
 Thin objects narrower than the footprint leave no correct return at all: along
 a line they are a run of at most ``thin`` beams (about two footprints) in front
@@ -99,7 +102,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ._mixed_kernels import anchor_pass, behind_both, line_gather, spread_of
+from ._mixed_kernels import (
+    anchor_pass,
+    behind_both,
+    edge_drops,
+    line_gather,
+    past_run,
+    spread_of,
+)
 
 OFF_GRID = 0.35  # a beam's angle lies within this many steps of its grid line
 
@@ -651,6 +661,15 @@ def _mixed_along(
                     cc = np.flatnonzero(beyond)
                     v = V[a][cc] + (V[a][cc] - V[a1][cc]) * i
                     hidden[sd][i] = (cc, np.where(v > 0, 1.0 / v, np.inf))
+                # a beam seen past a thin object (the pole before a wall's one beam between
+                # its blends and a board's ramp) has no line of its own outwards: the
+                # surface beyond the object's run, continued across it, anchors it
+                cx, dx = _past_thin_run(line, R, r, anchored, s, sd, i, blur, step, across)
+                if cx.size:
+                    rx, rax = r[cx], ra[cx]
+                    close = np.fmin(np.abs(rax - rx), dx) < s.max_gap
+                    far[sd][i][cx[close & (rax > rx + s.margin)]] = True
+                    near[sd][i][cx[close & (rax < rx - s.margin)]] = True
                 if axis == 1 and level is not None:
                     # a nearer surface (grazing ground) whose continuation to p's beam
                     # passes behind p (within max_gap): p lies in front of the ground
@@ -759,6 +778,44 @@ def _mixed_along(
     if s.open_edges:
         between |= _bleeding(R, V, line.C, r, s, step, step_x, pos, extent, oblique=axis == 0)
     return between
+
+
+def _past_thin_run(
+    line: _Line,
+    R: dict[int, NDArray[np.float64]],
+    r: NDArray[np.float64],
+    anchored: NDArray[np.bool_],
+    s: GridSettings,
+    sd: int,
+    i: int,
+    blur: NDArray[np.float64],
+    step: float,
+    across: float,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Beams ``i`` beams from p on side ``sd`` that lie on a surface seen past a thin
+    object, and p's range offset from that surface, for the returns p off it.
+
+    A surface seen between the blends of a thin object and a nearer edge (a wall's one
+    beam between a pole narrower than the footprint and the ramp into a board) shows
+    no line of its own outwards: its next beams are the object's run. The beam (not
+    anchored otherwise) is on the surface beyond the run when every beam of the run,
+    at most ``s.thin`` of them, lies nearer than it by more than the margin, the first
+    beam past the run lies behind the run's last, and the line through the first two
+    beams past the run, continued across it, lands on the beam (within the scatter of
+    a two-beam line continued that far, as an anchor's own line is judged). p is off
+    that surface when the line, continued on to p's beam, misses p by more than its
+    scatter there and by more than ``across`` across the surface (its incidence from the
+    line's change in inverse range per beam).
+    Returns the indexes of those p and their range offsets."""
+    a = sd * i
+    c = edge_drops(R[sd * (i + 1)], R[a], r, anchored, s.margin)
+    if c.size == 0:
+        return c, np.zeros(0)
+    j = line.J
+    lut = j.find.lut
+    return past_run(
+        c, j.key, lut, j.stride, r, blur, a, sd, s.thin, s.margin, s.sigma, s.sigmas, step, across
+    )
 
 
 def _step_run(
