@@ -886,6 +886,43 @@ def test_ditches_side_by_side_do_not_meet_end_to_end_and_a_jog_under_the_width_d
         assert lengths(first, jogged) == [pytest.approx(100 + gap, abs=10)]
 
 
+def test_a_ditch_does_not_run_on_to_a_blob_beside_its_line_past_its_end():
+    """A straight 3.5 m ditch of 150 m and, 15 m past its end, a 12 x 9 m blob (no
+    direction of its own: as long as wide) whose long side runs parallel to the ditch.
+    Read on the pieces' whole axes and the gap between their tile staircases (which
+    comes closest from corner to corner), the blob lined up with the ditch within 20
+    degrees wherever it lay up to 12 m off the ditch's line, and the ditch ran on into it
+    (job DTM, fresh seed 330: a 151 m ditch found 203 m long, run on to a 20 x 7 m piece
+    of a road cut's marks 19 m past its end, 11 m off its line). Joined only where the
+    ditch's line, continued, passes within its width of the blob's outline, it stays
+    150 m with the blob 9.5-11.5 m off (its outline 5-7 m off the line), and is still
+    joined to one on its line or within its width of it (outline 3 m off), and to a
+    speck on its line, on both the grid's rows and at 30 degrees to them."""
+    shape, grid = (180, 240), Affine(1, 0, 0, 0, -1, 180)
+
+    def lengths(*strips: NDArray[np.bool_]) -> list[int]:
+        return _ditch_lengths(shape, grid, 20, *strips)
+
+    for ang in (0.0, 30.0):
+        along = np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])
+        across = np.array([-along[1], along[0]])
+        p0 = np.array([15.0, 40.0])
+        ditch = _strip(shape, *p0, ang, 150, 3.5)
+        (alone,) = lengths(ditch)  # the blob alone is too short to be an object
+        assert alone == pytest.approx(150, rel=0.1)
+        for off, joined in ((0.0, True), (5.5, True), (7.5, True), (9.5, False), (11.5, False)):
+            blob = _strip(shape, *(p0 + 165 * along - off * across), ang, 12, 9)
+            got = lengths(ditch, blob)
+            assert len(got) == 1 and (got[0] > alone + 15 if joined else got[0] == alone), (
+                ang,
+                off,
+                got,
+            )
+        speck = _strip(shape, *(p0 + 162 * along - 1 * across), ang, 3, 3)
+        (got,) = lengths(ditch, speck)  # 12 m on, 1 m off the line
+        assert got > alone + 5
+
+
 def test_ridge_on_a_slope_is_found_and_a_pond_rim_on_it_is_not():
     """On a 12 % slope the downhill rim of a pond dug into it (bank rising to the rim,
     slope falling beyond) has a ridge's cross-section; on its regional slope it has not."""
