@@ -1623,6 +1623,76 @@ def test_a_ditch_at_the_foot_of_a_road_embankment_on_level_land_is_kept():
     assert [o.kind for o in objs] == ["road"]
 
 
+def test_split_cuts_an_object_lying_across_a_road_into_the_ditches_on_its_sides():
+    """``split road``: an object of two strips along both sides of a road, joined across
+    the road's ground, is cut along the road into the two strips, each measured as the
+    filter's own objects; a ditch crossing the road joins again end to end across it and is
+    kept as it was, as is an object the cut leaves as one; without the rule, or without a
+    road, nothing changes."""
+    from shapely.ops import unary_union
+
+    from terrasift.workers.features import apply_yields
+    from terrasift.workers.features.objects import Feature
+
+    text = (
+        "beginsegment\nbeginsubsegment 1 1\nbegincategory\ninclination 1\nstate any\n"
+        "orientation any\nendcategory\nendsubsegment\nendsegment\n"
+        "connect edge 30m -1 2m 16m\njoin width 20m\nsplit road\n"
+    )
+    flt = parse_filter(text, "ditch")
+    assert flt.splits == ("road",) and flt.steps[-1] == "split"
+    assert parse_filter(format_filter(flt), "ditch") == flt
+    road = Feature("road", box(0, 0, 200, 5), 200, 5, 250)
+    south, north = box(0, -3, 200, -1), box(0, 6, 200, 8)
+    rungs = [box(60, -1, 62, 6), box(140, -1, 142, 6)]  # marks over the road's ground
+    both = Feature("ditch", unary_union([south, north, *rungs]), 200, 11, 828)
+    crossing = Feature("ditch", box(100, -40, 104, 44), 84, 4, 336)
+    along = Feature("ditch", unary_union([north, box(60, 4, 62, 6)]), 200, 2, 204)
+    out = apply_yields([road, both, crossing, along], [flt], 2.0)
+    assert out[0] == road and out[3:] == [crossing, along]
+    parts = out[1:3]
+    assert sorted(round(p.geometry.area) for p in parts) == [404, 404]  # and the rungs' stubs
+    assert {round(p.geometry.centroid.y) for p in parts} == {-2, 7}
+    assert all(abs(p.length_m - 200) < 2 and 2 <= p.width_m < 3 for p in parts)
+    assert all(p.kind == "ditch" and 390 <= p.tiles <= 410 for p in parts)
+    plain = parse_filter(text.replace("split road\n", ""), "ditch")
+    assert apply_yields([road, both], [plain], 2.0) == [road, both]
+    assert apply_yields([both, crossing], [flt], 2.0) == [both, crossing]
+    # parts too short to be ditches (30 m) are not a split: the object stays whole
+    short = Feature(
+        "ditch", unary_union([box(0, -3, 20, -1), box(0, 6, 20, 8), box(5, -1, 7, 6)]), 20, 11, 94
+    )
+    assert apply_yields([road, short], [flt], 2.0) == [road, short]
+    for bad in ("split", "split ditch", "split road road", "split road\nsplit road"):
+        with pytest.raises(FilterSyntaxError):
+            parse_filter(text.replace("split road", bad), "ditch")
+    with pytest.raises(FilterSyntaxError):
+        parse_filter(text.split("connect")[0] + "split road\n", "ditch")
+    assert load_filter("ditch").splits == ("road",)
+    assert load_filter("ditch-shallow").splits == ("road",)
+    assert not load_filter("road").splits and not load_filter("ridge").splits
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_the_ditches_on_both_sides_of_a_cut_road_are_two_ditches(seed):
+    """A 0.5 m cut on level land with a 1.5 m wide, 0.4 m deep ditch at the foot of each
+    wall: the ditch filter's marks run round the cut's ends over the road's ground, and one
+    object lay on both ditches and the road (222-434 m, on neither ditch by half). Cut along
+    the road (``split road``), each ditch is one object of its own and no ditch is false."""
+    cell, size = 0.5, 240.0
+    tt = Affine(cell, 0, 0, 0, -cell, size)
+    filters = [load_filter("ditch"), load_filter("road")]
+    z, truth = _roadside(-0.5, (-1, 1), seed)
+    cats, stepped = categories_for(z, cell, filters)
+    objs = detect_features(cats, filters, tt, cats.tile_size, stepped=stepped, dtm=z).objects
+    assert [o.kind for o in objs].count("road") == 1
+    found = [o for o in objs if o.kind == "ditch"]
+    assert len(found) == 2, [(o.length_m, o.width_m) for o in found]
+    for t in truth:
+        assert sum(_on(o.geometry, t) for o in found) == 1
+    assert all(180 < o.length_m < 230 for o in found)
+
+
 def test_a_road_cut_into_a_slope_is_a_road_and_not_also_a_ditch():
     """A level road cut 0.21 m into a 13 % slope along its contour is, on the ditch
     filter's detrended tiles, a trough falling to the foot of its uphill wall; the

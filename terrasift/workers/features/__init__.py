@@ -53,7 +53,9 @@ from terrasift.workers.features.language import (
 from terrasift.workers.features.objects import (
     Feature,
     _measured,
+    finish_pieces,
     objects_from_labels,
+    rectangle_size,
     square_dilation,
 )
 from terrasift.workers.features.search import search_filter
@@ -351,7 +353,8 @@ def apply_yields(
     noise: float | None = None,
 ) -> list[Feature]:
     """``objects`` without those a filter's ``edges`` (with ``heights``, the DTM) or
-    ``bank`` drops, and then those its ``yield`` drops: an object with at least the
+    ``bank`` drops, split where its ``split`` cuts them (``_split_across``), and then
+    without those its ``yield`` drops: an object with at least the
     share of its area within the distance (tiles of ``tile_size`` metres, or metres) of an
     object of the named filter, as that filter found it, or, where the rule gives a length,
     no part of it beyond the distance that long. A named filter that did not run takes
@@ -376,6 +379,7 @@ def apply_yields(
         objects = _drop_unbounded(objects, filters, tile_size, heights)
     banks = _banks(objects, filters)
     objects = [o for i, o in enumerate(objects) if i not in banks]
+    objects = _split_across(objects, filters, grid)
     if not rules:
         return objects
     by_kind: dict[str, list[Feature]] = {}
@@ -465,6 +469,50 @@ def _banks(objects: list[Feature], filters: list[Filter]) -> set[int]:
                 if o.kind == f.name and any(_on_flank(o, g) for g in theirs):
                     drop.add(i)
     return drop
+
+
+def _split_across(
+    objects: list[Feature], filters: list[Filter], grid: dict[str, float]
+) -> list[Feature]:
+    """``objects`` with each object of a filter with ``split <other>`` that lies across
+    objects of ``other`` replaced by its parts off them, where those parts, joined and
+    measured as the filter's pieces are on its grid of ``grid`` metres (``finish_pieces``
+    with its resolved ``join`` and connect limits), make two objects or more. Each part
+    keeps the object's tiles in proportion to its area."""
+    out = list(objects)
+    for f in filters:
+        if not f.splits or f.connect is None:
+            continue
+        cut = [o.geometry for o in out if o.kind in f.splits]
+        if not cut:
+            continue
+        zone = shapely.union_all(cut)
+        shapely.prepare(zone)
+        spacing = grid[f.name]
+        opts = object_options(resolve_lengths(f, spacing), FeatureParams())
+        limits = opts.pop("limits")
+        opts.pop("fill_holes", None)
+        opts.pop("simplify_tiles", None)
+        mine: list[Feature] = []
+        for o in out:
+            g = o.geometry
+            if o.kind != f.name or g.area <= 0 or not zone.intersects(g):
+                mine.append(o)
+                continue
+            parts = [
+                p
+                for p in shapely.get_parts(g.difference(zone))
+                if isinstance(p, Polygon) and p.area > 0
+            ]
+            pieces = []
+            for p in parts:
+                length, width = rectangle_size(p)
+                share = round(o.tiles * p.area / g.area)
+                pieces.append(Feature(o.kind, p, float(length), float(width), share))
+            split = finish_pieces(pieces, spacing, limits, **opts) if len(pieces) > 1 else []
+            mine += split if len(split) > 1 else [o]
+        out = mine
+    return out
 
 
 def _on_flank(o: Feature, g: Polygon | MultiPolygon) -> bool:

@@ -299,6 +299,17 @@ class Filter:
     between a rise and a fall, as a road cut into the slope, but the ditch's floor lies
     beside it where a cut road's floor is the road."""
 
+    splits: tuple[str, ...] = ()
+    """``split <filter>``: once every filter has run, after the banks and before the yields,
+    an object lying across objects of the named filter is cut along them: its parts off
+    them are joined again and measured as the filter's own pieces are (``join``, the
+    connect limits), and where they make two objects or more these replace it (each then
+    yields or not on its own). An object the cut leaves whole, or as one object (a ditch
+    crossing a road joins again end to end across it), is kept as it was. The ditch
+    filter's marks run over a road's ground between the ditches along both its sides
+    (the level top of a road on a slope reads as a bank on the regional slope; a cut's
+    end wall), and one object lay on both ditches and the road."""
+
     edges: float | None = None
     """``edges <height>``: once every filter has run, and before the banks and yields, an
     object is read on the DTM across its whole length (``features.edges``) and dropped
@@ -415,6 +426,7 @@ class _Parser:
         share: float | None = None
         yields: list[tuple[str, Length, float] | tuple[str, Length, float, Length]] = []
         banks: list[str] = []
+        splits: list[str] = []
         deeper: list[tuple[str, float]] = []
         edges: float | None = None
         edges_tilt: float | None = None
@@ -553,6 +565,12 @@ class _Parser:
                 banks.append(args[0])
                 if "bank" not in steps:
                     steps.append("bank")
+            elif key == "split":
+                if len(args) != 1 or args[0] in splits or args[0] == self.name:
+                    raise self.error("split takes another filter's name, once per name", no)
+                splits.append(args[0])
+                if "split" not in steps:
+                    steps.append("split")
             elif key == "edges":
                 msg = (
                     "edges takes one height in metres, above 0 and at most 5, and optionally"
@@ -632,6 +650,8 @@ class _Parser:
             raise self.error("bank needs a connect or findrectangle step", last_line)
         if edges is not None and connect is None:
             raise self.error("edges needs a connect step", last_line)
+        if splits and connect is None:
+            raise self.error("split needs a connect step", last_line)
         return Filter(
             self.name,
             tuple(segments),
@@ -654,6 +674,7 @@ class _Parser:
             tuple(yields),
             join_line,
             banks=tuple(banks),
+            splits=tuple(splits),
             clear_exempt=clear_exempt,
             diagonal=diagonal,
             majority=majority,
@@ -906,6 +927,8 @@ def format_filter(f: Filter) -> str:
             ]
         elif step == "bank":
             out += [f"bank {b}" for b in f.banks]
+        elif step == "split":
+            out += [f"split {b}" for b in f.splits]
         elif step == "majority" and f.majority:
             out.append("majority")
         elif step == "edges" and f.edges is not None:
@@ -942,6 +965,8 @@ def _default_steps(f: Filter) -> tuple[str, ...]:
         steps.append("yield")
     if f.banks:
         steps.append("bank")
+    if f.splits:
+        steps.append("split")
     if f.majority:
         steps.append("majority")
     if f.edges is not None:
