@@ -100,6 +100,12 @@ class MixedParams(StageParams):
     grazing incidence a large range offset is a small distance off the surface: a blend
     of ground and a wall's foot). 3 cm is the distance from every surface beyond which
     the benchmark family counts a return as mixed."""
+    pool_rows: int = Field(5, ge=0, le=1000)
+    """grid: least run of consecutive rows (one column) whose first ramp beams beside a
+    face-on surface are judged together: marked when their mean offset off that surface,
+    towards the ramp, exceeds 2.5 standard errors of the mean of the run's offsets (the
+    surface's measured range scatter) and more than 80 % of them point towards the ramp.
+    0: off (each return judged on its own)."""
     anchor_beams: int = Field(3, ge=2, le=3)
     """grid: beams of an anchor's surface continued to a return to judge whether the
     return lies off it. 3: on a face-on surface (the anchor and its two outer beams on
@@ -486,6 +492,7 @@ def grid_settings(geo: ScanGeometry, p: MixedParams) -> GridSettings:
         open_edges=p.open_edges,
         fit_beams=p.anchor_beams,
         surface_sigma=float(surface),
+        pool_rows=p.pool_rows,
     )
 
 

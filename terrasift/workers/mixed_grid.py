@@ -136,6 +136,7 @@ class GridSettings:
     open_edges: bool = False  # judge returns at edges with nothing behind them
     fit_beams: int = 2  # beams of a face-on anchor's surface continued to a return (2 or 3)
     surface_sigma: float = 0.0  # range scatter of returns on a surface, edges left out (0: sigma)
+    pool_rows: int = 5  # least run of rows whose first ramp beams are judged pooled (0: off)
 
 
 def box_halfwidths(
@@ -382,8 +383,96 @@ def mark_grid(
                     level &= np.abs(0.5 * (r_m + r_p) - r) <= tol
         out |= _mixed_along(line, r, s, pos, axis, (lo, hi), level)
         line_done = line  # its arrays are free for the next axis
+    if s.pool_rows > 0:
+        out |= _pooled_edges(key, r, out, find, n_e, s)
     marked[idx[order]] = out
     return marked & own, own, timed is not None
+
+
+def _pooled_edges(
+    key: NDArray[np.int64],
+    r: NDArray[np.float64],
+    marked: NDArray[np.bool_],
+    find: Any,
+    n_e: int,
+    s: GridSettings,
+) -> NDArray[np.bool_]:
+    """First beams of ramps along a vertical edge, judged pooled down the edge.
+
+    The first beam of a ramp next to a face-on surface blends a small share of the
+    other surface: with range noise near 1 cm and a gap under half a metre it lies
+    4-5 sd off the surface, under what a single return must clear (about 7 sd of the
+    surface scatter). Along a long edge the same beam recurs in every row, so the
+    rows are judged together. A return p is a candidate on side sd when it is
+    unmarked, its azimuth neighbour towards -sd is marked and lies off the surface by
+    more than ``margin`` (the ramp), and its three
+    next beams towards +sd are unmarked and lie on one face-on line (each within
+    ``sigmas`` × σ√2 of the next, a difference of two returns). Its offset is p's
+    range minus the least-squares line through those three continued to p's beam,
+    (4 r₁ + r₂ − 2 r₃)/3, signed towards the marked neighbour, and p must lie short
+    of that neighbour (between the surface and the ramp). Each offset scatters
+    by σ√(10/3) (p's own σ and the continuation's σ√(7/3)), σ the measured range
+    scatter of returns on a surface (``surface_sigma``). A run of at least
+    ``pool_rows`` candidates in consecutive rows of one column is marked whole when
+    its mean offset exceeds 3 σ√(10/3)/√n (3 standard errors of the mean of n
+    offsets) and more than 80 % of its offsets point towards the ramp: noise alone
+    gives either sign. With five rows that is 2.45 σ instead of about 7 σ per
+    return. Along azimuth a scan of a full turn (its columns span 2π / step) wraps:
+    the last column neighbours the first.
+    """
+    n = r.size
+    sig = s.surface_sigma if s.surface_sigma > 0 else s.sigma
+    col = key // n_e
+    row = key - col * n_e
+    c0, c1 = int(col.min()), int(col.max())
+    turn = int(round(2 * np.pi / s.step_az))
+    wrap = abs(2 * np.pi / s.step_az - turn) < 0.25 and c1 - c0 + 1 == turn
+    r_pad = np.append(r, np.nan)
+    m_pad = np.append(marked, False)
+
+    def at(d: int) -> NDArray[np.intp]:
+        c = col + d
+        if wrap:
+            c = (c - c0) % turn + c0
+        return find(c * n_e + row)
+
+    flat = s.sigmas * sig * np.sqrt(2.0)
+    need = 3.0 * sig * np.sqrt(10.0 / 3.0)  # 3 standard errors of one offset
+    add = np.zeros(n, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        for sd in (1, -1):
+            jn = at(-sd)
+            cand = ~marked & m_pad[jn]
+            if not cand.any():
+                continue
+            j1, j2, j3 = at(sd), at(2 * sd), at(3 * sd)
+            r1, r2, r3 = r_pad[j1], r_pad[j2], r_pad[j3]
+            cand &= ~m_pad[j1] & ~m_pad[j2] & ~m_pad[j3]
+            cand &= (np.abs(r1 - r2) < flat) & (np.abs(r2 - r3) < flat)
+            cont = (4.0 * r1 + r2 - 2.0 * r3) / 3.0
+            # the marked neighbour off the surface by more than the margin: the ramp's
+            # side, not noise (level with the surface its sign would follow the
+            # continuation's own error, which p's offset shares)
+            ramp = r_pad[jn] - cont
+            cand &= np.abs(ramp) > s.margin
+            off = (r - cont) * np.sign(ramp)
+            # and p between the surface and that neighbour, as a ramp's first beam lies
+            # (a surface of its own beyond the ramp is no blend of this edge)
+            cand &= off < np.abs(ramp)
+            cand &= np.isfinite(off)
+            ci = np.flatnonzero(cand)
+            if ci.size < s.pool_rows:
+                continue
+            # runs of consecutive rows in one column: consecutive keys (rows are padded)
+            brk = np.flatnonzero(np.diff(key[ci]) != 1) + 1
+            starts = np.r_[0, brk]
+            lens = np.diff(np.r_[starts, ci.size])
+            o = off[ci]
+            mean = np.add.reduceat(o, starts) / lens
+            pos_share = np.add.reduceat((o > 0).astype(np.float64), starts) / lens
+            ok = (lens >= s.pool_rows) & (mean > need / np.sqrt(lens)) & (pos_share > 0.8)
+            add[ci[np.repeat(ok, lens)]] = True
+    return add
 
 
 def _angle_index(
