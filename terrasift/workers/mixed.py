@@ -103,7 +103,7 @@ class MixedParams(StageParams):
     pool_rows: int = Field(5, ge=0, le=1000)
     """grid: least run of consecutive rows (one column) whose first ramp beams beside a
     face-on surface are judged together: marked when their mean offset off that surface,
-    towards the ramp, exceeds 2.5 standard errors of the mean of the run's offsets (the
+    towards the ramp, exceeds 3 standard errors of the mean of the run's offsets (the
     surface's measured range scatter) and more than 80 % of them point towards the ramp.
     0: off (each return judged on its own)."""
     anchor_beams: int = Field(3, ge=2, le=3)
